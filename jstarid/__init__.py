@@ -1,0 +1,30 @@
+"""jstarid: lost-in-space star identification in JAX (SPEC §9 public API)."""
+
+from jstarid import algorithms
+from jstarid.attitude import (
+    attitude_errors_arcsec,
+    estimate_attitude,
+    quaternion_from_rotation,
+    random_rotation,
+    rotation_from_boresight,
+    rotation_from_quaternion,
+    rotation_from_radec_roll,
+    rotation_to_radec_roll,
+    solve_wahba,
+)
+from jstarid.camera import Camera, camera_preset, preset_names
+from jstarid.catalog import Catalog, load_catalog, v_from_hp
+from jstarid.metrics import evaluate, scene_outcomes
+from jstarid.scene import Identification, Scene, scenes_from_centroids
+from jstarid.simulate import NoiseConfig, noise_grid, simulate
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Camera", "Catalog", "Identification", "NoiseConfig", "Scene", "algorithms",
+    "attitude_errors_arcsec", "camera_preset", "estimate_attitude", "evaluate", "load_catalog",
+    "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation",
+    "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",
+    "rotation_to_radec_roll", "scene_outcomes", "scenes_from_centroids", "simulate", "solve_wahba",
+    "v_from_hp",
+]

@@ -1,0 +1,176 @@
+"""Pinhole camera model and the camera presets of SPEC §6.
+
+Frames (SPEC §1): the camera frame has +z along the boresight, +x along increasing pixel column and +y
+along increasing pixel row. Pixel coordinates are ``(x, y) = (column, row)`` with the origin at the
+centre of pixel (0, 0), so the image spans ``0 ≤ x ≤ W−1``, ``0 ≤ y ≤ H−1`` and the default principal
+point is the image centre ``((W−1)/2, (H−1)/2)``.
+
+A :class:`Camera` is a frozen, hashable dataclass: it is passed to jit-compiled functions as a static
+argument, and its ``project`` / ``unproject`` methods are pure ``jnp`` functions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+
+__all__ = ["Camera", "camera_preset", "preset_names"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """An ideal pinhole camera (no distortion).
+
+    Attributes:
+        width: image width W (px, columns).
+        height: image height H (px, rows).
+        f_px: focal length in pixels (focal length / pixel size).
+        cx: principal point column (px); ``None`` → ``(W−1)/2``.
+        cy: principal point row (px); ``None`` → ``(H−1)/2``.
+        mag_limit: detection limit (V mag): stars whose observed magnitude is brighter than or equal to
+            this are detected by the simulator.
+        name: a label (the preset name, or ``"custom"``).
+    """
+
+    width: int
+    height: int
+    f_px: float
+    cx: float | None = None
+    cy: float | None = None
+    mag_limit: float = 6.0
+    name: str = "custom"
+
+    def __post_init__(self):
+        if int(self.width) < 2 or int(self.height) < 2:
+            raise ValueError(f"camera size must be at least 2x2 px, got {self.width}x{self.height}")
+        if not (math.isfinite(self.f_px) and self.f_px > 0):
+            raise ValueError(f"f_px must be a positive finite number, got {self.f_px}")
+        if not math.isfinite(self.mag_limit):
+            raise ValueError(f"mag_limit must be finite, got {self.mag_limit}")
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "f_px", float(self.f_px))
+        object.__setattr__(self, "mag_limit", float(self.mag_limit))
+        cx = (self.width - 1) / 2.0 if self.cx is None else float(self.cx)
+        cy = (self.height - 1) / 2.0 if self.cy is None else float(self.cy)
+        object.__setattr__(self, "cx", cx)
+        object.__setattr__(self, "cy", cy)
+
+    @classmethod
+    def from_optics(cls, width, height, focal_length_mm, pixel_size_mm, **kwargs) -> Camera:
+        """A camera from focal length and pixel pitch (both mm)."""
+        return cls(width, height, focal_length_mm / pixel_size_mm, **kwargs)
+
+    @classmethod
+    def from_fov(cls, width, height, fov_x_deg, **kwargs) -> Camera:
+        """A camera whose horizontal field of view (edge to edge of the W-px side) is ``fov_x_deg``."""
+        return cls(width, height, (width / 2.0) / math.tan(math.radians(fov_x_deg) / 2.0), **kwargs)
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def fov_x_deg(self) -> float:
+        """Horizontal field of view (deg), edge to edge."""
+        return math.degrees(2.0 * math.atan((self.width / 2.0) / self.f_px))
+
+    @property
+    def fov_y_deg(self) -> float:
+        """Vertical field of view (deg), edge to edge."""
+        return math.degrees(2.0 * math.atan((self.height / 2.0) / self.f_px))
+
+    @property
+    def fov_diagonal_deg(self) -> float:
+        """Diagonal field of view (deg), corner to corner."""
+        return math.degrees(2.0 * math.atan(math.hypot(self.width, self.height) / 2.0 / self.f_px))
+
+    @property
+    def half_diagonal_rad(self) -> float:
+        """Largest angle (rad) between the boresight and any pixel of the frame.
+
+        Measured to the pixel-grid corner farthest from the principal point, so it also bounds an
+        off-centre principal point. Used to pre-select catalog stars that may fall in the frame.
+        """
+        dx = max(self.cx, self.width - 1 - self.cx)
+        dy = max(self.cy, self.height - 1 - self.cy)
+        return math.atan(math.hypot(dx, dy) / self.f_px)
+
+    def project(self, v_cam):
+        """Project camera-frame vectors to pixels (SPEC §1 pinhole model).
+
+        Args:
+            v_cam: (..., 3) vectors in the camera frame (need not be unit length).
+
+        Returns:
+            ``(xy, in_field)``: (..., 2) float pixel coordinates and (...,) bool, True when ``v_z > 0``
+            and the point lies inside ``[0, W−1] × [0, H−1]``. For ``v_z ≤ 0`` the pixel values are
+            finite but meaningless (a safe divisor is used so gradients and jit stay NaN-free).
+        """
+        v_cam = jnp.asarray(v_cam)
+        vz = v_cam[..., 2]
+        front = vz > 0
+        safe_vz = jnp.where(front, vz, 1.0)  # double-where: no inf/NaN behind the camera
+        x = self.cx + self.f_px * v_cam[..., 0] / safe_vz
+        y = self.cy + self.f_px * v_cam[..., 1] / safe_vz
+        xy = jnp.stack([x, y], axis=-1)
+        return xy, front & self.contains(xy)
+
+    def contains(self, xy):
+        """(...,) bool: pixel coordinates ``xy`` (..., 2) lie inside the frame."""
+        xy = jnp.asarray(xy)
+        x, y = xy[..., 0], xy[..., 1]
+        return (x >= 0) & (x <= self.width - 1) & (y >= 0) & (y <= self.height - 1)
+
+    def unproject(self, xy):
+        """Pixels (..., 2) → unit vectors (..., 3) in the camera frame (inverse of :meth:`project`)."""
+        xy = jnp.asarray(xy)
+        u = (xy[..., 0] - self.cx) / self.f_px
+        v = (xy[..., 1] - self.cy) / self.f_px
+        ray = jnp.stack([u, v, jnp.ones_like(u)], axis=-1)
+        return ray / jnp.linalg.norm(ray, axis=-1, keepdims=True)
+
+
+def _tetra3_test() -> Camera:
+    # FLIR BFS-U3-31S4M-C binned 2x2 (6.9 µm) behind a 35 mm lens: nominally f = 5072 px, but the
+    # cedar-solve reference fits give a horizontal FOV of 11.424° on all four images
+    # (shared/data/real/reference.json); we keep the fitted value since it is what the images show.
+    return Camera.from_fov(1024, 768, 11.4243, mag_limit=7.0, name="tetra3_test")
+
+
+_PRESETS = {
+    # seed 000 §Simulation setting: 1024², 20°×20° FOV, V ≤ 6.0.
+    "sgm2022": lambda: Camera(1024, 1024, 512.0 / math.tan(math.radians(10.0)), mag_limit=6.0,
+                              name="sgm2022"),
+    # seed 001 §3: 1024², 25°×25° FOV, V ≤ 5.5 (simulation catalog to 6.5).
+    "mlv2021": lambda: Camera(1024, 1024, 512.0 / math.tan(math.radians(12.5)), mag_limit=5.5,
+                              name="mlv2021"),
+    # seed 004 Table 4: f = 49.277 mm, 0.012 mm pixels. The paper's "20°×20°" is in fact the
+    # diagonal FOV of these optics (≈14.2° per side); we keep the optics (SPEC §6 note).
+    "rpnet2019": lambda: Camera.from_optics(1024, 1024, 49.277, 0.012, mag_limit=6.0,
+                                            name="rpnet2019"),
+    # seed 004 Table 7 (ZY-3 star tracker): f = 43.258 mm, 0.015 mm pixels, off-centre principal point.
+    "zy3": lambda: Camera.from_optics(1024, 1024, 43.258, 0.015, cx=515.247, cy=513.320,
+                                      mag_limit=6.0, name="zy3"),
+    "tetra3_test": _tetra3_test,
+}
+
+
+def preset_names() -> tuple[str, ...]:
+    """Names accepted by :func:`camera_preset`."""
+    return tuple(_PRESETS)
+
+
+def camera_preset(name: str, **overrides) -> Camera:
+    """A camera preset of SPEC §6 (``sgm2022``, ``mlv2021``, ``rpnet2019``, ``zy3``, ``tetra3_test``).
+
+    Args:
+        name: preset name.
+        **overrides: fields to replace (e.g. ``mag_limit=6.5``).
+
+    Raises:
+        ValueError: unknown preset name.
+    """
+    if name not in _PRESETS:
+        raise ValueError(f"unknown camera preset {name!r}; choose one of {', '.join(_PRESETS)}")
+    cam = _PRESETS[name]()
+    return dataclasses.replace(cam, **overrides) if overrides else cam

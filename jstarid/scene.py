@@ -1,0 +1,131 @@
+"""The two pytrees every algorithm shares: :class:`Scene` (input) and :class:`Identification` (output).
+
+Both follow SPEC §3–4: a batch axis first, a static capacity N per scene with a ``valid`` mask, and
+pixel coordinates in the camera convention of :mod:`jstarid.camera`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Scene", "Identification", "scenes_from_centroids"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """A batch of B star-tracker scenes with static capacity N (SPEC §3).
+
+    Attributes:
+        xy: (B, N, 2) float32 centroids (px), zero where not ``valid``.
+        mag: (B, N) float32 observed magnitude (mag), +inf where not ``valid``.
+        truth: (B, N) int32 catalog row of each detection, −1 for a false star, a star that is not in
+            the identification catalog, or padding.
+        valid: (B, N) bool, a real detection (true or false star). Valid entries come first and are
+            sorted by observed magnitude, brightest first.
+        attitude: (B, 3, 3) float32 true rotation ``C`` (ICRS → camera); NaN when unknown.
+        overflow: (B,) bool, more detections than N were in the field (the brightest N were kept).
+    """
+
+    xy: jax.Array
+    mag: jax.Array
+    truth: jax.Array
+    valid: jax.Array
+    attitude: jax.Array
+    overflow: jax.Array
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.xy.shape[0])
+
+    @property
+    def capacity(self) -> int:
+        return int(self.xy.shape[1])
+
+    @property
+    def n_stars(self) -> jax.Array:
+        """(B,) int32 number of valid detections per scene."""
+        return jnp.sum(self.valid, axis=-1, dtype=jnp.int32)
+
+    def __getitem__(self, index) -> Scene:
+        """Index or slice the batch axis (``scenes[3]`` keeps a batch axis of 1)."""
+        if isinstance(index, int | np.integer):
+            index = slice(int(index), int(index) + 1)
+        return jax.tree_util.tree_map(lambda a: a[index], self)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Identification:
+    """What an algorithm says about a batch of scenes (SPEC §4).
+
+    Attributes:
+        ids: (B, N) int32 catalog row given to each detection, −1 = not identified.
+        ok: (B,) bool, the algorithm claims success for the scene.
+        attitude: (B, 3, 3) float32 estimated ``C`` or ``None`` when the algorithm gives none.
+    """
+
+    ids: jax.Array
+    ok: jax.Array
+    attitude: jax.Array | None = None
+
+    def __getitem__(self, index) -> Identification:
+        if isinstance(index, int | np.integer):
+            index = slice(int(index), int(index) + 1)
+        return jax.tree_util.tree_map(lambda a: a[index], self)
+
+
+def scenes_from_centroids(xy_list: Sequence, mag_list: Sequence | None = None, *,
+                          capacity: int = 64) -> Scene:
+    """Pack user centroids (e.g. from a real image) into a :class:`Scene` batch.
+
+    Args:
+        xy_list: B arrays of shape (n_i, 2), centroids (px, column/row, origin at pixel (0,0) centre).
+        mag_list: ``None`` or B arrays (n_i,) of magnitudes (or any brightness proxy where smaller is
+            brighter). Without magnitudes, the given order is taken as brightest first.
+        capacity: static N. Scenes with more than N centroids keep the brightest N and are flagged
+            ``overflow``.
+
+    Returns:
+        A :class:`Scene` with ``truth = −1`` and a NaN ``attitude`` (unknown).
+
+    Raises:
+        ValueError: non-finite centroids or magnitudes, wrong shapes, or a non-positive capacity.
+    """
+    if capacity < 1:
+        raise ValueError(f"capacity must be ≥ 1, got {capacity}")
+    if mag_list is not None and len(mag_list) != len(xy_list):
+        raise ValueError(f"got {len(xy_list)} centroid arrays but {len(mag_list)} magnitude arrays")
+    b = len(xy_list)
+    xy_out = np.zeros((b, capacity, 2), np.float32)
+    mag_out = np.full((b, capacity), np.inf, np.float32)
+    valid = np.zeros((b, capacity), bool)
+    overflow = np.zeros(b, bool)
+    for i, xy in enumerate(xy_list):
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2) if np.size(xy) else np.zeros((0, 2))
+        if not np.all(np.isfinite(xy)):
+            raise ValueError(f"scene {i}: centroids contain NaN or inf")
+        if mag_list is None or mag_list[i] is None:
+            mag = np.arange(len(xy), dtype=np.float64)  # given order = brightness order
+        else:
+            mag = np.asarray(mag_list[i], dtype=np.float64).reshape(-1)
+            if mag.shape[0] != xy.shape[0]:
+                raise ValueError(f"scene {i}: {xy.shape[0]} centroids but {mag.shape[0]} magnitudes")
+            if not np.all(np.isfinite(mag)):
+                raise ValueError(f"scene {i}: magnitudes contain NaN or inf")
+        order = np.argsort(mag, kind="stable")[:capacity]
+        n = len(order)
+        overflow[i] = len(xy) > capacity
+        xy_out[i, :n] = xy[order]
+        mag_out[i, :n] = mag[order]
+        valid[i, :n] = True
+    return Scene(
+        xy=jnp.asarray(xy_out), mag=jnp.asarray(mag_out),
+        truth=jnp.full((b, capacity), -1, jnp.int32), valid=jnp.asarray(valid),
+        attitude=jnp.full((b, 3, 3), jnp.nan, jnp.float32), overflow=jnp.asarray(overflow),
+    )

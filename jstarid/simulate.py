@@ -1,0 +1,318 @@
+"""Batched star-tracker scene simulation with the four noise models of SPEC §3.
+
+``simulate`` is a thin host wrapper (validation, static sizes, the sky index) around one jit-compiled
+pure function of the PRNG key: a per-scene simulator written once and batched with ``vmap``. Every
+noise level is a per-scene array inside the compiled function, so a sweep over σ (or over any mix of
+noise settings) is one call with ``NoiseConfig`` fields of shape (B,), not a Python loop.
+
+Per scene:
+1. attitude: uniform over SO(3) (mode a), or boresight on a catalog star with uniform roll (mode b);
+2. the K simulation stars of the boresight's sky-index cell are rotated into the camera frame and
+   projected (pinhole);
+3. magnitude noise (Gaussian σ_m) is added to V *before* the camera's detection limit, using the deeper
+   simulation list, so dim stars can appear and stars near the limit vanish;
+4. position noise (Gaussian σ px, independent in x and y) is added to every true centroid; a detection
+   requires its measured centroid inside the frame (a centroid off the sensor cannot be measured);
+5. missing stars: k of the detected true stars, chosen uniformly, are removed;
+6. false stars: ``n_false`` plus ``round(p N_t / (1 − p))`` for a ratio p (RpNet eq. 12, N_t the true
+   stars left), placed uniformly over the frame or over the part of a disk of radius
+   ``false_radius_px`` about the principal point that lies inside the frame; magnitude uniform in
+   ``[false_mag_min, false_mag_max]``; position noise does not apply (their position is random anyway);
+7. all detections are ordered by observed magnitude and the brightest ``capacity`` kept; ``overflow``
+   says more were present. False stars beyond the false-star buffer also set ``overflow``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jstarid.attitude import random_rotation, rotation_from_boresight
+from jstarid.scene import Scene
+from jstarid.sky_index import build_sky_index, cell_of
+
+__all__ = ["NoiseConfig", "simulate", "noise_grid"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class NoiseConfig:
+    """Noise settings (SPEC §3). Each field is a scalar or a (B,) array (one value per scene).
+
+    Attributes:
+        position_sigma_px: centroid noise σ (px), independent in x and y.
+        magnitude_sigma: magnitude noise σ (mag), applied before the detection limit.
+        n_missing: true stars removed at random per scene.
+        n_false: false stars added per scene.
+        false_ratio: extra false stars as a ratio p = N_f / (N_t + N_f) ∈ [0, 1) (RpNet eq. 12).
+        false_mag_min: brightest false-star magnitude (mag).
+        false_mag_max: faintest false-star magnitude (mag).
+        false_radius_px: false stars within this radius (px) of the principal point; ``inf`` = whole
+            frame.
+    """
+
+    position_sigma_px: float = 0.0
+    magnitude_sigma: float = 0.0
+    n_missing: int = 0
+    n_false: int = 0
+    false_ratio: float = 0.0
+    false_mag_min: float = 3.5
+    false_mag_max: float = 5.5
+    false_radius_px: float = math.inf
+
+    def broadcast(self, batch_size: int) -> NoiseConfig:
+        """Every field as a (B,) array with the simulator's dtypes."""
+        def cast(name, value):
+            dtype = jnp.int32 if name in ("n_missing", "n_false") else jnp.float32
+            arr = jnp.asarray(value, dtype)
+            if arr.ndim > 1 or (arr.ndim == 1 and arr.shape[0] not in (1, batch_size)):
+                raise ValueError(f"NoiseConfig.{name} must be a scalar or have shape ({batch_size},), "
+                                 f"got {arr.shape}")
+            return jnp.broadcast_to(arr, (batch_size,))
+        return NoiseConfig(**{f.name: cast(f.name, getattr(self, f.name))
+                              for f in dataclasses.fields(self)})
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` on out-of-range settings (host-side; values must be concrete)."""
+        def arr(name):
+            try:
+                return np.asarray(getattr(self, name), dtype=np.float64)
+            except (TypeError, jax.errors.TracerArrayConversionError) as err:
+                raise ValueError(f"NoiseConfig.{name} must be concrete for validation") from err
+
+        checks = {
+            "position_sigma_px": lambda a: np.all((a >= 0) & (a <= 1000)),
+            "magnitude_sigma": lambda a: np.all((a >= 0) & (a <= 10)),
+            "n_missing": lambda a: np.all((a >= 0) & (a <= 10_000) & (a == np.round(a))),
+            "n_false": lambda a: np.all((a >= 0) & (a <= 10_000) & (a == np.round(a))),
+            "false_ratio": lambda a: np.all((a >= 0) & (a < 1)),
+            "false_mag_min": lambda a: np.all(np.isfinite(a)),
+            "false_mag_max": lambda a: np.all(np.isfinite(a)),
+            "false_radius_px": lambda a: np.all(a > 0),
+        }
+        rules = {
+            "position_sigma_px": "in [0, 1000] px", "magnitude_sigma": "in [0, 10] mag",
+            "n_missing": "an integer in [0, 10000]", "n_false": "an integer in [0, 10000]",
+            "false_ratio": "in [0, 1)", "false_mag_min": "finite", "false_mag_max": "finite",
+            "false_radius_px": "> 0 (inf for the whole frame)",
+        }
+        for name, ok in checks.items():
+            a = arr(name)
+            if np.any(np.isnan(a)) or not ok(a):
+                raise ValueError(f"NoiseConfig.{name} must be {rules[name]}, got {getattr(self, name)}")
+        if np.any(arr("false_mag_min") > arr("false_mag_max")):
+            raise ValueError("NoiseConfig.false_mag_min must be ≤ false_mag_max")
+
+
+def noise_grid(repeats: int, **levels) -> NoiseConfig:
+    """A :class:`NoiseConfig` whose fields sweep levels, each level repeated ``repeats`` times.
+
+    ``noise_grid(1000, position_sigma_px=[0, 0.5, 1])`` gives B = 3000 scenes, the first 1000 at σ = 0.
+    Several swept fields form the Cartesian product (first field slowest); unnamed fields keep their
+    defaults or may be given as scalars.
+    """
+    swept = {k: np.atleast_1d(np.asarray(v)) for k, v in levels.items() if np.ndim(v) > 0}
+    fixed = {k: v for k, v in levels.items() if np.ndim(v) == 0}
+    if not swept:
+        return NoiseConfig(**fixed)
+    mesh = np.meshgrid(*swept.values(), indexing="ij")
+    cols = {k: np.repeat(m.reshape(-1), repeats) for k, m in zip(swept, mesh, strict=True)}
+    return NoiseConfig(**fixed, **cols)
+
+
+def _false_capacity(noise: NoiseConfig, capacity: int) -> int:
+    n_false = int(np.max(np.asarray(noise.n_false)))
+    ratio = float(np.max(np.asarray(noise.false_ratio)))
+    # With a ratio, false stars beyond `capacity` could never all be kept anyway: bound the buffer and
+    # flag overflow when a scene asks for more.
+    extra = 0 if ratio <= 0 else capacity
+    return int(n_false + extra)
+
+
+def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_size: int | None = None,
+             capacity: int = 64, boresight_ids=None) -> Scene:
+    """Simulate a batch of scenes (SPEC §3). A pure function of ``key`` and the settings.
+
+    Args:
+        key: PRNG key (``jax.random.key`` or a legacy uint32 key).
+        catalog: :class:`~jstarid.catalog.Catalog`; truth labels are its rows.
+        camera: :class:`~jstarid.camera.Camera`; its ``mag_limit`` is the detection limit.
+        noise: :class:`NoiseConfig` (default: noise-free); fields may be (B,) arrays.
+        batch_size: B for random attitudes (mode a). Omit with ``boresight_ids``.
+        capacity: static N, detections kept per scene (brightest first).
+        boresight_ids: (B,) catalog rows; scene i has its boresight on that star and a random roll
+            (mode b).
+
+    Returns:
+        A :class:`~jstarid.scene.Scene` of B scenes.
+
+    Raises:
+        ValueError: inconsistent batch settings, a bad capacity, out-of-range noise or rows.
+    """
+    noise = NoiseConfig() if noise is None else noise
+    noise.validate()
+    if not isinstance(capacity, int | np.integer) or capacity < 1:
+        raise ValueError(f"capacity must be a positive integer, got {capacity!r}")
+    if boresight_ids is not None:
+        rows = np.asarray(boresight_ids)
+        if rows.ndim != 1 or not np.issubdtype(rows.dtype, np.integer):
+            raise ValueError("boresight_ids must be a 1-D integer array of catalog rows")
+        if rows.size and (rows.min() < 0 or rows.max() >= len(catalog)):
+            raise ValueError(f"boresight_ids must be catalog rows in [0, {len(catalog)})")
+        if batch_size is not None and batch_size != rows.shape[0]:
+            raise ValueError("batch_size disagrees with len(boresight_ids)")
+        batch_size = rows.shape[0]
+    elif batch_size is None:
+        raise ValueError("give batch_size (random attitudes) or boresight_ids (mode b)")
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be ≥ 1, got {batch_size}")
+    sim_limit = catalog.mag_limit + catalog.settings["sim_margin"]
+    if camera.mag_limit > sim_limit + 1e-6:
+        warnings.warn(f"camera limit V {camera.mag_limit} is deeper than the catalog's simulation "
+                      f"list (V ≤ {sim_limit}); stars in between are missing from the scenes",
+                      stacklevel=2)
+
+    # Stars nudged into the frame by position noise come from just outside it: widen the reach.
+    max_sigma = float(np.max(np.asarray(noise.position_sigma_px)))
+    margin = math.atan((6.0 * max_sigma + 1.0) / camera.f_px)
+    # Stars fainter than the limit by more than 5.5 σ_m (detection odds < 2e-8) are left out of the
+    # per-cell lists; the cut is rounded up to 0.1 mag so nearby σ share one index and compilation.
+    max_msig = float(np.max(np.asarray(noise.magnitude_sigma)))
+    faint_cut = camera.mag_limit + math.ceil(55.0 * max_msig) / 10.0
+    subset = np.nonzero(catalog.sim_mag <= faint_cut)[0]
+    index = build_sky_index(catalog.sim_unit_vectors, camera.half_diagonal_rad, margin_rad=margin,
+                            subset=subset, key=f"{catalog.fingerprint}-sim-{faint_cut:.1f}")
+    tables = _device_tables(catalog)
+    statics = dict(
+        camera=camera, capacity=int(capacity), grid=index.grid,
+        false_capacity=_false_capacity(noise, int(capacity)),
+        max_missing=int(np.max(np.asarray(noise.n_missing))),
+        mode_b=boresight_ids is not None,
+    )
+    rows = (jnp.zeros((batch_size,), jnp.int32) if boresight_ids is None
+            else jnp.asarray(boresight_ids, jnp.int32))
+    return _simulate_batch(key, noise.broadcast(batch_size), rows, jnp.asarray(index.cells),
+                           *tables, **statics)
+
+
+def _device_tables(catalog):
+    """Simulation-star arrays with one sentinel row appended (index M: never detected)."""
+    cached = getattr(catalog, "_sim_device_tables", None)
+    if cached is None:
+        vec = np.concatenate([catalog.sim_unit_vectors, [[0.0, 0.0, 1.0]]]).astype(np.float32)
+        mag = np.concatenate([catalog.sim_mag, [np.inf]]).astype(np.float32)
+        row = np.concatenate([catalog.sim_row, [-1]]).astype(np.int32)
+        cached = (jnp.asarray(vec), jnp.asarray(mag), jnp.asarray(row),
+                  jnp.asarray(catalog.unit_vectors, jnp.float32))
+        object.__setattr__(catalog, "_sim_device_tables", cached)
+    return cached
+
+
+@functools.partial(jax.jit, static_argnames=(
+    "camera", "capacity", "grid", "false_capacity", "max_missing", "mode_b"))
+def _simulate_batch(key, noise, rows, cells, star_vec, star_mag, star_row, cat_vec, *, camera,
+                    capacity, grid, false_capacity, max_missing, mode_b):
+    batch = rows.shape[0]
+    keys = jax.random.split(key, batch)
+    one = functools.partial(
+        _simulate_one, cells=cells, star_vec=star_vec, star_mag=star_mag, star_row=star_row,
+        cat_vec=cat_vec, camera=camera, capacity=capacity, grid=grid,
+        false_capacity=false_capacity, max_missing=max_missing, mode_b=mode_b)
+    return jax.vmap(one)(keys, noise, rows)
+
+
+def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_vec, camera, capacity,
+                  grid, false_capacity, max_missing, mode_b):
+    """One scene; ``noise`` fields are scalars here. See the module docstring for the steps."""
+    k_att, k_pos, k_mag, k_miss, k_fxy, k_fmag = jax.random.split(key, 6)
+
+    # 1. attitude
+    if mode_b:
+        roll = jax.random.uniform(k_att, (), minval=-jnp.pi, maxval=jnp.pi)
+        att = rotation_from_boresight(cat_vec[row], roll)
+    else:
+        att = random_rotation(k_att)
+
+    # 2. candidate stars of this boresight's cell, projected
+    idx = cells[cell_of(att[2], grid)]  # (K,)
+    v_cam = star_vec[idx] @ att.T  # (K, 3): v_cam = C r
+    xy_true, front_in = camera.project(v_cam)
+
+    # 3. magnitude noise before the detection limit
+    obs_mag = star_mag[idx] + noise.magnitude_sigma * jax.random.normal(k_mag, idx.shape)
+    # 4. position noise; the measured centroid must lie on the sensor
+    xy = xy_true + noise.position_sigma_px * jax.random.normal(k_pos, (*idx.shape, 2))
+    detected = (v_cam[:, 2] > 0) & camera.contains(xy) & (obs_mag <= camera.mag_limit)
+    detected &= jnp.isfinite(obs_mag)
+    del front_in  # the detection test uses the measured (noisy) centroid
+
+    # 5. missing stars: drop the `n_missing` detected true stars with the smallest random keys
+    if max_missing > 0:
+        r = jnp.where(detected, jax.random.uniform(k_miss, idx.shape), 2.0)
+        _, drop = jax.lax.top_k(-r, min(max_missing, r.shape[0]))
+        drop_ok = jnp.arange(drop.shape[0]) < noise.n_missing
+        detected = detected.at[drop].set(detected[drop] & ~drop_ok)
+
+    # 6. false stars
+    n_true = jnp.sum(detected, dtype=jnp.int32)
+    if false_capacity > 0:
+        p = noise.false_ratio
+        from_ratio = jnp.round(p * n_true / jnp.maximum(1.0 - p, 1e-6)).astype(jnp.int32)
+        n_false = noise.n_false + from_ratio
+        f_xy = _false_positions(k_fxy, false_capacity, noise.false_radius_px, camera)
+        f_mag = jax.random.uniform(k_fmag, (false_capacity,), minval=noise.false_mag_min,
+                                   maxval=noise.false_mag_max)
+        f_on = jnp.arange(false_capacity) < n_false
+        false_overflow = n_false > false_capacity
+        xy = jnp.concatenate([xy, f_xy])
+        obs_mag = jnp.concatenate([obs_mag, f_mag])
+        detected = jnp.concatenate([detected, f_on])
+        truth = jnp.concatenate([star_row[idx], jnp.full((false_capacity,), -1, jnp.int32)])
+    else:
+        false_overflow = jnp.bool_(False)
+        truth = star_row[idx]
+
+    # 7. brightest `capacity` detections
+    n_det = jnp.sum(detected, dtype=jnp.int32)
+    sort_key = jnp.where(detected, obs_mag, jnp.inf)
+    k_keep = min(capacity, sort_key.shape[0])
+    _, keep = jax.lax.top_k(-sort_key, k_keep)  # ascending magnitude
+    valid = detected[keep]
+    out_xy = jnp.where(valid[:, None], xy[keep], 0.0)
+    out_mag = jnp.where(valid, obs_mag[keep], jnp.inf)
+    out_truth = jnp.where(valid, truth[keep], -1)
+    if k_keep < capacity:  # fewer candidates than capacity: pad
+        pad = capacity - k_keep
+        out_xy = jnp.pad(out_xy, ((0, pad), (0, 0)))
+        out_mag = jnp.pad(out_mag, (0, pad), constant_values=jnp.inf)
+        out_truth = jnp.pad(out_truth, (0, pad), constant_values=-1)
+        valid = jnp.pad(valid, (0, pad))
+    return Scene(xy=out_xy.astype(jnp.float32), mag=out_mag.astype(jnp.float32),
+                 truth=out_truth.astype(jnp.int32), valid=valid,
+                 attitude=att.astype(jnp.float32), overflow=(n_det > capacity) | false_overflow)
+
+
+def _false_positions(key, n, radius_px, camera, tries: int = 8):
+    """n uniform positions in the frame, or in (disk of ``radius_px`` about (cx, cy)) ∩ frame.
+
+    Uniform in the disk by rejection against the frame: ``tries`` candidates each, the first inside
+    is used (a disk mostly outside the frame is rare; the last candidate is clipped in as a fallback).
+    """
+    k_u, k_r, k_t = jax.random.split(key, 3)
+    w, h = camera.width - 1.0, camera.height - 1.0
+    frame = jax.random.uniform(k_u, (n, 2)) * jnp.array([w, h])
+    rad = jnp.minimum(radius_px, 2.0 * (w + h))  # inf → a disk that covers the frame
+    r = rad * jnp.sqrt(jax.random.uniform(k_r, (tries, n)))
+    t = 2.0 * jnp.pi * jax.random.uniform(k_t, (tries, n))
+    cand = jnp.stack([camera.cx + r * jnp.cos(t), camera.cy + r * jnp.sin(t)], -1)  # (tries, n, 2)
+    inside = camera.contains(cand)
+    first = jnp.argmax(inside, axis=0)
+    pick = jnp.take_along_axis(cand, first[None, :, None], axis=0)[0]
+    pick = jnp.clip(pick, 0.0, jnp.array([w, h]))
+    return jnp.where(jnp.isinf(radius_px), frame, pick)
