@@ -16,7 +16,7 @@ from jstarid.camera import Camera, camera_preset, preset_names
 from jstarid.catalog import Catalog, load_catalog, v_from_hp
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.scene import Identification, Scene, scenes_from_centroids
-from jstarid.simulate import NoiseConfig, noise_grid, simulate
+from jstarid.simulator import NoiseConfig, noise_grid, simulate
 
 __version__ = "0.1.0"
 

@@ -37,7 +37,7 @@ import numpy as np
 
 __all__ = ["Catalog", "load_catalog", "v_from_hp", "cache_dir"]
 
-_CACHE_VERSION = 1
+_CACHE_VERSION = 2
 _J1991_25 = 1991.25
 _MAS_TO_RAD = np.pi / (180.0 * 3600.0 * 1000.0)
 
@@ -210,6 +210,8 @@ def _build(settings: dict) -> dict[str, np.ndarray]:
         d, _ = cKDTree(vec).query(vec_f, k=1)
         keep_f = d > 2.0 * np.sin(sep / 2.0)
         vec_f, faint = vec_f[keep_f], faint[keep_f]
+    by_mag = np.argsort(v[faint], kind="stable")  # simulation rows, too, run brightest first
+    vec_f, faint = vec_f[by_mag], faint[by_mag]
     return {
         "hip": hip.astype(np.int32), "ra": cat_ra, "dec": cat_dec,
         "mag": mag.astype(np.float32), "unit_vectors": vec,

@@ -11,8 +11,10 @@ Per scene:
    projected (pinhole);
 3. magnitude noise (Gaussian σ_m) is added to V *before* the camera's detection limit, using the deeper
    simulation list, so dim stars can appear and stars near the limit vanish;
-4. position noise (Gaussian σ px, independent in x and y) is added to every true centroid; a detection
-   requires its measured centroid inside the frame (a centroid off the sensor cannot be measured);
+4. a star is in the field when its true position is (SPEC §1); position noise (Gaussian σ px,
+   independent in x and y) is added to the centroids of the detections kept in step 7, so a centroid
+   within a few σ of the border may fall just outside ``[0, W−1] × [0, H−1]``, as in the papers'
+   simulations (noise added to the image coordinates of the stars in view);
 5. missing stars: k of the detected true stars, chosen uniformly, are removed;
 6. false stars: ``n_false`` plus ``round(p N_t / (1 − p))`` for a ratio p (RpNet eq. 12, N_t the true
    stars left), placed uniformly over the frame or over the part of a disk of radius
@@ -178,9 +180,7 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
                       f"list (V ≤ {sim_limit}); stars in between are missing from the scenes",
                       stacklevel=2)
 
-    # Stars nudged into the frame by position noise come from just outside it: widen the reach.
-    max_sigma = float(np.max(np.asarray(noise.position_sigma_px)))
-    margin = math.atan((6.0 * max_sigma + 1.0) / camera.f_px)
+    margin = math.atan(1.0 / camera.f_px)  # a pixel of slack against rounding at the border
     # Stars fainter than the limit by more than 5.5 σ_m (detection odds < 2e-8) are left out of the
     # per-cell lists; the cut is rounded up to 0.1 mag so nearby σ share one index and compilation.
     max_msig = float(np.max(np.asarray(noise.magnitude_sigma)))
@@ -244,13 +244,10 @@ def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_v
     v_cam = star_vec[idx] @ att.T  # (K, 3): v_cam = C r
     xy_true, front_in = camera.project(v_cam)
 
-    # 3. magnitude noise before the detection limit
+    # 3. magnitude noise before the detection limit; the star is in the field by its true position
     obs_mag = star_mag[idx] + noise.magnitude_sigma * jax.random.normal(k_mag, idx.shape)
-    # 4. position noise; the measured centroid must lie on the sensor
-    xy = xy_true + noise.position_sigma_px * jax.random.normal(k_pos, (*idx.shape, 2))
-    detected = (v_cam[:, 2] > 0) & camera.contains(xy) & (obs_mag <= camera.mag_limit)
-    detected &= jnp.isfinite(obs_mag)
-    del front_in  # the detection test uses the measured (noisy) centroid
+    detected = front_in & (obs_mag <= camera.mag_limit) & jnp.isfinite(obs_mag)
+    xy = xy_true
 
     # 5. missing stars: drop the `n_missing` detected true stars with the smallest random keys
     if max_missing > 0:
@@ -284,7 +281,11 @@ def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_v
     k_keep = min(capacity, sort_key.shape[0])
     _, keep = jax.lax.top_k(-sort_key, k_keep)  # ascending magnitude
     valid = detected[keep]
-    out_xy = jnp.where(valid[:, None], xy[keep], 0.0)
+    # 4. position noise on the kept true stars only (false stars are placed at random anyway), so the
+    #    cost does not grow with the number of candidate stars.
+    jitter = noise.position_sigma_px * jax.random.normal(k_pos, (k_keep, 2))
+    is_true_star = keep < idx.shape[0]
+    out_xy = jnp.where(valid[:, None], xy[keep] + jnp.where(is_true_star[:, None], jitter, 0.0), 0.0)
     out_mag = jnp.where(valid, obs_mag[keep], jnp.inf)
     out_truth = jnp.where(valid, truth[keep], -1)
     if k_keep < capacity:  # fewer candidates than capacity: pad

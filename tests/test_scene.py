@@ -1,0 +1,43 @@
+import numpy as np
+import pytest
+
+import jstarid as js
+
+
+def test_scenes_from_centroids_sorts_and_pads():
+    xy = [np.array([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0]]), np.zeros((0, 2))]
+    mag = [np.array([5.0, 2.0, 3.0]), None]
+    s = js.scenes_from_centroids(xy, mag, capacity=4)
+    assert s.xy.shape == (2, 4, 2)
+    np.testing.assert_array_equal(np.asarray(s.valid), [[1, 1, 1, 0], [0, 0, 0, 0]])
+    np.testing.assert_allclose(np.asarray(s.xy[0, :3]), [[30, 40], [50, 60], [10, 20]])
+    np.testing.assert_allclose(np.asarray(s.mag[0, :3]), [2, 3, 5])
+    assert bool(np.all(np.asarray(s.truth) == -1))
+    assert bool(np.all(np.isnan(np.asarray(s.attitude))))
+    assert not bool(s.overflow.any())
+
+
+def test_scenes_from_centroids_overflow_keeps_brightest():
+    xy = [np.arange(20.0).reshape(10, 2)]
+    mag = [np.arange(10.0)[::-1]]
+    s = js.scenes_from_centroids(xy, mag, capacity=3)
+    assert bool(s.overflow[0])
+    np.testing.assert_allclose(np.asarray(s.mag[0]), [0, 1, 2])
+
+
+def test_scenes_from_centroids_bad_input():
+    with pytest.raises(ValueError, match="NaN"):
+        js.scenes_from_centroids([np.array([[1.0, np.nan]])])
+    with pytest.raises(ValueError, match="magnitudes"):
+        js.scenes_from_centroids([np.ones((2, 2))], [np.ones(3)])
+    with pytest.raises(ValueError, match="capacity"):
+        js.scenes_from_centroids([np.ones((2, 2))], capacity=0)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        js.scenes_from_centroids([np.ones((1, 2))], [np.array([np.inf])])
+
+
+def test_scene_indexing_keeps_batch_axis():
+    s = js.scenes_from_centroids([np.ones((2, 2)), np.ones((1, 2))], capacity=4)
+    one = s[1]
+    assert one.xy.shape == (1, 4, 2)
+    assert int(one.n_stars[0]) == 1

@@ -1,0 +1,236 @@
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import jstarid as js
+from jstarid import simulator as sim_module
+
+
+def _reference_visible(catalog, camera, attitude):
+    """NumPy/SciPy: simulation rows in the frame and brighter than the limit, with their pixels."""
+    c = np.asarray(attitude, np.float64)
+    # The simulator's attitude is a proper rotation (SciPy's nearest rotation equals it); project
+    # with the matrix itself so the reference does not inherit SciPy's re-orthonormalisation.
+    np.testing.assert_allclose(Rotation.from_matrix(c).as_matrix(), c, atol=1e-6)
+    v = catalog.sim_unit_vectors @ c.T
+    front = v[:, 2] > 0
+    vz = np.where(front, v[:, 2], 1.0)
+    x = camera.cx + camera.f_px * v[:, 0] / vz
+    y = camera.cy + camera.f_px * v[:, 1] / vz
+    inside = front & (x >= 0) & (x <= camera.width - 1) & (y >= 0) & (y <= camera.height - 1)
+    bright = catalog.sim_mag <= camera.mag_limit
+    edge = front & (np.minimum.reduce([x, y, camera.width - 1 - x, camera.height - 1 - y]) < 0.01)
+    return inside & bright, edge, np.stack([x, y], -1)
+
+
+@pytest.mark.parametrize("preset", js.preset_names())
+def test_noise_free_scenes_match_scipy_projection(catalog6, preset):
+    cam = js.camera_preset(preset)
+    scenes = js.simulate(jax.random.key(11), catalog6, cam, batch_size=200, capacity=256)
+    assert not bool(scenes.overflow.any())
+    sim_of_row = np.full(len(catalog6), -1)
+    sim_of_row[catalog6.sim_row[catalog6.sim_row >= 0]] = np.nonzero(catalog6.sim_row >= 0)[0]
+    n_checked = 0
+    for b in range(scenes.batch_size):
+        vis, edge, xy_ref = _reference_visible(catalog6, cam, scenes.attitude[b])
+        valid = np.asarray(scenes.valid[b])
+        truth = np.asarray(scenes.truth[b])[valid]
+        xy = np.asarray(scenes.xy[b])[valid]
+        # noise-free: no false stars; truth −1 only for stars beyond the catalog (a camera deeper
+        # than the catalog, e.g. tetra3_test at V 7 with a V 6 catalog)
+        in_cat = catalog6.sim_row >= 0
+        got = set(sim_of_row[truth[truth >= 0]].tolist())
+        want = set(np.nonzero(vis & in_cat)[0].tolist())
+        ambiguous = set(np.nonzero(edge)[0].tolist())
+        assert got - ambiguous == want - ambiguous, f"scene {b}"
+        n_extra = int(np.sum(truth < 0))
+        lo, hi = np.sum(vis & ~in_cat & ~edge), np.sum(vis & ~in_cat) + np.sum(edge & ~in_cat)
+        assert lo <= n_extra <= hi
+        np.testing.assert_allclose(xy[truth >= 0], xy_ref[sim_of_row[truth[truth >= 0]]],
+                                   atol=1e-3)
+        mags = np.asarray(scenes.mag[b])[valid]
+        assert np.all(np.diff(mags) >= 0)  # brightest first
+        n_checked += len(truth)
+    assert n_checked > 200 * 3
+
+
+def test_mode_b_centres_the_main_star(catalog6, sgm_camera):
+    rows = np.arange(0, 5000, 50)
+    scenes = js.simulate(jax.random.key(2), catalog6, sgm_camera, boresight_ids=rows, capacity=128)
+    truth = np.asarray(scenes.truth)
+    for i, r in enumerate(rows):
+        hit = np.nonzero(truth[i] == r)[0]
+        assert len(hit) == 1
+        np.testing.assert_allclose(np.asarray(scenes.xy[i, hit[0]]), [sgm_camera.cx, sgm_camera.cy],
+                                   atol=2e-3)
+    # roll is random: the second-brightest star's direction angle is spread over the circle
+    np.testing.assert_allclose(np.asarray(scenes.attitude[:, 2]),
+                               catalog6.unit_vectors[rows], atol=1e-5)
+
+
+def _pair(catalog, camera, noise, key=jax.random.key(5), batch=400, capacity=256):
+    clean = js.simulate(key, catalog, camera, batch_size=batch, capacity=capacity)
+    noisy = js.simulate(key, catalog, camera, noise, batch_size=batch, capacity=capacity)
+    return clean, noisy
+
+
+def test_position_noise_sigma(catalog6, sgm_camera):
+    clean, noisy = _pair(catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=2.0))
+    np.testing.assert_array_equal(np.asarray(clean.truth), np.asarray(noisy.truth))
+    d = np.asarray(noisy.xy - clean.xy)[np.asarray(clean.valid)]
+    assert d.std(0) == pytest.approx([2.0, 2.0], rel=0.03)
+    assert np.abs(d.mean(0)).max() < 0.05
+    assert abs(np.corrcoef(d.T)[0, 1]) < 0.03
+
+
+def test_noise_levels_as_a_batch_axis(catalog6, sgm_camera):
+    levels = [0.0, 0.5, 1.0, 3.0]
+    noise = js.noise_grid(300, position_sigma_px=levels)
+    assert np.shape(noise.position_sigma_px) == (1200,)
+    key = jax.random.key(8)
+    clean = js.simulate(key, catalog6, sgm_camera, batch_size=1200, capacity=256)
+    noisy = js.simulate(key, catalog6, sgm_camera, noise, batch_size=1200, capacity=256)
+    for i, s in enumerate(levels):
+        sl = slice(300 * i, 300 * (i + 1))
+        d = np.asarray(noisy.xy[sl] - clean.xy[sl])[np.asarray(clean.valid[sl])]
+        assert d.std() == pytest.approx(s, rel=0.05, abs=1e-6)
+
+
+def test_missing_and_false_counts_exact(catalog6, sgm_camera):
+    noise = js.NoiseConfig(n_missing=3, n_false=4)
+    clean, noisy = _pair(catalog6, sgm_camera, noise)
+    n_true_clean = np.asarray(jnp.sum(clean.valid & (clean.truth >= 0), -1))
+    n_true = np.asarray(jnp.sum(noisy.valid & (noisy.truth >= 0), -1))
+    n_false = np.asarray(jnp.sum(noisy.valid & (noisy.truth < 0), -1))
+    np.testing.assert_array_equal(n_true, n_true_clean - np.minimum(3, n_true_clean))
+    np.testing.assert_array_equal(n_false, 4)
+    # the remaining true stars are a subset of the clean ones, at the same positions
+    for b in range(20):
+        t_clean = set(np.asarray(clean.truth[b])[np.asarray(clean.valid[b])].tolist())
+        t_noisy = np.asarray(noisy.truth[b])[np.asarray(noisy.valid[b] & (noisy.truth[b] >= 0))]
+        assert set(t_noisy.tolist()) <= t_clean
+    f = np.asarray(noisy.valid & (noisy.truth < 0))
+    fmag = np.asarray(noisy.mag)[f]
+    assert fmag.min() >= 3.5 and fmag.max() <= 5.5
+    fxy = np.asarray(noisy.xy)[f]
+    assert fxy.min() >= 0 and fxy[:, 0].max() <= 1023 and fxy[:, 1].max() <= 1023
+
+
+def test_false_ratio_and_radius(catalog6):
+    cam = js.camera_preset("rpnet2019")
+    radius = 300.0
+    noise = js.NoiseConfig(false_ratio=0.25, false_radius_px=radius)
+    scenes = js.simulate(jax.random.key(4), catalog6, cam, noise, batch_size=300, capacity=128)
+    valid, truth = np.asarray(scenes.valid), np.asarray(scenes.truth)
+    n_t = (valid & (truth >= 0)).sum(1)
+    n_f = (valid & (truth < 0)).sum(1)
+    ok = ~np.asarray(scenes.overflow)
+    np.testing.assert_array_equal(n_f[ok], np.round(0.25 * n_t[ok] / 0.75).astype(int))
+    fxy = np.asarray(scenes.xy)[valid & (truth < 0)]
+    r = np.hypot(fxy[:, 0] - cam.cx, fxy[:, 1] - cam.cy)
+    assert r.max() <= radius + 1e-3
+    # uniform over the disk: half of the points within radius/√2
+    assert np.mean(r < radius / np.sqrt(2)) == pytest.approx(0.5, abs=0.06)
+
+
+def test_magnitude_noise_lets_stars_appear_and_vanish(catalog6, sgm_camera):
+    clean, noisy = _pair(catalog6, sgm_camera, js.NoiseConfig(magnitude_sigma=0.3), batch=500)
+    valid = np.asarray(noisy.valid)
+    truth = np.asarray(noisy.truth)
+    assert np.sum(valid & (truth < 0)) > 50  # dimmer-than-limit stars appeared (not in catalog)
+    vanished = 0
+    for b in range(500):
+        c = set(np.asarray(clean.truth[b])[np.asarray(clean.valid[b])].tolist())
+        n = set(truth[b][valid[b]].tolist())
+        vanished += len(c - n)
+    assert vanished > 50
+    # observed − catalog magnitude of bright stars (unaffected by the cut) has σ ≈ 0.3
+    use = valid & (truth >= 0)
+    dm = np.asarray(noisy.mag)[use] - catalog6.mag[truth[use]]
+    bright = catalog6.mag[truth[use]] < 4.5
+    assert dm[bright].std() == pytest.approx(0.3, rel=0.06)
+
+
+def test_deterministic_and_jit_agrees(catalog6, sgm_camera):
+    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.2, n_missing=1, n_false=2)
+    a = js.simulate(jax.random.key(9), catalog6, sgm_camera, noise, batch_size=16)
+    b = js.simulate(jax.random.key(9), catalog6, sgm_camera, noise, batch_size=16)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with jax.disable_jit():
+        c = js.simulate(jax.random.key(9), catalog6, sgm_camera, noise, batch_size=16)
+    np.testing.assert_array_equal(np.asarray(a.truth), np.asarray(c.truth))
+    np.testing.assert_array_equal(np.asarray(a.valid), np.asarray(c.valid))
+    np.testing.assert_allclose(np.asarray(a.xy), np.asarray(c.xy), atol=1e-3)
+    other = js.simulate(jax.random.key(10), catalog6, sgm_camera, noise, batch_size=16)
+    assert not np.array_equal(np.asarray(a.xy), np.asarray(other.xy))
+
+
+def test_batch_equals_per_scene(catalog6, sgm_camera):
+    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.2, n_missing=1, n_false=2)
+    key = jax.random.key(12)
+    batch = js.simulate(key, catalog6, sgm_camera, noise, batch_size=6)
+    # Rebuild the per-scene inputs exactly as `simulate` does and call the per-scene function.
+    from jstarid.sky_index import _MEMO
+
+    index = [v for k, v in _MEMO.items() if k[0].startswith(catalog6.fingerprint)][-1]
+    tables = sim_module._device_tables(catalog6)
+    keys = jax.random.split(key, 6)
+    per = noise.broadcast(6)
+    for i in range(6):
+        one = sim_module._simulate_one(
+            keys[i], jax.tree.map(lambda a, i=i: a[i], per), jnp.int32(0),
+            cells=jnp.asarray(index.cells), star_vec=tables[0], star_mag=tables[1],
+            star_row=tables[2], cat_vec=tables[3], camera=sgm_camera, capacity=64,
+            grid=index.grid, false_capacity=2, max_missing=1, mode_b=False)
+        np.testing.assert_array_equal(np.asarray(one.truth), np.asarray(batch.truth[i]))
+        np.testing.assert_allclose(np.asarray(one.xy), np.asarray(batch.xy[i]), atol=1e-3)
+
+
+def test_overflow_flag_and_brightest_kept(catalog6, sgm_camera):
+    big = js.simulate(jax.random.key(1), catalog6, sgm_camera, batch_size=50, capacity=256)
+    small = js.simulate(jax.random.key(1), catalog6, sgm_camera, batch_size=50, capacity=8)
+    n = np.asarray(big.n_stars)
+    np.testing.assert_array_equal(np.asarray(small.overflow), n > 8)
+    np.testing.assert_array_equal(np.asarray(small.truth), np.asarray(big.truth[:, :8]))
+
+
+def test_empty_scenes_do_not_crash(catalog6):
+    blind = js.Camera(1024, 1024, 2900.0, mag_limit=-3.0)
+    scenes = js.simulate(jax.random.key(0), catalog6, blind, batch_size=8)
+    assert not bool(scenes.valid.any())
+    assert bool(jnp.all(scenes.truth == -1))
+
+
+def test_bad_simulation_input(catalog6, sgm_camera):
+    key = jax.random.key(0)
+    with pytest.raises(ValueError, match="capacity"):
+        js.simulate(key, catalog6, sgm_camera, batch_size=4, capacity=0)
+    with pytest.raises(ValueError, match="position_sigma_px"):
+        js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=-1), batch_size=4)
+    with pytest.raises(ValueError, match="false_ratio"):
+        js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(false_ratio=1.0), batch_size=4)
+    with pytest.raises(ValueError, match="n_missing"):
+        js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(n_missing=1.5), batch_size=4)
+    with pytest.raises(ValueError, match="magnitude_sigma"):
+        js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(magnitude_sigma=np.nan), batch_size=4)
+    with pytest.raises(ValueError, match="false_mag_min"):
+        js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(false_mag_min=6, false_mag_max=5),
+                    batch_size=4)
+    with pytest.raises(ValueError, match="batch_size"):
+        js.simulate(key, catalog6, sgm_camera)
+    with pytest.raises(ValueError, match="boresight_ids"):
+        js.simulate(key, catalog6, sgm_camera, boresight_ids=np.array([0, len(catalog6)]))
+    with pytest.raises(ValueError, match="shape"):
+        js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=np.ones(3)),
+                    batch_size=4)
+
+
+def test_noise_config_is_a_pytree():
+    noise = js.NoiseConfig(position_sigma_px=1.0)
+    leaves = jax.tree.leaves(noise)
+    assert len(leaves) == len(dataclasses.fields(noise))
