@@ -78,7 +78,7 @@ def random_rotation(key, shape=()):
 
 def _east_north(boresight):
     """Local east and north unit vectors at ICRS unit vectors (..., 3); safe at the poles."""
-    x, y, z = boresight[..., 0], boresight[..., 1], boresight[..., 2]
+    x, y = boresight[..., 0], boresight[..., 1]
     rho = jnp.sqrt(x * x + y * y)
     at_pole = rho < 1e-9
     safe_rho = jnp.where(at_pole, 1.0, rho)

@@ -72,7 +72,8 @@ def test_mode_b_centres_the_main_star(catalog6, sgm_camera):
                                catalog6.unit_vectors[rows], atol=1e-5)
 
 
-def _pair(catalog, camera, noise, key=jax.random.key(5), batch=400, capacity=256):
+def _pair(catalog, camera, noise, seed=5, batch=400, capacity=256):
+    key = jax.random.key(seed)
     clean = js.simulate(key, catalog, camera, batch_size=batch, capacity=capacity)
     noisy = js.simulate(key, catalog, camera, noise, batch_size=batch, capacity=capacity)
     return clean, noisy
