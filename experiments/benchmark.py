@@ -1,0 +1,115 @@
+"""Throughput benchmarks, side by side in one run.
+
+    python experiments/benchmark.py                       # all available benchmarks
+    python experiments/benchmark.py --only simulate --batch 10000
+
+Each benchmark reports compile time (first call) apart from steady-state throughput (best of
+``--repeats`` timed calls after compilation) and the process's peak resident memory. Results are also
+written to ``results/benchmark/results.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import platform
+import resource
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import jstarid as js
+
+HERE = Path(__file__).resolve().parent
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process (MiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def time_call(fn, repeats: int):
+    """(compile + first-call seconds, best steady-state seconds) of ``fn(i)`` (i = call number)."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(0))
+    first = time.perf_counter() - t0
+    best = np.inf
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(i + 1))
+        best = min(best, time.perf_counter() - t0)
+    return first, best
+
+
+def bench_simulate(args) -> list[dict]:
+    """``js.simulate`` scenes/s at batch ``--batch``, capacity 64, every noise model on."""
+    cat = js.load_catalog(6.0)
+    rows = []
+    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=args.mag_sigma, n_missing=1,
+                           n_false=2)
+    for name in args.cameras.split(","):
+        cam = js.camera_preset(name)
+        def run(i, cam=cam):
+            return js.simulate(jax.random.key(i), cat, cam, noise, batch_size=args.batch, capacity=64)
+        first, best = time_call(run, args.repeats)
+        rows.append({"benchmark": "simulate", "camera": name, "batch": args.batch,
+                     "noise": f"pos 1 px, mag {args.mag_sigma:.2f}, 1 missing, 2 false",
+                     "compile_s": round(first - best, 2), "scenes_per_s": round(args.batch / best),
+                     "peak_rss_mb": round(peak_rss_mb())})
+        print(rows[-1], flush=True)
+    return rows
+
+
+def _external(name):
+    """Benchmarks contributed by algorithm modules: experiments/bench_<name>.py with ``run(args)``."""
+    path = HERE / f"bench_{name}.py"
+    if not path.exists():
+        return None
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.run
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--only", default="simulate,sgm,mlv,rpnet", help="comma-separated benchmarks")
+    p.add_argument("--batch", type=int, default=10_000)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--cameras", default="sgm2022,mlv2021,rpnet2019")
+    p.add_argument("--mag-sigma", type=float, default=0.1)
+    p.add_argument("--out", default="results/benchmark")
+    args = p.parse_args(argv)
+    env = {"python": sys.version.split()[0], "jax": jax.__version__, "devices": str(jax.devices()),
+           "cpu_count": os.cpu_count(), "machine": platform.machine()}
+    print(env)
+    rows = []
+    for name in args.only.split(","):
+        if name == "simulate":
+            rows += bench_simulate(args)
+        else:
+            fn = _external(name)
+            if fn is None:
+                print(f"({name}: no benchmark available yet)")
+                continue
+            rows += fn(args)
+    print("\n| benchmark | setting | scenes/s | compile s | peak RSS MiB |\n|---|---|---|---|---|")
+    for r in rows:
+        setting = ", ".join(f"{k}={v}" for k, v in r.items()
+                            if k not in ("benchmark", "scenes_per_s", "compile_s", "peak_rss_mb"))
+        print(f"| {r['benchmark']} | {setting} | {r['scenes_per_s']} | {r['compile_s']} | "
+              f"{r['peak_rss_mb']} |")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps({"env": env, "args": vars(args), "rows": rows},
+                                                 indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

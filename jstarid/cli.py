@@ -1,0 +1,111 @@
+"""The ``jstarid`` command line: a thin shell over the public API."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _demo(args) -> int:
+    import jax
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import jstarid as js
+
+    t0 = time.perf_counter()
+    cat = js.load_catalog(args.mag_limit)
+    cam = js.camera_preset(args.camera)
+    noise = js.NoiseConfig(position_sigma_px=args.sigma, magnitude_sigma=args.mag_sigma,
+                           n_missing=args.missing, n_false=args.false)
+    print(f"catalog: {len(cat)} stars with V ≤ {cat.mag_limit} ({len(cat.sim_mag)} in the "
+          f"simulation list), loaded in {time.perf_counter() - t0:.2f} s")
+    print(f"camera {cam.name}: {cam.width}x{cam.height} px, FOV {cam.fov_x_deg:.2f}° x "
+          f"{cam.fov_y_deg:.2f}°, detection limit V {cam.mag_limit}")
+    t0 = time.perf_counter()
+    scenes = js.simulate(jax.random.key(args.seed), cat, cam, noise, batch_size=args.batch,
+                         capacity=args.capacity)
+    jax.block_until_ready(scenes)
+    dt = time.perf_counter() - t0
+    n = np.asarray(scenes.n_stars)
+    truth, valid = np.asarray(scenes.truth), np.asarray(scenes.valid)
+    n_true = (valid & (truth >= 0)).sum(1)
+    stats = {
+        "scenes": int(args.batch), "seed": args.seed, "noise": {k: float(v) for k, v in
+                                                                 vars(noise).items()},
+        "stars_per_scene_mean": float(n.mean()), "stars_per_scene_min": int(n.min()),
+        "stars_per_scene_max": int(n.max()), "catalog_stars_per_scene_mean": float(n_true.mean()),
+        "scenes_with_fewer_than_3_stars": float(np.mean(n < 3)),
+        "overflow_rate": float(np.asarray(scenes.overflow).mean()),
+        "simulate_seconds_incl_compile": dt,
+    }
+    print(f"simulated {args.batch} scenes in {dt:.2f} s (including compilation)")
+    for k, v in stats.items():
+        if k not in ("noise", "scenes", "seed", "simulate_seconds_incl_compile"):
+            print(f"  {k:34s} {v:.3f}" if isinstance(v, float) else f"  {k:34s} {v}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scene_stats.json").write_text(json.dumps(stats, indent=1))
+    ax = js.plotting.plot_scene(scenes, 0, cat, cam)
+    ax.set_title(f"{cam.name}: scene 0 of {args.batch}, σ = {args.sigma} px")
+    fig = ax.figure
+    fig.tight_layout()
+    fig.savefig(out / "scene.png", dpi=120)
+    plt.close(fig)
+    print(f"wrote {out / 'scene.png'} and {out / 'scene_stats.json'}")
+    return 0
+
+
+def _catalog(args) -> int:
+    import jstarid as js
+
+    cat = js.load_catalog(args.mag_limit, double_sep_deg=args.double_sep,
+                          double_mode=args.double_mode)
+    print(cat)
+    hist, edges = np.histogram(cat.mag, bins=np.arange(-1.5, args.mag_limit + 0.5, 1.0))
+    for h, e in zip(hist, edges, strict=False):
+        print(f"  V {e:5.1f} – {e + 1:4.1f}: {h}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="jstarid", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+    d = sub.add_parser("demo", help="simulate a batch, print scene statistics, draw one scene")
+    d.add_argument("--camera", default="sgm2022")
+    d.add_argument("--mag-limit", type=float, default=6.0)
+    d.add_argument("--batch", type=int, default=1000)
+    d.add_argument("--capacity", type=int, default=64)
+    d.add_argument("--sigma", type=float, default=1.0, help="position noise σ (px)")
+    d.add_argument("--mag-sigma", type=float, default=0.0, help="magnitude noise σ (mag)")
+    d.add_argument("--missing", type=int, default=0)
+    d.add_argument("--false", type=int, default=0)
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--out", default="results/demo")
+    d.set_defaults(func=_demo)
+    c = sub.add_parser("catalog", help="catalog statistics")
+    c.add_argument("--mag-limit", type=float, default=6.0)
+    c.add_argument("--double-sep", type=float, default=0.05)
+    c.add_argument("--double-mode", default="drop")
+    c.set_defaults(func=_catalog)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except ValueError as err:  # bad settings: a clear message, not a traceback
+        print(f"jstarid: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
