@@ -190,71 +190,166 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
                             subset=subset, key=f"{catalog.fingerprint}-sim-{faint_cut:.1f}")
     tables = _device_tables(catalog)
     statics = dict(
-        camera=camera, capacity=int(capacity), grid=index.grid,
+        camera=camera, capacity=int(capacity),
         false_capacity=_false_capacity(noise, int(capacity)),
         max_missing=int(np.max(np.asarray(noise.n_missing))),
-        mode_b=boresight_ids is not None,
     )
     rows = (jnp.zeros((batch_size,), jnp.int32) if boresight_ids is None
             else jnp.asarray(boresight_ids, jnp.int32))
-    return _simulate_batch(key, noise.broadcast(batch_size), rows, jnp.asarray(index.cells),
-                           *tables, **statics)
+    cells = jnp.asarray(index.cells)
+    noise_b = noise.broadcast(batch_size)
+    keys, att, cell = _attitudes(key, rows, tables[3], grid=index.grid,
+                                 mode_b=boresight_ids is not None)
+    if batch_size < _CHUNK_MIN_BATCH:
+        return _scenes_batch(keys, noise_b, att, cell, cells, *tables[:3],
+                             n_candidates=index.capacity, **statics)
+    widths = _candidate_widths(index.capacity)
+    return _scenes_chunked(keys, noise_b, att, cell, cells, jnp.asarray(index.counts), *tables[:3],
+                           widths=widths, **statics)
+
+
+# Large batches are sorted by how many candidate stars their sky cell holds and processed in chunks
+# whose candidate-list width fits the chunk, so a scene in a sparse region does not pay for the
+# densest cell's list length. One compilation serves every batch of the same size.
+_CHUNK_MIN_BATCH = 2048
+_CHUNK = 256
+_RNG_BLOCK = 64  # candidate stars per RNG block: draws do not depend on the list length used
+
+
+def _candidate_widths(k: int) -> tuple[int, ...]:
+    """A few list widths (multiples of the RNG block) up to the index capacity k."""
+    fractions = (0.25, 0.5, 0.75, 1.0)
+    return tuple(sorted({max(_RNG_BLOCK, -(-int(k * f) // _RNG_BLOCK) * _RNG_BLOCK) for f in fractions}))
+
+
+@functools.partial(jax.jit, static_argnames=(
+    "camera", "capacity", "false_capacity", "max_missing", "widths"))
+def _scenes_chunked(keys, noise, att, cell, cells, counts, star_vec, star_mag, star_row, *, camera,
+                    capacity, false_capacity, max_missing, widths):
+    """Steps 2–7 for a large batch: sort by candidate count, chunk, pick a width per chunk."""
+    b = cell.shape[0]
+    n_chunks = -(-b // _CHUNK)
+    order = jnp.argsort(counts[cell])
+    order = jnp.concatenate([order, jnp.broadcast_to(order[-1:], (n_chunks * _CHUNK - b,))])
+    chunked = jax.tree.map(lambda a: a[order].reshape(n_chunks, _CHUNK, *a.shape[1:]),
+                           (keys, noise, att, cell))
+    need = counts[cell][order].reshape(n_chunks, _CHUNK).max(axis=1)
+    branch = jnp.searchsorted(jnp.asarray(widths), need)  # first width ≥ the chunk's need
+
+    def run(width):
+        def fn(args):
+            k, nz, a, c = args
+            return _scenes_batch(
+                k, nz, a, c, cells, star_vec, star_mag, star_row, camera=camera, capacity=capacity,
+                false_capacity=false_capacity, max_missing=max_missing, n_candidates=width)
+        return fn
+
+    branches = [run(w) for w in widths]
+    out = jax.lax.map(lambda args: jax.lax.switch(args[0], branches, args[1]), (branch, chunked))
+    flat = jax.tree.map(lambda a: a.reshape(n_chunks * _CHUNK, *a.shape[2:]), out)
+    inverse = jnp.argsort(order[:b])
+    return jax.tree.map(lambda a: a[:b][inverse], flat)
 
 
 def _device_tables(catalog):
-    """Simulation-star arrays with one sentinel row appended (index M: never detected)."""
+    """Simulation-star tables with one sentinel row appended (index M: never detected).
+
+    Returns ``(vec_T (3, M+1), mag (M+1,), row (M+1,), catalog unit vectors (N, 3))``; the vectors are
+    stored component-major so the hot loop gathers three contiguous 1-D tables.
+    """
     cached = getattr(catalog, "_sim_device_tables", None)
     if cached is None:
         vec = np.concatenate([catalog.sim_unit_vectors, [[0.0, 0.0, 1.0]]]).astype(np.float32)
         mag = np.concatenate([catalog.sim_mag, [np.inf]]).astype(np.float32)
         row = np.concatenate([catalog.sim_row, [-1]]).astype(np.int32)
-        cached = (jnp.asarray(vec), jnp.asarray(mag), jnp.asarray(row),
+        cached = (jnp.asarray(vec.T.copy()), jnp.asarray(mag), jnp.asarray(row),
                   jnp.asarray(catalog.unit_vectors, jnp.float32))
         object.__setattr__(catalog, "_sim_device_tables", cached)
     return cached
 
 
+def _attitude_one(key, row, cat_vec, mode_b):
+    """Step 1 for one scene: the attitude (from the scene key's first sub-key)."""
+    k_att = jax.random.split(key, 6)[0]
+    if mode_b:
+        roll = jax.random.uniform(k_att, (), minval=-jnp.pi, maxval=jnp.pi)
+        return rotation_from_boresight(cat_vec[row], roll)
+    return random_rotation(k_att)
+
+
+@functools.partial(jax.jit, static_argnames=("grid", "mode_b"))
+def _attitudes(key, rows, cat_vec, *, grid, mode_b):
+    """Per-scene keys, attitudes (B, 3, 3) and sky cells (B,) of a batch."""
+    keys = jax.random.split(key, rows.shape[0])
+    att = jax.vmap(lambda k, r: _attitude_one(k, r, cat_vec, mode_b))(keys, rows)
+    return keys, att, cell_of(att[:, 2], grid)
+
+
 @functools.partial(jax.jit, static_argnames=(
-    "camera", "capacity", "grid", "false_capacity", "max_missing", "mode_b"))
-def _simulate_batch(key, noise, rows, cells, star_vec, star_mag, star_row, cat_vec, *, camera,
-                    capacity, grid, false_capacity, max_missing, mode_b):
-    batch = rows.shape[0]
-    keys = jax.random.split(key, batch)
-    one = functools.partial(
-        _simulate_one, cells=cells, star_vec=star_vec, star_mag=star_mag, star_row=star_row,
-        cat_vec=cat_vec, camera=camera, capacity=capacity, grid=grid,
-        false_capacity=false_capacity, max_missing=max_missing, mode_b=mode_b)
-    return jax.vmap(one)(keys, noise, rows)
+    "camera", "capacity", "false_capacity", "max_missing", "n_candidates"))
+def _scenes_batch(keys, noise, att, cell, cells, star_vec, star_mag, star_row, *, camera, capacity,
+                  false_capacity, max_missing, n_candidates):
+    """Steps 2–7 for a batch, given attitudes and sky cells; ``cells[:, :n_candidates]`` is used."""
+    def one(key, noise_i, att_i, cell_i):
+        return _scene_from_attitude(
+            key, noise_i, att_i, cells[cell_i, :n_candidates], star_vec=star_vec,
+            star_mag=star_mag, star_row=star_row, camera=camera, capacity=capacity,
+            false_capacity=false_capacity, max_missing=max_missing)
+    return jax.vmap(one)(keys, noise, att, cell)
 
 
 def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_vec, camera, capacity,
                   grid, false_capacity, max_missing, mode_b):
-    """One scene; ``noise`` fields are scalars here. See the module docstring for the steps."""
-    k_att, k_pos, k_mag, k_miss, k_fxy, k_fmag = jax.random.split(key, 6)
+    """One whole scene (steps 1–7) with the full candidate list: the per-scene reference."""
+    att = _attitude_one(key, row, cat_vec, mode_b)
+    return _scene_from_attitude(
+        key, noise, att, cells[cell_of(att[2], grid)], star_vec=star_vec, star_mag=star_mag,
+        star_row=star_row, camera=camera, capacity=capacity, false_capacity=false_capacity,
+        max_missing=max_missing)
 
-    # 1. attitude
-    if mode_b:
-        roll = jax.random.uniform(k_att, (), minval=-jnp.pi, maxval=jnp.pi)
-        att = rotation_from_boresight(cat_vec[row], roll)
-    else:
-        att = random_rotation(k_att)
 
-    # 2. candidate stars of this boresight's cell, projected
-    idx = cells[cell_of(att[2], grid)]  # (K,)
-    v_cam = star_vec[idx] @ att.T  # (K, 3): v_cam = C r
-    xy_true, front_in = camera.project(v_cam)
+def _block_draws(key, n, draw):
+    """``n`` draws (n a multiple of the block), block j from ``fold_in(key, j)``.
+
+    The first m draws are the same for any n ≥ m, so a scene gets identical noise whatever candidate
+    list length its bucket uses.
+    """
+    blocks = jax.vmap(lambda j: draw(jax.random.fold_in(key, j), (_RNG_BLOCK,)))(
+        jnp.arange(n // _RNG_BLOCK))
+    return blocks.reshape(n)
+
+
+def _scene_from_attitude(key, noise, att, idx, *, star_vec, star_mag, star_row, camera, capacity,
+                         false_capacity, max_missing):
+    """Steps 2–7 for one scene (see the module docstring); ``noise`` fields are scalars here.
+
+    Args:
+        key: the scene key (split as in step 1).
+        noise: per-scene :class:`NoiseConfig`.
+        att: (3, 3) attitude.
+        idx: (K,) candidate simulation-star indices, K a multiple of the RNG block.
+    """
+    _, k_pos, k_mag, k_miss, k_fxy, k_fmag = jax.random.split(key, 6)
+    n_cand = idx.shape[0]
+
+    # 2. candidates rotated (v_cam = C r, written out so it fuses) and projected
+    rx, ry, rz = star_vec[0, idx], star_vec[1, idx], star_vec[2, idx]
+    vx = att[0, 0] * rx + att[0, 1] * ry + att[0, 2] * rz
+    vy = att[1, 0] * rx + att[1, 1] * ry + att[1, 2] * rz
+    vz = att[2, 0] * rx + att[2, 1] * ry + att[2, 2] * rz
+    x, y, in_field = camera.project_components(vx, vy, vz)
 
     # 3. magnitude noise before the detection limit; the star is in the field by its true position
-    obs_mag = star_mag[idx] + noise.magnitude_sigma * jax.random.normal(k_mag, idx.shape)
-    detected = front_in & (obs_mag <= camera.mag_limit) & jnp.isfinite(obs_mag)
-    xy = xy_true
+    obs_mag = star_mag[idx] + noise.magnitude_sigma * _block_draws(k_mag, n_cand, jax.random.normal)
+    detected = in_field & (obs_mag <= camera.mag_limit) & jnp.isfinite(obs_mag)
 
     # 5. missing stars: drop the `n_missing` detected true stars with the smallest random keys
     if max_missing > 0:
-        r = jnp.where(detected, jax.random.uniform(k_miss, idx.shape), 2.0)
-        _, drop = jax.lax.top_k(-r, min(max_missing, r.shape[0]))
+        r = jnp.where(detected, _block_draws(k_miss, n_cand, jax.random.uniform), 2.0)
+        _, drop = jax.lax.top_k(-r, min(max_missing, n_cand))
         drop_ok = jnp.arange(drop.shape[0]) < noise.n_missing
         detected = detected.at[drop].set(detected[drop] & ~drop_ok)
+    truth = star_row[idx]
 
     # 6. false stars
     n_true = jnp.sum(detected, dtype=jnp.int32)
@@ -267,13 +362,13 @@ def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_v
                                    maxval=noise.false_mag_max)
         f_on = jnp.arange(false_capacity) < n_false
         false_overflow = n_false > false_capacity
-        xy = jnp.concatenate([xy, f_xy])
+        x = jnp.concatenate([x, f_xy[:, 0]])
+        y = jnp.concatenate([y, f_xy[:, 1]])
         obs_mag = jnp.concatenate([obs_mag, f_mag])
         detected = jnp.concatenate([detected, f_on])
-        truth = jnp.concatenate([star_row[idx], jnp.full((false_capacity,), -1, jnp.int32)])
+        truth = jnp.concatenate([truth, jnp.full((false_capacity,), -1, jnp.int32)])
     else:
         false_overflow = jnp.bool_(False)
-        truth = star_row[idx]
 
     # 7. brightest `capacity` detections
     n_det = jnp.sum(detected, dtype=jnp.int32)
@@ -284,8 +379,8 @@ def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_v
     # 4. position noise on the kept true stars only (false stars are placed at random anyway), so the
     #    cost does not grow with the number of candidate stars.
     jitter = noise.position_sigma_px * jax.random.normal(k_pos, (k_keep, 2))
-    is_true_star = keep < idx.shape[0]
-    out_xy = jnp.where(valid[:, None], xy[keep] + jnp.where(is_true_star[:, None], jitter, 0.0), 0.0)
+    jitter = jnp.where((keep < n_cand)[:, None], jitter, 0.0)
+    out_xy = jnp.where(valid[:, None], jnp.stack([x[keep], y[keep]], -1) + jitter, 0.0)
     out_mag = jnp.where(valid, obs_mag[keep], jnp.inf)
     out_truth = jnp.where(valid, truth[keep], -1)
     if k_keep < capacity:  # fewer candidates than capacity: pad

@@ -30,11 +30,14 @@ class SkyIndex:
             sentinel row ``M`` (a star of magnitude +inf that is never detected).
         grid: G, cells per cube-face side.
         radius_rad: R, the angular radius each list covers (rad).
+        counts: (6·G·G,) int32 number of real (non-padding) entries per cell; lists are padded at
+            the end, so ``cells[c, :counts[c]]`` are the stars of cell c.
     """
 
     cells: np.ndarray
     grid: int
     radius_rad: float
+    counts: np.ndarray
 
     @property
     def capacity(self) -> int:
@@ -124,12 +127,13 @@ def build_sky_index(star_vectors: np.ndarray, field_radius_rad: float, *, grid: 
     tree = cKDTree(star_vectors[ids])
     lists = tree.query_ball_point(centres, 2.0 * math.sin(min(reach, math.pi) / 2.0) + 1e-12)
     k = max(1, max(len(x) for x in lists))
-    k = int(math.ceil(k / 32) * 32)  # bucket the capacity so similar catalogs share compilations
+    k = int(math.ceil(k / 64) * 64)  # bucket the capacity so similar catalogs share compilations
     m = star_vectors.shape[0]
     cells = np.full((len(lists), k), m, dtype=np.int32)
     for i, idx in enumerate(lists):
         cells[i, : len(idx)] = np.sort(ids[idx])
-    index = SkyIndex(cells=cells, grid=grid, radius_rad=reach)
+    counts = np.array([len(x) for x in lists], dtype=np.int32)
+    index = SkyIndex(cells=cells, grid=grid, radius_rad=reach, counts=counts)
     if memo_key is not None:
         _MEMO[memo_key] = index
     return index

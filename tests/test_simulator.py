@@ -1,4 +1,5 @@
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -158,16 +159,16 @@ def test_magnitude_noise_lets_stars_appear_and_vanish(catalog6, sgm_camera):
 
 def test_deterministic_and_jit_agrees(catalog6, sgm_camera):
     noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.2, n_missing=1, n_false=2)
-    a = js.simulate(jax.random.key(9), catalog6, sgm_camera, noise, batch_size=16)
-    b = js.simulate(jax.random.key(9), catalog6, sgm_camera, noise, batch_size=16)
+    a = js.simulate(jax.random.key(9), catalog6, sgm_camera, noise, batch_size=3)
+    b = js.simulate(jax.random.key(9), catalog6, sgm_camera, noise, batch_size=3)
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     with jax.disable_jit():
-        c = js.simulate(jax.random.key(9), catalog6, sgm_camera, noise, batch_size=16)
+        c = js.simulate(jax.random.key(9), catalog6, sgm_camera, noise, batch_size=3)
     np.testing.assert_array_equal(np.asarray(a.truth), np.asarray(c.truth))
     np.testing.assert_array_equal(np.asarray(a.valid), np.asarray(c.valid))
     np.testing.assert_allclose(np.asarray(a.xy), np.asarray(c.xy), atol=1e-3)
-    other = js.simulate(jax.random.key(10), catalog6, sgm_camera, noise, batch_size=16)
+    other = js.simulate(jax.random.key(10), catalog6, sgm_camera, noise, batch_size=3)
     assert not np.array_equal(np.asarray(a.xy), np.asarray(other.xy))
 
 
@@ -182,12 +183,12 @@ def test_batch_equals_per_scene(catalog6, sgm_camera):
     tables = sim_module._device_tables(catalog6)
     keys = jax.random.split(key, 6)
     per = noise.broadcast(6)
+    one_scene = jax.jit(functools.partial(
+        sim_module._simulate_one, cells=jnp.asarray(index.cells), star_vec=tables[0],
+        star_mag=tables[1], star_row=tables[2], cat_vec=tables[3], camera=sgm_camera, capacity=64,
+        grid=index.grid, false_capacity=2, max_missing=1, mode_b=False))
     for i in range(6):
-        one = sim_module._simulate_one(
-            keys[i], jax.tree.map(lambda a, i=i: a[i], per), jnp.int32(0),
-            cells=jnp.asarray(index.cells), star_vec=tables[0], star_mag=tables[1],
-            star_row=tables[2], cat_vec=tables[3], camera=sgm_camera, capacity=64,
-            grid=index.grid, false_capacity=2, max_missing=1, mode_b=False)
+        one = one_scene(keys[i], jax.tree.map(lambda a, i=i: a[i], per), jnp.int32(0))
         np.testing.assert_array_equal(np.asarray(one.truth), np.asarray(batch.truth[i]))
         np.testing.assert_allclose(np.asarray(one.xy), np.asarray(batch.xy[i]), atol=1e-3)
 
@@ -235,3 +236,16 @@ def test_noise_config_is_a_pytree():
     noise = js.NoiseConfig(position_sigma_px=1.0)
     leaves = jax.tree.leaves(noise)
     assert len(leaves) == len(dataclasses.fields(noise))
+
+
+def test_chunked_large_batch_equals_direct_path(catalog6, sgm_camera, monkeypatch):
+    """Large batches take the sorted, chunked path; it must give exactly the direct path's scenes."""
+    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.1, n_missing=1, n_false=2)
+    key = jax.random.key(21)
+    monkeypatch.setattr(sim_module, "_CHUNK_MIN_BATCH", 512)
+    monkeypatch.setattr(sim_module, "_CHUNK", 128)
+    chunked = js.simulate(key, catalog6, sgm_camera, noise, batch_size=700)
+    monkeypatch.setattr(sim_module, "_CHUNK_MIN_BATCH", 10**9)
+    direct = js.simulate(key, catalog6, sgm_camera, noise, batch_size=700)
+    for a, b in zip(jax.tree.leaves(chunked), jax.tree.leaves(direct), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
