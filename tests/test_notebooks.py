@@ -1,0 +1,18 @@
+"""The notebooks run top to bottom (their code cells executed as one script, plots off-screen)."""
+
+import json
+from pathlib import Path
+
+import matplotlib
+import pytest
+
+NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
+def test_notebook_runs(path, monkeypatch):
+    matplotlib.use("Agg")
+    monkeypatch.chdir(path.parents[1])
+    nb = json.loads(path.read_text())
+    code = "\n".join("".join(c["source"]) for c in nb["cells"] if c["cell_type"] == "code")
+    exec(compile(code, str(path), "exec"), {"__name__": "__notebook__"})
