@@ -1,6 +1,6 @@
 """jstarid: lost-in-space star identification in JAX (SPEC §9 public API)."""
 
-from jstarid import algorithms, plotting
+from jstarid import algorithms, plotting, sweep
 from jstarid.attitude import (
     attitude_errors_arcsec,
     estimate_attitude,
@@ -21,7 +21,7 @@ from jstarid.simulator import NoiseConfig, noise_grid, simulate
 __version__ = "0.1.0"
 
 __all__ = [
-    "Camera", "Catalog", "Identification", "NoiseConfig", "Scene", "algorithms", "plotting",
+    "Camera", "Catalog", "Identification", "NoiseConfig", "Scene", "algorithms", "plotting", "sweep",
     "attitude_errors_arcsec", "camera_preset", "estimate_attitude", "evaluate", "load_catalog",
     "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation",
     "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",

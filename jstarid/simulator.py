@@ -38,6 +38,7 @@ import numpy as np
 from jstarid.attitude import random_rotation, rotation_from_boresight
 from jstarid.scene import Scene
 from jstarid.sky_index import build_sky_index, cell_of
+from jstarid.sweep import map_batch
 
 __all__ = ["NoiseConfig", "simulate", "noise_grid"]
 
@@ -138,7 +139,7 @@ def _false_capacity(noise: NoiseConfig, capacity: int) -> int:
 
 
 def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_size: int | None = None,
-             capacity: int = 64, boresight_ids=None) -> Scene:
+             capacity: int = 64, boresight_ids=None, shard: bool = False) -> Scene:
     """Simulate a batch of scenes (SPEC §3). A pure function of ``key`` and the settings.
 
     Args:
@@ -150,6 +151,8 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         capacity: static N, detections kept per scene (brightest first).
         boresight_ids: (B,) catalog rows; scene i has its boresight on that star and a random roll
             (mode b).
+        shard: split the batch over every device (:func:`jstarid.sweep.map_batch`); the scenes
+            are identical to the single-device call.
 
     Returns:
         A :class:`~jstarid.scene.Scene` of B scenes.
@@ -200,12 +203,19 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
     noise_b = noise.broadcast(batch_size)
     keys, att, cell = _attitudes(key, rows, tables[3], grid=index.grid,
                                  mode_b=boresight_ids is not None)
-    if batch_size < _CHUNK_MIN_BATCH:
-        return _scenes_batch(keys, noise_b, att, cell, cells, *tables[:3],
-                             n_candidates=index.capacity, **statics)
-    widths = _candidate_widths(index.capacity)
-    return _scenes_chunked(keys, noise_b, att, cell, cells, jnp.asarray(index.counts), *tables[:3],
-                           widths=widths, **statics)
+    counts = jnp.asarray(index.counts)
+
+    def stage2(keys, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row):
+        if keys.shape[0] < _CHUNK_MIN_BATCH:
+            return _scenes_batch(keys, noise_b, att, cell, cells, star_vec, star_mag, star_row,
+                                 n_candidates=index.capacity, **statics)
+        return _scenes_chunked(keys, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row,
+                               widths=_candidate_widths(index.capacity), **statics)
+
+    replicated = (cells, counts, *tables[:3])
+    if shard:
+        return map_batch(stage2, (keys, noise_b, att, cell), replicated)
+    return stage2(keys, noise_b, att, cell, *replicated)
 
 
 # Large batches are sorted by how many candidate stars their sky cell holds and processed in chunks

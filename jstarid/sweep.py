@@ -1,0 +1,68 @@
+"""Sharding the batch axis of a sweep over every device.
+
+``map_batch(fn, batched, replicated)`` runs a per-batch function with its leading (batch) axis split
+across a 1-D device mesh (``jax.shard_map``): each device processes its slice of the scenes with the
+same code, and replicated arguments (catalog tables, databases) are copied to every device. The batch
+is padded to a multiple of the device count and the padding dropped afterwards, so the result equals
+the single-device call exactly. On one device it simply calls ``fn``.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
+
+__all__ = ["batch_mesh", "shard_batch", "map_batch"]
+
+BATCH_AXIS = "batch"
+
+
+def batch_mesh(devices=None) -> jax.sharding.Mesh:
+    """A 1-D mesh named ``"batch"`` over ``devices`` (default: all devices)."""
+    devices = jax.devices() if devices is None else list(devices)
+    return jax.sharding.Mesh(np.asarray(devices), (BATCH_AXIS,))
+
+
+def shard_batch(tree, mesh=None):
+    """Place every leaf's leading axis across the mesh (its length must divide evenly)."""
+    mesh = batch_mesh() if mesh is None else mesh
+    sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
+    return jax.tree.map(lambda a: jax.device_put(a, sharding), tree)
+
+
+def _pad(tree, total):
+    def pad(a):
+        extra = total - a.shape[0]
+        if extra == 0:
+            return a
+        return jax.numpy.concatenate([a, jax.numpy.broadcast_to(a[-1:], (extra, *a.shape[1:]))])
+    return jax.tree.map(pad, tree)
+
+
+def map_batch(fn, batched, replicated=(), *, mesh=None):
+    """``fn(*batched, *replicated)`` with the batch axis of ``batched`` sharded over the mesh.
+
+    Args:
+        fn: a function of (batched..., replicated...) returning a pytree whose leaves all have the
+            batch axis first; it must treat scenes independently (no cross-scene reduction).
+        batched: tuple of pytrees whose leaves share the leading batch size B.
+        replicated: tuple of pytrees copied to every device.
+        mesh: a 1-D mesh (default: :func:`batch_mesh`).
+
+    Returns:
+        ``fn``'s output for all B scenes, sharded over the mesh.
+    """
+    mesh = batch_mesh() if mesh is None else mesh
+    n_dev = mesh.devices.size
+    if n_dev == 1:
+        return fn(*batched, *replicated)
+    b = jax.tree.leaves(batched)[0].shape[0]
+    total = -(-b // n_dev) * n_dev
+    batched = _pad(batched, total)
+    spec_b = jax.tree.map(lambda _: PartitionSpec(BATCH_AXIS), batched)
+    spec_r = jax.tree.map(lambda _: PartitionSpec(), replicated)
+    sharded = jax.shard_map(lambda bt, rp: fn(*bt, *rp), mesh=mesh, in_specs=(spec_b, spec_r),
+                            out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)
+    out = jax.jit(sharded)(batched, replicated)
+    return jax.tree.map(lambda a: a[:b], out) if total != b else out
