@@ -304,7 +304,7 @@ def _scenes_batch(keys, noise, att, cell, cells, star_vec, star_mag, star_row, *
         return _scene_from_attitude(
             key, noise_i, att_i, cells[cell_i, :n_candidates], star_vec=star_vec,
             star_mag=star_mag, star_row=star_row, camera=camera, capacity=capacity,
-            false_capacity=false_capacity, max_missing=max_missing)
+            false_capacity=false_capacity, max_missing=max_missing, max_candidates=cells.shape[1])
     return jax.vmap(one)(keys, noise, att, cell)
 
 
@@ -315,22 +315,22 @@ def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_v
     return _scene_from_attitude(
         key, noise, att, cells[cell_of(att[2], grid)], star_vec=star_vec, star_mag=star_mag,
         star_row=star_row, camera=camera, capacity=capacity, false_capacity=false_capacity,
-        max_missing=max_missing)
+        max_missing=max_missing, max_candidates=cells.shape[1])
 
 
-def _block_draws(key, n, draw):
-    """``n`` draws (n a multiple of the block), block j from ``fold_in(key, j)``.
+def _block_draws(key, n, draw, n_max):
+    """``n`` draws (n a multiple of the block), block j from the j-th of ``n_max / block`` sub-keys.
 
-    The first m draws are the same for any n ≥ m, so a scene gets identical noise whatever candidate
-    list length its bucket uses.
+    The sub-keys come from one split of ``key`` into a fixed number of blocks (set by the longest
+    list, ``n_max``), so the first m draws are the same for any n ≥ m: a scene gets identical noise
+    whatever candidate-list width its chunk uses.
     """
-    blocks = jax.vmap(lambda j: draw(jax.random.fold_in(key, j), (_RNG_BLOCK,)))(
-        jnp.arange(n // _RNG_BLOCK))
-    return blocks.reshape(n)
+    sub = jax.random.split(key, -(-n_max // _RNG_BLOCK))[: n // _RNG_BLOCK]
+    return jax.vmap(lambda k: draw(k, (_RNG_BLOCK,)))(sub).reshape(n)
 
 
 def _scene_from_attitude(key, noise, att, idx, *, star_vec, star_mag, star_row, camera, capacity,
-                         false_capacity, max_missing):
+                         false_capacity, max_missing, max_candidates):
     """Steps 2–7 for one scene (see the module docstring); ``noise`` fields are scalars here.
 
     Args:
@@ -338,6 +338,7 @@ def _scene_from_attitude(key, noise, att, idx, *, star_vec, star_mag, star_row, 
         noise: per-scene :class:`NoiseConfig`.
         att: (3, 3) attitude.
         idx: (K,) candidate simulation-star indices, K a multiple of the RNG block.
+        max_candidates: the full list length of the sky index (fixes the RNG block split).
     """
     _, k_pos, k_mag, k_miss, k_fxy, k_fmag = jax.random.split(key, 6)
     n_cand = idx.shape[0]
@@ -350,12 +351,14 @@ def _scene_from_attitude(key, noise, att, idx, *, star_vec, star_mag, star_row, 
     x, y, in_field = camera.project_components(vx, vy, vz)
 
     # 3. magnitude noise before the detection limit; the star is in the field by its true position
-    obs_mag = star_mag[idx] + noise.magnitude_sigma * _block_draws(k_mag, n_cand, jax.random.normal)
+    obs_mag = star_mag[idx] + noise.magnitude_sigma * _block_draws(k_mag, n_cand, jax.random.normal,
+                                                                      max_candidates)
     detected = in_field & (obs_mag <= camera.mag_limit) & jnp.isfinite(obs_mag)
 
     # 5. missing stars: drop the `n_missing` detected true stars with the smallest random keys
     if max_missing > 0:
-        r = jnp.where(detected, _block_draws(k_miss, n_cand, jax.random.uniform), 2.0)
+        r = jnp.where(detected, _block_draws(k_miss, n_cand, jax.random.uniform, max_candidates),
+                      2.0)
         _, drop = jax.lax.top_k(-r, min(max_missing, n_cand))
         drop_ok = jnp.arange(drop.shape[0]) < noise.n_missing
         detected = detected.at[drop].set(detected[drop] & ~drop_ok)
