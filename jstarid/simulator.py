@@ -203,19 +203,21 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
     noise_b = noise.broadcast(batch_size)
     keys, att, cell = _attitudes(key, rows, tables[3], grid=index.grid,
                                  mode_b=boresight_ids is not None)
-    counts = jnp.asarray(index.counts)
-
-    def stage2(keys, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row):
-        if keys.shape[0] < _CHUNK_MIN_BATCH:
-            return _scenes_batch(keys, noise_b, att, cell, cells, star_vec, star_mag, star_row,
-                                 n_candidates=index.capacity, **statics)
-        return _scenes_chunked(keys, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row,
-                               widths=_candidate_widths(index.capacity), **statics)
-
-    replicated = (cells, counts, *tables[:3])
+    replicated = (cells, jnp.asarray(index.counts), *tables[:3])
+    statics["n_candidates"] = index.capacity
     if shard:
-        return map_batch(stage2, (keys, noise_b, att, cell), replicated)
-    return stage2(keys, noise_b, att, cell, *replicated)
+        return map_batch(_stage2, (keys, noise_b, att, cell), replicated, static=statics)
+    return _stage2(keys, noise_b, att, cell, *replicated, **statics)
+
+
+def _stage2(keys, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row, *, n_candidates,
+            **statics):
+    """Steps 2–7 for a batch: one vmapped call for small batches, sorted chunks for large ones."""
+    if keys.shape[0] < _CHUNK_MIN_BATCH:
+        return _scenes_batch(keys, noise_b, att, cell, cells, star_vec, star_mag, star_row,
+                             n_candidates=n_candidates, **statics)
+    return _scenes_chunked(keys, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row,
+                           widths=_candidate_widths(n_candidates), **statics)
 
 
 # Large batches are sorted by how many candidate stars their sky cell holds and processed in chunks

@@ -9,6 +9,8 @@ the single-device call exactly. On one device it simply calls ``fn``.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
@@ -40,29 +42,45 @@ def _pad(tree, total):
     return jax.tree.map(pad, tree)
 
 
-def map_batch(fn, batched, replicated=(), *, mesh=None):
-    """``fn(*batched, *replicated)`` with the batch axis of ``batched`` sharded over the mesh.
+def map_batch(fn, batched, replicated=(), *, static=None, mesh=None):
+    """``fn(*batched, *replicated, **static)`` with the batch axis of ``batched`` sharded.
 
     Args:
-        fn: a function of (batched..., replicated...) returning a pytree whose leaves all have the
-            batch axis first; it must treat scenes independently (no cross-scene reduction).
+        fn: a module-level function of (batched..., replicated..., **static) returning a pytree
+            whose leaves all have the batch axis first; it must treat scenes independently.
         batched: tuple of pytrees whose leaves share the leading batch size B.
         replicated: tuple of pytrees copied to every device.
+        static: hashable keyword arguments (compile-time constants). The compiled function is cached
+            on ``(fn, static, mesh)``, so repeated calls do not recompile.
         mesh: a 1-D mesh (default: :func:`batch_mesh`).
 
     Returns:
         ``fn``'s output for all B scenes, sharded over the mesh.
     """
     mesh = batch_mesh() if mesh is None else mesh
+    static = {} if static is None else static
     n_dev = mesh.devices.size
     if n_dev == 1:
-        return fn(*batched, *replicated)
+        return fn(*batched, *replicated, **static)
     b = jax.tree.leaves(batched)[0].shape[0]
     total = -(-b // n_dev) * n_dev
     batched = _pad(batched, total)
-    spec_b = jax.tree.map(lambda _: PartitionSpec(BATCH_AXIS), batched)
-    spec_r = jax.tree.map(lambda _: PartitionSpec(), replicated)
-    sharded = jax.shard_map(lambda bt, rp: fn(*bt, *rp), mesh=mesh, in_specs=(spec_b, spec_r),
-                            out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)
-    out = jax.jit(sharded)(batched, replicated)
+    run = _compiled(fn, tuple(sorted(static.items())), mesh)
+    out = run(batched, replicated)
     return jax.tree.map(lambda a: a[:b], out) if total != b else out
+
+
+@functools.lru_cache(maxsize=64)
+def _compiled(fn, static_items, mesh):
+    static = dict(static_items)
+
+    def body(batched, replicated):
+        return fn(*batched, *replicated, **static)
+
+    def run(batched, replicated):
+        spec_b = jax.tree.map(lambda _: PartitionSpec(BATCH_AXIS), batched)
+        spec_r = jax.tree.map(lambda _: PartitionSpec(), replicated)
+        return jax.shard_map(body, mesh=mesh, in_specs=(spec_b, spec_r),
+                             out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)(batched, replicated)
+
+    return jax.jit(run)

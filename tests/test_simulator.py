@@ -260,3 +260,12 @@ def test_sharded_simulation_equals_single_device(catalog6, sgm_camera):
     assert len(many.xy.sharding.device_set) == len(jax.devices())
     for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(many), strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
+
+
+def test_repeated_sharded_calls_do_not_recompile(catalog6, sgm_camera):
+    from jstarid import sweep
+
+    js.simulate(jax.random.key(1), catalog6, sgm_camera, batch_size=8, shard=True)
+    before = sweep._compiled.cache_info().currsize
+    js.simulate(jax.random.key(2), catalog6, sgm_camera, batch_size=8, shard=True)
+    assert sweep._compiled.cache_info().currsize == before
