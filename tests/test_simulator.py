@@ -269,3 +269,12 @@ def test_repeated_sharded_calls_do_not_recompile(catalog6, sgm_camera):
     before = sweep._compiled.cache_info().currsize
     js.simulate(jax.random.key(2), catalog6, sgm_camera, batch_size=8, shard=True)
     assert sweep._compiled.cache_info().currsize == before
+
+
+def test_second_call_with_new_key_does_not_recompile(catalog6, sgm_camera):
+    noise = js.NoiseConfig(position_sigma_px=0.5)
+    js.simulate(jax.random.key(1), catalog6, sgm_camera, noise, batch_size=8)
+    sizes = (sim_module._scenes_batch._cache_size(), sim_module._attitudes._cache_size())
+    js.simulate(jax.random.key(2), catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=0.9),
+                batch_size=8)
+    assert (sim_module._scenes_batch._cache_size(), sim_module._attitudes._cache_size()) == sizes
