@@ -199,11 +199,11 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
     )
     rows = (jnp.zeros((batch_size,), jnp.int32) if boresight_ids is None
             else jnp.asarray(boresight_ids, jnp.int32))
-    cells = jnp.asarray(index.cells)
+    cells, counts = index.device_arrays()
     noise_b = noise.broadcast(batch_size)
     keys, att, cell = _attitudes(key, rows, tables[3], grid=index.grid,
                                  mode_b=boresight_ids is not None)
-    replicated = (cells, jnp.asarray(index.counts), *tables[:3])
+    replicated = (cells, counts, *tables[:3])
     statics["n_candidates"] = index.capacity
     if shard:
         return map_batch(_stage2, (keys, noise_b, att, cell), replicated, static=statics)

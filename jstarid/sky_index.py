@@ -43,6 +43,14 @@ class SkyIndex:
     def capacity(self) -> int:
         return int(self.cells.shape[1])
 
+    def device_arrays(self):
+        """``(cells, counts)`` as device arrays, copied once per index (the index is memoised)."""
+        cached = self.__dict__.get("_device")
+        if cached is None:
+            cached = (jnp.asarray(self.cells), jnp.asarray(self.counts))
+            object.__setattr__(self, "_device", cached)
+        return cached
+
 
 def cell_of(direction, grid: int):
     """Cube-map cell of unit vectors (..., 3) → (...,) int32 cell index in ``[0, 6·G·G)``.
