@@ -1,0 +1,226 @@
+"""RpNet settings: frozen, hashable dataclasses with the paper's defaults (Xu et al. 2019; SPEC §7).
+
+Two groups: :class:`Training` (what shapes the trained network: Table 3 hyper-parameters, the noise
+families of §II-C) and :class:`Config` (initial input, guide catalog, network widths, training, and the
+identification-time settings of §II-E). Everything that shapes the trained network enters
+:meth:`Config.database_key`, the key of the cached checkpoint; identification-time settings do not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+
+__all__ = ["Config", "Training"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Training:
+    """Training hyper-parameters (paper Table 3) and the on-the-fly noise families (§II-C).
+
+    Table 3 gives, for the pattern generation network (PGN, the denoising autoencoder) and the
+    pattern classification network (PCN): learning rate, epochs, batch size 512, L2 = 1e-4, weight
+    decay (PGN: no, PCN: yes) and early stopping (PGN: no, PCN: yes). Interpretation used here (the
+    paper names neither optimizer nor schedule): Adam; "L2" is a penalty ``l2 · ½‖W‖²`` on the kernels
+    added to the loss; "weight decay: yes" is read as a learning-rate decay (cosine to 1 % of the
+    initial rate), since the L2 column already covers decay of the weights; "early stop" keeps the
+    classifier with the best held-out accuracy.
+
+    Data are drawn on the fly (no sample database on disk), so an "epoch" is the paper's data-set size,
+    ``K × 320`` noise samples (320 per guide star), and ``*_steps = None`` means ``epochs × K × 320 /
+    batch``.
+
+    Attributes:
+        dae_lr, dae_epochs, dae_steps: PGN learning rate (1e-4), epochs (15), explicit step count.
+        clf_lr, clf_epochs, clf_steps: PCN learning rate (1e-3), epochs (10), explicit step count.
+        batch_size: samples per step (512); a multiple of 4 (the four noise families, one quarter each).
+        l2: L2 penalty coefficient (1e-4) on the dense kernels.
+        clf_lr_decay: cosine decay of the PCN learning rate ("weight decay: yes").
+        early_stop: keep the PCN parameters with the best held-out accuracy.
+        eval_every: steps between held-out evaluations (progress bar, early stop).
+        eval_size: held-out samples (a multiple of 4), drawn once from a separate key.
+        position_sigmas_px: position-noise family levels (0.2–1.6 px, step 0.2; §II-C.1).
+        magnitude_sigmas: magnitude-noise family levels (mag; §II-C.2), simulated from a V 7.0 list.
+        max_missing: missing-star family, 1..max_missing stars removed (§II-C.3).
+        max_false: false-star family, 1..max_false stars within ρ of the guide star (§II-C.4).
+        false_mag_range: false-star magnitudes, uniform (0–6 mag in the paper).
+        sim_capacity: detections kept per simulated training scene (brightest first).
+        pool_batches: ``None``: a fresh batch at every step (the paper-like stream). An integer n:
+            draw n batches once (in memory) and cycle through them — for CPU runs and tests, where
+            simulation, not the network, would dominate the time.
+        seed: PRNG seed of the training run (data, initialisation).
+    """
+
+    dae_lr: float = 1e-4
+    dae_epochs: float = 15.0
+    dae_steps: int | None = None
+    clf_lr: float = 1e-3
+    clf_epochs: float = 10.0
+    clf_steps: int | None = None
+    batch_size: int = 512
+    l2: float = 1e-4
+    clf_lr_decay: bool = True
+    early_stop: bool = True
+    eval_every: int = 500
+    eval_size: int = 2048
+    position_sigmas_px: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.4, 1.6)
+    magnitude_sigmas: tuple[float, ...] = (0.323, 0.484, 0.646, 0.807, 0.969)
+    max_missing: int = 5
+    max_false: int = 5
+    false_mag_range: tuple[float, float] = (0.0, 6.0)
+    sim_capacity: int = 96
+    pool_batches: int | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.batch_size % 4 or self.eval_size % 4:
+            raise ValueError("batch_size and eval_size must be multiples of 4 (one quarter per family)")
+
+    def steps(self, n_guides: int) -> tuple[int, int]:
+        """(DAE steps, classifier steps) for a guide catalog of ``n_guides`` stars."""
+        epoch = n_guides * 320 / self.batch_size  # 320 noise samples per guide star (§II-C)
+        dae = self.dae_steps if self.dae_steps is not None else math.ceil(self.dae_epochs * epoch)
+        clf = self.clf_steps if self.clf_steps is not None else math.ceil(self.clf_epochs * epoch)
+        return int(dae), int(clf)
+
+    @classmethod
+    def paper(cls) -> Training:
+        """Table 3 scale: 15 + 10 epochs of K × 320 samples, batch 512 (GPU work; hours on a CPU)."""
+        return cls()
+
+    @classmethod
+    def quick(cls) -> Training:
+        """A smoke-scale run, ≈ 8–10 min on 2 CPU cores for the full V ≤ 6 guide catalog (K = 5,044).
+
+        Same losses, noise families and optimiser as the paper; less data: 3,000 DAE steps and 3,000
+        classifier steps of 256 fresh samples (≈ 1.5 M samples in all, vs 41 M in the paper), and a
+        10× higher DAE learning rate (1e-3) so that the short run gets somewhere. Measured on 2 shared
+        CPU cores at batch 256, data drawn fresh each step: ≈ 32 DAE steps/s and ≈ 13 classifier
+        steps/s (the 512×5,044 output layer dominates), so ≈ 6–7 min plus ≈ 1 min of compilation.
+        A run of 1,200 + 800 such steps (2 min) already gave 91 % held-out guide accuracy (position
+        98 %, missing 97 %, false 96 %, magnitude 73 %). Not expected to reach paper accuracy.
+        """
+        return cls(dae_lr=1e-3, dae_steps=3000, clf_steps=3000, batch_size=256, eval_every=250,
+                   eval_size=1024)
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """RpNet parameters (Xu et al. 2019, IEEE Access 7, 92 193; SPEC §7).
+
+    Initial input (§II-A, eq. 3):
+        rho_deg: pattern radius ρ (6°).
+        m: number of nearest guiding neighbour stars kept (10).
+        e_deg: discretization factor e (0.03°); D_sn uses bins of e, D_nn bins of 2e, each
+            ⌊ρ/e⌋ = 200 long, so the input has 2⌊ρ/e⌋ = 400 entries.
+
+    Guide catalog (§II-A):
+        guide_mag_limit: faintest guide star (V 6.0).
+        guide_min_sep_deg: guides closer than this to a brighter guide are dropped (0 = keep every
+            catalog star; the catalog's own close-pair removal, ``double_sep_deg``, already applies).
+
+    Network (Table 1, Table 2):
+        gen_widths: star pattern generator widths (512, 1024): FC1 400→512, ReLU, FC2 512→1024.
+            The decoder mirrors it: 1024→512, ReLU, 512→400.
+        clf_width: classifier hidden width (512): FC3 1024→512, BN, ReLU, FC4 512→K.
+
+    Training: :class:`Training` (Table 3), ``Training.paper()`` or ``Training.quick()``.
+
+    Identification (§II-E, eqs. 9–11, Table 5):
+        n_candidates: candidates per guide (3 in the paper: 27 candidate pairs).
+        position_weights: po_i of the three detections nearest the centre (0.45, 0.30, 0.25).
+        probability_weights: pr_j of the three candidates by rank (0.60, 0.25, 0.15).
+        pair_tol_px: extension: a candidate pair is kept only when its catalog angle agrees with the
+            observed angle of the two detections within this many pixels (converted with f_px); the
+            paper only rejects pairs farther apart than the field of view (eq. 10), which is also
+            applied. ``None`` = the paper's test only.
+        match_tol_px: a detection is named, after the confident pair fixes the attitude, when a
+            catalog star projects within this distance (px) and neither a second catalog star nor
+            another detection competes for it (first pass; also the upper bound of the second).
+        anchor_radius_px: first naming pass, from the pair: a detection is named by its angular
+            distances to the two pair stars (roll-free, within ``match_tol_px``), searching catalog
+            stars within this radius (px) of where the pair attitude puts it (the pair's roll
+            error times the distance from the pair must stay below it).
+        n_refine: naming / Wahba refit passes at ``match_tol_px`` (a close pair fixes the roll
+            poorly; each pass reaches farther stars).
+        match_sigmas, match_tol_min_px: last pass, after the attitude is refined on every named
+            star: the centroid noise σ̂ is estimated from the residuals (RMS per axis) and the
+            tolerance becomes ``match_sigmas · σ̂`` clipped to [``match_tol_min_px``,
+            ``match_tol_px``] — 3.5 σ keeps 99.8 % of true stars, while a tight radius at low noise
+            keeps false stars from being named after an undetected catalog star.
+        min_verified: fewest named detections (the pair included) for the scene to count as
+            identified; below it the scene fails (ok = False, ids = −1). 5: the pair plus three
+            confirmations. With 4, a swapped pair (S1 given S2's star and vice versa: the pair angle
+            matches exactly, the attitude is rotated by ≈ 180°) was confirmed by two coincidences in
+            2 of 176 scenes on a coarse 60° test camera; with 5 none, and no loss on rpnet2019 scenes.
+        n_pair_trials: extension: the admissible pairs tried, by decreasing score, until one is
+            confirmed by ``min_verified`` named stars (1 = the paper's single confident pair, the
+            default). 3 gained 0.3–0.8 points on σ = 1.6 px, 3 missing, 20 % false stars with a
+            2-minute CPU model, at 3× the identification time.
+        batch_chunk: scenes per compiled identification call (memory: ≈ chunk × n_pair_trials × N
+            × catalog size floats per intermediate).
+    """
+
+    rho_deg: float = 6.0
+    m: int = 10
+    e_deg: float = 0.03
+    guide_mag_limit: float = 6.0
+    guide_min_sep_deg: float = 0.0
+    gen_widths: tuple[int, int] = (512, 1024)
+    clf_width: int = 512
+    training: Training = Training()
+    n_candidates: int = 3
+    position_weights: tuple[float, float, float] = (0.45, 0.30, 0.25)
+    probability_weights: tuple[float, float, float] = (0.60, 0.25, 0.15)
+    pair_tol_px: float | None = 5.0
+    match_tol_px: float = 5.0
+    anchor_radius_px: float = 60.0
+    n_refine: int = 3
+    match_sigmas: float = 3.5
+    match_tol_min_px: float = 1.5
+    min_verified: int = 5
+    n_pair_trials: int = 1
+    batch_chunk: int = 64
+
+    def __post_init__(self):
+        if not 0 < self.e_deg < self.rho_deg:
+            raise ValueError(f"need 0 < e < ρ, got e={self.e_deg}, ρ={self.rho_deg}")
+        if self.m < 1:
+            raise ValueError(f"m must be ≥ 1, got {self.m}")
+        if not 1 <= self.n_pair_trials <= 27:
+            raise ValueError(f"n_pair_trials must be in [1, 27], got {self.n_pair_trials}")
+        if self.n_candidates != 3 or len(self.position_weights) != 3 or len(self.probability_weights) != 3:
+            raise ValueError("the weight search uses three detections and three candidates (Table 5)")
+
+    @property
+    def n_bins(self) -> int:
+        """⌊ρ/e⌋, the length of D_sn and of D_nn (200 at the defaults)."""
+        return int(math.floor(self.rho_deg / self.e_deg + 1e-9))
+
+    @property
+    def input_size(self) -> int:
+        """2⌊ρ/e⌋, the length of the initial input S_ori (400 at the defaults)."""
+        return 2 * self.n_bins
+
+    @classmethod
+    def quick(cls, **overrides) -> Config:
+        """Paper network and input with the :meth:`Training.quick` schedule."""
+        return cls(training=Training.quick(), **overrides)
+
+    @classmethod
+    def paper(cls, **overrides) -> Config:
+        """Paper network, input and Table 3 training."""
+        return cls(training=Training.paper(), **overrides)
+
+    def database_key(self) -> dict:
+        """The settings that shape the trained network (identification-time ones left out)."""
+        keep = ("rho_deg", "m", "e_deg", "guide_mag_limit", "guide_min_sep_deg", "gen_widths", "clf_width")
+        out = {k: getattr(self, k) for k in keep}
+        out["training"] = dataclasses.asdict(self.training)
+        return out
+
+    def fingerprint(self) -> str:
+        """Short hash of :meth:`database_key`."""
+        return hashlib.sha256(json.dumps(self.database_key(), sort_keys=True).encode()).hexdigest()[:16]

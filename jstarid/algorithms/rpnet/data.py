@@ -1,0 +1,163 @@
+"""RpNet training data, drawn on the fly from a PRNG key (§II-C); nothing is stored on disk.
+
+A batch of B samples: B guide stars drawn uniformly from the guide catalog, one simulated scene each
+(:func:`jstarid.simulate` mode (b): boresight on the guide star, random roll), with one of the paper's
+four noise families per sample. The families take fixed quarters of the batch (sample i has family
+i mod 4) and cycle through their levels with j = i // 4, so every batch of a given size has the same
+noise layout — and :func:`jstarid.simulate` compiles once:
+
+* 0, position: σ = 0.2, 0.4, …, 1.6 px on every detection (§II-C.1);
+* 1, magnitude: σ ∈ {0.323, 0.484, 0.646, 0.807, 0.969} mag before the V 6.0 limit, from the V 7.0
+  simulation list (§II-C.2; needs a catalog loaded with ``sim_margin = 1``);
+* 2, missing: 1–5 detected true stars removed (§II-C.3);
+* 3, false: 1–5 false stars uniform in the disk of radius f_px·tan ρ about the image centre (the
+  guide star), magnitude uniform 0–6 (§II-C.4).
+
+The paper leaves the guide star S itself noise-free. Here it sits exactly at the principal point
+(mode b), its own detection (identified by ``truth``) is left out of the neighbours, and the guide
+vector is the boresight, so S is noise-free as in the paper whatever the simulator did to its
+detection. One departure: the missing-star family may remove S's own detection, which then removes
+one neighbour fewer than asked.
+
+The clean input of a guide star (the DAE target) is built once per catalog from catalog vectors: the
+catalog stars within ρ of it with V ≤ the camera's limit — what a noise-free scene shows (ρ = 6° <
+the half side 7.1° of the rpnet2019 field, so the whole pattern circle is in view at any roll).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jstarid as js
+from jstarid.algorithms.rpnet.config import Config
+from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
+
+__all__ = ["Batch", "Tables", "build_tables", "family_noise", "make_batch", "scene_training_inputs"]
+
+FAMILIES = ("position", "magnitude", "missing", "false")
+
+
+class Batch(NamedTuple):
+    """One training batch.
+
+    Attributes:
+        noisy: (B, 2⌊ρ/e⌋) float32 inputs from the noisy scenes.
+        clean: (B, 2⌊ρ/e⌋) float32 noise-free inputs of the same guide stars.
+        label: (B,) int32 class (index into the guide catalog).
+        family: (B,) int32 noise family (index into :data:`FAMILIES`).
+    """
+
+    noisy: jax.Array
+    clean: jax.Array
+    label: jax.Array
+    family: jax.Array
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Tables:
+    """Per-guide tables for the data generator.
+
+    Attributes:
+        guide_rows: (K,) int32 catalog row of each class.
+        clean: (K, 2⌊ρ/e⌋) float32 clean inputs (device array).
+    """
+
+    guide_rows: np.ndarray
+    clean: jax.Array
+
+
+def build_tables(catalog, camera, config: Config, guide_rows) -> Tables:
+    """Clean inputs of every guide star from catalog vectors (see the module docstring).
+
+    Args:
+        catalog: :class:`~jstarid.catalog.Catalog`.
+        camera: :class:`~jstarid.camera.Camera`; its ``mag_limit`` decides which neighbours are seen.
+        config: :class:`Config` (ρ, m, e).
+        guide_rows: (K,) catalog rows of the guides.
+    """
+    from scipy.spatial import cKDTree
+
+    guide_rows = np.asarray(guide_rows, np.int32)
+    vec = np.asarray(catalog.unit_vectors, np.float64)
+    seen = np.nonzero(np.asarray(catalog.mag) <= camera.mag_limit + 1e-6)[0]
+    n_query = int(min(len(seen), 4 * config.m + 8))  # the m nearest visible stars, with room for S
+    _, nbr = cKDTree(vec[seen]).query(vec[guide_rows], k=n_query)
+    nbr = seen[np.asarray(nbr).reshape(len(guide_rows), n_query)]
+    mask = nbr != guide_rows[:, None]
+    kw = config_kwargs(config)
+    fn = jax.jit(jax.vmap(functools.partial(initial_input, **kw)))
+    clean = fn(jnp.asarray(vec[guide_rows], jnp.float32), jnp.asarray(vec[nbr], jnp.float32),
+               jnp.asarray(mask))
+    return Tables(guide_rows=guide_rows, clean=clean)
+
+
+def family_noise(batch_size: int, camera, config: Config) -> tuple[js.NoiseConfig, np.ndarray]:
+    """The fixed noise layout of a batch (module docstring): per-sample NoiseConfig and family codes."""
+    t = config.training
+    i = np.arange(batch_size)
+    fam, j = i % 4, i // 4
+    pos = np.where(fam == 0, np.asarray(t.position_sigmas_px)[j % len(t.position_sigmas_px)], 0.0)
+    mag = np.where(fam == 1, np.asarray(t.magnitude_sigmas)[j % len(t.magnitude_sigmas)], 0.0)
+    miss = np.where(fam == 2, 1 + j % t.max_missing, 0)
+    false = np.where(fam == 3, 1 + j % t.max_false, 0)
+    noise = js.NoiseConfig(
+        position_sigma_px=pos.astype(np.float32), magnitude_sigma=mag.astype(np.float32),
+        n_missing=miss.astype(np.int32), n_false=false.astype(np.int32),
+        false_mag_min=float(t.false_mag_range[0]), false_mag_max=float(t.false_mag_range[1]),
+        false_radius_px=float(camera.f_px * math.tan(math.radians(config.rho_deg))))
+    return noise, fam.astype(np.int32)
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "rho_rad", "e_rad", "m", "n_bins"))
+def scene_training_inputs(xy, valid, truth, guide_row, *, camera, rho_rad, e_rad, m, n_bins):
+    """Inputs of mode-(b) scenes: guide at the principal point, its own detection left out.
+
+    Args:
+        xy: (B, N, 2) centroids (px); valid: (B, N) bool; truth: (B, N) int32 catalog rows.
+        guide_row: (B,) int32 catalog row on the boresight of each scene.
+
+    Returns:
+        (B, 2·n_bins) float32 inputs.
+    """
+    vec = camera.unproject(xy)
+    guide = camera.unproject(jnp.array([camera.cx, camera.cy], jnp.float32))  # the boresight (0, 0, 1)
+    mask = valid & (truth != guide_row[:, None])
+    fn = functools.partial(initial_input, rho_rad=rho_rad, e_rad=e_rad, m=m, n_bins=n_bins)
+    return jax.vmap(fn, in_axes=(None, 0, 0))(guide, vec, mask)
+
+
+def make_batch(key, catalog, camera, config: Config, tables: Tables, batch_size: int) -> Batch:
+    """Draw one batch: random guide stars, random roll, the four noise families (module docstring).
+
+    A pure function of ``key`` and the settings (same key → same batch).
+
+    Args:
+        key: PRNG key.
+        catalog: the catalog the guide rows refer to (with a V 7.0 simulation list).
+        camera: :class:`~jstarid.camera.Camera`.
+        config: :class:`Config`.
+        tables: :func:`build_tables` output for this catalog, camera and config.
+        batch_size: B, a multiple of 4.
+
+    Returns:
+        :class:`Batch`.
+    """
+    if batch_size % 4:
+        raise ValueError(f"batch_size must be a multiple of 4, got {batch_size}")
+    k_label, k_sim = jax.random.split(key)
+    n_classes = len(tables.guide_rows)
+    label = jax.random.randint(k_label, (batch_size,), 0, n_classes, dtype=jnp.int32)
+    rows = np.asarray(tables.guide_rows)[np.asarray(label)]
+    noise, fam = family_noise(batch_size, camera, config)
+    scenes = js.simulate(k_sim, catalog, camera, noise, capacity=config.training.sim_capacity,
+                         boresight_ids=rows)
+    noisy = scene_training_inputs(scenes.xy, scenes.valid, scenes.truth, jnp.asarray(rows, jnp.int32),
+                                  camera=camera, **config_kwargs(config))
+    return Batch(noisy=noisy, clean=tables.clean[label], label=label, family=jnp.asarray(fam))

@@ -1,0 +1,103 @@
+"""The RpNet "database": guide catalog + trained networks for a (catalog, camera, config), cached.
+
+RpNet stores no patterns: its database is the network (§III-C). :func:`build_database` selects the
+guide stars, then loads the checkpoint cached for this catalog, camera and network-shaping config or,
+when there is none, trains one (:func:`~jstarid.algorithms.rpnet.train.train`) and caches it under
+``jstarid.catalog.cache_dir() / "rpnet"``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jstarid.algorithms.rpnet.config import Config
+from jstarid.algorithms.rpnet.guide_catalog import guide_rows
+from jstarid.algorithms.rpnet.train import checkpoint_meta, load_checkpoint, save_checkpoint, train
+from jstarid.catalog import cache_dir
+
+__all__ = ["Database", "build_database", "checkpoint_path", "load_database"]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Database:
+    """Everything :func:`~jstarid.algorithms.rpnet.identify` needs.
+
+    Attributes:
+        config: the :class:`Config` the networks were trained for.
+        camera: the :class:`~jstarid.camera.Camera` of the training scenes.
+        catalog_fingerprint: the catalog's fingerprint (ids are its rows).
+        guide_rows: (K,) int32 catalog row of each class.
+        star_vectors: (N, 3) float32 ICRS unit vectors of the whole catalog (naming the other stars).
+        variables: network variables (see :mod:`~jstarid.algorithms.rpnet.train`).
+        history: training history when trained in this call, else ``None``.
+        path: the checkpoint file, when cached.
+    """
+
+    config: Config
+    camera: object
+    catalog_fingerprint: str
+    guide_rows: np.ndarray
+    star_vectors: jax.Array
+    variables: dict
+    history: dict | None = None
+    path: Path | None = None
+
+    @property
+    def n_classes(self) -> int:
+        return int(len(self.guide_rows))
+
+
+def checkpoint_path(meta: dict[str, str]) -> Path:
+    """Cache file of a checkpoint with these fingerprints."""
+    return cache_dir() / "rpnet" / f"rpnet-{meta['catalog']}-{meta['camera']}-{meta['config']}.msgpack"
+
+
+def build_database(catalog, camera, config: Config | None = None, *, cache: bool = True,
+                   progress: bool = True, train_if_missing: bool = True) -> Database:
+    """Guide catalog + trained networks (loaded from the cache, or trained and cached).
+
+    Args:
+        catalog: :class:`~jstarid.catalog.Catalog` (V 7.0 simulation list for magnitude noise).
+        camera: :class:`~jstarid.camera.Camera`.
+        config: :class:`Config` (default: paper); ``config.training`` sets the training run.
+        cache: read / write the checkpoint under the cache directory.
+        progress: progress bars while training.
+        train_if_missing: train when no checkpoint exists (else raise ``FileNotFoundError``).
+
+    Returns:
+        :class:`Database`.
+    """
+    config = Config() if config is None else config
+    rows = guide_rows(catalog, config)
+    meta = checkpoint_meta(catalog, camera, config, rows)
+    path = checkpoint_path(meta)
+    history = None
+    if cache and path.exists():
+        variables = load_checkpoint(path, config, meta)
+    elif not train_if_missing:
+        raise FileNotFoundError(f"no RpNet checkpoint at {path}; train with experiments/train_rpnet.py")
+    else:
+        variables, history = train(catalog, camera, config, rows, progress=progress)
+        if cache:
+            save_checkpoint(path, variables, meta)
+    return _database(catalog, camera, config, rows, variables, history, path if cache else None)
+
+
+def load_database(path, catalog, camera, config: Config | None = None) -> Database:
+    """A :class:`Database` from an explicit checkpoint file (``ValueError`` if built for another setup)."""
+    config = Config() if config is None else config
+    rows = guide_rows(catalog, config)
+    variables = load_checkpoint(path, config, checkpoint_meta(catalog, camera, config, rows))
+    return _database(catalog, camera, config, rows, variables, None, Path(path))
+
+
+def _database(catalog, camera, config, rows, variables, history, path) -> Database:
+    return Database(config=config, camera=camera, catalog_fingerprint=catalog.fingerprint,
+                    guide_rows=np.asarray(rows, np.int32),
+                    star_vectors=jnp.asarray(catalog.unit_vectors, jnp.float32), variables=variables,
+                    history=history, path=path)

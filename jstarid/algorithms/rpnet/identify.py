@@ -1,0 +1,244 @@
+"""RpNet identification (§II-E, Fig. 7): three central guides, weight search, then the other stars.
+
+Per scene (written once, batched with ``vmap``):
+
+1. S1, S2, S3: the three valid detections nearest the principal point (eq. 7);
+2. their initial inputs (eq. 3) → generator → classifier → softmax (eq. 4); the three most probable
+   guide stars of each are its candidates, p_i1 > p_i2 > p_i3 (eq. 8);
+3. weight search over the 27 candidate pairs S_ij ↔ S_kl (i < k; eqs. 9–11, Table 5 weights): a pair
+   is rejected when its catalog angle (eq. 10) exceeds the field's diagonal (the paper's test), when both
+   candidates are the same star, or — an extension, ``Config.pair_tol_px`` — when the catalog angle
+   differs from the observed angle between S_i and S_k by more than the tolerance; the remaining pair
+   with the highest score W = po_i·pr_j·p_ij + po_k·pr_l·p_kl is the "confident" pair;
+4. the attitude from the confident pair (Wahba with two vectors, ≡ TRIAD); a first naming pass by
+   the angular distances to the two pair stars (:func:`anchor_names`, independent of the roll that a
+   close pair fixes poorly) and a Wahba fit on those; then every detection is rotated
+   into ICRS and named after the nearest catalog star when it lies within ``match_tol_px`` and no
+   second catalog star or other detection competes for it; the attitude is refined on every named
+   star (Wahba) and the naming repeated (``n_refine`` passes), then once more with a tolerance of
+   ``match_sigmas`` × the centroid noise estimated from the residuals (clipped to
+   [``match_tol_min_px``, ``match_tol_px``]) and a last refit;
+5. the scene is identified (``ok``) when at least ``min_verified`` detections are named; otherwise
+   (extension, ``n_pair_trials`` > 1) the next-best admissible pairs are tried in score order, and
+   when none is confirmed the scene fails with every id −1 (a mis-identification is worse than a
+   failure). ``n_pair_trials = 1`` is the paper's single confident pair.
+
+The paper does not say how the "GNSs are identified easily" once the pair is known; step 4 is that
+step made explicit, and its count threshold is the verification.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jstarid.algorithms.rpnet.config import Config
+from jstarid.algorithms.rpnet.pattern import angle_between, config_kwargs, initial_input
+from jstarid.algorithms.rpnet.train import predict_logits
+from jstarid.attitude import solve_wahba
+from jstarid.scene import Identification, Scene
+
+__all__ = ["PAIRS", "anchor_names", "identify", "name_stars", "weight_search"]
+
+# The 27 candidate pairs (i, j, k, l): detection i's j-th candidate with detection k's l-th, i < k.
+PAIRS = np.array([(a, ca, b, cb) for a, b in itertools.combinations(range(3), 2)
+                  for ca, cb in itertools.product(range(3), range(3))], np.int32)
+
+
+def weight_search(probs, pair_ok, position_weights, probability_weights):
+    """Eq. 11 scores of the 27 candidate pairs and the best admissible one.
+
+    Args:
+        probs: (3, 3) p_ij, probability of detection i's j-th candidate (j by decreasing probability).
+        pair_ok: (27,) bool, pair :data:`PAIRS`[q] passed the angle checks (eq. 10 and extensions).
+        position_weights: (3,) po_i (Table 5), nearest detection first.
+        probability_weights: (3,) pr_j (Table 5), most probable candidate first.
+
+    Returns:
+        ``(best, score, found)``: index into :data:`PAIRS` of the highest-scoring admissible pair,
+        (27,) scores (−inf where not admissible), and whether any pair is admissible.
+    """
+    po = jnp.asarray(position_weights, jnp.float32)
+    pr = jnp.asarray(probability_weights, jnp.float32)
+    i, j, k, m = (jnp.asarray(PAIRS[:, c]) for c in range(4))  # S_ij ↔ S_km
+    score = po[i] * pr[j] * probs[i, j] + po[k] * pr[m] * probs[k, m]  # eq. 11
+    score = jnp.where(pair_ok, score, -jnp.inf)
+    return jnp.argmax(score), score, jnp.any(pair_ok)
+
+
+def name_stars(c, body, valid, star_vectors, tol_rad: float):
+    """Name detections from an attitude: nearest catalog star within ``tol_rad``, unambiguous.
+
+    Args:
+        c: (3, 3) attitude, ``v_cam = C r``.
+        body: (N, 3) camera-frame unit vectors of the detections.
+        valid: (N,) bool.
+        star_vectors: (M, 3) ICRS catalog unit vectors.
+        tol_rad: match radius (rad), a float or a traced scalar.
+
+    Returns:
+        ``(rows, named)``: (N,) int32 nearest catalog row and (N,) bool, True when that star is within
+        ``tol_rad``, the second-nearest catalog star is not, and no other named detection has the
+        same row.
+    """
+    ref = body @ c  # (N, 3) ICRS directions: r = Cᵀ v
+    cos = ref @ star_vectors.T  # (N, M)
+    best = jnp.argmax(cos, axis=1)  # two reductions instead of a top-2 (a sort on CPU)
+    second = jnp.argmax(jnp.where(jnp.arange(cos.shape[1])[None, :] == best[:, None], -2.0, cos), axis=1)
+    # float32 cosines near 1 resolve only ≈ 3.5e-4 rad (1.4 px here): the cosines pick the two nearest
+    # stars, the distances are measured with atan2 (accurate at small angles)
+    d1 = angle_between(ref, star_vectors[best])
+    d2 = angle_between(ref, star_vectors[second])
+    named = valid & (d1 <= tol_rad) & (d2 > tol_rad)
+    same = (best[:, None] == best[None, :]) & named[:, None] & named[None, :]
+    clash = jnp.sum(same, axis=1) > 1
+    return best.astype(jnp.int32), named & ~clash
+
+
+def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_rad, radius_rad):
+    """Name detections by their angular distances to an identified pair (independent of the roll).
+
+    Detection j is named after catalog star s when both |∠(j, a) − ∠(s, A)| and |∠(j, b) − ∠(s, B)|
+    are within ``tol_rad`` (a, b the pair's detections, A, B their catalog stars), s lies within
+    ``radius_rad`` of where the attitude ``c`` puts j (which resolves the mirror solution across the
+    pair axis), and no second catalog star passes the same test.
+
+    Args:
+        c: (3, 3) attitude from the pair.
+        body: (N, 3) camera-frame unit vectors; valid: (N,) bool.
+        obs_a, obs_b: (3,) camera-frame vectors of the pair's detections.
+        ref_a, ref_b: (3,) ICRS vectors of their catalog stars.
+        star_vectors: (M, 3) ICRS catalog unit vectors.
+        tol_rad, radius_rad: distance tolerance and search radius (rad).
+
+    Returns:
+        ``(rows, named)`` as :func:`name_stars`.
+    """
+    d_obs_a, d_obs_b = angle_between(body, obs_a[None]), angle_between(body, obs_b[None])  # (N,)
+    d_cat_a, d_cat_b = angle_between(star_vectors, ref_a[None]), angle_between(star_vectors, ref_b[None])
+    err = jnp.maximum(jnp.abs(d_obs_a[:, None] - d_cat_a[None]), jnp.abs(d_obs_b[:, None] - d_cat_b[None]))
+    near = (body @ c) @ star_vectors.T >= jnp.cos(radius_rad)  # (N, M), a loose radius: cos is enough
+    err = jnp.where(near, err, jnp.inf)
+    best = jnp.argmin(err, axis=1)
+    e1 = jnp.take_along_axis(err, best[:, None], axis=1)[:, 0]
+    e2 = jnp.min(jnp.where(jnp.arange(err.shape[1])[None, :] == best[:, None], jnp.inf, err), axis=1)
+    named = valid & (e1 <= tol_rad) & (e2 > tol_rad)
+    same = (best[:, None] == best[None, :]) & named[:, None] & named[None, :]
+    return best.astype(jnp.int32), named & (jnp.sum(same, axis=1) == 1)
+
+
+def _identify_one(xy, valid, variables, guide_rows, star_vectors, *, camera, config: Config, n_classes):
+    n = xy.shape[0]
+    body = camera.unproject(xy)  # (N, 3) camera frame
+    centre = jnp.array([camera.cx, camera.cy], jnp.float32)
+    d2 = jnp.where(valid, jnp.sum((xy - centre) ** 2, -1), jnp.inf)
+    neg, near = jax.lax.top_k(-d2, 3)  # S1, S2, S3 (eq. 7)
+    near_ok = jnp.isfinite(neg)
+
+    kw = config_kwargs(config)
+    inputs = jax.vmap(lambda g: initial_input(body[g], body, valid & (jnp.arange(n) != g), **kw))(near)
+    logits = predict_logits(variables, inputs, config=config, n_classes=n_classes)
+    probs_all = jax.nn.softmax(logits, -1)  # eq. 4
+    p, cls = jax.lax.top_k(probs_all, 3)  # (3, 3), eq. 8
+    cand_rows = guide_rows[cls]  # (3, 3) catalog rows
+    cand_vec = star_vectors[cand_rows]  # (3, 3, 3)
+
+    i, j, k, m = (jnp.asarray(PAIRS[:, c]) for c in range(4))  # S_ij ↔ S_km
+    d_cat = angle_between(cand_vec[i, j], cand_vec[k, m])  # eq. 10
+    d_obs = angle_between(body[near[i]], body[near[k]])
+    pair_ok = near_ok[i] & near_ok[k] & (cand_rows[i, j] != cand_rows[k, m])
+    pair_ok &= d_cat <= 2.0 * camera.half_diagonal_rad  # eq. 10: within the field's largest angle
+    if config.pair_tol_px is not None:
+        pair_ok &= jnp.abs(d_cat - d_obs) <= config.pair_tol_px / camera.f_px
+    _, score, _ = weight_search(p, pair_ok, config.position_weights, config.probability_weights)
+    tol = config.match_tol_px / camera.f_px
+
+    def verify(q):
+        """Name the stars from pair q (index into PAIRS); returns (rows, named, attitude)."""
+        a, b = near[i[q]], near[k[q]]
+        pair_ref = jnp.stack([cand_vec[i[q], j[q]], cand_vec[k[q], m[q]]])
+        # attitude from the pair (two-vector Wahba ≡ TRIAD)
+        c0 = solve_wahba(jnp.stack([body[a], body[b]]), pair_ref, jnp.ones((2,), jnp.float32))
+        # anchor pass: a close pair fixes the roll poorly, so distances to the pair (roll-free) name
+        # the stars first; the pair attitude only picks the side of the pair axis
+        rows_a, named_a = anchor_names(c0, body, valid, body[a], body[b], pair_ref[0], pair_ref[1],
+                                       star_vectors, tol, config.anchor_radius_px / camera.f_px)
+        c_a = solve_wahba(body, star_vectors[rows_a], named_a.astype(jnp.float32))
+        c0 = jnp.where(jnp.sum(named_a) >= 2, c_a, c0)
+
+        def refine(_, c):  # name within the fixed tolerance, refit on every named star (Wahba)
+            rows, named = name_stars(c, body, valid, star_vectors, tol)
+            fit = solve_wahba(body, star_vectors[rows], named.astype(jnp.float32))
+            return jnp.where(jnp.sum(named) >= 2, fit, c)
+
+        c1 = jax.lax.fori_loop(0, config.n_refine, refine, c0)
+        rows0, named0 = name_stars(c1, body, valid, star_vectors, tol)
+        w0 = named0.astype(jnp.float32)
+        # last pass: tolerance from the residuals' RMS (per axis, px) of the refined fit
+        resid = angle_between(body, star_vectors[rows0] @ c1.T) * camera.f_px
+        sigma = jnp.sqrt(jnp.sum(w0 * resid**2) / jnp.maximum(2.0 * jnp.sum(w0) - 3.0, 1.0))
+        tol2 = jnp.clip(config.match_sigmas * sigma, config.match_tol_min_px, config.match_tol_px)
+        rows1, named1 = name_stars(c1, body, valid, star_vectors, tol2 / camera.f_px)
+        c2 = solve_wahba(body, star_vectors[rows1], named1.astype(jnp.float32))
+        return rows1, named1, jnp.where(jnp.sum(named1) >= 2, c2, c1)
+
+    # the best admissible pair (eq. 11) first; the next ones only when it is not confirmed
+    top_score, order = jax.lax.top_k(score, config.n_pair_trials)
+    rows_t, named_t, att_t = jax.vmap(verify)(order)
+    confirmed = jnp.isfinite(top_score) & (jnp.sum(named_t, axis=1) >= config.min_verified)
+    pick = jnp.argmax(confirmed)  # the first confirmed pair in score order
+    ok = confirmed[pick]
+    rows1, named1, c1 = rows_t[pick], named_t[pick], att_t[pick]
+    ids = jnp.where(ok & named1, rows1, -1)
+    att = jnp.where(ok, c1, jnp.nan)
+    return ids.astype(jnp.int32), ok, att.astype(jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes"))
+def _identify_chunk(xy, valid, variables, guide_rows, star_vectors, *, camera, config, n_classes):
+    fn = functools.partial(_identify_one, variables=variables, guide_rows=guide_rows,
+                           star_vectors=star_vectors, camera=camera, config=config, n_classes=n_classes)
+    return jax.vmap(fn)(xy, valid)
+
+
+def identify(database, scenes: Scene, config: Config | None = None) -> Identification:
+    """Identify a batch of scenes (host loop over fixed-size chunks of one compiled function).
+
+    Args:
+        database: :class:`~jstarid.algorithms.rpnet.database.Database`.
+        scenes: (B, N) :class:`~jstarid.scene.Scene` taken with ``database.camera``.
+        config: identification settings; ``None`` uses ``database.config``. Its network-shaping
+            settings must match the database's.
+
+    Returns:
+        :class:`~jstarid.scene.Identification` with ids (B, N), ok (B,), attitude (B, 3, 3) (NaN
+        where not ok).
+
+    Raises:
+        ValueError: ``config`` describes another network than the database holds.
+    """
+    config = database.config if config is None else config
+    if config.fingerprint() != database.config.fingerprint():
+        raise ValueError("config's network settings differ from the database's; build a database for it")
+    b, chunk = scenes.batch_size, max(1, min(config.batch_chunk, scenes.batch_size))
+    guide_rows = jnp.asarray(database.guide_rows, jnp.int32)
+    out_ids, out_ok, out_att = [], [], []
+    for start in range(0, b, chunk):
+        xy, valid = scenes.xy[start:start + chunk], scenes.valid[start:start + chunk]
+        pad = chunk - xy.shape[0]
+        if pad:  # pad the last chunk to the compiled size with empty scenes
+            xy = jnp.pad(xy, ((0, pad), (0, 0), (0, 0)))
+            valid = jnp.pad(valid, ((0, pad), (0, 0)))
+        ids, ok, att = _identify_chunk(xy, valid, database.variables, guide_rows, database.star_vectors,
+                                       camera=database.camera, config=config,
+                                       n_classes=database.n_classes)
+        keep = chunk - pad
+        out_ids.append(ids[:keep])
+        out_ok.append(ok[:keep])
+        out_att.append(att[:keep])
+    return Identification(ids=jnp.concatenate(out_ids), ok=jnp.concatenate(out_ok),
+                          attitude=jnp.concatenate(out_att))

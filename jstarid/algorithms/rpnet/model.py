@@ -1,0 +1,77 @@
+"""RpNet networks (Tables 1–2) and losses (eqs. 5–6), in ``flax.linen``.
+
+Why linen rather than nnx: linen modules are stateless descriptions whose parameters are plain
+pytrees, so the whole model is a pure function ``apply(variables, x)`` that jits, vmaps and serialises
+(``flax.serialization``) without any object state; the two-stage training (generator frozen in stage 2)
+is then just "pass the generator's parameters as a constant". That matches the package's pure-core style.
+
+* :class:`Generator` — star pattern generator SPG: FC1 400→512, ReLU, FC2 512→1024 (the pattern RP_S).
+* :class:`Decoder` — star pattern decoder SPD: 1024→512, ReLU, 512→400 (denoising autoencoder, §II-D).
+* :class:`Classifier` — star pattern classifier SPC: FC3 1024→512, BatchNorm, ReLU, FC4 512→K (logits;
+  the softmax of eq. 4 is applied in the loss / at inference).
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+
+__all__ = ["Classifier", "Decoder", "Generator", "ce_loss", "l2_penalty", "mse_loss"]
+
+
+class Generator(nn.Module):
+    """SPG (Table 2): (..., 400) initial inputs → (..., 1024) patterns."""
+
+    widths: tuple[int, int] = (512, 1024)
+
+    @nn.compact
+    def __call__(self, x):
+        x = nn.relu(nn.Dense(self.widths[0], name="fc1")(x))
+        return nn.Dense(self.widths[1], name="fc2")(x)
+
+
+class Decoder(nn.Module):
+    """SPD (Table 2): (..., 1024) patterns → (..., n_out) reconstructed inputs."""
+
+    hidden: int = 512
+    n_out: int = 400
+
+    @nn.compact
+    def __call__(self, z):
+        z = nn.relu(nn.Dense(self.hidden, name="fc2t")(z))
+        return nn.Dense(self.n_out, name="fc1t")(z)
+
+
+class Classifier(nn.Module):
+    """SPC (Table 1): (..., 1024) patterns → (..., K) logits. BatchNorm statistics in ``batch_stats``."""
+
+    n_classes: int
+    hidden: int = 512
+
+    @nn.compact
+    def __call__(self, z, train: bool = False):
+        z = nn.Dense(self.hidden, name="fc3")(z)
+        z = nn.BatchNorm(use_running_average=not train, momentum=0.99, name="bn")(z)
+        return nn.Dense(self.n_classes, name="fc4")(nn.relu(z))
+
+
+def mse_loss(clean, reconstructed):
+    """Eq. 5: mean squared error between the clean input x and the reconstruction x_r (mean over all)."""
+    return jnp.mean((clean - reconstructed) ** 2)
+
+
+def ce_loss(logits, labels):
+    """Eq. 6: mean of −log p_y over the batch (softmax of eq. 4 inside)."""
+    return jnp.mean(optax.softmax_cross_entropy_with_integer_labels(logits, labels))
+
+
+def l2_penalty(params) -> jax.Array:
+    """½ Σ‖W‖² over the dense kernels (biases and BatchNorm scales are not penalised; Table 3 "L2")."""
+    leaves = jax.tree_util.tree_leaves_with_path(params)
+    total = jnp.float32(0.0)
+    for path, leaf in leaves:
+        if getattr(path[-1], "key", None) == "kernel":
+            total = total + 0.5 * jnp.sum(leaf**2)
+    return total

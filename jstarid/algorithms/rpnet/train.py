@@ -1,0 +1,237 @@
+"""RpNet training in two stages (§II-D, Fig. 5) and checkpoints tied to catalog, camera and config.
+
+Stage 1 trains the pattern generation network, a denoising autoencoder (generator + decoder), on
+(noisy input → clean input) with the MSE loss of eq. 5. Stage 2 freezes the generator and trains the
+classifier on its codes of noisy inputs with the cross-entropy of eq. 6. Both stages draw fresh
+batches from :func:`~jstarid.algorithms.rpnet.data.make_batch` at every step (the paper's 320 noise
+samples per guide star become an endless stream of them); a held-out batch from a separate key gives
+the progress-bar metrics and the classifier's early stopping.
+
+The model variables are one dict ``{"generator": …, "decoder": …, "classifier": {"params": …,
+"batch_stats": …}}`` of arrays. Checkpoints are msgpack files (``flax.serialization``) that carry the
+fingerprints of the catalog, the camera and the network-shaping config; loading one for another
+catalog, camera or config raises ``ValueError``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+from pathlib import Path
+
+import flax.serialization
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm.auto import tqdm
+
+from jstarid.algorithms.rpnet.config import Config
+from jstarid.algorithms.rpnet.data import FAMILIES, build_tables, make_batch
+from jstarid.algorithms.rpnet.model import Classifier, Decoder, Generator, ce_loss, l2_penalty, mse_loss
+
+__all__ = ["checkpoint_meta", "init_variables", "load_checkpoint", "predict_logits", "save_checkpoint",
+           "train"]
+
+
+def _modules(config: Config, n_classes: int):
+    gen = Generator(widths=tuple(config.gen_widths))
+    dec = Decoder(hidden=config.gen_widths[0], n_out=config.input_size)
+    clf = Classifier(n_classes=n_classes, hidden=config.clf_width)
+    return gen, dec, clf
+
+
+def init_variables(key, config: Config, n_classes: int) -> dict:
+    """Freshly initialised variables of the three networks (shapes of Tables 1–2)."""
+    gen, dec, clf = _modules(config, n_classes)
+    k1, k2, k3 = jax.random.split(key, 3)
+    x = jnp.zeros((1, config.input_size), jnp.float32)
+    z = jnp.zeros((1, config.gen_widths[1]), jnp.float32)
+    c = clf.init(k3, z, train=False)
+    return {"generator": gen.init(k1, x)["params"], "decoder": dec.init(k2, z)["params"],
+            "classifier": {"params": c["params"], "batch_stats": c["batch_stats"]}}
+
+
+@functools.partial(jax.jit, static_argnames=("config", "n_classes"))
+def predict_logits(variables, inputs, *, config: Config, n_classes: int):
+    """(..., 2⌊ρ/e⌋) initial inputs → (..., K) logits (generator, then classifier in inference mode)."""
+    gen, _, clf = _modules(config, n_classes)
+    z = gen.apply({"params": variables["generator"]}, inputs)
+    return clf.apply(variables["classifier"], z, train=False)
+
+
+def _make_dae_step(config: Config, n_classes: int, tx):
+    gen, dec, _ = _modules(config, n_classes)
+    l2 = config.training.l2
+
+    def loss_fn(params, noisy, clean):
+        z = gen.apply({"params": params["generator"]}, noisy)
+        rec = dec.apply({"params": params["decoder"]}, z)
+        mse = mse_loss(clean, rec)  # eq. 5
+        return mse + l2 * l2_penalty(params), mse
+
+    @jax.jit
+    def step(params, opt_state, noisy, clean):
+        (_, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, noisy, clean)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, mse
+
+    @jax.jit
+    def evaluate(params, noisy, clean):
+        return loss_fn(params, noisy, clean)[1]
+
+    return step, evaluate
+
+
+def _make_clf_step(config: Config, n_classes: int, tx):
+    gen, _, clf = _modules(config, n_classes)
+    l2 = config.training.l2
+
+    def loss_fn(params, batch_stats, gen_params, noisy, label):
+        z = gen.apply({"params": gen_params}, noisy)  # frozen generator: no gradient reaches it
+        logits, new_state = clf.apply({"params": params, "batch_stats": batch_stats}, z, train=True,
+                                      mutable=["batch_stats"])
+        ce = ce_loss(logits, label)  # eq. 6
+        return ce + l2 * l2_penalty(params), (ce, new_state["batch_stats"])
+
+    @jax.jit
+    def step(params, batch_stats, opt_state, gen_params, noisy, label):
+        (_, (ce, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            params, batch_stats, gen_params, noisy, label)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), batch_stats, opt_state, ce
+
+    return step
+
+
+def _accuracy(variables, batch, config, n_classes) -> tuple[float, dict[str, float]]:
+    pred = jnp.argmax(predict_logits(variables, batch.noisy, config=config, n_classes=n_classes), -1)
+    hit = np.asarray(pred == batch.label)
+    fam = np.asarray(batch.family)
+    return float(hit.mean()), {name: float(hit[fam == i].mean()) for i, name in enumerate(FAMILIES)}
+
+
+def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True, variables=None) -> tuple[
+        dict, dict]:
+    """Train RpNet (both stages) for ``config.training``.
+
+    Args:
+        catalog: :class:`~jstarid.catalog.Catalog` with a V 7.0 simulation list.
+        camera: :class:`~jstarid.camera.Camera` of the training scenes.
+        config: :class:`Config`; ``config.training`` sets steps, rates, batch size, seed.
+        guide_rows: (K,) catalog rows of the classes.
+        progress: show tqdm progress bars (loss, held-out metrics).
+        variables: start from these variables instead of a fresh initialisation.
+
+    Returns:
+        ``(variables, history)``; history holds the per-step losses and held-out metrics.
+    """
+    t = config.training
+    n_classes = int(len(guide_rows))
+    tables = build_tables(catalog, camera, config, guide_rows)
+    key = jax.random.key(t.seed)
+    k_init, k_eval, k_dae, k_clf = jax.random.split(key, 4)
+    if variables is None:
+        variables = init_variables(k_init, config, n_classes)
+    held_out = make_batch(k_eval, catalog, camera, config, tables, t.eval_size)
+    dae_steps, clf_steps = t.steps(n_classes)
+    if t.pool_batches:  # pool mode: n batches drawn once, cycled through by both stages
+        k_pool = jax.random.fold_in(k_dae, 10**9)
+        pool = [make_batch(jax.random.fold_in(k_pool, i), catalog, camera, config, tables, t.batch_size)
+                for i in range(t.pool_batches)]
+
+    def next_batch(k, s):
+        if t.pool_batches:
+            return pool[s % t.pool_batches]
+        return make_batch(jax.random.fold_in(k, s), catalog, camera, config, tables, t.batch_size)
+
+    history: dict = {"dae_loss": [], "dae_eval": [], "clf_loss": [], "clf_eval": []}
+
+    # Stage 1: denoising autoencoder (eq. 5), Adam at the PGN rate, no rate decay.
+    tx = optax.adam(t.dae_lr)
+    dae_params = {"generator": variables["generator"], "decoder": variables["decoder"]}
+    opt_state = tx.init(dae_params)
+    dae_step, dae_eval = _make_dae_step(config, n_classes, tx)
+    bar = tqdm(range(dae_steps), desc="RpNet stage 1 (DAE)", disable=not progress)
+    for s in bar:
+        batch = next_batch(k_dae, s)
+        dae_params, opt_state, mse = dae_step(dae_params, opt_state, batch.noisy, batch.clean)
+        history["dae_loss"].append(float(mse))
+        if (s + 1) % t.eval_every == 0 or s + 1 == dae_steps:
+            ev = float(dae_eval(dae_params, held_out.noisy, held_out.clean))
+            history["dae_eval"].append((s + 1, ev))
+            bar.set_postfix(mse=f"{history['dae_loss'][-1]:.4f}", held_out=f"{ev:.4f}")
+    variables = {**variables, **dae_params}
+
+    # Stage 2: classifier on frozen generator codes (eq. 6); cosine rate decay and early stop (Table 3).
+    lr = (optax.cosine_decay_schedule(t.clf_lr, max(clf_steps, 1), alpha=0.01) if t.clf_lr_decay
+          else t.clf_lr)
+    tx = optax.adam(lr)
+    clf_params = variables["classifier"]["params"]
+    batch_stats = variables["classifier"]["batch_stats"]
+    opt_state = tx.init(clf_params)
+    clf_step = _make_clf_step(config, n_classes, tx)
+    best = (-1.0, variables["classifier"])
+    bar = tqdm(range(clf_steps), desc="RpNet stage 2 (classifier)", disable=not progress)
+    for s in bar:
+        batch = next_batch(k_clf, s)
+        clf_params, batch_stats, opt_state, ce = clf_step(clf_params, batch_stats, opt_state,
+                                                         variables["generator"], batch.noisy, batch.label)
+        history["clf_loss"].append(float(ce))
+        if (s + 1) % t.eval_every == 0 or s + 1 == clf_steps:
+            current = {"params": clf_params, "batch_stats": batch_stats}
+            acc, per_family = _accuracy({**variables, "classifier": current}, held_out, config, n_classes)
+            history["clf_eval"].append((s + 1, acc, per_family))
+            if acc > best[0] or not t.early_stop:
+                best = (acc, current)
+            bar.set_postfix(ce=f"{history['clf_loss'][-1]:.3f}", held_out_acc=f"{acc:.3f}")
+    if clf_steps == 0:
+        best = (-1.0, {"params": clf_params, "batch_stats": batch_stats})
+    variables = {**variables, "classifier": best[1]}
+    history["best_held_out_accuracy"] = best[0]
+    return variables, history
+
+
+def checkpoint_meta(catalog, camera, config: Config, guide_rows) -> dict[str, str]:
+    """What a checkpoint is tied to: catalog, camera and config fingerprints, and the class list."""
+    cam = {f.name: getattr(camera, f.name) for f in dataclasses.fields(camera)}
+    rows = np.ascontiguousarray(np.asarray(guide_rows, np.int32))
+    return {
+        "catalog": catalog.fingerprint,
+        "camera": hashlib.sha256(json.dumps(cam, sort_keys=True).encode()).hexdigest()[:16],
+        "config": config.fingerprint(),
+        "guides": hashlib.sha256(rows.tobytes()).hexdigest()[:16],
+        "n_classes": str(len(rows)),
+    }
+
+
+def save_checkpoint(path, variables: dict, meta: dict[str, str]) -> Path:
+    """Write ``variables`` and ``meta`` (from :func:`checkpoint_meta`) as msgpack (atomic rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = flax.serialization.to_state_dict(jax.tree_util.tree_map(np.asarray, variables))
+    data = flax.serialization.msgpack_serialize({"meta": dict(meta), "variables": state})
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_bytes(data)
+    tmp.replace(path)
+    return path
+
+
+def load_checkpoint(path, config: Config, meta: dict[str, str]) -> dict:
+    """Read a checkpoint and check that it was built for ``meta`` (catalog, camera, config, guides).
+
+    Raises:
+        ValueError: the checkpoint belongs to another catalog, camera, config or guide list.
+        FileNotFoundError: no such file.
+    """
+    raw = flax.serialization.msgpack_restore(Path(path).read_bytes())
+    saved = raw.get("meta", {})
+    for name in ("catalog", "camera", "config", "guides", "n_classes"):
+        if saved.get(name) != meta[name]:
+            raise ValueError(f"RpNet checkpoint {path} was built for another {name} "
+                             f"({saved.get(name)!r}, expected {meta[name]!r}); rebuild the database")
+    template = init_variables(jax.random.key(0), config, int(meta["n_classes"]))
+    restored = flax.serialization.from_state_dict(template, raw["variables"])
+    return jax.tree_util.tree_map(jnp.asarray, restored)

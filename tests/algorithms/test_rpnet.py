@@ -1,0 +1,376 @@
+"""RpNet: initial input (eq. 3) against NumPy, data generator, two-stage training, checkpoints, weight
+search (eqs. 9–11) and end-to-end identification on a tiny setup.
+
+The tiny setup: Hipparcos V ≤ 3.0 (176 stars), a 60° camera with a V 3.0 limit, ρ = 20°, e = 0.1° (still
+2⌊ρ/e⌋ = 400 inputs) and a narrow network, so that every guide star has a handful of neighbours and a
+few hundred training steps on 2 CPU cores separate the classes.
+"""
+
+import dataclasses
+import functools
+import itertools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jstarid as js
+from jstarid.algorithms import rpnet
+from jstarid.algorithms.rpnet import data, pattern, train
+from jstarid.algorithms.rpnet.identify import PAIRS, anchor_names, name_stars, weight_search
+
+# ---------------------------------------------------------------- NumPy reference of eq. 3
+
+
+def _np_angle(a, b):
+    return math.atan2(np.linalg.norm(np.cross(a, b)), float(np.dot(a, b)))
+
+
+def _np_input(guide, others, mask, rho, e, m, n_bins):
+    """Plain NumPy/Python S_ori (float64): m nearest within ρ, D_sn bins e, D_nn bins 2e."""
+    d = [(_np_angle(guide, v), i) for i, v in enumerate(others) if mask[i]]
+    d = sorted((di, i) for di, i in d if di < rho)[:m]
+    d_sn = np.zeros(n_bins)
+    d_nn = np.zeros(n_bins)
+    for di, _ in d:
+        d_sn[min(int(di // e), n_bins - 1)] += 1
+    for (_, a), (_, b) in itertools.combinations(d, 2):
+        d_nn[min(int(_np_angle(others[a], others[b]) // (2 * e)), n_bins - 1)] += 1
+    return np.concatenate([d_sn, d_nn])
+
+
+def _random_stars(rng, n, max_deg):
+    """n unit vectors within ``max_deg`` of +z (uniform in the cap), float64."""
+    cos_t = rng.uniform(math.cos(math.radians(max_deg)), 1.0, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    sin_t = np.sqrt(1 - cos_t**2)
+    return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], -1)
+
+
+KW = pattern.config_kwargs(rpnet.Config())  # ρ = 6°, e = 0.03°, m = 10, 200 bins
+
+
+_INPUT = jax.jit(functools.partial(pattern.initial_input, **KW))
+
+
+def _jax_input(guide, others, mask):
+    return np.asarray(_INPUT(jnp.asarray(guide, jnp.float32), jnp.asarray(others, jnp.float32),
+                             jnp.asarray(mask)))
+
+
+def test_config_sizes():
+    cfg = rpnet.Config()
+    assert cfg.n_bins == 200 and cfg.input_size == 400
+    assert cfg.training.batch_size == 512 and cfg.training.dae_lr == 1e-4 and cfg.training.clf_lr == 1e-3
+    assert cfg.training.steps(5045) == (math.ceil(15 * 5045 * 320 / 512), math.ceil(10 * 5045 * 320 / 512))
+    assert hash(cfg) == hash(rpnet.Config())
+    assert rpnet.Config.quick().fingerprint() != cfg.fingerprint()
+    # identification-time settings do not change the network's fingerprint
+    assert dataclasses.replace(cfg, match_tol_px=9.0).fingerprint() == cfg.fingerprint()
+
+
+def test_initial_input_hand_made():
+    """Exact bins for a hand-made set: neighbours at known angles from the guide along +x / +y."""
+    def at(deg, phi_deg):
+        t, p = math.radians(deg), math.radians(phi_deg)
+        return [math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)]
+
+    guide = np.array([0.0, 0.0, 1.0])
+    others = np.array([at(0.1, 0), at(1.0, 90), at(5.99, 180), at(7.0, 0), at(2.0, 45)])
+    mask = np.array([True, True, True, True, False])  # the 2° star is masked, the 7° one beyond ρ
+    s = _jax_input(guide, others, mask)
+    d_sn, d_nn = s[:200], s[200:]
+    assert d_sn.sum() == 3 and d_sn[3] == 1 and d_sn[33] == 1 and d_sn[199] == 1  # 0.1/0.03 = 3.3 …
+    # pairs: (0.1°,0°)-(1°,90°): 1.005°, bin ⌊1.005/0.06⌋ = 16; (0.1°)-(5.99°,180°): 6.09° → 101;
+    # (1°,90°)-(5.99°,180°): ≈ 6.07° → 101
+    assert d_nn.sum() == 3 and d_nn[16] == 1 and d_nn[101] == 2
+    np.testing.assert_array_equal(s, _np_input(guide, others, mask, math.radians(6), math.radians(0.03),
+                                               10, 200))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_initial_input_matches_numpy(seed):
+    rng = np.random.default_rng(seed)
+    n = [3, 8, 15, 30, 40, 60][seed]
+    others = _random_stars(rng, n, 9.0)
+    rot = np.asarray(js.random_rotation(jax.random.key(seed)), np.float64)
+    guide = rot @ np.array([0.0, 0.0, 1.0])
+    others = others @ rot.T
+    mask = rng.uniform(size=n) < 0.85
+    got = _jax_input(guide, others, mask)
+    ref = _np_input(guide, others, mask, math.radians(6), math.radians(0.03), 10, 200)
+    assert got[:200].sum() == ref[:200].sum() == min(10, ref[:200].sum())
+    k = ref[:200].sum()
+    assert got[200:].sum() == k * (k - 1) / 2
+    # float32 vs float64 may move a distance sitting within ~1e-6 rad of a bin edge: allow one flip
+    assert np.abs(got - ref).sum() <= 2
+
+
+def test_initial_input_rotation_invariant():
+    rng = np.random.default_rng(7)
+    others = _random_stars(rng, 40, 8.0)
+    guide = np.array([0.0, 0.0, 1.0])
+    mask = np.ones(40, bool)
+    base = _jax_input(guide, others, mask)
+    assert base[:200].sum() == 10 and base[200:].sum() == 45
+    exact = 0
+    for i in range(8):
+        rot = np.asarray(js.random_rotation(jax.random.key(100 + i)), np.float64)
+        got = _jax_input(rot @ guide, others @ rot.T, mask)
+        assert np.abs(got - base).sum() <= 2
+        exact += np.array_equal(got, base)
+    assert exact >= 6
+
+
+def test_initial_input_ignores_padding_and_few_neighbours():
+    guide = np.array([0.0, 0.0, 1.0])
+    others = _random_stars(np.random.default_rng(3), 5, 5.0)
+    pad = np.concatenate([others, np.zeros((20, 3))])  # zero vectors as padding, masked out
+    mask = np.concatenate([np.ones(5, bool), np.zeros(20, bool)])
+    np.testing.assert_array_equal(_jax_input(guide, pad, mask), _jax_input(guide, others, np.ones(5, bool)))
+    assert np.isfinite(_jax_input(guide, pad, mask)).all()
+    none = _jax_input(guide, pad, np.zeros(25, bool))
+    assert none.sum() == 0
+
+
+# ---------------------------------------------------------------- tiny trained setup
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    cat = js.load_catalog(3.0)
+    cam = js.Camera.from_fov(1024, 1024, 60.0, mag_limit=3.0)
+    training = rpnet.Training(dae_lr=3e-3, clf_lr=3e-3, dae_steps=200, clf_steps=200, batch_size=128,
+                              eval_every=100, eval_size=128, pool_batches=3, sim_capacity=64, seed=1)
+    cfg = rpnet.Config(rho_deg=20.0, e_deg=0.1, gen_widths=(64, 128), clf_width=64, training=training,
+                       pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=64)
+    db = rpnet.build_database(cat, cam, cfg, cache=False, progress=False)
+    tables = data.build_tables(cat, cam, cfg, db.guide_rows)
+    return cat, cam, cfg, db, tables
+
+
+@pytest.fixture(scope="module")
+def clean_scenes(tiny):
+    cat, cam, _, db, _ = tiny
+    return js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(), capacity=48,
+                       boresight_ids=np.asarray(db.guide_rows))
+
+
+def test_guide_rows(tiny):
+    cat, _, cfg, db, _ = tiny
+    assert len(db.guide_rows) == len(cat) == 176
+    np.testing.assert_array_equal(np.sort(db.guide_rows), np.arange(len(cat)))
+    thin = rpnet.guide_rows(cat, dataclasses.replace(cfg, guide_min_sep_deg=5.0))
+    vec = cat.unit_vectors[thin]
+    cos = vec @ vec.T - 2 * np.eye(len(thin))
+    assert 0 < len(thin) < len(cat) and cos.max() < math.cos(math.radians(5.0))
+
+
+def test_data_batch(tiny):
+    cat, cam, cfg, _, tables = tiny
+    batch = data.make_batch(jax.random.key(3), cat, cam, cfg, tables, 128)
+    assert batch.noisy.shape == batch.clean.shape == (128, 400)
+    assert batch.label.shape == (128,) and batch.label.dtype == jnp.int32
+    assert int(batch.label.min()) >= 0 and int(batch.label.max()) < 176
+    np.testing.assert_array_equal(np.asarray(batch.family), np.arange(128) % 4)
+    np.testing.assert_array_equal(np.asarray(batch.clean), np.asarray(tables.clean)[np.asarray(batch.label)])
+    differs = np.any(np.asarray(batch.noisy) != np.asarray(batch.clean), axis=1)
+    fam = np.asarray(batch.family)
+    assert differs.mean() > 0.5
+    assert differs[fam == 3].mean() > 0.8  # 1–5 false stars inside ρ almost always change the input
+    same = data.make_batch(jax.random.key(3), cat, cam, cfg, tables, 128)
+    np.testing.assert_array_equal(np.asarray(same.noisy), np.asarray(batch.noisy))  # pure in the key
+
+
+def test_clean_table_matches_noise_free_scenes(tiny, clean_scenes):
+    """Clean inputs from catalog vectors = inputs of noise-free simulated scenes at random roll."""
+    _, cam, cfg, db, tables = tiny
+    s = clean_scenes
+    got = data.scene_training_inputs(s.xy, s.valid, s.truth, jnp.asarray(db.guide_rows), camera=cam,
+                                     **pattern.config_kwargs(cfg))
+    diff = np.abs(np.asarray(got) - np.asarray(tables.clean)).sum(1)
+    assert np.mean(diff == 0) > 0.95 and diff.max() <= 2
+
+
+def test_scene_inputs_jit_vmap_agree(tiny, clean_scenes):
+    _, cam, cfg, _, _ = tiny
+    s = clean_scenes[:3]
+    idx = jnp.tile(jnp.arange(3, dtype=jnp.int32), (3, 1))
+    kw = pattern.config_kwargs(cfg)
+    batched = np.asarray(pattern.scene_inputs(s.xy, s.valid, idx, camera=cam, **kw))
+    vec = cam.unproject(s.xy)
+    for b in range(3):
+        for g in range(3):
+            mask = s.valid[b] & (jnp.arange(48) != g)
+            one = pattern.initial_input(vec[b, g], vec[b], mask, **kw)  # eager, no vmap
+            np.testing.assert_array_equal(batched[b, g], np.asarray(one))
+
+
+def test_training_lowers_losses_and_classifies(tiny):
+    _, _, cfg, db, tables = tiny
+    h = db.history
+    assert np.mean(h["dae_loss"][-20:]) < 0.7 * h["dae_loss"][0]
+    assert np.mean(h["clf_loss"][-20:]) < 0.5 * h["clf_loss"][0]
+    logits = train.predict_logits(db.variables, tables.clean, config=cfg, n_classes=db.n_classes)
+    acc = float(np.mean(np.asarray(jnp.argmax(logits, -1)) == np.arange(db.n_classes)))
+    assert acc > 0.6, acc  # chance: 1/176
+    assert h["best_held_out_accuracy"] > 0.3
+
+
+def test_checkpoint_round_trip_and_wrong_catalog(tiny, tmp_path):
+    cat, cam, cfg, db, tables = tiny
+    meta = train.checkpoint_meta(cat, cam, cfg, db.guide_rows)
+    path = train.save_checkpoint(tmp_path / "ck.msgpack", db.variables, meta)
+    loaded = rpnet.load_database(path, cat, cam, cfg)
+    jax.tree_util.tree_map(np.testing.assert_array_equal, loaded.variables, db.variables)
+    a = train.predict_logits(loaded.variables, tables.clean[:8], config=cfg, n_classes=db.n_classes)
+    b = train.predict_logits(db.variables, tables.clean[:8], config=cfg, n_classes=db.n_classes)
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    other = dataclasses.replace(cat, settings={**cat.settings, "double_sep_deg": 0.3})
+    with pytest.raises(ValueError, match="catalog"):
+        rpnet.load_database(path, other, cam, cfg)
+    with pytest.raises(ValueError, match="camera"):
+        rpnet.load_database(path, cat, js.camera_preset("rpnet2019", mag_limit=3.0), cfg)
+    with pytest.raises(ValueError, match="config"):
+        rpnet.load_database(path, cat, cam, dataclasses.replace(cfg, m=9))
+
+
+# ---------------------------------------------------------------- weight search and identification
+
+
+def _np_weight_search(p, ok, po, pr):
+    best, best_w = None, -np.inf
+    for i, k in itertools.combinations(range(3), 2):
+        for j, m in itertools.product(range(3), range(3)):
+            q = [tuple(r) for r in PAIRS].index((i, j, k, m))
+            w = po[i] * pr[j] * p[i, j] + po[k] * pr[m] * p[k, m]  # eq. 11
+            if ok[q] and w > best_w:
+                best, best_w = q, w
+    return best
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_weight_search_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    p = -np.sort(-rng.dirichlet(np.ones(6), size=3)[:, :3], axis=1)  # decreasing per row (eq. 8)
+    ok = rng.uniform(size=27) < 0.5
+    po, pr = (0.45, 0.30, 0.25), (0.60, 0.25, 0.15)
+    best, score, found = weight_search(jnp.asarray(p, jnp.float32), jnp.asarray(ok), po, pr)
+    assert bool(found) == ok.any()
+    if ok.any():
+        assert int(best) == _np_weight_search(p, ok, po, pr)
+        assert np.all(np.isneginf(np.asarray(score)[~ok]))
+
+
+def test_weight_search_prefers_confident_central_pair():
+    po, pr = (0.45, 0.30, 0.25), (0.60, 0.25, 0.15)
+    p = np.array([[0.9, 0.05, 0.01], [0.5, 0.1, 0.05], [0.95, 0.01, 0.01]], np.float32)
+    ok = np.ones(27, bool)
+    best, _, _ = weight_search(jnp.asarray(p), jnp.asarray(ok), po, pr)
+    assert tuple(PAIRS[int(best)]) == (0, 0, 2, 0)  # S1–S3 0.3855 > S1–S2 0.333 (eq. 11)
+    ok[[tuple(r) for r in PAIRS].index((0, 0, 2, 0))] = False  # that pair fails the angle check
+    best, _, _ = weight_search(jnp.asarray(p), jnp.asarray(ok), po, pr)
+    assert tuple(PAIRS[int(best)]) == (0, 0, 1, 0)
+    _, _, found = weight_search(jnp.asarray(p), jnp.zeros(27, bool), po, pr)
+    assert not bool(found)
+
+
+def test_name_stars():
+    rng = np.random.default_rng(0)
+    stars = _random_stars(rng, 50, 10.0)
+    c = np.asarray(js.random_rotation(jax.random.key(2)), np.float64)
+    rows = np.array([3, 10, 20, 30, 3])  # the last detection duplicates row 3: both must be dropped
+    body = (stars[rows] @ c.T).astype(np.float32)
+    body[1] = body[1] + np.array([1e-3, 0, 0], np.float32)  # ≈ 0.06°: outside a 0.01° tolerance
+    valid = np.array([True, True, True, False, True])
+    got, named = name_stars(jnp.asarray(c, jnp.float32), jnp.asarray(body), jnp.asarray(valid),
+                            jnp.asarray(stars, jnp.float32), math.radians(0.01))
+    np.testing.assert_array_equal(np.asarray(named), [False, False, True, False, False])
+    assert int(got[2]) == 20
+
+
+def test_anchor_names_survive_roll_error():
+    """Distances to the pair name the stars even when the pair's attitude is off by 2° in roll."""
+    rng = np.random.default_rng(4)
+    stars = _random_stars(rng, 40, 7.0)
+    stars = stars[np.argsort(stars[:, 2])[::-1]]  # the first two are the most central: the "pair"
+    c_true = np.eye(3)
+    body = stars @ c_true.T + rng.normal(0, 1e-5, stars.shape)  # ≈ 0.04 px at f_px = 4106
+    body /= np.linalg.norm(body, axis=1, keepdims=True)
+    t = math.radians(2.0)
+    c_bad = np.array([[math.cos(t), -math.sin(t), 0], [math.sin(t), math.cos(t), 0], [0, 0, 1]])
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
+    tol, radius = 5 / 4106.4, 600 / 4106.4
+    rows, named = name_stars(f32(c_bad), f32(body), jnp.ones(40, bool), f32(stars), tol)
+    assert np.mean(np.asarray(named)) < 0.5  # the attitude alone names few stars
+    rows, named = anchor_names(f32(c_bad), f32(body), jnp.ones(40, bool), f32(body[0]), f32(body[1]),
+                               f32(stars[0]), f32(stars[1]), f32(stars), tol, radius)
+    named = np.asarray(named)
+    assert named.mean() > 0.8
+    np.testing.assert_array_equal(np.asarray(rows)[named], np.arange(40)[named])
+
+
+def test_identify_clean_scenes_no_wrong(tiny, clean_scenes):
+    _, cam, _, db, _ = tiny
+    res = rpnet.identify(db, clean_scenes)
+    rep = js.evaluate(clean_scenes, res, "rpnet", camera=cam)
+    assert rep["n_wrong"] == 0
+    assert rep["identification_rate"] > 0.6, rep
+    ok = np.asarray(res.ok)
+    ids = np.asarray(res.ids)
+    assert np.all(ids[~ok] == -1)
+    bore, _ = js.attitude_errors_arcsec(res.attitude[ok], clean_scenes.attitude[ok])
+    assert float(np.max(bore)) < 600.0  # 5 px tolerance on a 60° camera (≈ 210″/px)
+
+
+def test_identify_false_stars_only(tiny):
+    _, _, _, db, _ = tiny
+    rng = np.random.default_rng(5)
+    xy = [rng.uniform(0, 1023, (int(n), 2)) for n in rng.integers(0, 25, 64)]
+    scenes = js.scenes_from_centroids(xy, capacity=48)
+    res = rpnet.identify(db, scenes)
+    assert np.all(np.asarray(res.ids) == -1)
+    assert not np.any(np.asarray(res.ok))
+
+
+def test_identify_chunking_consistent(tiny, clean_scenes):
+    _, _, cfg, db, _ = tiny
+    a = rpnet.identify(db, clean_scenes)  # 176 scenes: chunks of 64, the last one padded
+    b = rpnet.identify(db, clean_scenes[64:128])  # one chunk on its own
+    np.testing.assert_array_equal(np.asarray(a.ids)[64:128], np.asarray(b.ids))
+    np.testing.assert_array_equal(np.asarray(a.ok)[64:128], np.asarray(b.ok))
+    with pytest.raises(ValueError, match="network"):
+        rpnet.identify(db, clean_scenes[:4], dataclasses.replace(cfg, m=9))
+
+
+def test_identify_more_pair_trials_never_worse(tiny, clean_scenes):
+    """Trying the next pairs (extension) keeps every scene the single pair confirmed, and its ids."""
+    _, _, cfg, db, _ = tiny
+    s = clean_scenes[:64]
+    one = rpnet.identify(db, s)
+    three = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=3))
+    ok1, ok3 = np.asarray(one.ok), np.asarray(three.ok)
+    assert np.all(ok3[ok1])
+    np.testing.assert_array_equal(np.asarray(three.ids)[ok1], np.asarray(one.ids)[ok1])
+    rep = js.evaluate(s, three, "rpnet", camera=db.camera)
+    assert rep["n_wrong"] == 0
+
+
+@pytest.mark.slow
+def test_data_batch_paper_setup():
+    """The real setup: V ≤ 6 (5,044 guides), rpnet2019 camera, paper noise families."""
+    cat = rpnet.load_guide_catalog()
+    cam = js.camera_preset("rpnet2019")
+    cfg = rpnet.Config()
+    rows = rpnet.guide_rows(cat, cfg)
+    assert len(rows) == 5044
+    tables = data.build_tables(cat, cam, cfg, rows)
+    assert tables.clean.shape == (5044, 400)
+    batch = data.make_batch(jax.random.key(0), cat, cam, cfg, tables, 64)
+    assert batch.noisy.shape == (64, 400)
+    assert np.any(np.asarray(batch.noisy) != np.asarray(batch.clean), axis=1).mean() > 0.5
+    clean_sum = np.asarray(tables.clean)[:, :200].sum(1)
+    assert clean_sum.max() == 10 and np.mean(clean_sum) > 5
+
