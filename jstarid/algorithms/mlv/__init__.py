@@ -1,0 +1,20 @@
+"""Multilayer voting star identification with SVD triangle features (MLV; Sensors 2021, 21, 3084).
+
+Modules (one concept each): :mod:`.config` (parameters), :mod:`.features` (singular values, eqs.
+1–4), :mod:`.database` (onboard database, §2.2), :mod:`.voting` (initial match, eq. 7 and Fig. 3),
+:mod:`.verify` (pair-angle verification, eq. 8) and :mod:`.identify` (Algorithm 1, batched).
+
+Usage::
+
+    mlv = js.algorithms.get("mlv")
+    cfg = mlv.Config()
+    db = mlv.build_database(catalog, camera, cfg)
+    result = mlv.identify(db, scenes, cfg)
+"""
+
+from jstarid.algorithms.mlv.config import Config
+from jstarid.algorithms.mlv.database import Database, build_database
+from jstarid.algorithms.mlv.identify import Diagnostics, identify, identify_with_diagnostics
+
+__all__ = ["Config", "Database", "Diagnostics", "build_database", "identify",
+           "identify_with_diagnostics"]

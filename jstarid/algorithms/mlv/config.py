@@ -1,0 +1,143 @@
+"""MLV settings: a frozen, hashable dataclass with the paper's defaults (seed 001, Table 1)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+__all__ = ["Config"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Multilayer-voting parameters (Sensors 2021, 21, 3084; SPEC §7).
+
+    Paper parameters (Table 1):
+        n_stars: N, the brightest detections (and, in the database, the brightest catalog stars per
+            boresight) that form the C(N, 3) triangle units. Paper: 10 (6–12 in its Table 4
+            discussion). At most 12: verification tests all 2^N subsets per scene.
+        dv1: Δv1, discretization unit of the largest singular value v1 (eq. 4). Paper: 5e-5.
+        dv2: Δv2, discretization unit of the second singular value v2 (eq. 4). Paper: 5e-4.
+        ver_min: smallest verified cluster that counts as a success. Paper: 3.
+        n_boresights: database boresights, evenly on the sphere (Fibonacci lattice; the paper cites
+            [26] for its even distribution). Paper: 100,000.
+
+    Choices the paper leaves open (measured on mlv2021 scenes with random attitudes, 400 per
+    condition; "2.5 px" = Fig. 6's worst case with magnitude σ 0.3, "6 false" = Fig. 8's, "0.7
+    mag" = Fig. 7's; ``experiments/reproduce_mlv.py`` has the full sweeps):
+        th1, th2: tolerances Th1, Th2 of eq. 7 on the *discretized* features (bins). A centroid
+            error of σ px moves a true triangle's v̂1 by ≈ 1 bin and v̂2 by < 1 bin per px (95th
+            percentiles of |Δv̂1|, |Δv̂2|: 1, 1 at 0.5 px; 3, 2 at 1 px; 6, 4 at 2.5 px). Th1 = Th2 = 1
+            keeps 76 % of the true triangles at 1 px and 35 % at 2.5 px, which the 120-triangle
+            vote tolerates, while a window of 3 × 3 bins already returns a median of 23 database
+            triangles (99th percentile 138, max 159 at 1 px; Th = 2: 61 / 290 / 327). With the
+            paper's voting, Th = 1 beat Th = 2 on 6 false and 0.7 mag (89 % vs 83 %, 84 % vs 78 %)
+            and lost a little at 2.5 px (85 % vs 88 %); Th = 0 (exact bins) fell to 39 % there.
+        eps_deg: verification tolerance ε on pair angles (eq. 8), degrees. One pixel is 0.0244°
+            here and a pair angle's error is ≈ √2·σ px, 0.086° at σ = 2.5 px; ε = 0.2° keeps true
+            pairs up to the Fig. 6 noise. Sweep of ε (= ``side_tol_deg``) with all extensions on,
+            1,000 scenes each, identification % at 2.5 px / 0.7 mag / 6 false: 0.1°: 83.0 / 99.3 /
+            99.8; 0.15°: 97.8 / 99.1 / 99.5; 0.2°: 99.1 / 99.1 / 99.2; 0.3°: 99.2 / 98.7 / 99.2.
+            The looseness is paid back by the attitude check below.
+        candidate_capacity: K, the per-triangle candidate buffer; 256 covers the largest count
+            seen with Th = 1 (159). A triangle with more than K is flagged
+            (``Diagnostics.candidate_overflow``) and casts no vote;
+            :func:`~jstarid.algorithms.mlv.identify` then recomputes the chunk with a doubled
+            buffer up to ``max_candidate_capacity`` (host-side reallocation), so nothing is
+            silently dropped below that bound.
+        max_candidate_capacity: the largest K the host retry may reach.
+        batch_chunk: scenes per compiled call (bounds the (chunk, T, K) candidate arrays).
+        require_unique_cluster: when different largest clusters tie, name only the detections
+            common to all of them (failing below ``ver_min``) instead of taking the first one; a
+            mis-identification is much worse than a failure.
+        database_roll_deg: camera roll (deg) of every database boresight; ``None`` gives boresight
+            k the roll k·(golden angle), so neighbouring boresights see the square field in many
+            orientations, as scenes with random roll do.
+
+    Extensions (``vertex_match=False, attitude_check=False, field_check=False`` is the paper's
+    algorithm; the defaults turn all three on):
+        vertex_match: check each candidate triangle's three side angles against the observed ones
+            within ``side_tol_deg`` and vote for the *corresponding* star only (the paper votes for
+            all three stars at each vertex, Fig. 3). Singular values fix only two of a triangle's
+            three shape parameters; the third removes most wrong candidates. Identification
+            rate with / without (Th = 1): 2.5 px 98.5 % / 85 %; 6 false 99.0 % / 88.5 %;
+            0.7 mag 98.8 % / 84 % (mis-identifications 0.3–1.5 % before the attitude check).
+        side_tol_deg: side tolerance of ``vertex_match`` (deg), as ε.
+        min_votes: a detection needs this many votes to have a candidate.
+        attitude_check: after verification, predict every cluster member from the attitude of
+            the others (leave-one-out Wahba fit) and keep it only when its candidate is the
+            nearest catalog star within ``residual_sigmas`` × (the scene's estimated centroid
+            noise), clipped to [``residual_min_deg``, ``residual_max_deg``], and no other catalog
+            star is within ``ambiguity_deg``, and it is the scene detection nearest to its
+            star's predicted position. Close pairs swapping ids and false stars next to catalog
+            stars caused every mis-identification seen with ε = 0.2°: 0.3–1.5 % → 0 / 0 / 0 on
+            the three conditions above (identification 100 %, 99.3 %, 98.5 %). With all
+            extensions, 42,000 scenes of the Figs. 6–8 sweeps (2,000 per level) gave no
+            mis-identification; one in 1,000 was seen at 2.5 px with another seed (two close
+            pairs swapped at once).
+        residual_sigmas, residual_min_deg, residual_max_deg: the attitude-check tolerance.
+        ambiguity_deg: a second catalog star this close to a member's predicted position makes
+            the member ambiguous (dropped).
+        field_check: under the attitude of the final cluster, at least
+            ``field_check_fraction`` of the N brightest catalog stars predicted in the frame must
+            have a detection within ``residual_max_deg``. With vertex matching, a three-member
+            cluster can be one chance triangle match (its pair angles were already checked by
+            the match); that was the last kind of mis-identification left (≈ 0.03 % of the
+            scenes with 5–6 false stars).
+    """
+
+    n_stars: int = 10
+    dv1: float = 5e-5
+    dv2: float = 5e-4
+    ver_min: int = 3
+    n_boresights: int = 100_000
+    th1: int = 1
+    th2: int = 1
+    eps_deg: float = 0.2
+    candidate_capacity: int = 256
+    max_candidate_capacity: int = 1024
+    batch_chunk: int = 500
+    require_unique_cluster: bool = True
+    database_roll_deg: float | None = None
+    vertex_match: bool = True
+    side_tol_deg: float = 0.2
+    min_votes: int = 1
+    attitude_check: bool = True
+    residual_sigmas: float = 4.0
+    residual_min_deg: float = 0.05
+    residual_max_deg: float = 0.2
+    ambiguity_deg: float = 0.2
+    field_check: bool = True
+    field_check_fraction: float = 0.5
+
+    def __post_init__(self):
+        if not 3 <= int(self.n_stars) <= 12:
+            raise ValueError(f"n_stars must be in [3, 12] (2^N subsets), got {self.n_stars}")
+        for name in ("dv1", "dv2", "eps_deg", "side_tol_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {value}")
+        if int(self.th1) < 0 or int(self.th2) < 0:
+            raise ValueError("th1 and th2 must be ≥ 0")
+        if int(self.ver_min) < 2:
+            raise ValueError(f"ver_min must be ≥ 2, got {self.ver_min}")
+        if int(self.candidate_capacity) < 1 or int(self.batch_chunk) < 1:
+            raise ValueError("candidate_capacity and batch_chunk must be ≥ 1")
+        if int(self.n_boresights) < 1:
+            raise ValueError("n_boresights must be ≥ 1")
+
+    @property
+    def side_tol_rad(self) -> float:
+        """Side tolerance in radians."""
+        return math.radians(self.side_tol_deg)
+
+    @property
+    def eps_rad(self) -> float:
+        """ε in radians."""
+        return math.radians(self.eps_deg)
+
+    def database_fields(self) -> dict:
+        """The settings that shape the database (its cache key)."""
+        return {"n_stars": int(self.n_stars), "dv1": float(self.dv1), "dv2": float(self.dv2),
+                "n_boresights": int(self.n_boresights),
+                "database_roll_deg": self.database_roll_deg}

@@ -1,0 +1,287 @@
+"""The MLV onboard database (paper §2.2, Fig. 2): reference catalog, index table, feature lookup.
+
+Build (host, once, cached on disk):
+
+1. ``n_boresights`` boresights evenly on the sphere (Fibonacci lattice), each a simulated image of
+   the camera (square field, roll fixed or varied — :class:`~jstarid.algorithms.mlv.Config`);
+2. the brightest N catalog stars in each image (catalog rows are sorted brightest first, so these
+   are the first N in-field rows of the boresight's sky-index cell list) → C(N, 3) triangles;
+3. triangles de-duplicated as sorted triples of catalog rows (the index table ``ID``); the reference
+   catalog ``C`` is the set of stars used by at least one triangle;
+4. each triangle's discretized features (v̂1, v̂2) (eqs. 1–4, float64).
+
+Lookup tables: the paper keeps two tables LT_v1, LT_v2 (triangle lists per discretized value) and
+intersects the matches of both. We store the same information as one array of composite keys
+``(v̂1 − v̂1_min)·stride + v̂2`` sorted ascending, with the triangles in the same order. The
+rectangle query of eq. 7 is then 2·Th1 + 1 contiguous ranges (one per v̂1 value), each found with two
+``jnp.searchsorted`` calls — exact, jit-able, and O(log T) per range.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jstarid.algorithms.mlv.config import Config
+from jstarid.algorithms.mlv.features import discretize, singular_values, triangle_combinations
+from jstarid.attitude import rotation_from_boresight
+from jstarid.camera import Camera
+from jstarid.catalog import cache_dir
+from jstarid.sky_index import build_sky_index, cell_of
+
+__all__ = ["Database", "build_database", "fibonacci_sphere", "database_from_triangles"]
+
+_DB_VERSION = 1
+_GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+_BUILD_CHUNK = 4096  # boresights per vectorized step
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Database:
+    """MLV database (a pytree: arrays are leaves, sizes and the camera are static).
+
+    Attributes:
+        keys: (T,) int32 composite feature keys ``(v̂1 − v1_offset)·stride + v̂2``, ascending.
+        triangles: (T, 3) int32 reference-catalog indices of each triangle's stars, ordered so
+            that star m is opposite the m-th shortest side.
+        sides: (T, 3) float32 the triangle's side angles (rad), ascending: ``sides[t, m]`` is the
+            side opposite ``triangles[t, m]``. Used by the vertex-matching extension; derivable
+            from the stars, so not counted in :attr:`nbytes`.
+        star_rows: (S,) int32 catalog row of each reference-catalog star.
+        star_vectors: (S, 3) float32 ICRS unit vectors of the reference stars.
+        catalog_vectors: (M, 3) float32 ICRS unit vectors of the whole catalog (final check of the
+            nearest star under the fitted attitude).
+        v1_offset: smallest v̂1 in the table (static int).
+        stride: max v̂2 + 1 (static int); v̂2 ∈ [0, stride).
+        n_rows: number of v̂1 rows, max v̂1 − v1_offset + 1 (static int).
+        camera: the :class:`~jstarid.camera.Camera` the database was built for (static); the
+            identifier needs it to turn centroids into directions.
+        dv1, dv2: the discretization units Δv1, Δv2 the keys were made with (static).
+        info: build statistics (static): triangles, stars, bytes, build seconds, cache path.
+    """
+
+    keys: jax.Array
+    triangles: jax.Array
+    sides: jax.Array
+    star_rows: jax.Array
+    star_vectors: jax.Array
+    catalog_vectors: jax.Array
+    v1_offset: int = dataclasses.field(metadata={"static": True})
+    stride: int = dataclasses.field(metadata={"static": True})
+    n_rows: int = dataclasses.field(metadata={"static": True})
+    camera: Camera = dataclasses.field(metadata={"static": True})
+    dv1: float = dataclasses.field(metadata={"static": True})
+    dv2: float = dataclasses.field(metadata={"static": True})
+    info: tuple = dataclasses.field(default=(), metadata={"static": True})
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.keys.shape[0])
+
+    @property
+    def n_reference_stars(self) -> int:
+        return int(self.star_rows.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """Compact storage in bytes, as an onboard table would hold it: the keys (int32), the
+        index table (uint16 per star while the reference catalog has < 65,536 stars, else int32)
+        and the reference catalog (int32 catalog row + 2 float32 angles per star)."""
+        idx_bytes = 2 if self.n_reference_stars < 65536 else 4
+        return self.n_triangles * (4 + 3 * idx_bytes) + self.n_reference_stars * (4 + 2 * 4)
+
+    @property
+    def device_nbytes(self) -> int:
+        """Bytes of the arrays as held for identification (int32 / float32)."""
+        return int(sum(np.asarray(a).nbytes for a in
+                       (self.keys, self.triangles, self.sides, self.star_rows, self.star_vectors,
+                 self.catalog_vectors)))
+
+    def info_dict(self) -> dict:
+        return dict(self.info)
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) float64 unit vectors evenly spread on the sphere (Fibonacci lattice).
+
+    Point k has z = 1 − (2k + 1)/n and longitude k·(golden angle), so every point covers an equal
+    area 4π/n to within a few per cent and no two points coincide.
+    """
+    k = np.arange(n, dtype=np.float64)
+    z = 1.0 - (2.0 * k + 1.0) / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = np.mod(k * _GOLDEN_ANGLE, 2.0 * math.pi)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
+
+
+def _cache_key(catalog, camera: Camera, config: Config) -> str:
+    payload = {"version": _DB_VERSION, "catalog": catalog.fingerprint,
+               "camera": dataclasses.asdict(camera), "config": config.database_fields()}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:20]
+
+
+def _brightest_in_field(bore, roll, rows, vec, real, *, camera: Camera, n: int):
+    """For each boresight, the first ``n`` in-field entries of its (brightest-first) star list.
+
+    Args:
+        bore: (c, 3) ICRS boresights; roll: (c,) rad.
+        rows: (c, K) candidate catalog rows, ascending (= brightest first).
+        vec: (c, K, 3) their ICRS unit vectors (anything for padding).
+        real: (c, K) bool, False for padding entries.
+
+    Returns:
+        (c, n) int32 catalog rows (ascending; −1 where fewer than n stars are in the field).
+    """
+    att = rotation_from_boresight(bore, roll)  # (c, 3, 3): v_cam = C r
+    v_cam = jnp.einsum("cij,ckj->cki", att, vec)
+    _, in_field = camera.project(v_cam)
+    in_field &= real
+    m = jnp.max(rows) + 1  # anything > every row
+    sort_key = jnp.where(in_field, rows, m + rows)  # in-field rows first, still brightest first
+    order = jnp.argsort(sort_key, axis=-1)[:, :n]
+    picked = jnp.take_along_axis(rows, order, axis=-1)
+    ok = jnp.take_along_axis(in_field, order, axis=-1)
+    return jnp.where(ok, picked, -1)
+
+
+_brightest_in_field_jit = jax.jit(_brightest_in_field, static_argnames=("camera", "n"))
+
+
+def _triangle_table(catalog, camera: Camera, config: Config, progress: bool) -> np.ndarray:
+    """(T, 3) int64 unique sorted triples of catalog rows (steps 1–3 of the module doc)."""
+    from tqdm.auto import tqdm
+
+    n_cat = len(catalog)
+    bores = fibonacci_sphere(config.n_boresights)
+    if config.database_roll_deg is None:
+        rolls = np.mod(np.arange(config.n_boresights) * _GOLDEN_ANGLE, 2.0 * math.pi)
+    else:
+        rolls = np.full(config.n_boresights, math.radians(config.database_roll_deg))
+    index = build_sky_index(catalog.unit_vectors, camera.half_diagonal_rad,
+                            key=f"{catalog.fingerprint}-mlv-db")
+    cells = index.cells  # (cells, K) ascending rows, padding = n_cat
+    vec_pad = np.concatenate([catalog.unit_vectors, [[0.0, 0.0, -1.0]]]).astype(np.float32)
+    combos = triangle_combinations(config.n_stars)
+    base = np.int64(n_cat + 1)
+    found = []
+    chunks = range(0, config.n_boresights, _BUILD_CHUNK)
+    for lo in tqdm(chunks, desc="MLV database", unit="chunk", disable=not progress):
+        hi = min(lo + _BUILD_CHUNK, config.n_boresights)
+        b = np.zeros((_BUILD_CHUNK, 3), np.float32)  # pad to one static shape (one compilation)
+        b[: hi - lo] = bores[lo:hi]
+        b[hi - lo:] = bores[lo]
+        r = np.zeros(_BUILD_CHUNK, np.float32)
+        r[: hi - lo] = rolls[lo:hi]
+        rows = cells[np.asarray(cell_of(jnp.asarray(b), index.grid))]
+        picked = np.asarray(_brightest_in_field_jit(
+            jnp.asarray(b), jnp.asarray(r), jnp.asarray(rows), jnp.asarray(vec_pad[rows]),
+            jnp.asarray(rows < n_cat), camera=camera, n=config.n_stars))[: hi - lo]
+        tri = picked[:, combos].reshape(-1, 3).astype(np.int64)  # ascending within each triple
+        tri = tri[np.all(tri >= 0, axis=1)]
+        found.append(np.unique((tri[:, 0] * base + tri[:, 1]) * base + tri[:, 2]))
+    codes = np.unique(np.concatenate(found)) if found else np.zeros(0, np.int64)
+    return np.stack([codes // (base * base), (codes // base) % base, codes % base], axis=1)
+
+
+def _angle(u, v):
+    """Angles (rad) between unit vectors (..., 3), float64, accurate for small angles."""
+    return 2.0 * np.arcsin(np.clip(0.5 * np.linalg.norm(u - v, axis=-1), 0.0, 1.0))
+
+
+def database_from_triangles(catalog, camera: Camera, triangles: np.ndarray, dv1: float,
+                            dv2: float, info: dict | None = None) -> Database:
+    """Features, reference catalog and sorted lookup keys for a given triangle table.
+
+    Args:
+        catalog: the :class:`~jstarid.catalog.Catalog` whose rows ``triangles`` holds.
+        camera: camera the database is for.
+        triangles: (T, 3) integer catalog rows of each triangle (any order).
+        dv1, dv2: discretization units (eq. 4).
+        info: extra build statistics to record.
+
+    Returns:
+        A :class:`Database`.
+    """
+    triangles = np.sort(np.asarray(triangles, np.int64).reshape(-1, 3), axis=1)
+    if triangles.shape[0] == 0:
+        raise ValueError("no triangles: the field never holds three catalog stars")
+    star_rows, inverse = np.unique(triangles, return_inverse=True)
+    tri_ref = inverse.reshape(-1, 3)
+    vec = np.asarray(catalog.unit_vectors, np.float64)
+    sv = singular_values(vec[triangles[:, 0]], vec[triangles[:, 1]], vec[triangles[:, 2]], xp=np)
+    v1h, v2h = discretize(sv[:, 0], sv[:, 1], dv1, dv2, xp=np)  # eq. 4 in float64
+    v1_offset = int(v1h.min())
+    stride = int(v2h.max()) + 1
+    n_rows = int(v1h.max()) - v1_offset + 1
+    keys = (v1h - v1_offset) * stride + v2h
+    if keys.max() >= 2**31 - stride * 8:
+        raise ValueError("feature keys overflow int32: use coarser Δv1, Δv2")
+    order = np.lexsort((tri_ref[:, 2], tri_ref[:, 1], tri_ref[:, 0], keys))
+    # side opposite each vertex, then vertices re-ordered by that side (ascending)
+    a, b, c = (vec[triangles[:, m]] for m in range(3))
+    opposite = np.stack([_angle(b, c), _angle(a, c), _angle(a, b)], axis=1)
+    by_side = np.argsort(opposite, axis=1, kind="stable")
+    tri_ref = np.take_along_axis(tri_ref, by_side, axis=1)
+    opposite = np.take_along_axis(opposite, by_side, axis=1)
+    info = dict(info or {})
+    db = Database(
+        keys=jnp.asarray(keys[order], jnp.int32),
+        triangles=jnp.asarray(tri_ref[order], jnp.int32),
+        sides=jnp.asarray(opposite[order], jnp.float32),
+        star_rows=jnp.asarray(star_rows, jnp.int32),
+        star_vectors=jnp.asarray(vec[star_rows], jnp.float32),
+        catalog_vectors=jnp.asarray(vec, jnp.float32),
+        v1_offset=v1_offset, stride=stride, n_rows=n_rows, camera=camera,
+        dv1=float(dv1), dv2=float(dv2), info=(),
+    )
+    info.update(n_triangles=db.n_triangles, n_reference_stars=db.n_reference_stars,
+                nbytes=db.nbytes, device_nbytes=db.device_nbytes)
+    return dataclasses.replace(db, info=tuple(sorted(info.items())))
+
+
+def build_database(catalog, camera: Camera, config: Config | None = None, *,
+                   use_cache: bool = True, progress: bool = True) -> Database:
+    """Build (or load from the disk cache) the MLV database for a catalog and camera.
+
+    Args:
+        catalog: :class:`~jstarid.catalog.Catalog` (the identification catalog, V ≤ camera limit).
+        camera: :class:`~jstarid.camera.Camera`.
+        config: :class:`~jstarid.algorithms.mlv.Config` (default: paper values); ``n_stars``,
+            ``dv1``, ``dv2``, ``n_boresights`` and ``database_roll_deg`` shape the database.
+        use_cache: read/write ``mlv-db-<hash>.npz`` under :func:`jstarid.catalog.cache_dir`, keyed
+            by the catalog fingerprint, every camera field and those config fields.
+        progress: show a tqdm progress bar over boresight chunks.
+
+    Returns:
+        A :class:`Database`; ``db.info_dict()`` has ``n_triangles``, ``nbytes``, ``build_seconds``
+        (0 when loaded from the cache) and ``cache_path``.
+    """
+    config = Config() if config is None else config
+    path = cache_dir() / f"mlv-db-{_cache_key(catalog, camera, config)}.npz"
+    if use_cache and path.exists():
+        with np.load(path) as data:
+            triangles = data["triangles"]
+            build_seconds = float(data["build_seconds"])
+        return database_from_triangles(catalog, camera, triangles, config.dv1, config.dv2,
+                                       info={"build_seconds": 0.0, "cached": True,
+                                             "original_build_seconds": build_seconds,
+                                             "cache_path": str(path)})
+    t0 = time.perf_counter()
+    triangles = _triangle_table(catalog, camera, config, progress)
+    seconds = time.perf_counter() - t0
+    if use_cache:
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, triangles=triangles.astype(np.int32), build_seconds=seconds)
+        tmp.replace(path)
+    db = database_from_triangles(catalog, camera, triangles, config.dv1, config.dv2,
+                                 info={"build_seconds": seconds, "cached": False,
+                                       "cache_path": str(path) if use_cache else ""})
+    return db

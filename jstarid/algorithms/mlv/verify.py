@@ -1,0 +1,194 @@
+"""Verification (paper §2.3.2): pair-angle voting and the largest mutually consistent cluster.
+
+Two detections (s_i, s_j) with candidates (c_i, c_j) agree when their angular distances match,
+|θˢ_ij − θᶜ_ij| ≤ ε (eq. 8). The paper counts, per candidate, the pairs it agrees with and keeps
+"the largest cluster group". We make that precise as the largest set of candidates that agree
+*pairwise* (a maximum clique of the agreement graph), found exactly by testing all 2^N subsets of
+the N ≤ 12 detections with one small matrix product — fixed work, no data-dependent loop. A scene
+succeeds when that cluster has at least ``ver_min`` members; only its members are named. When
+several different clusters share the largest size, only the detections common to all of them are
+named (and the scene fails if fewer than ``ver_min`` remain): a tie means some candidates are
+ambiguous, and a mis-identification is much worse than a failure.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import cache
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["pair_angles", "agreement", "largest_cluster", "subset_masks", "attitude_check",
+           "field_check", "fit_attitude"]
+
+
+def pair_angles(vectors):
+    """(..., n, n) angles (rad) between unit vectors (..., n, 3): 2·asin(|a − b|/2), accurate for
+    small angles where ``arccos`` of the dot product loses float32 digits."""
+    chord = jnp.linalg.norm(vectors[..., :, None, :] - vectors[..., None, :, :], axis=-1)
+    return 2.0 * jnp.arcsin(jnp.clip(0.5 * chord, 0.0, 1.0))
+
+
+def agreement(det_vectors, cand_vectors, cand_ids, has_cand, eps_rad: float):
+    """Pairs whose candidates reproduce the observed angular distance (eq. 8).
+
+    Args:
+        det_vectors: (n, 3) detection directions (camera frame).
+        cand_vectors: (n, 3) candidate directions (ICRS).
+        cand_ids: (n,) int32 candidate stars (two detections may not share one star).
+        has_cand: (n,) bool, the detection has a candidate.
+        eps_rad: tolerance ε (rad).
+
+    Returns:
+        (n, n) bool symmetric agreement matrix, False on the diagonal.
+    """
+    n = det_vectors.shape[0]
+    diff = jnp.abs(pair_angles(det_vectors) - pair_angles(cand_vectors))
+    both = has_cand[:, None] & has_cand[None, :]
+    distinct = cand_ids[:, None] != cand_ids[None, :]
+    return both & distinct & (diff <= eps_rad) & ~jnp.eye(n, dtype=bool)
+
+
+@cache
+def subset_masks(n: int) -> np.ndarray:
+    """(2^n, n) float32 membership of every subset of n items (row b: the bits of b)."""
+    bits = (np.arange(2**n)[:, None] >> np.arange(n)[None, :]) & 1
+    return bits.astype(np.float32)
+
+
+def largest_cluster(agree):
+    """The largest set of detections whose candidates agree pairwise (a maximum clique).
+
+    Args:
+        agree: (n, n) bool symmetric agreement matrix (False on the diagonal).
+
+    Returns:
+        ``(first, common, size)``: (n,) bool members of the first largest cluster in subset order,
+        (n,) bool detections that belong to *every* largest cluster (equal to ``first`` when the
+        largest cluster is unique), and the scalar int32 largest size (≥ 1: a single detection is a
+        trivial cluster; callers compare with ``ver_min`` ≥ 2).
+    """
+    n = agree.shape[0]
+    masks = jnp.asarray(subset_masks(n))  # (2^n, n)
+    disagree = (~agree & ~jnp.eye(n, dtype=bool)).astype(jnp.float32)
+    # a subset is a clique iff it contains no disagreeing pair: m·D·mᵀ = 0
+    violations = jnp.sum((masks @ disagree) * masks, axis=1)
+    size = jnp.sum(masks, axis=1).astype(jnp.int32)
+    score = jnp.where(violations == 0, size, -1)
+    best = jnp.argmax(score)
+    best_size = score[best]
+    is_best = (score == best_size)[:, None]
+    common = jnp.all(jnp.where(is_best, masks > 0, True), axis=0)
+    return masks[best] > 0, common, best_size
+
+
+def _wahba(v_cam, r_icrs, weights):
+    """Rotation C (3, 3) minimising Σ w |v − C r|² (SVD solution of Wahba's problem)."""
+    b = jnp.einsum("n,ni,nj->ij", weights, v_cam, r_icrs)
+    u, _, vt = jnp.linalg.svd(b)
+    d = jnp.sign(jnp.linalg.det(u) * jnp.linalg.det(vt))
+    return u @ jnp.diag(jnp.array([1.0, 1.0, 1.0]).at[2].set(d)) @ vt
+
+
+def _angle(a, b):
+    """Angles (rad) between unit vectors (..., 3), accurate for small angles."""
+    return 2.0 * jnp.arcsin(jnp.clip(0.5 * jnp.linalg.norm(a - b, axis=-1), 0.0, 1.0))
+
+
+def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: float,
+                   min_tol_rad: float, max_tol_rad: float, ambiguity_rad: float,
+                   scene_vectors=None, scene_valid=None):
+    """Final check of a verified cluster against the attitude it implies (extension).
+
+    Every member is predicted from an attitude fitted (Wahba / SVD) to the *other* members
+    (leave-one-out, so a wrong member cannot pull the fit towards itself). It keeps its id only when
+    its candidate is then the catalog star nearest to the detection, within a tolerance, and no
+    other catalog star lies within ``ambiguity_rad``: close pairs (0.05°–0.2° apart) can swap ids
+    under position noise while every pair angle still agrees within ε. The tolerance adapts to the
+    scene's noise: ``sigmas`` × σ̂, σ̂ = median member residual under the all-member fit / 1.1774
+    (the median of a 2-D Gaussian's radius is 1.1774σ), clipped to [``min_tol_rad``,
+    ``max_tol_rad``]. A false star that happens to lie 0.13° from an undetected catalog star is
+    thus rejected in a 1-px scene, where true stars sit within ≈ 0.03°. Finally, the member must be
+    the scene detection nearest to where its star is predicted, and the only one within
+    ``ambiguity_rad`` of it (all detections, not only the N brightest): a false star next to a
+    catalog star whose own detection ranked below the N brightest is then refused.
+
+    Args:
+        det_vectors: (n, 3) detection directions (camera frame).
+        members: (n,) bool cluster members.
+        cand_rows: (n,) int32 catalog row of each detection's candidate.
+        catalog_vectors: (M, 3) ICRS unit vectors of the whole identification catalog.
+        sigmas: tolerance in units of the estimated per-axis position noise σ̂.
+        min_tol_rad, max_tol_rad: bounds of the tolerance (rad).
+        ambiguity_rad: a second catalog star this close (rad) makes the detection ambiguous.
+        scene_vectors: (m, 3) all detections of the scene (camera frame), the first n being
+            ``det_vectors``; ``None``: ``det_vectors`` only.
+        scene_valid: (m,) bool, real detections among ``scene_vectors``.
+
+    Returns:
+        (n,) bool members that pass.
+    """
+    n = det_vectors.shape[0]
+    r = catalog_vectors[jnp.maximum(cand_rows, 0)]
+    w = members.astype(det_vectors.dtype)
+    full = _wahba(det_vectors, r, w)
+    resid = _angle(det_vectors @ full, r)  # (n,)
+    big = jnp.asarray(jnp.inf, det_vectors.dtype)
+    med = jnp.nanmedian(jnp.where(members, resid, jnp.nan))
+    sigma = jnp.where(jnp.isfinite(med), med, big) / 1.1774
+    tol = jnp.clip(sigmas * sigma, min_tol_rad, max_tol_rad)
+    loo_w = w[None, :] * (1.0 - jnp.eye(n, dtype=w.dtype))  # (n, n): fit without member i
+    loo = jax.vmap(_wahba, in_axes=(None, None, 0))(det_vectors, r, loo_w)  # (n, 3, 3)
+    pred = jnp.einsum("ni,nij->nj", det_vectors, loo)  # rows: C_iᵀ v_i in ICRS
+    cos = pred @ catalog_vectors.T  # (n, M)
+    near = jnp.argmax(cos, axis=1)  # two argmax passes: cheaper than top_k on CPU
+    cos2 = jnp.max(jnp.where(jnp.arange(cos.shape[1]) == near[:, None], -2.0, cos), axis=1)
+    ang1 = _angle(pred, catalog_vectors[near])
+    # cos2 only decides "within ambiguity_rad": compare cosines (no precision needed here)
+    if scene_vectors is None:
+        scene_vectors, scene_valid = det_vectors, members
+    star_cam = jnp.einsum("nij,nj->ni", loo, r)  # C_i r_i: where star i should appear (camera)
+    to_det = jnp.where(scene_valid[None, :], star_cam @ scene_vectors.T, -2.0)  # (n, m)
+    own = jnp.argmax(to_det, axis=1) == jnp.arange(n)
+    # …and the only detection within ambiguity_rad of it: two spots on one star's position (a
+    # false star on top of it) leave the pairing to chance
+    others = jnp.sum(to_det >= math.cos(ambiguity_rad), axis=1) - 1
+    own &= others == 0
+    return (members & own & (near == cand_rows) & (ang1 <= tol)
+            & (cos2 < math.cos(ambiguity_rad)))
+
+
+def fit_attitude(det_vectors, members, cand_rows, catalog_vectors):
+    """(3, 3) attitude C (ICRS → camera, v = C r) fitted to the members (Wahba / SVD)."""
+    r = catalog_vectors[jnp.maximum(cand_rows, 0)]
+    return _wahba(det_vectors, r, members.astype(det_vectors.dtype))
+
+
+def field_check(att, scene_vectors, scene_valid, catalog_vectors, camera, n: int, tol_rad: float):
+    """How many of the n brightest catalog stars predicted in the field are seen (extension).
+
+    With the right attitude, the brightest catalog stars that fall in the frame are nearly all
+    detected (they are far above the detection limit); with a wrong one — a chance match of one
+    triangle of false or unlisted stars, which a three-member cluster cannot exclude because its
+    pair angles were already checked by the triangle match — only the cluster's own stars are.
+
+    Args:
+        att: (3, 3) attitude C (v = C r).
+        scene_vectors: (m, 3) all detections (camera frame); scene_valid: (m,) bool.
+        catalog_vectors: (M, 3) ICRS catalog, rows sorted brightest first.
+        camera: the :class:`~jstarid.camera.Camera` (static).
+        n: how many predicted stars to test.
+        tol_rad: a detection within this angle (rad) confirms a predicted star.
+
+    Returns:
+        ``(n_predicted, n_confirmed)``: scalar int32 counts.
+    """
+    v = catalog_vectors @ att.T  # (M, 3) camera frame
+    _, in_field = camera.project(v)
+    rows = jnp.nonzero(in_field, size=n, fill_value=-1)[0]  # the n brightest in the frame
+    predicted = rows >= 0
+    cos = v[jnp.maximum(rows, 0)] @ scene_vectors.T  # (n, m)
+    seen = jnp.any(scene_valid[None, :] & (cos >= math.cos(tol_rad)), axis=1)
+    return jnp.sum(predicted, dtype=jnp.int32), jnp.sum(predicted & seen, dtype=jnp.int32)

@@ -1,0 +1,163 @@
+"""Initial match (paper §2.3.1): candidate triangles within Th1/Th2 (eq. 7) and triangle voting.
+
+Everything here is per scene and jit-able; :mod:`jstarid.algorithms.mlv.identify` vmaps it.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["candidate_ranges", "gather_candidates", "cast_votes", "match_vertices",
+           "cast_matched_votes", "best_candidates", "opposite_sides"]
+
+
+def candidate_ranges(keys, v1h, v2h, *, th1: int, th2: int, v1_offset: int, stride: int,
+                     n_rows: int):
+    """Database ranges holding the triangles with |v̂1ˢ − v̂1ᶜ| ≤ Th1 and |v̂2ˢ − v̂2ᶜ| ≤ Th2 (eq. 7).
+
+    The keys are ``(v̂1 − v1_offset)·stride + v̂2`` sorted ascending, so for each of the 2·Th1 + 1
+    values of v̂1 in the window the matching v̂2 values form one contiguous key range.
+
+    Args:
+        keys: (T,) int32 sorted database keys.
+        v1h, v2h: (...,) int32 discretized features of the query triangles.
+        th1, th2: tolerances (bins).
+        v1_offset, stride, n_rows: key layout (see :class:`~jstarid.algorithms.mlv.Database`).
+
+    Returns:
+        ``(start, count)``: (..., 2·Th1 + 1) int32 first key index and length of each range.
+    """
+    d1 = jnp.arange(-th1, th1 + 1, dtype=jnp.int32)
+    # rows outside the table are clipped to −1 / n_rows: their key ranges are empty (no overflow)
+    row = jnp.clip(v1h[..., None] - v1_offset + d1, -1, n_rows)
+    lo2 = jnp.clip(v2h - th2, 0, stride - 1)[..., None]
+    hi2 = jnp.clip(v2h + th2, 0, stride - 1)[..., None]
+    empty = (v2h + th2 < 0) | (v2h - th2 > stride - 1)
+    lo_key = row * stride + lo2
+    hi_key = row * stride + hi2
+    start = jnp.searchsorted(keys, lo_key, side="left").astype(jnp.int32)
+    end = jnp.searchsorted(keys, hi_key, side="right").astype(jnp.int32)
+    count = jnp.where(empty[..., None], 0, end - start)
+    return start, count
+
+
+def gather_candidates(start, count, capacity: int):
+    """Pack the ranges of one query into a fixed buffer of ``capacity`` database indices.
+
+    Args:
+        start, count: (R,) int32 ranges (from :func:`candidate_ranges`).
+        capacity: K, static buffer size.
+
+    Returns:
+        ``(index, valid, overflow, total)``: (K,) int32 database rows (0 where not valid), (K,)
+        bool, scalar bool (more than K candidates: the buffer holds only the first K), scalar int32
+        number of candidates.
+    """
+    incl = jnp.cumsum(count)
+    excl = incl - count
+    total = incl[-1]
+    slot = jnp.arange(capacity, dtype=jnp.int32)
+    which = jnp.sum(slot[:, None] >= incl[None, :], axis=1)  # range holding slot t
+    which = jnp.minimum(which, count.shape[0] - 1)
+    valid = slot < total
+    index = jnp.where(valid, start[which] + slot - excl[which], 0)
+    return index.astype(jnp.int32), valid, total > capacity, total.astype(jnp.int32)
+
+
+def cast_votes(tri_det, cand_stars, cand_valid, n_det: int, n_ref: int):
+    """Triangle voting (Fig. 3): every candidate triangle votes for its three catalog stars at each
+    of the three detections of the query triangle.
+
+    Singular values do not tell which vertex is which, so — as in the paper — each detection of the
+    query gets a vote for each star of each candidate. A detection's true star collects one vote
+    from every true triangle through it (C(N−1, 2) = 36 at N = 10) while any other star collects
+    only those of triangles through both (N − 2 = 8).
+
+    Args:
+        tri_det: (T, 3) int32 detection index of each query triangle's vertices.
+        cand_stars: (T, K, 3) int32 reference-catalog stars of each candidate triangle.
+        cand_valid: (T, K) bool, the candidate counts (it exists, its query triangle is valid and
+            did not overflow).
+        n_det: number of detections N.
+        n_ref: reference-catalog size S.
+
+    Returns:
+        (N, S) int32 vote counters.
+    """
+    t, k, _ = cand_stars.shape
+    det = jnp.broadcast_to(tri_det[:, None, :, None], (t, k, 3, 3))
+    star = jnp.broadcast_to(cand_stars[:, :, None, :], (t, k, 3, 3))
+    flat = jnp.where(cand_valid[:, :, None, None], det * n_ref + star, n_det * n_ref)
+    counts = jnp.zeros((n_det * n_ref + 1,), jnp.int32).at[flat.reshape(-1)].add(1)
+    return counts[:-1].reshape(n_det, n_ref)
+
+
+def best_candidates(votes):
+    """Candidate per detection: the star with the most votes (ties → smallest index).
+
+    Args:
+        votes: (N, S) int32 counters.
+
+    Returns:
+        ``(star, n_votes, runner_up)``: (N,) int32 best star, its votes, the second-highest count.
+    """
+    top2, idx = jax.lax.top_k(votes, 2)
+    return idx[:, 0].astype(jnp.int32), top2[:, 0], top2[:, 1]
+
+
+def opposite_sides(vectors):
+    """(..., 3) angles (rad) opposite each vertex of triangles (..., 3, 3): θ(b,c), θ(a,c), θ(a,b)."""
+    a, b, c = vectors[..., 0, :], vectors[..., 1, :], vectors[..., 2, :]
+
+    def ang(u, v):
+        return 2.0 * jnp.arcsin(jnp.clip(0.5 * jnp.linalg.norm(u - v, axis=-1), 0.0, 1.0))
+
+    return jnp.stack([ang(b, c), ang(a, c), ang(a, b)], axis=-1)
+
+
+def match_vertices(obs_vectors, cand_sides, tol_rad: float):
+    """Vertex correspondence of each candidate triangle and a side-length check (extension).
+
+    The singular values fix two of a triangle's three shape parameters; its three side angles fix
+    all three and, through which side is opposite which vertex, which candidate star belongs to
+    which detection. Matching the observed sides to the candidate's in sorted order minimises the
+    largest side error over the six vertex permutations (sorted matching is the optimal bottleneck
+    assignment on a line), so the database stores each triangle's stars ordered by their opposite
+    side and no permutation search is needed. A candidate is accepted when every side agrees
+    within ``tol_rad``.
+
+    Args:
+        obs_vectors: (T, 3, 3) detection directions of each query triangle (camera frame).
+        cand_sides: (T, K, 3) each candidate's sides (rad), ascending (``Database.sides``).
+        tol_rad: side tolerance (rad).
+
+    Returns:
+        ``(vertex, ok)``: (T, 3) int32 query vertex (0–2) opposite the observed sides in
+        ascending order — it corresponds to candidate star m = 0, 1, 2 — and (T, K) bool.
+    """
+    obs = opposite_sides(obs_vectors)  # (T, 3)
+    vertex = jnp.argsort(obs, axis=-1).astype(jnp.int32)
+    obs_sorted = jnp.take_along_axis(obs, vertex, axis=-1)
+    err = jnp.max(jnp.abs(cand_sides - obs_sorted[:, None, :]), axis=-1)  # (T, K)
+    return vertex, err <= tol_rad
+
+
+def cast_matched_votes(tri_det, cand_stars, cand_valid, n_det: int, n_ref: int):
+    """Vertex-matched triangle voting: each detection votes only for its corresponding star.
+
+    Args:
+        tri_det: (T, 3) int32 detection of each query triangle vertex, ordered as the candidate
+            stars (detection ``tri_det[t, m]`` ↔ star ``cand_stars[t, k, m]``).
+        cand_stars: (T, K, 3) int32 reference-catalog stars of each candidate triangle.
+        cand_valid: (T, K) bool.
+        n_det, n_ref: N and S.
+
+    Returns:
+        (N, S) int32 vote counters.
+    """
+    t, k, _ = cand_stars.shape
+    det = jnp.broadcast_to(tri_det[:, None, :], (t, k, 3))
+    flat = jnp.where(cand_valid[:, :, None], det * n_ref + cand_stars, n_det * n_ref)
+    counts = jnp.zeros((n_det * n_ref + 1,), jnp.int32).at[flat.reshape(-1)].add(1)
+    return counts[:-1].reshape(n_det, n_ref)

@@ -1,0 +1,313 @@
+"""Tests of the MLV star identifier (jstarid.algorithms.mlv).
+
+A reduced database (20,000 boresights instead of 100,000) keeps the suite fast; it still holds the
+triangles of almost every field, so noise-free scenes must all be identified.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jstarid as js
+from jstarid.algorithms import mlv
+from jstarid.algorithms.mlv.database import database_from_triangles, fibonacci_sphere
+from jstarid.algorithms.mlv.features import (
+    discretize,
+    singular_values,
+    triangle_combinations,
+    triangle_features,
+)
+from jstarid.algorithms.mlv.identify import _identify_batch, identify_scene
+from jstarid.algorithms.mlv.verify import largest_cluster
+from jstarid.algorithms.mlv.voting import candidate_ranges, gather_candidates
+
+CAM = js.camera_preset("mlv2021")
+CFG = mlv.Config(n_boresights=20_000, batch_chunk=100)
+
+
+@pytest.fixture(scope="module")
+def catalog():
+    return js.load_catalog(5.5)
+
+
+@pytest.fixture(scope="module")
+def database(catalog):
+    return mlv.build_database(catalog, CAM, CFG, use_cache=False, progress=False)
+
+
+def _random_triangles(rng, n, spread):
+    """(n, 3, 3) float64 unit vectors: three stars within ≈ `spread` rad of a random direction."""
+    centre = rng.normal(size=(n, 1, 3))
+    p = centre / np.linalg.norm(centre, axis=-1, keepdims=True) + spread * rng.normal(size=(n, 3, 3))
+    return p / np.linalg.norm(p, axis=-1, keepdims=True)
+
+
+# ----------------------------------------------------------------------------- features (eqs. 1–4)
+@pytest.mark.parametrize("spread", [0.15, 0.03, 0.003])
+def test_singular_values_match_numpy_svd(spread):
+    rng = np.random.default_rng(0)
+    p = _random_triangles(rng, 2000, spread)
+    ref = np.linalg.svd(np.swapaxes(p, -1, -2), compute_uv=False)  # M = [p_i p_j p_k] (eq. 1)
+    got64 = singular_values(p[:, 0], p[:, 1], p[:, 2], xp=np)
+    np.testing.assert_allclose(got64, ref, rtol=0, atol=1e-12)
+    p32 = jnp.asarray(p, jnp.float32)
+    got32 = np.asarray(jax.jit(singular_values)(p32[:, 0], p32[:, 1], p32[:, 2]))
+    # float32 inputs carry ≈ 6e-8 rounding; the features need ≪ Δv1 = 5e-5, Δv2 = 5e-4
+    np.testing.assert_allclose(got32, ref, rtol=0, atol=2e-6)
+
+
+def test_singular_values_degenerate_triangles_are_finite():
+    p = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.1, 0.995]])
+    p /= np.linalg.norm(p, axis=-1, keepdims=True)
+    sv = np.asarray(singular_values(*jnp.asarray(p, jnp.float32)))
+    assert np.all(np.isfinite(sv))
+    np.testing.assert_allclose(sv, np.linalg.svd(p.T, compute_uv=False), atol=1e-6)
+
+
+def test_paper_worked_number():
+    # §2.1: v1 = 1.7081, Δv1 = 5e-5 → 34,162 (eq. 4)
+    v1h, v2h = discretize(np.float64(1.7081), np.float64(0.1272), 5e-5, 5e-4, xp=np)
+    assert int(v1h) == 34162
+    # the paper prints 254 for v2 = 0.1272, Δv2 = 5e-4, but eq. 4's ceil gives 255 (see docstring)
+    assert int(v2h) == 255
+    j1, _ = discretize(jnp.float32(1.7081), jnp.float32(0.1272), 5e-5, 5e-4)
+    assert int(j1) == 34162
+
+
+def test_features_rotation_invariant():
+    rng = np.random.default_rng(1)
+    p = _random_triangles(rng, 500, 0.1)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    rotated = p @ q.T
+    a = singular_values(p[:, 0], p[:, 1], p[:, 2], xp=np)
+    b = singular_values(rotated[:, 0], rotated[:, 1], rotated[:, 2], xp=np)
+    np.testing.assert_allclose(a, b, atol=1e-13)
+    # the singular values ignore the order of the three stars as well
+    c = singular_values(p[:, 2], p[:, 0], p[:, 1], xp=np)
+    np.testing.assert_allclose(a, c, atol=1e-13)
+    v1a, v2a, _ = triangle_features(p, 5e-5, 5e-4, xp=np)
+    v1b, v2b, _ = triangle_features(rotated, 5e-5, 5e-4, xp=np)
+    frac1 = (a[:, 0] / 5e-5) % 1.0
+    frac2 = (a[:, 1] / 5e-4) % 1.0
+    away = (np.minimum(frac1, 1 - frac1) > 1e-6) & (np.minimum(frac2, 1 - frac2) > 1e-6)
+    assert np.all(v1a[away] == v1b[away]) and np.all(v2a[away] == v2b[away])
+
+
+# ----------------------------------------------------------------------------- database + lookup
+def test_fibonacci_sphere_is_even():
+    v = fibonacci_sphere(4000)
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-12)
+    assert abs(v.mean(axis=0)).max() < 1e-3
+    # nearest-neighbour distances nearly uniform (≈ 3.6° at n = 4000)
+    d = v @ v.T
+    np.fill_diagonal(d, -1)
+    nn = np.degrees(np.arccos(d.max(axis=1)))
+    assert nn.min() > 0.6 * np.median(nn) and nn.max() < 1.4 * np.median(nn)
+
+
+def test_database_contents(catalog, database):
+    info = database.info_dict()
+    assert info["n_triangles"] == database.n_triangles > 50_000
+    assert np.all(np.diff(np.asarray(database.keys)) >= 0)
+    tri = np.asarray(database.star_rows)[np.asarray(database.triangles)]
+    # stars ordered by their opposite side, and `sides` are those sides (float64 reference)
+    v = catalog.unit_vectors[tri]
+    ref_sides = np.degrees(np.arccos(np.clip(np.stack(
+        [np.sum(v[:, 1] * v[:, 2], -1), np.sum(v[:, 0] * v[:, 2], -1),
+         np.sum(v[:, 0] * v[:, 1], -1)], axis=1), -1, 1)))
+    np.testing.assert_allclose(np.degrees(np.asarray(database.sides)), ref_sides, atol=1e-4)
+    assert np.all(np.diff(np.asarray(database.sides), axis=1) >= 0)
+    tri = np.sort(tri, axis=1)
+    assert np.all(np.diff(tri, axis=1) > 0)  # distinct catalog rows
+    assert len(np.unique(tri, axis=0)) == len(tri)  # de-duplicated
+    # every triangle fits in the field: largest pair angle ≤ the field's diagonal
+    v = catalog.unit_vectors[tri]
+    cos = np.einsum("tij,tkj->tik", v, v)
+    assert np.degrees(np.arccos(cos.min())) <= 2 * math.degrees(CAM.half_diagonal_rad) + 1e-6
+    # keys re-computed independently in float64 from the catalog
+    sv = np.linalg.svd(np.swapaxes(v, -1, -2), compute_uv=False)
+    v1h = np.ceil(sv[:, 0] / CFG.dv1).astype(np.int64)
+    v2h = np.ceil(sv[:, 1] / CFG.dv2).astype(np.int64)
+    keys = (v1h - database.v1_offset) * database.stride + v2h
+    close = np.abs(keys - np.asarray(database.keys)) == 0
+    assert close.mean() > 0.999  # a few may sit on a bin edge (SVD vs closed form at 1e-15)
+    assert database.nbytes < database.device_nbytes
+
+
+def test_lookup_matches_brute_force(catalog):
+    cfg = mlv.Config(n_boresights=500)
+    db = mlv.build_database(catalog, CAM, cfg, use_cache=False, progress=False)
+    keys = np.asarray(db.keys)
+    v1_db = keys // db.stride + db.v1_offset
+    v2_db = keys % db.stride
+    rng = np.random.default_rng(3)
+    pick = rng.integers(0, len(keys), 200)
+    q1 = v1_db[pick] + rng.integers(-3, 4, 200)
+    q2 = v2_db[pick] + rng.integers(-3, 4, 200)
+    q1 = np.concatenate([q1, [0, 10**6, v1_db.min() - 1]])
+    q2 = np.concatenate([q2, [5, 5, -2]])
+    for th1, th2 in [(0, 0), (1, 1), (2, 3)]:
+        start, count = candidate_ranges(db.keys, jnp.asarray(q1, jnp.int32),
+                                        jnp.asarray(q2, jnp.int32), th1=th1, th2=th2,
+                                        v1_offset=db.v1_offset, stride=db.stride,
+                                        n_rows=db.n_rows)
+        idx, valid, overflow, total = jax.vmap(gather_candidates, in_axes=(0, 0, None))(
+            start, count, 4096)
+        for i in range(len(q1)):
+            ref = np.nonzero((np.abs(v1_db - q1[i]) <= th1) & (np.abs(v2_db - q2[i]) <= th2))[0]
+            got = np.asarray(idx[i])[np.asarray(valid[i])]
+            assert int(total[i]) == len(ref) and not bool(overflow[i])
+            np.testing.assert_array_equal(np.sort(got), ref)
+
+
+def test_database_cache_roundtrip(catalog, tmp_path, monkeypatch):
+    monkeypatch.setenv("JSTARID_CACHE", str(tmp_path))
+    cfg = mlv.Config(n_boresights=300)
+    a = mlv.build_database(catalog, CAM, cfg, progress=False)
+    assert not a.info_dict()["cached"] and list(tmp_path.glob("mlv-db-*.npz"))
+    b = mlv.build_database(catalog, CAM, cfg, progress=False)
+    assert b.info_dict()["cached"]
+    np.testing.assert_array_equal(np.asarray(a.keys), np.asarray(b.keys))
+    np.testing.assert_array_equal(np.asarray(a.triangles), np.asarray(b.triangles))
+    c = mlv.build_database(catalog, CAM, mlv.Config(n_boresights=300, dv1=6e-5), progress=False)
+    assert not c.info_dict()["cached"]  # Δv1 shapes the database: a different cache entry
+
+
+def test_database_from_triangles_rejects_empty(catalog):
+    with pytest.raises(ValueError):
+        database_from_triangles(catalog, CAM, np.zeros((0, 3), int), 5e-5, 5e-4)
+
+
+# ----------------------------------------------------------------------------- verification
+def test_largest_cluster_brute_force():
+    rng = np.random.default_rng(4)
+    for _ in range(30):
+        n = 7
+        a = rng.random((n, n)) < 0.6
+        a = np.triu(a, 1)
+        a = a | a.T
+        first, common, size = largest_cluster(jnp.asarray(a))
+        best = 0
+        cliques = []
+        for mask in range(1, 2**n):
+            m = [(mask >> i) & 1 for i in range(n)]
+            idx = [i for i in range(n) if m[i]]
+            if all(a[i, j] for i in idx for j in idx if i < j):
+                cliques.append(set(idx))
+                best = max(best, len(idx))
+        assert int(size) == best
+        top = [c for c in cliques if len(c) == best]
+        assert set(np.nonzero(np.asarray(first))[0]) in top
+        assert set(np.nonzero(np.asarray(common))[0]) == set.intersection(*top)
+
+
+# ----------------------------------------------------------------------------- identification
+@pytest.mark.parametrize("bad", [dict(n_stars=2), dict(n_stars=13), dict(dv1=0.0),
+                                 dict(eps_deg=-1.0), dict(th1=-1), dict(ver_min=1)])
+def test_config_validation(bad):
+    with pytest.raises(ValueError):
+        mlv.Config(**bad)
+
+
+def test_registry():
+    algo = js.algorithms.get("mlv")
+    assert algo.Config is mlv.Config and callable(algo.build_database) and callable(algo.identify)
+    hash(algo.Config())  # static jit argument
+
+
+def test_noise_free_scenes_all_identified(catalog, database):
+    scenes = js.simulate(jax.random.key(10), catalog, CAM, js.NoiseConfig(), batch_size=120,
+                         capacity=32)
+    result = mlv.identify(database, scenes, CFG)  # two chunks of 100 (one padded): one compile
+    assert result.ids.shape == scenes.truth.shape and result.ok.shape == (120,)
+    report = js.evaluate(scenes, result, "mlv")
+    assert report["identification_rate"] == 1.0, report
+    assert report["n_wrong"] == 0
+    # the attitude fitted to the named stars (float32 centroids, no noise): arcsecond level
+    assert report["boresight_err_arcsec_max"] < 5.0, report
+    assert report["roll_err_arcsec_max"] < 30.0, report
+    ids = np.asarray(result.ids)
+    assert np.all(ids[:, CFG.n_stars:] == -1)  # only the N brightest can be named
+
+
+def test_noisy_scenes_no_misidentification(catalog, database):
+    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.3, n_false=3)
+    scenes = js.simulate(jax.random.key(11), catalog, CAM, noise, batch_size=100, capacity=32)
+    report = js.evaluate(scenes, mlv.identify(database, scenes, CFG), "mlv")
+    assert report["identification_rate"] > 0.95, report
+    assert report["n_wrong"] == 0, report
+    # a second call with new scenes of the same shape, and a config differing only in host-side
+    # fields, reuse the compilation
+    compiled = _identify_batch._cache_size()
+    again = js.simulate(jax.random.key(15), catalog, CAM, noise, batch_size=100, capacity=32)
+    mlv.identify(database, again, dataclasses.replace(CFG, max_candidate_capacity=2048))
+    assert _identify_batch._cache_size() == compiled
+
+
+def test_false_stars_only_never_identified(database):
+    rng = np.random.default_rng(5)
+    xy = [rng.uniform(0, 1023, size=(rng.integers(3, 25), 2)) for _ in range(100)]
+    scenes = js.scenes_from_centroids(xy, capacity=32)
+    result = mlv.identify(database, scenes, CFG)
+    assert np.all(np.asarray(result.ids) == -1)  # any id would be wrong
+    assert not np.any(np.asarray(result.ok))
+
+
+def test_candidate_overflow_is_flagged(catalog, database):
+    scenes = js.simulate(jax.random.key(12), catalog, CAM, js.NoiseConfig(), batch_size=4,
+                         capacity=64)  # the shapes of the test below: compilations are shared
+    tight = mlv.Config(n_boresights=CFG.n_boresights, candidate_capacity=2,
+                       max_candidate_capacity=2, batch_chunk=4)
+    with pytest.warns(UserWarning, match="candidates"):
+        _, diag = mlv.identify_with_diagnostics(database, scenes, tight)
+    counts = np.asarray(diag.n_candidates)
+    np.testing.assert_array_equal(np.asarray(diag.n_overflow_triangles), np.sum(counts > 2, 1))
+    assert np.all(np.asarray(diag.candidate_overflow) == (np.sum(counts > 2, 1) > 0))
+    assert np.any(np.asarray(diag.candidate_overflow))
+    # the host retry doubles the buffer (2 → 4) up to max_candidate_capacity, then reports
+    grow = mlv.Config(n_boresights=CFG.n_boresights, candidate_capacity=2,
+                      max_candidate_capacity=4, batch_chunk=4)
+    with pytest.warns(UserWarning, match="more than 4 candidates"):
+        _, diag2 = mlv.identify_with_diagnostics(database, scenes, grow)
+    assert diag2.capacity == 4
+    np.testing.assert_array_equal(np.asarray(diag2.n_candidates), counts)
+    np.testing.assert_array_equal(np.asarray(diag2.n_overflow_triangles), np.sum(counts > 4, 1))
+
+
+def test_batched_matches_per_scene_and_capacity(catalog, database):
+    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.3, n_false=2)
+    scenes = js.simulate(jax.random.key(13), catalog, CAM, noise, batch_size=4, capacity=64)
+    batched, diag = mlv.identify_with_diagnostics(database, scenes, CFG)
+    n = CFG.n_stars
+    one = jax.jit(identify_scene, static_argnames=("config", "capacity"))
+    for i in range(4):  # the per-scene core, without vmap
+        out = one(scenes.xy[i, :n], scenes.valid[i, :n], database, CFG, diag.capacity,
+                  scenes.xy[i], scenes.valid[i])
+        np.testing.assert_array_equal(np.asarray(out["ids"]), np.asarray(batched.ids[i, :n]))
+        assert bool(out["ok"]) == bool(batched.ok[i])
+    # capacity 32 vs 64: the same answer
+    small = js.Scene(xy=scenes.xy[:, :32], mag=scenes.mag[:, :32], truth=scenes.truth[:, :32],
+                     valid=scenes.valid[:, :32], attitude=scenes.attitude,
+                     overflow=scenes.overflow)
+    res32 = mlv.identify(database, small, CFG)
+    np.testing.assert_array_equal(np.asarray(res32.ids), np.asarray(batched.ids[:, :32]))
+    np.testing.assert_array_equal(np.asarray(res32.ok), np.asarray(batched.ok))
+    assert triangle_combinations(n).shape == (math.comb(n, 3), 3)
+
+
+@pytest.mark.slow
+def test_paper_voting_mode_noise_free(catalog, database):
+    """The paper's voting and verification alone (no extensions) on noise-free scenes."""
+    paper = mlv.Config(n_boresights=CFG.n_boresights, batch_chunk=100, vertex_match=False,
+                       attitude_check=False, field_check=False)
+    scenes = js.simulate(jax.random.key(14), catalog, CAM, js.NoiseConfig(), batch_size=100,
+                         capacity=32)
+    report = js.evaluate(scenes, mlv.identify(database, scenes, paper), "mlv")
+    assert report["identification_rate"] >= 0.97, report
+    assert report["n_wrong"] == 0, report
