@@ -1,0 +1,93 @@
+"""SGM settings (You et al. 2022, Table 1) plus the static sizes of the JAX implementation."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+__all__ = ["Config"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Frozen, hashable SGM configuration. Angles in degrees, as in the paper (SPEC §7).
+
+    Attributes:
+        radius_deg: r, radius of the neighbor circle (deg).
+        dw0_deg: Δw₀, initial half-width of the rough-search window on w (deg).
+        dw_step_deg: h_Δw, growth of Δw per step of Algorithm 1 (deg).
+        dw_max_deg: Δw_max, largest Δw searched (deg).
+        c: edge-similarity adjustor of eq. 2 (1/deg).
+        max_error_deg: ε_δ, matching-error threshold of Algorithm 1 (deg, eq. 5).
+        neighbor_capacity: static vertex capacity of a database neighbor graph (main star
+            included); ``None`` chooses it from the data (largest graph, rounded up to
+            ``size_bucket``). The image graph uses the same capacity; a scene with more detections
+            inside its neighbor circle fails (flagged, never truncated silently).
+        chunk_size: candidates matched per scene per step of the batched search.
+        power_iterations: fixed number of power-iteration steps for the principal eigenvector.
+        min_stars: fewest vertices (main star included) an image neighbor graph needs; fewer → fail.
+            Not in the paper (which never meets tiny graphs): a 1- or 2-vertex graph matches almost
+            anything.
+        min_matched: fewest matched vertex pairs for a candidate to count; a candidate with a
+            smaller graph gets an infinite error (eq. 5 divides by min(n_I, n_J), which would let a
+            1-vertex database graph match any image with error 0).
+        memory_budget_mb: bound on the affinity matrices held at once by one matching call (MiB).
+        size_bucket: graph sizes are padded up to a multiple of this, to bound recompilation.
+        vertex_check_deg: not in the paper (``None`` = off, the paper's behaviour). When set, after
+            the best match every matched image vertex whose median edge residual
+            ``|A_I(i,k) − A_J(π(i),π(k))|`` over the other matched vertices exceeds this (deg) is left
+            unnamed (−1), and the scene fails if fewer than ``min_matched`` vertices stay named.
+            Greedy binarization always pairs min(n_I, n_J) vertices, so a star that crossed the
+            circle boundary (or a false star) is otherwise paired with a leftover database vertex
+            and named wrongly.
+        leftover_tol_deg: not in the paper (``None`` = off). When set, detections inside the image
+            neighbor circle left unnamed by the match (typically a star that crossed the circle
+            boundary under position noise, so it is not in G_J) are named by the attitude solved
+            from the matched stars: the nearest catalog star within this angle (deg), if not
+            already used in the scene.
+    """
+
+    radius_deg: float = 6.0
+    dw0_deg: float = 0.1
+    dw_step_deg: float = 0.1
+    dw_max_deg: float = 6.0
+    c: float = 1.74
+    max_error_deg: float = 0.4
+    neighbor_capacity: int | None = None
+    chunk_size: int = 16
+    power_iterations: int = 60
+    min_stars: int = 3
+    min_matched: int = 3
+    memory_budget_mb: int = 1024
+    size_bucket: int = 8
+    vertex_check_deg: float | None = None
+    leftover_tol_deg: float | None = None
+
+    def __post_init__(self):
+        if not 0 < self.radius_deg < 90:
+            raise ValueError(f"radius_deg must be in (0, 90), got {self.radius_deg}")
+        if self.dw0_deg < 0 or self.dw_step_deg <= 0 or self.dw_max_deg < self.dw0_deg:
+            raise ValueError("need 0 ≤ dw0_deg ≤ dw_max_deg and dw_step_deg > 0")
+        if self.c <= 0 or self.max_error_deg < 0:
+            raise ValueError("c must be > 0 and max_error_deg ≥ 0")
+        if self.neighbor_capacity is not None and self.neighbor_capacity < 2:
+            raise ValueError("neighbor_capacity must be ≥ 2")
+        if min(self.chunk_size, self.power_iterations, self.size_bucket, self.memory_budget_mb) < 1:
+            raise ValueError("chunk_size, power_iterations, size_bucket, memory_budget_mb must be ≥ 1")
+        if self.min_stars < 1 or self.min_matched < 1:
+            raise ValueError("min_stars and min_matched must be ≥ 1")
+
+    @property
+    def n_levels(self) -> int:
+        """Number of Δw values Algorithm 1 visits: Δw₀ + l·h for l = 0 … n_levels − 1 (≤ Δw_max)."""
+        return int(math.floor((self.dw_max_deg - self.dw0_deg) / self.dw_step_deg + 1e-9)) + 1
+
+    @property
+    def dw_last_deg(self) -> float:
+        """The largest Δw Algorithm 1 searches (deg)."""
+        return self.dw0_deg + (self.n_levels - 1) * self.dw_step_deg
+
+    def database_key(self) -> dict:
+        """The fields that shape the database (the cache key, with the catalog fingerprint)."""
+        return {"radius_deg": float(self.radius_deg), "neighbor_capacity": self.neighbor_capacity,
+                "size_bucket": int(self.size_bucket)}

@@ -1,0 +1,175 @@
+"""The SGM database: one neighbor graph per catalog star, sorted by MST weight, with a k-vector.
+
+You et al. 2022, "Database generation": every catalog star J is a main star; its neighbor graph G_J
+holds J and every star within r of it (a complete graph, edge weight = angular separation, deg), and
+two features: the adjacency matrix A_J (for graph matching) and w_J, the total MST edge weight (for
+the rough search, eq. 1). Rows are sorted by w_J so that a k-vector finds the window
+``|w_J − w_I| ≤ Δw`` in O(1).
+
+Built on the host once, cached on disk (``np.savez`` under :func:`jstarid.catalog.cache_dir`, keyed by
+the catalog fingerprint and the config fields that shape it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from jstarid.algorithms.sgm.config import Config
+from jstarid.algorithms.sgm.graph import catalog_neighbors, mst_weight
+from jstarid.catalog import cache_dir
+from jstarid.geometry import KVector, build_kvector
+
+__all__ = ["Database", "build_database"]
+
+_FORMAT = 1  # bump when the stored arrays change meaning
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Database:
+    """SGM database, rows sorted by ascending w.
+
+    Attributes:
+        main: (D,) int32 catalog row of each database main star.
+        members: (D, K) int32 catalog rows of the graph vertices (vertex 0 = the main star; −1 pad).
+        n: (D,) int32 vertex count (main star included).
+        adj: (D, K, K) float32 adjacency A_J (deg), 0 on padding.
+        w: (D,) float32 MST weight w_J (deg), ascending.
+        kvector: :class:`~jstarid.geometry.KVector` over ``w``.
+        capacity: K.
+        radius_deg: r used to build it (deg).
+        camera: the camera the scenes come from (for ``unproject``).
+        catalog: the catalog whose rows ``main``/``members`` refer to.
+        build_seconds: time spent building (0 when loaded from the cache … then ``load_seconds``).
+        nbytes: bytes of the stored arrays.
+        from_cache: loaded from disk.
+    """
+
+    main: np.ndarray
+    members: np.ndarray
+    n: np.ndarray
+    adj: np.ndarray
+    w: np.ndarray
+    kvector: KVector
+    capacity: int
+    radius_deg: float
+    camera: object
+    catalog: object
+    build_seconds: float
+    nbytes: int
+    from_cache: bool
+
+    def __len__(self) -> int:
+        return int(self.main.shape[0])
+
+    @property
+    def device_adj(self) -> jax.Array:
+        """(D, K, K) adjacency as a device array (cached on first use)."""
+        cached = self.__dict__.get("_device_adj")
+        if cached is None:
+            cached = jnp.asarray(self.adj)
+            object.__setattr__(self, "_device_adj", cached)
+        return cached
+
+
+def _round_up(x: int, m: int) -> int:
+    return int(math.ceil(x / m) * m)
+
+
+def _cache_path(catalog, config: Config):
+    key = json.dumps({"catalog": catalog.fingerprint, "format": _FORMAT, **config.database_key()},
+                     sort_keys=True)
+    return cache_dir() / f"sgm-db-{hashlib.sha256(key.encode()).hexdigest()[:20]}.npz"
+
+
+def _build_arrays(catalog, config: Config, progress: bool):
+    vec = np.asarray(catalog.unit_vectors, np.float64)
+    n_stars = vec.shape[0]
+    neigh = [catalog_neighbors(vec, j, config.radius_deg)
+             for j in tqdm(range(n_stars), desc="SGM neighbor graphs", disable=not progress)]
+    counts = np.array([len(x) for x in neigh], np.int32)
+    largest = int(counts.max())
+    if config.neighbor_capacity is None:
+        cap = _round_up(max(largest, 2), config.size_bucket)
+    else:
+        cap = int(config.neighbor_capacity)
+        if largest > cap:
+            worst = int(np.argmax(counts))
+            raise ValueError(f"neighbor_capacity={cap} is too small: catalog row {worst} has "
+                             f"{largest} stars within r={config.radius_deg}°; use ≥ {largest} or None")
+    members = np.full((n_stars, cap), -1, np.int32)
+    adj = np.zeros((n_stars, cap, cap), np.float32)
+    for j, rows in enumerate(neigh):
+        members[j, :rows.size] = rows
+        v = vec[rows]
+        cross = np.linalg.norm(np.cross(v[:, None, :], v[None, :, :]), axis=-1)
+        adj[j, :rows.size, :rows.size] = np.degrees(np.arctan2(cross, v @ v.T))
+    mask = np.arange(cap)[None, :] < counts[:, None]
+    # MST weights with the same jnp Prim routine the scenes use (identical arithmetic for w_I, w_J)
+    mst = jax.jit(jax.vmap(mst_weight))
+    w = np.zeros(n_stars, np.float32)
+    step = 512
+    for s in tqdm(range(0, n_stars, step), desc="SGM MST weights", disable=not progress):
+        w[s:s + step] = np.asarray(mst(jnp.asarray(adj[s:s + step]), jnp.asarray(mask[s:s + step])))
+    order = np.argsort(w, kind="stable")
+    return {"main": order.astype(np.int32), "members": members[order], "n": counts[order],
+            "adj": adj[order], "w": w[order]}
+
+
+def build_database(catalog, camera, config: Config | None = None, *, use_cache: bool = True,
+                   progress: bool = True) -> Database:
+    """Build (or load from the disk cache) the SGM database.
+
+    Args:
+        catalog: :class:`~jstarid.catalog.Catalog`; every star is a database main star.
+        camera: :class:`~jstarid.camera.Camera` of the scenes (kept for ``identify``; the database
+            itself does not depend on it, the paper projects each main star to the image centre).
+        config: :class:`Config` (``None`` → defaults); ``radius_deg``, ``neighbor_capacity`` and
+            ``size_bucket`` shape it.
+        use_cache: read/write ``sgm-db-*.npz`` under :func:`jstarid.catalog.cache_dir`.
+        progress: show tqdm progress bars while building.
+
+    Returns:
+        :class:`Database`.
+
+    Raises:
+        ValueError: an explicit ``neighbor_capacity`` smaller than the largest neighbor graph.
+    """
+    config = Config() if config is None else config
+    half_fov = math.degrees(math.atan(min(camera.cx, camera.cy, camera.width - 1 - camera.cx,
+                                          camera.height - 1 - camera.cy) / camera.f_px))
+    if config.radius_deg > half_fov:
+        import warnings
+        warnings.warn(f"neighbor circle r={config.radius_deg}° exceeds the half field of view "
+                      f"({half_fov:.2f}°): image graphs will be cut by the frame", stacklevel=2)
+    path = _cache_path(catalog, config)
+    t0 = time.perf_counter()
+    arrays, from_cache = None, False
+    if use_cache and path.exists():
+        with np.load(path) as f:
+            arrays = {k: f[k] for k in ("main", "members", "n", "adj", "w")}
+        from_cache = True
+    if arrays is None:
+        arrays = _build_arrays(catalog, config, progress)
+        if use_cache:
+            tmp = path.with_suffix(".tmp.npz")
+            np.savez(tmp, **arrays)
+            tmp.replace(path)
+    kv, order = build_kvector(arrays["w"])
+    if not np.array_equal(order, np.arange(order.size)):  # stored sorted; stable sort keeps it
+        raise RuntimeError("SGM database is not sorted by w")
+    elapsed = time.perf_counter() - t0
+    return Database(
+        main=arrays["main"], members=arrays["members"], n=arrays["n"], adj=arrays["adj"],
+        w=arrays["w"], kvector=kv, capacity=int(arrays["members"].shape[1]),
+        radius_deg=float(config.radius_deg), camera=camera, catalog=catalog,
+        build_seconds=elapsed, nbytes=int(sum(a.nbytes for a in arrays.values())),
+        from_cache=from_cache)

@@ -1,0 +1,175 @@
+"""SGM identification of a batch of scenes (You et al. 2022, Algorithm 1).
+
+Per scene: main star I = the valid detection nearest the principal point; its neighbor graph G_I from
+the unprojected centroids within r; w_I by the same Prim MST as the database; the dynamic Δw search
+(:mod:`.search`) over database graphs; and every detection of G_I — the main star included — is named
+through the vertex correspondence of the best match, never through the candidate's main-star label
+(≈7 % of main stars have a twin graph holding the same stars, SPEC §7 pitfall 2). Detections outside
+the neighbor circle, and vertices left unmatched (e.g. a false star when n_I > n_J), get −1.
+
+Two optional steps that are not in the paper (both off by default, see :class:`Config`):
+``vertex_check_deg`` unnames matched vertices whose edges disagree with the database graph, and
+``leftover_tol_deg`` names the detections of G_I the match left unnamed (stars that crossed the
+circle boundary under position noise) by the attitude of the matched stars.
+
+The search and the bookkeeping run as a host loop over jit-compiled, vmapped kernels (graphs,
+candidate ordering, chunked spectral matching); see :mod:`.search` for why it equals Algorithm 1.
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jstarid.algorithms.sgm.config import Config
+from jstarid.algorithms.sgm.graph import image_graph
+from jstarid.algorithms.sgm.search import dynamic_search
+from jstarid.attitude import estimate_attitude
+from jstarid.scene import Identification, Scene
+
+__all__ = ["identify", "scene_graphs"]
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "radius_deg", "capacity"))
+def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int):
+    """Image neighbor graphs of a batch.
+
+    Args:
+        xy: (B, N, 2) centroids (px). valid: (B, N) bool.
+        camera: static :class:`~jstarid.camera.Camera`. radius_deg: r (deg). capacity: static K.
+
+    Returns:
+        dict of (B, …) arrays from :func:`~jstarid.algorithms.sgm.graph.image_graph` plus ``main``
+        (B,) int32 main-star detection and ``any`` (B,) bool (the scene has a detection).
+    """
+    centre = jnp.array([camera.cx, camera.cy], xy.dtype)
+    d2 = jnp.sum((xy - centre) ** 2, axis=-1)
+    main = jnp.argmin(jnp.where(valid, d2, jnp.inf), axis=-1)
+    vecs = camera.unproject(xy)
+    g = jax.vmap(image_graph, in_axes=(0, 0, 0, None, None))(vecs, valid, main, radius_deg,
+                                                             capacity)
+    return {**g, "main": main.astype(jnp.int32), "any": jnp.any(valid, axis=-1)}
+
+
+def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: bool = True,
+             details: bool = False):
+    """Identify the stars of the main star's neighbor circle in every scene.
+
+    Args:
+        db: :class:`~jstarid.algorithms.sgm.database.Database` (built with the same ``radius_deg``).
+        scenes: (B, N) :class:`~jstarid.scene.Scene` from ``db.camera``.
+        config: :class:`Config` (search parameters; its database fields must match ``db``);
+            ``None`` → the paper defaults.
+        with_attitude: also solve Wahba from the identified stars (``Identification.attitude``).
+        details: also return a dict of per-scene diagnostics (graph sizes, w_I, δ, level, …).
+
+    Returns:
+        :class:`~jstarid.scene.Identification` — ``ids`` (B, N) int32 catalog rows for the matched
+        detections in the neighbor circle (−1 elsewhere), ``ok`` (B,) — and, with ``details``, a
+        ``(result, info)`` tuple.
+
+    Raises:
+        ValueError: ``config.radius_deg`` differs from the database's.
+    """
+    config = Config() if config is None else config
+    if abs(config.radius_deg - db.radius_deg) > 1e-12:
+        raise ValueError(f"config.radius_deg={config.radius_deg} but the database was built with "
+                         f"r={db.radius_deg}")
+    g = scene_graphs(scenes.xy, scenes.valid, camera=db.camera, radius_deg=float(db.radius_deg),
+                     capacity=int(db.capacity))
+    g = {k: np.asarray(v) for k, v in g.items()}
+    usable = g["any"] & ~g["overflow"] & (g["n"] >= config.min_stars)
+    res = dynamic_search(db, g, usable, config)
+    if config.vertex_check_deg is not None:
+        res = dict(res)
+        res["match"], res["ok"] = _check_vertices(g["adj"], db.adj, res, config)
+    b, n_det = scenes.valid.shape
+    ids = np.full((b, n_det), -1, np.int32)
+    sc, vert = np.nonzero(res["match"] >= 0)
+    det = g["members"][sc, vert]
+    ids[sc, det] = db.members[res["best"][sc], res["match"][sc, vert]]
+    ok = res["ok"]
+    result = Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=None)
+    if config.leftover_tol_deg is not None and np.any(ok):
+        ids = _name_leftovers(db, scenes, result, g, config)
+        result = Identification(ids=jnp.asarray(ids), ok=result.ok, attitude=None)
+    if with_attitude:
+        att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
+        att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
+        result = Identification(ids=result.ids, ok=result.ok, attitude=att)
+    if details:
+        info = {"n_i": g["n"], "w_i": g["w"], "main": g["main"], "overflow": g["overflow"],
+                "usable": usable, "best_main": np.where(ok, db.main[np.clip(res["best"], 0, None)],
+                                                         -1),
+                **{k: res[k] for k in ("error", "level", "n_matched_graphs", "best")}}
+        return result, info
+    return result
+
+
+def _check_vertices(adj_i, db_adj, res, config: Config):
+    """Unname matched vertices whose median edge residual exceeds ``config.vertex_check_deg``.
+
+    Args:
+        adj_i: (B, K, K) image adjacencies (deg). db_adj: (D, K, K) database adjacencies (deg).
+        res: :func:`~jstarid.algorithms.sgm.search.dynamic_search` output (``match``, ``best``,
+            ``ok``).
+        config: :class:`Config`.
+
+    Returns:
+        ``(match, ok)``: (B, K) the kept correspondence (−1 elsewhere), (B,) bool.
+    """
+    match, ok = res["match"].copy(), res["ok"].copy()
+    rows = np.nonzero(ok)[0]
+    if rows.size == 0:
+        return match, ok
+    m = match[rows]
+    used = m >= 0
+    mj = np.clip(m, 0, None)
+    a_j = db_adj[res["best"][rows][:, None, None], mj[:, :, None], mj[:, None, :]]
+    d = np.abs(adj_i[rows] - a_j)
+    both = used[:, :, None] & used[:, None, :]
+    both &= ~np.eye(m.shape[1], dtype=bool)[None]
+    d = np.where(both, d, np.nan)
+    with warnings.catch_warnings():  # all-NaN rows (unmatched vertices) are expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        resid = np.nanmedian(d, axis=2)
+    bad = used & ~(resid <= config.vertex_check_deg)
+    m = np.where(bad, -1, m)
+    match[rows] = m
+    ok[rows] = np.sum(m >= 0, axis=1) >= config.min_matched
+    match[~ok] = -1
+    return match, ok
+
+
+def _name_leftovers(db, scenes: Scene, result: Identification, g: dict, config: Config):
+    """Name unnamed detections inside the neighbor circle by the attitude of the matched stars.
+
+    Returns:
+        (B, N) int32 ids: ``result.ids`` plus, for every successful scene, each unnamed member of the
+        image graph whose ICRS direction (``Cᵀ v``) lies within ``config.leftover_tol_deg`` of a
+        catalog star not yet named in that scene.
+    """
+    ids = np.array(result.ids)
+    att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result, min_stars=3)
+    att, have = np.asarray(att, np.float64), np.asarray(have) & np.asarray(result.ok)
+    vec = np.asarray(db.camera.unproject(scenes.xy), np.float64)  # (B, N, 3) camera frame
+    cat = np.asarray(db.catalog.unit_vectors, np.float64)
+    cos_tol = np.cos(np.radians(config.leftover_tol_deg))
+    for s in np.nonzero(have)[0]:
+        mem = g["members"][s][g["mask"][s]]
+        todo = mem[ids[s, mem] < 0]
+        if todo.size == 0:
+            continue
+        sky = vec[s, todo] @ att[s]  # rows: Cᵀ v, ICRS
+        dots = sky @ cat.T  # (n_todo, catalog)
+        best = np.argmax(dots, axis=1)
+        used = set(ids[s][ids[s] >= 0].tolist())
+        for det, row, dot in zip(todo, best, dots[np.arange(todo.size), best], strict=True):
+            if dot >= cos_tol and int(row) not in used:
+                ids[s, det] = row
+                used.add(int(row))
+    return ids

@@ -1,0 +1,140 @@
+"""Spectral graph matching of two neighbor graphs (You et al. 2022, "Spectral graph matching").
+
+Pipeline for one pair (image graph G_I with P ≥ n_I vertex slots, database graph G_J with Q ≥ n_J):
+
+1. affinity matrix K (eq. 2), (P·Q, P·Q): ``K(ij, km) = exp(−c |A_I(i,k) − A_J(j,m)|)`` for
+   i ≠ k and j ≠ m; 0 on the diagonal (vertex similarity is 0 in the paper), 0 for conflicting pairs
+   (i = k xor j = m), 0 on padding. Row/column ``ij`` is ``i·Q + j``.
+2. its unit principal eigenvector γ (Perron vector; power iteration with a fixed step count);
+3. greedy one-to-one binarization of γ into a correspondence (Leordeanu & Hebert 2005): take the
+   largest remaining confidence, fix that pair, drop its row and column; min(n_I, n_J) pairs;
+4. matching error eq. 5, ``‖A'_I − A_J‖_F / min(n_I, n_J)`` over the matched sub-graphs.
+
+Cost: the affinity matrix holds (P·Q)² floats and every power step reads it once — the n⁴ growth the
+paper reports (SPEC §7 pitfall 4). Callers pad P and Q to small buckets and bound the batch.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["affinity", "principal_eigenvector", "greedy_binarize", "matching_error",
+           "spectral_match"]
+
+
+def affinity(a_i, mask_i, a_j, mask_j, c: float):
+    """Affinity matrix of eq. 2.
+
+    Args:
+        a_i: (P, P) image adjacency (deg).
+        mask_i: (P,) bool image vertices.
+        a_j: (Q, Q) database adjacency (deg).
+        mask_j: (Q,) bool database vertices.
+        c: edge-similarity adjustor (1/deg).
+
+    Returns:
+        (P·Q, P·Q) float32 symmetric non-negative matrix, index ``i·Q + j``.
+    """
+    p, q = a_i.shape[0], a_j.shape[0]
+    # (i, j, k, m): edge ik of G_I against edge jm of G_J
+    diff = a_i[:, None, :, None] - a_j[None, :, None, :]
+    pair = mask_i[:, None] & mask_j[None, :]
+    distinct = (~jnp.eye(p, dtype=bool))[:, None, :, None] & (~jnp.eye(q, dtype=bool))[None, :, None, :]
+    keep = pair[:, :, None, None] & pair[None, None, :, :] & distinct
+    k = jnp.where(keep, jnp.exp(-c * jnp.abs(diff)), 0.0)
+    return k.reshape(p * q, p * q).astype(jnp.float32)
+
+
+def principal_eigenvector(k, n_iter: int):
+    """Unit principal eigenvector of a symmetric non-negative matrix by power iteration.
+
+    Starts from the uniform vector, which is not orthogonal to the Perron vector of a non-negative
+    matrix; every step stays non-negative. A zero matrix gives the zero vector.
+
+    Args:
+        k: (M, M) symmetric, non-negative.
+        n_iter: static number of steps.
+
+    Returns:
+        (M,) non-negative unit vector (or zeros).
+    """
+    x0 = jnp.full((k.shape[0],), 1.0 / jnp.sqrt(k.shape[0]), k.dtype)
+
+    def step(_, x):
+        y = k @ x
+        norm = jnp.linalg.norm(y)
+        return jnp.where(norm > 0, y / jnp.where(norm > 0, norm, 1.0), 0.0)
+
+    return jax.lax.fori_loop(0, n_iter, step, x0)
+
+
+def greedy_binarize(conf, mask_i, mask_j):
+    """Greedy one-to-one assignment from a confidence matrix.
+
+    Args:
+        conf: (P, Q) confidences γ(ij) ≥ 0.
+        mask_i: (P,) bool image vertices.
+        mask_j: (Q,) bool database vertices.
+
+    Returns:
+        (P,) int32: the database vertex matched to each image vertex, −1 if none. Exactly
+        min(n_I, n_J) image vertices are matched. Ties go to the smaller flat index ``i·Q + j``.
+    """
+    p, q = conf.shape
+    neg = jnp.asarray(-jnp.inf, conf.dtype)
+    score0 = jnp.where(mask_i[:, None] & mask_j[None, :], conf, neg)
+
+    def body(_, carry):
+        score, match = carry
+        flat = jnp.argmax(score)
+        i, j = flat // q, flat % q
+        ok = jnp.isfinite(score[i, j])
+        match = match.at[i].set(jnp.where(ok, j, match[i]))
+        cleared = score.at[i, :].set(neg).at[:, j].set(neg)
+        return jnp.where(ok, cleared, score), match
+
+    _, match = jax.lax.fori_loop(0, min(p, q), body,
+                                 (score0, jnp.full((p,), -1, jnp.int32)))
+    return match
+
+
+def matching_error(a_i, a_j, match, min_matched: int = 1):
+    """Matching error eq. 5 on the matched sub-graphs.
+
+    Args:
+        a_i: (P, P) image adjacency (deg).
+        a_j: (Q, Q) database adjacency (deg).
+        match: (P,) int32 database vertex of each image vertex (−1 unmatched).
+        min_matched: fewer matched pairs than this → +inf.
+
+    Returns:
+        () ``‖A'_I − A_J(π, π)‖_F / n_matched`` (deg), +inf when fewer than ``min_matched`` pairs.
+    """
+    used = match >= 0
+    mj = jnp.clip(match, 0, a_j.shape[0] - 1)
+    a_j_perm = a_j[mj[:, None], mj[None, :]]
+    both = used[:, None] & used[None, :]
+    d = jnp.where(both, a_i - a_j_perm, 0.0)
+    n = jnp.sum(used)
+    err = jnp.sqrt(jnp.sum(d * d)) / jnp.maximum(n, 1)
+    return jnp.where(n >= min_matched, err, jnp.inf)
+
+
+def spectral_match(a_i, mask_i, a_j, mask_j, *, c: float, n_iter: int, min_matched: int = 1):
+    """Match two padded neighbor graphs (eqs. 2–5).
+
+    Args:
+        a_i: (P, P) image adjacency (deg); mask_i: (P,) bool.
+        a_j: (Q, Q) database adjacency (deg); mask_j: (Q,) bool.
+        c: eq. 2 adjustor (1/deg). n_iter: power-iteration steps. min_matched: see
+            :func:`matching_error`.
+
+    Returns:
+        ``(match, error)``: (P,) int32 database vertex per image vertex (−1 none), () error (deg).
+    """
+    p, q = a_i.shape[0], a_j.shape[0]
+    k = affinity(a_i, mask_i, a_j, mask_j, c)
+    gamma = principal_eigenvector(k, n_iter).reshape(p, q)
+    match = greedy_binarize(gamma, mask_i, mask_j)
+    return match, matching_error(a_i, a_j, match, min_matched)
