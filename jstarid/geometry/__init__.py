@@ -1,5 +1,6 @@
-"""Shared geometric building blocks (k-vector range search, …) reused by every algorithm."""
+"""Shared geometric building blocks (angles, k-vector range search) reused by every algorithm."""
 
+from jstarid.geometry.angles import angle_between, pairwise_angles
 from jstarid.geometry.kvector import KVector, build_kvector, range_search
 
-__all__ = ["KVector", "build_kvector", "range_search"]
+__all__ = ["KVector", "angle_between", "build_kvector", "pairwise_angles", "range_search"]

@@ -20,15 +20,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.geometry.angles import angle_between, pairwise_angles
+
 __all__ = ["pair_angles", "agreement", "largest_cluster", "subset_masks", "attitude_check",
            "field_check", "fit_attitude"]
 
 
 def pair_angles(vectors):
-    """(..., n, n) angles (rad) between unit vectors (..., n, 3): 2·asin(|a − b|/2), accurate for
-    small angles where ``arccos`` of the dot product loses float32 digits."""
-    chord = jnp.linalg.norm(vectors[..., :, None, :] - vectors[..., None, :, :], axis=-1)
-    return 2.0 * jnp.arcsin(jnp.clip(0.5 * chord, 0.0, 1.0))
+    """(..., n, n) angles (rad) between unit vectors (..., n, 3) (shared, small-angle accurate)."""
+    return pairwise_angles(vectors)
 
 
 def agreement(det_vectors, cand_vectors, cand_ids, has_cand, eps_rad: float):
@@ -92,11 +92,6 @@ def _wahba(v_cam, r_icrs, weights):
     return u @ jnp.diag(jnp.array([1.0, 1.0, 1.0]).at[2].set(d)) @ vt
 
 
-def _angle(a, b):
-    """Angles (rad) between unit vectors (..., 3), accurate for small angles."""
-    return 2.0 * jnp.arcsin(jnp.clip(0.5 * jnp.linalg.norm(a - b, axis=-1), 0.0, 1.0))
-
-
 def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: float,
                    min_tol_rad: float, max_tol_rad: float, ambiguity_rad: float,
                    scene_vectors=None, scene_valid=None):
@@ -134,7 +129,7 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
     r = catalog_vectors[jnp.maximum(cand_rows, 0)]
     w = members.astype(det_vectors.dtype)
     full = _wahba(det_vectors, r, w)
-    resid = _angle(det_vectors @ full, r)  # (n,)
+    resid = angle_between(det_vectors @ full, r)  # (n,)
     big = jnp.asarray(jnp.inf, det_vectors.dtype)
     med = jnp.nanmedian(jnp.where(members, resid, jnp.nan))
     sigma = jnp.where(jnp.isfinite(med), med, big) / 1.1774
@@ -145,7 +140,7 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
     cos = pred @ catalog_vectors.T  # (n, M)
     near = jnp.argmax(cos, axis=1)  # two argmax passes: cheaper than top_k on CPU
     cos2 = jnp.max(jnp.where(jnp.arange(cos.shape[1]) == near[:, None], -2.0, cos), axis=1)
-    ang1 = _angle(pred, catalog_vectors[near])
+    ang1 = angle_between(pred, catalog_vectors[near])
     # cos2 only decides "within ambiguity_rad": compare cosines (no precision needed here)
     if scene_vectors is None:
         scene_vectors, scene_valid = det_vectors, members

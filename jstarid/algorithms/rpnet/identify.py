@@ -37,9 +37,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms.rpnet.config import Config
-from jstarid.algorithms.rpnet.pattern import angle_between, config_kwargs, initial_input
+from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.algorithms.rpnet.train import predict_logits
 from jstarid.attitude import solve_wahba
+from jstarid.geometry.angles import angle_between
 from jstarid.scene import Identification, Scene
 
 __all__ = ["PAIRS", "anchor_names", "identify", "name_stars", "weight_search"]

@@ -24,14 +24,9 @@ import jax
 import jax.numpy as jnp
 
 from jstarid.algorithms.rpnet.config import Config
+from jstarid.geometry.angles import angle_between
 
-__all__ = ["angle_between", "config_kwargs", "initial_input", "scene_inputs"]
-
-
-def angle_between(a, b):
-    """Angle (rad) between vectors a (..., 3) and b (..., 3): atan2(‖a×b‖, a·b), accurate at 0 and π."""
-    cross = jnp.linalg.norm(jnp.cross(a, b), axis=-1)
-    return jnp.arctan2(cross, jnp.sum(a * b, axis=-1))
+__all__ = ["config_kwargs", "initial_input", "scene_inputs"]
 
 
 def initial_input(guide, others, mask, *, rho_rad: float, e_rad: float, m: int, n_bins: int):
