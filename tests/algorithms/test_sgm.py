@@ -209,3 +209,56 @@ def test_capacity_and_padding_do_not_change_ids(setup):
     named = (a >= 0) & (b >= 0)
     assert named.sum() > 10
     np.testing.assert_array_equal(a[named], b[named])
+
+
+def _verify(db, cfg, scenes, ids, ok):
+    from jstarid.algorithms.sgm.identify import _verify
+    main = js.metrics.main_star_index(scenes, db.camera)
+    res = js.Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=None)
+    out = _verify(db, scenes, res, main, cfg)
+    return np.asarray(out.ids), np.asarray(out.ok)
+
+
+def test_verification_catches_a_swapped_close_pair(setup):
+    """Post-match verification (our addition): swapping the ids of a close pair is never accepted."""
+    cat, cam, cfg, db = setup
+    v = np.asarray(cat.unit_vectors, np.float64)
+    sep = np.degrees(np.arccos(np.clip(v @ v.T, -1, 1)))
+    np.fill_diagonal(sep, np.inf)
+    p, q = np.nonzero((sep > 0.05) & (sep < 0.2))
+    # boresight 1: on the pair (its main star is swapped); boresight 2: a star 3° from the pair
+    far = np.nonzero((sep[p[0]] > 2.5) & (sep[p[0]] < 3.5))[0][0]
+    scenes = js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(), capacity=CAPACITY,
+                         boresight_ids=np.array([p[0], far]))
+    truth = np.asarray(scenes.truth)
+    ok = np.ones(2, bool)
+    ids, vok = _verify(db, cfg, scenes, truth, ok)  # the truth passes untouched
+    assert np.all(vok)
+    np.testing.assert_array_equal(ids, np.where(np.asarray(scenes.valid), truth, -1))
+    swapped = truth.copy()
+    for s in range(2):
+        a, b = np.nonzero(truth[s] == p[0])[0], np.nonzero(truth[s] == q[0])[0]
+        assert a.size == 1 and b.size == 1  # both stars of the pair are detected
+        swapped[s, a[0]], swapped[s, b[0]] = q[0], p[0]
+    ids, vok = _verify(db, cfg, scenes, swapped, ok)
+    assert not vok[0] and np.all(ids[0] == -1)  # the main star was swapped: the scene fails
+    wrong = (ids >= 0) & (ids != truth)
+    assert not np.any(wrong)
+    assert vok[1] and np.sum(ids[1] >= 0) >= np.sum(truth[1] >= 0) - 2
+
+
+def test_verification_at_three_pixels_names_nothing_wrong(setup):
+    """σ = 3 px (the paper's largest noise): after verification no scene is mis-identified."""
+    import dataclasses
+    cat, cam, cfg, db = setup
+    rows = np.random.default_rng(12).choice(len(cat), 4, replace=False)
+    scenes = js.simulate(jax.random.key(13), cat, cam, js.NoiseConfig(position_sigma_px=3.0),
+                         capacity=CAPACITY, boresight_ids=rows)
+    raw = sgm.identify(db, scenes, dataclasses.replace(cfg, verify=False), with_attitude=False)
+    ids, ok = _verify(db, cfg, scenes, np.asarray(raw.ids), np.asarray(raw.ok))
+    truth, valid = np.asarray(scenes.truth), np.asarray(scenes.valid)
+    assert not np.any(valid & (ids >= 0) & (ids != truth))
+    assert np.all(ids[~ok] == -1) and not np.any(ok & ~np.asarray(raw.ok))
+    # verification only unnames: every kept id is the match's
+    assert np.all((ids == -1) | (ids == np.asarray(raw.ids)))
+    assert ok.sum() >= 2

@@ -12,25 +12,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.geometry.angles import angle_between
+
 __all__ = ["separation_deg", "adjacency_deg", "mst_weight", "image_graph"]
 
 
 def separation_deg(u, v):
     """Angle between unit vectors ``u`` (..., 3) and ``v`` (..., 3) in degrees.
 
-    ``atan2(|u × v|, u · v)`` keeps full relative precision for small angles, where ``arccos``
-    loses it (float32 ``arccos`` near 1 is coarse to ~0.02°). The dot product is written out
-    component by component on purpose: XLA on CPU (jax 0.10) rewrites ``sum(u * v, -1)`` over
-    broadcast operands into a reduced-precision dot, off by up to ~0.1 (measured), i.e. degrees.
+    Uses the shared :func:`jstarid.geometry.angle_between` (atan2 of cross and dot products, written
+    out by component): float32 ``arccos`` near 1 is coarse to ~0.02°.
     """
-    u0, u1, u2 = u[..., 0], u[..., 1], u[..., 2]
-    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
-    c0 = u1 * v2 - u2 * v1
-    c1 = u2 * v0 - u0 * v2
-    c2 = u0 * v1 - u1 * v0
-    cross = jnp.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
-    dot = u0 * v0 + u1 * v1 + u2 * v2
-    return jnp.degrees(jnp.arctan2(cross, dot))
+    return jnp.degrees(angle_between(u, v))
 
 
 def adjacency_deg(vecs, mask):

@@ -12,6 +12,12 @@ Two optional steps that are not in the paper (both off by default, see :class:`C
 ``leftover_tol_deg`` names the detections of G_I the match left unnamed (stars that crossed the
 circle boundary under position noise) by the attitude of the matched stars.
 
+Post-match verification (our addition, not the paper's; on by default, ``Config.verify``): the
+attitude is fitted from the named stars, stars whose residual exceeds a noise-tied tolerance or that
+have a close rival catalog star they do not clearly beat are unnamed, and the scene fails when its
+main star is unnamed or too few stars remain (:mod:`.verify`) — a failure rather than a
+mis-identification.
+
 The search and the bookkeeping run as a host loop over jit-compiled, vmapped kernels (graphs,
 candidate ordering, chunked spectral matching); see :mod:`.search` for why it equals Algorithm 1.
 """
@@ -28,6 +34,7 @@ import numpy as np
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import image_graph
 from jstarid.algorithms.sgm.search import dynamic_search
+from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
 from jstarid.scene import Identification, Scene
 
@@ -63,13 +70,15 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         db: :class:`~jstarid.algorithms.sgm.database.Database` (built with the same ``radius_deg``).
         scenes: (B, N) :class:`~jstarid.scene.Scene` from ``db.camera``.
         config: :class:`Config` (search parameters; its database fields must match ``db``);
-            ``None`` → the paper defaults.
+            ``None`` → the paper defaults (plus the post-match verification, ``Config.verify``).
         with_attitude: also solve Wahba from the identified stars (``Identification.attitude``).
         details: also return a dict of per-scene diagnostics (graph sizes, w_I, δ, level, …).
 
     Returns:
         :class:`~jstarid.scene.Identification` — ``ids`` (B, N) int32 catalog rows for the matched
-        detections in the neighbor circle (−1 elsewhere), ``ok`` (B,) — and, with ``details``, a
+        detections in the neighbor circle that survive the post-match verification (−1 elsewhere;
+        a scene the verification rejects has ``ok`` False and every id −1), ``ok`` (B,) — and, with
+        ``details``, a
         ``(result, info)`` tuple.
 
     Raises:
@@ -97,6 +106,8 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
     if config.leftover_tol_deg is not None and np.any(ok):
         ids = _name_leftovers(db, scenes, result, g, config)
         result = Identification(ids=jnp.asarray(ids), ok=result.ok, attitude=None)
+    if config.verify and np.any(ok):
+        result = _verify(db, scenes, result, g["main"], config)
     if with_attitude:
         att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
         att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
@@ -105,9 +116,23 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         info = {"n_i": g["n"], "w_i": g["w"], "main": g["main"], "overflow": g["overflow"],
                 "usable": usable, "best_main": np.where(ok, db.main[np.clip(res["best"], 0, None)],
                                                          -1),
-                **{k: res[k] for k in ("error", "level", "n_matched_graphs", "best")}}
+                "match_ok": ok, **{k: res[k] for k in ("error", "level", "n_matched_graphs", "best")}}
         return result, info
     return result
+
+
+def _verify(db, scenes: Scene, result: Identification, main, config: Config) -> Identification:
+    """Run :func:`~jstarid.algorithms.sgm.verify.verify_ids` with the settings of ``config``."""
+    cat = jnp.asarray(db.catalog.unit_vectors, jnp.float32)
+    n_near = int(min(2 * db.capacity, cat.shape[0]))
+    ids, ok = verify_ids(cat, scenes.xy, scenes.valid, result.ids, result.ok, jnp.asarray(main),
+                         camera=db.camera, k=float(config.verify_k),
+                         floor_deg=float(config.verify_floor_deg),
+                         cap_deg=float(config.verify_cap_deg),
+                         amb_k=float(config.verify_ambiguity_k),
+                         amb_deg=float(config.verify_ambiguity_deg),
+                         min_matched=int(config.min_matched), n_near=n_near)
+    return Identification(ids=ids, ok=ok, attitude=None)
 
 
 def _check_vertices(adj_i, db_adj, res, config: Config):
