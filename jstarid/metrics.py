@@ -34,17 +34,26 @@ from jstarid.attitude import attitude_errors_arcsec
 from jstarid.scene import Identification, Scene
 
 __all__ = ["CORRECT", "WRONG", "FAIL", "INCOMPLETE", "CRITERIA", "scene_outcomes", "evaluate",
-           "main_star_index"]
+           "main_star_index", "nearest_to_principal_point"]
 
 CORRECT, WRONG, FAIL, INCOMPLETE = 0, 1, 2, 3
 CRITERIA = ("strict", "mlv", "sgm", "rpnet")
 
 
+def nearest_to_principal_point(xy, valid, camera):
+    """(...,) index of the valid detection nearest (cx, cy) among xy (..., N, 2) (0 if none valid).
+
+    This is the "main star" of SGM and the guide star of RpNet; algorithms and metrics share it so
+    both name the same detection.
+    """
+    centre = jnp.array([camera.cx, camera.cy], xy.dtype)
+    d2 = jnp.sum((xy - centre) ** 2, axis=-1)
+    return jnp.argmin(jnp.where(valid, d2, jnp.inf), axis=-1)
+
+
 def main_star_index(scenes: Scene, camera):
     """(B,) index of the valid detection nearest the principal point (0 for an empty scene)."""
-    centre = jnp.array([camera.cx, camera.cy], jnp.float32)
-    d2 = jnp.sum((scenes.xy - centre) ** 2, axis=-1)
-    return jnp.argmin(jnp.where(scenes.valid, d2, jnp.inf), axis=-1)
+    return nearest_to_principal_point(scenes.xy, scenes.valid, camera)
 
 
 def scene_outcomes(scenes: Scene, result: Identification, criterion: str = "strict", *,

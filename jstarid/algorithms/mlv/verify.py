@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.attitude import solve_wahba
 from jstarid.geometry.angles import angle_between, pairwise_angles
 
 __all__ = ["pair_angles", "agreement", "largest_cluster", "subset_masks", "attitude_check",
@@ -85,11 +86,8 @@ def largest_cluster(agree):
 
 
 def _wahba(v_cam, r_icrs, weights):
-    """Rotation C (3, 3) minimising Σ w |v − C r|² (SVD solution of Wahba's problem)."""
-    b = jnp.einsum("n,ni,nj->ij", weights, v_cam, r_icrs)
-    u, _, vt = jnp.linalg.svd(b)
-    d = jnp.sign(jnp.linalg.det(u) * jnp.linalg.det(vt))
-    return u @ jnp.diag(jnp.array([1.0, 1.0, 1.0]).at[2].set(d)) @ vt
+    """Rotation C (3, 3) minimising Σ w |v − C r|² (the shared SVD solution of Wahba's problem)."""
+    return solve_wahba(v_cam, r_icrs, weights)
 
 
 def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: float,

@@ -36,6 +36,7 @@ from jstarid.algorithms.sgm.graph import image_graph
 from jstarid.algorithms.sgm.search import dynamic_search
 from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
+from jstarid.metrics import nearest_to_principal_point
 from jstarid.scene import Identification, Scene
 
 __all__ = ["identify", "scene_graphs"]
@@ -53,9 +54,7 @@ def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int):
         dict of (B, …) arrays from :func:`~jstarid.algorithms.sgm.graph.image_graph` plus ``main``
         (B,) int32 main-star detection and ``any`` (B,) bool (the scene has a detection).
     """
-    centre = jnp.array([camera.cx, camera.cy], xy.dtype)
-    d2 = jnp.sum((xy - centre) ** 2, axis=-1)
-    main = jnp.argmin(jnp.where(valid, d2, jnp.inf), axis=-1)
+    main = nearest_to_principal_point(xy, valid, camera)
     vecs = camera.unproject(xy)
     g = jax.vmap(image_graph, in_axes=(0, 0, 0, None, None))(vecs, valid, main, radius_deg,
                                                              capacity)
