@@ -28,6 +28,7 @@ def parse_args(argv=None):
     p.add_argument("--batch", type=int, default=1000, help="scenes per timed call (≥ 1000)")
     p.add_argument("--repeats", type=int, default=3, help="timed calls after the compile call")
     p.add_argument("--chunk", type=int, default=None, help="Config.batch_chunk override")
+    p.add_argument("--map-batch", type=int, default=None, help="Config.map_batch override")
     p.add_argument("--position-sigma", type=float, default=1.0, help="px")
     p.add_argument("--magnitude-sigma", type=float, default=0.3, help="mag")
     p.add_argument("--seed", type=int, default=0)
@@ -45,6 +46,8 @@ def run(args) -> list[dict]:
     cfg = mlv.Config()
     if opt["chunk"] is not None:
         cfg = dataclasses.replace(cfg, batch_chunk=opt["chunk"])
+    if opt["map_batch"] is not None:
+        cfg = dataclasses.replace(cfg, map_batch=opt["map_batch"])
     if opt["paper_voting"]:
         cfg = dataclasses.replace(cfg, vertex_match=False, attitude_check=False,
                                   field_check=False)
@@ -78,6 +81,7 @@ def run(args) -> list[dict]:
         "compile_s": round(max(first_seconds - steady, 0.0), 2),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
         "backend": jax.default_backend(), "batch_chunk": cfg.batch_chunk,
+        "map_batch": cfg.map_batch, "candidate_pool": mlv.default_pool(cfg, n_db_triangles=db.n_triangles),
         "paper_voting": bool(opt["paper_voting"]),
         "seconds_per_batch": round(steady, 3), "first_call_s": round(first_seconds, 2),
         "db_bytes": db.nbytes, "db_device_bytes": db.device_nbytes,

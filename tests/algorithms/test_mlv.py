@@ -25,7 +25,7 @@ from jstarid.algorithms.mlv.features import (
 )
 from jstarid.algorithms.mlv.identify import _identify_batch, identify_scene
 from jstarid.algorithms.mlv.verify import largest_cluster
-from jstarid.algorithms.mlv.voting import candidate_ranges, gather_candidates
+from jstarid.algorithms.mlv.voting import candidate_ranges, gather_candidates, gather_pool
 
 CAM = js.camera_preset("mlv2021")
 CFG = mlv.Config(n_boresights=20_000, batch_chunk=100)
@@ -164,6 +164,23 @@ def test_lookup_matches_brute_force(catalog):
             got = np.asarray(idx[i])[np.asarray(valid[i])]
             assert int(total[i]) == len(ref) and not bool(overflow[i])
             np.testing.assert_array_equal(np.sort(got), ref)
+        # traced tolerances in a wider static window give the same ranges' contents
+        start_t, count_t = jax.jit(candidate_ranges, static_argnames=(
+            "v1_offset", "stride", "n_rows", "th1_max"))(
+            db.keys, jnp.asarray(q1, jnp.int32), jnp.asarray(q2, jnp.int32),
+            th1=jnp.int32(th1), th2=jnp.int32(th2), v1_offset=db.v1_offset, stride=db.stride,
+            n_rows=db.n_rows, th1_max=3)
+        np.testing.assert_array_equal(np.sum(count_t, 1), np.asarray(total))
+        # the shared per-scene buffer holds the same candidates, each tagged with its query
+        groups = np.arange(len(q1)) // 8
+        for g in range(groups.max() + 1):
+            sel = np.nonzero(groups == g)[0]
+            index, tri, in_pool, n_all = gather_pool(start_t[sel], count_t[sel], 4096)
+            index, tri, in_pool = (np.asarray(a) for a in (index, tri, in_pool))
+            assert int(n_all) == int(np.sum(np.asarray(total)[sel])) <= 4096
+            for j, i in enumerate(sel):
+                ref = np.asarray(idx[i])[np.asarray(valid[i])]
+                np.testing.assert_array_equal(np.sort(index[in_pool & (tri == j)]), np.sort(ref))
 
 
 def test_database_cache_roundtrip(catalog, tmp_path, monkeypatch):
@@ -175,8 +192,12 @@ def test_database_cache_roundtrip(catalog, tmp_path, monkeypatch):
     assert b.info_dict()["cached"]
     np.testing.assert_array_equal(np.asarray(a.keys), np.asarray(b.keys))
     np.testing.assert_array_equal(np.asarray(a.triangles), np.asarray(b.triangles))
+    # Δv1 only shapes the lookup keys: the cached triangle table is shared, the keys are recomputed
     c = mlv.build_database(catalog, CAM, mlv.Config(n_boresights=300, dv1=6e-5), progress=False)
-    assert not c.info_dict()["cached"]  # Δv1 shapes the database: a different cache entry
+    assert c.info_dict()["cached"] and c.dv1 == 6e-5 and c.n_triangles == a.n_triangles
+    assert not np.array_equal(np.asarray(a.keys), np.asarray(c.keys))
+    d = mlv.build_database(catalog, CAM, mlv.Config(n_boresights=301), progress=False)
+    assert not d.info_dict()["cached"]  # the boresights shape the table: a different entry
 
 
 def test_database_from_triangles_rejects_empty(catalog):
@@ -299,6 +320,41 @@ def test_batched_matches_per_scene_and_capacity(catalog, database):
     np.testing.assert_array_equal(np.asarray(res32.ids), np.asarray(batched.ids[:, :32]))
     np.testing.assert_array_equal(np.asarray(res32.ok), np.asarray(batched.ok))
     assert triangle_combinations(n).shape == (math.comb(n, 3), 3)
+
+
+def test_tuning_arrays_match_static_configs(catalog, database):
+    """Th1/Th2/ε as per-scene arrays (one call, one compilation) equal one static config per value."""
+    noise = js.NoiseConfig(position_sigma_px=2.0, magnitude_sigma=0.3, n_false=2)
+    base = js.simulate(jax.random.key(16), catalog, CAM, noise, batch_size=4, capacity=64)
+    grid = [(0, 0.1), (2, 0.3)]  # the Th = 2 config shares the swept call's compilation
+    tiled = jax.tree_util.tree_map(lambda a: jnp.concatenate([a] * len(grid)), base)
+    th = np.repeat([g[0] for g in grid], 4)
+    eps = np.repeat([g[1] for g in grid], 4)
+    swept, sdiag = mlv.identify_with_diagnostics(database, tiled, CFG, th1=th, th2=th,
+                                                 eps_deg=eps, side_tol_deg=eps)
+    for g, (t, e) in enumerate(grid):
+        cfg = dataclasses.replace(CFG, th1=t, th2=t, eps_deg=e, side_tol_deg=e)
+        ref, rdiag = mlv.identify_with_diagnostics(database, tiled, cfg)
+        part = slice(4 * g, 4 * g + 4)
+        np.testing.assert_array_equal(np.asarray(swept.ids[part]), np.asarray(ref.ids[part]))
+        np.testing.assert_array_equal(np.asarray(swept.ok[part]), np.asarray(ref.ok[part]))
+        np.testing.assert_array_equal(np.asarray(sdiag.n_candidates[part]),
+                                      np.asarray(rdiag.n_candidates[part]))
+        np.testing.assert_array_equal(np.asarray(sdiag.votes[part]), np.asarray(rdiag.votes[part]))
+    with pytest.raises(ValueError):
+        mlv.identify_with_diagnostics(database, base, CFG, eps_deg=np.ones(3))
+
+
+def test_small_candidate_pool_same_result(catalog, database):
+    """Scenes overflowing the shared candidate buffer are recomputed: P never changes the result."""
+    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.3)
+    scenes = js.simulate(jax.random.key(17), catalog, CAM, noise, batch_size=4, capacity=64)
+    ref, rdiag = mlv.identify_with_diagnostics(database, scenes, CFG)
+    totals = np.sum(np.asarray(rdiag.n_candidates), 1)
+    small = dataclasses.replace(CFG, candidate_pool=int(0.75 * totals.min()))  # every scene retries
+    got, gdiag = mlv.identify_with_diagnostics(database, scenes, small)
+    np.testing.assert_array_equal(np.asarray(got.ids), np.asarray(ref.ids))
+    np.testing.assert_array_equal(np.asarray(gdiag.votes), np.asarray(rdiag.votes))
 
 
 @pytest.mark.slow

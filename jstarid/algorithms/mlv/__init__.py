@@ -14,7 +14,13 @@ Usage::
 
 from jstarid.algorithms.mlv.config import Config
 from jstarid.algorithms.mlv.database import Database, build_database
-from jstarid.algorithms.mlv.identify import Diagnostics, identify, identify_with_diagnostics
+from jstarid.algorithms.mlv.identify import (
+    Diagnostics,
+    Tuning,
+    default_pool,
+    identify,
+    identify_with_diagnostics,
+)
 
-__all__ = ["Config", "Database", "Diagnostics", "build_database", "identify",
-           "identify_with_diagnostics"]
+__all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "default_pool",
+           "identify", "identify_with_diagnostics"]

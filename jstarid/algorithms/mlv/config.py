@@ -39,14 +39,22 @@ class Config:
             1,000 scenes each, identification % at 2.5 px / 0.7 mag / 6 false: 0.1°: 83.0 / 99.3 /
             99.8; 0.15°: 97.8 / 99.1 / 99.5; 0.2°: 99.1 / 99.1 / 99.2; 0.3°: 99.2 / 98.7 / 99.2.
             The looseness is paid back by the attitude check below.
-        candidate_capacity: K, the per-triangle candidate buffer; 256 covers the largest count
-            seen with Th = 1 (159). A triangle with more than K is flagged
-            (``Diagnostics.candidate_overflow``) and casts no vote;
-            :func:`~jstarid.algorithms.mlv.identify` then recomputes the chunk with a doubled
-            buffer up to ``max_candidate_capacity`` (host-side reallocation), so nothing is
-            silently dropped below that bound.
+        candidate_capacity: K, the most candidates a triangle may have and still vote; 256
+            covers the largest count seen with Th = 1 (159). A triangle with more than K is
+            flagged (``Diagnostics.candidate_overflow``) and casts no vote;
+            :func:`~jstarid.algorithms.mlv.identify` then recomputes the chunk with a doubled K
+            up to ``max_candidate_capacity`` (host-side), so nothing is silently dropped below
+            that bound. (The candidates themselves go to one shared buffer per scene,
+            ``candidate_pool``.)
         max_candidate_capacity: the largest K the host retry may reach.
-        batch_chunk: scenes per compiled call (bounds the (chunk, T, K) candidate arrays).
+        candidate_pool: P, one shared candidate buffer per scene for all its triangles (``None``:
+            :func:`~jstarid.algorithms.mlv.identify.default_pool`, ≈ 7 slots per triangle per
+            window cell, 8,192 at the defaults). Scenes with more candidates are recomputed with
+            a doubled P, up to T·K, so P changes the speed, never the result.
+        batch_chunk: scenes per compiled call (one host synchronisation each, for the buffer
+            checks).
+        map_batch: scenes vmapped together inside a call (``jax.lax.map`` over groups of this
+            size), so that the (group, P) candidate arrays stay in the CPU cache. Speed only.
         require_unique_cluster: when different largest clusters tie, name only the detections
             common to all of them (failing below ``ver_min``) instead of taking the first one; a
             mis-identification is much worse than a failure.
@@ -96,7 +104,9 @@ class Config:
     eps_deg: float = 0.2
     candidate_capacity: int = 256
     max_candidate_capacity: int = 1024
+    candidate_pool: int | None = None
     batch_chunk: int = 500
+    map_batch: int = 50
     require_unique_cluster: bool = True
     database_roll_deg: float | None = None
     vertex_match: bool = True
@@ -121,8 +131,10 @@ class Config:
             raise ValueError("th1 and th2 must be ≥ 0")
         if int(self.ver_min) < 2:
             raise ValueError(f"ver_min must be ≥ 2, got {self.ver_min}")
-        if int(self.candidate_capacity) < 1 or int(self.batch_chunk) < 1:
-            raise ValueError("candidate_capacity and batch_chunk must be ≥ 1")
+        if self.candidate_pool is not None and int(self.candidate_pool) < 1:
+            raise ValueError("candidate_pool must be ≥ 1 or None")
+        if int(self.candidate_capacity) < 1 or int(self.batch_chunk) < 1 or int(self.map_batch) < 1:
+            raise ValueError("candidate_capacity, batch_chunk and map_batch must be ≥ 1")
         if int(self.n_boresights) < 1:
             raise ValueError("n_boresights must be ≥ 1")
 
@@ -137,7 +149,8 @@ class Config:
         return math.radians(self.eps_deg)
 
     def database_fields(self) -> dict:
-        """The settings that shape the database (its cache key)."""
+        """The settings that shape the database (its cache key: all but Δv1, Δv2, which only shape
+        the lookup keys computed when the cached triangle table is loaded)."""
         return {"n_stars": int(self.n_stars), "dv1": float(self.dv1), "dv2": float(self.dv2),
                 "n_boresights": int(self.n_boresights),
                 "database_roll_deg": self.database_roll_deg}

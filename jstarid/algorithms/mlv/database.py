@@ -123,8 +123,11 @@ def fibonacci_sphere(n: int) -> np.ndarray:
 
 
 def _cache_key(catalog, camera: Camera, config: Config) -> str:
+    # the triangle table does not depend on Δv1, Δv2 (only the features computed from it at load
+    # time do): one cached table serves every discretization
+    fields = {k: v for k, v in config.database_fields().items() if k not in ("dv1", "dv2")}
     payload = {"version": _DB_VERSION, "catalog": catalog.fingerprint,
-               "camera": dataclasses.asdict(camera), "config": config.database_fields()}
+               "camera": dataclasses.asdict(camera), "config": fields}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:20]
 
 

@@ -1,16 +1,21 @@
 """MLV identification: initial match by triangle voting, then pair-angle verification (paper §2.3).
 
 ``identify`` is the thin host shell (chunking over the batch, candidate-buffer reallocation); the
-core ``identify_scene`` is a pure per-scene function of arrays, vmapped over scenes and jit-compiled
-with the config, buffer size and camera static.
+core ``identify_scene`` is a pure per-scene function of arrays, vmapped over groups of scenes
+(``Config.map_batch``, looped with ``lax.map`` inside one jit call per ``batch_chunk``) and
+jit-compiled with the config, buffer sizes and camera static. The tolerances Th1, Th2, ε and the
+side tolerance are traced per-scene values (:class:`Tuning`), so a grid of them is a batch axis.
 
 Per scene (Algorithm 1):
 1. the N brightest valid detections (scenes are sorted brightest first) → camera-frame unit
    vectors (eqs. 5–6, via the camera's pinhole model);
 2. their C(N, 3) triangles → singular values → v̂1, v̂2 (eqs. 1–4);
-3. candidate database triangles with |v̂1ˢ − v̂1ᶜ| ≤ Th1, |v̂2ˢ − v̂2ᶜ| ≤ Th2 (eq. 7) in a buffer
-   of K per triangle; a triangle with more than K candidates is flagged and casts no vote;
-4. vote counters per detection over the reference catalog; candidate = most votes;
+3. candidate database triangles with |v̂1ˢ − v̂1ᶜ| ≤ Th1, |v̂2ˢ − v̂2ᶜ| ≤ Th2 (eq. 7), all triangles'
+   candidates in one shared buffer of P slots per scene; a triangle with more than K candidates is
+   flagged and casts no vote (K = ``candidate_capacity``, grown by the host retry); a scene with
+   more than P candidates is recomputed with a larger P (P never changes the result);
+4. vote counters per detection over the reference catalog (one scatter-add); candidate = most
+   votes (``argmax``);
 5. verification (eq. 8): largest cluster of pairwise-agreeing candidates; success when it has at
    least ``ver_min`` members; only its members get ids.
 
@@ -31,6 +36,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jstarid.algorithms.mlv.config import Config
 from jstarid.algorithms.mlv.database import Database
@@ -47,12 +53,13 @@ from jstarid.algorithms.mlv.voting import (
     candidate_ranges,
     cast_matched_votes,
     cast_votes,
-    gather_candidates,
-    match_vertices,
+    gather_pool,
+    observed_sides,
 )
 from jstarid.scene import Identification, Scene
 
-__all__ = ["Diagnostics", "identify", "identify_with_diagnostics", "identify_scene"]
+__all__ = ["Diagnostics", "Tuning", "default_pool", "identify", "identify_with_diagnostics",
+           "identify_scene"]
 
 
 class Diagnostics(NamedTuple):
@@ -83,49 +90,136 @@ class Diagnostics(NamedTuple):
     capacity: int
 
 
+_REDO = 8  # scenes per recomputation with the full candidate buffer
+
+
+class Tuning(NamedTuple):
+    """Per-scene values of the tolerances that do not change array shapes (traced, not static).
+
+    Passing them as arrays lets one compilation serve a whole grid of Th1/Th2/ε values: the grid is
+    a batch axis (:func:`identify_with_diagnostics` takes scalars or (B,) arrays).
+
+    Attributes:
+        th1, th2: int32 tolerances Th1, Th2 of eq. 7 (bins).
+        eps_rad: float32 verification tolerance ε of eq. 8 (rad).
+        side_tol_rad: float32 side tolerance of the vertex-matching extension (rad).
+    """
+
+    th1: jax.Array
+    th2: jax.Array
+    eps_rad: jax.Array
+    side_tol_rad: jax.Array
+
+
+def default_pool(config: Config, th1_max: int | None = None, th2_max: int | None = None,
+                 capacity: int | None = None, n_db_triangles: int | None = None) -> int:
+    """Default P of the shared per-scene candidate buffer (see :func:`~.voting.gather_pool`).
+
+    About 7 slots per query triangle per feature-window cell ((2·Th1 + 1)(2·Th2 + 1) cells): the
+    default database returns a median of 4 (4,300 candidates per scene at N = 10, Th = 1; 9,373 the
+    most in 1,500 noisy scenes), so P = 8,192 there; scaled by Δv1·Δv2 (the cell's area) for other
+    units and by the database's triangle count (``n_db_triangles``, relative to the 167,655 of the
+    default mlv2021 database; ``None``: no scaling); never more than T·K, which always suffices.
+
+    Args:
+        config: the :class:`Config` (``n_stars``, ``dv1``, ``dv2``, ``th1``, ``th2``,
+            ``candidate_capacity``, ``candidate_pool``).
+        th1_max, th2_max: the largest Th1, Th2 of the batch (bins); ``None``: the config's.
+        capacity: K; ``None``: ``config.candidate_capacity``.
+        n_db_triangles: triangles in the database.
+
+    Returns:
+        P (slots), a multiple of 1,024 unless capped at T·K or set by ``config.candidate_pool``.
+    """
+    th1 = int(config.th1 if th1_max is None else th1_max)
+    th2 = int(config.th2 if th2_max is None else th2_max)
+    k = int(config.candidate_capacity if capacity is None else capacity)
+    t = math.comb(int(config.n_stars), 3)
+    if config.candidate_pool is not None:
+        return min(int(config.candidate_pool), t * k)
+    density = (config.dv1 * config.dv2) / (5e-5 * 5e-4)  # candidates per cell scale with Δv1·Δv2
+    if n_db_triangles is not None:  # …and with the size of the database
+        density *= n_db_triangles / 167_655
+    p = int(7 * t * (2 * th1 + 1) * (2 * th2 + 1) * density)
+    return min(-(-p // 1024) * 1024, t * k)
+
+
 def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_xy=None,
-                   all_valid=None):
+                   all_valid=None, tuning: Tuning | None = None, *, pool: int | None = None,
+                   th1_max: int | None = None):
     """Identify one scene (pure, jit-able).
 
     Args:
         xy: (N, 2) float32 centroids (px) of the N brightest detections, brightest first.
         valid: (N,) bool, a real detection.
-        all_xy, all_valid: (M, 2), (M,) every detection of the scene (the first N being ``xy``),
-            for the attitude check's nearest-detection test; ``None``: the N brightest only.
         db: :class:`~jstarid.algorithms.mlv.Database` (its camera turns pixels into directions).
         config: :class:`~jstarid.algorithms.mlv.Config` (static).
-        capacity: K, candidate buffer per triangle (static).
+        capacity: K, the most candidates a triangle may have and still vote (static).
+        all_xy, all_valid: (M, 2), (M,) every detection of the scene (the first N being ``xy``),
+            for the attitude check's nearest-detection test; ``None``: the N brightest only.
+        tuning: traced :class:`Tuning` scalars; ``None``: the config's values.
+        pool: P, the scene's shared candidate buffer (static); ``None``: T·K, which never
+            overflows. With vertex matching, the candidates that pass the side check are moved to a
+            second buffer of Q = max(1024, P/8) slots (Q = P when P = T·K). A scene whose candidates
+            exceed P, or whose side-checked ones exceed Q, sets ``pool_overflow`` (its votes are
+            then incomplete: :func:`identify_with_diagnostics` recomputes it with a doubled P,
+            up to T·K).
+        th1_max: static bound of ``tuning.th1`` (the window has 2·th1_max + 1 v̂1 rows);
+            ``None``: ``config.th1``.
 
     Returns:
         dict of per-scene arrays: ``ids`` (N,) int32 catalog rows (−1 = not identified), ``ok``,
         ``attitude`` (3, 3) C fitted to the named stars (Wahba; NaN when not ``ok``),
         ``overflow``, ``n_overflow``, ``n_candidates`` (T,), ``candidates`` (N,), ``votes`` (N,),
-        ``cluster_size``.
+        ``cluster_size``, ``pool_total`` (candidates of the voting triangles), ``pool_overflow``.
     """
     n = xy.shape[0]
     n_ref = db.star_rows.shape[0]
+    if tuning is None:
+        tuning = Tuning(th1=config.th1, th2=config.th2, eps_rad=config.eps_rad,
+                        side_tol_rad=config.side_tol_rad)
+    th1_max = int(config.th1) if th1_max is None else int(th1_max)
+    combos_np = triangle_combinations(n)
+    t = combos_np.shape[0]
+    pool = t * capacity if pool is None else int(pool)
     vec = db.camera.unproject(xy)  # (N, 3) camera frame, eqs. 5–6
-    combos = jnp.asarray(triangle_combinations(n))  # (T, 3)
+    combos = jnp.asarray(combos_np)  # (T, 3)
     tri_valid = jnp.all(valid[combos], axis=1)
-    sv = singular_values(vec[combos[:, 0]], vec[combos[:, 1]], vec[combos[:, 2]])  # eqs. 1–3
+    tri_vec = vec[combos]  # (T, 3, 3)
+    sv = singular_values(tri_vec[:, 0], tri_vec[:, 1], tri_vec[:, 2])  # eqs. 1–3
     v1h, v2h = discretize(sv[:, 0], sv[:, 1], db.dv1, db.dv2)  # eq. 4
-    start, count = candidate_ranges(db.keys, v1h, v2h, th1=config.th1, th2=config.th2,
-                                    v1_offset=db.v1_offset, stride=db.stride, n_rows=db.n_rows)
-    index, cand_valid, overflow, total = jax.vmap(gather_candidates, in_axes=(0, 0, None))(
-        start, count, capacity)  # eq. 7
-    overflow &= tri_valid
-    # overflowing triangles are ambiguous (many matches) and would vote for an arbitrary subset
-    cand_valid &= (tri_valid & ~overflow)[:, None]
-    cand_stars = db.triangles[index]  # (T, K, 3)
+    start, count = candidate_ranges(db.keys, v1h, v2h, th1=tuning.th1, th2=tuning.th2,
+                                    v1_offset=db.v1_offset, stride=db.stride, n_rows=db.n_rows,
+                                    th1_max=th1_max)  # eq. 7: (T, R)
+    total = jnp.sum(count, axis=1)
+    # a triangle with more than K candidates is ambiguous (many matches): flagged, casts no vote
+    overflow = tri_valid & (total > capacity)
+    votes_ok = tri_valid & ~overflow
+    index, tri, cand_valid, pool_total = gather_pool(
+        start, jnp.where(votes_ok[:, None], count, 0), pool)  # (P,) each
     if config.vertex_match:  # extension: side check + vertex correspondence
-        vertex, side_ok = match_vertices(vec[combos], db.sides[index], config.side_tol_rad)
+        vertex, obs_sides = observed_sides(tri_vec)  # (T, 3) each
+        err = jnp.max(jnp.abs(db.sides[index] - obs_sides[tri]), axis=-1)  # (P,)
+        keep = cand_valid & (err <= tuning.side_tol_rad)
+        # only a few per cent pass the side check: move them to a buffer of Q slots before the
+        # star gather and the vote scatter (Q = P in the full-buffer mode, which cannot overflow)
+        q = pool if pool >= t * capacity else min(pool, max(1024, pool // 8))
+        n_keep = jnp.sum(keep, dtype=jnp.int32)
+        dest = jnp.where(keep, jnp.cumsum(keep, dtype=jnp.int32) - 1, q)
+        slot = jnp.zeros((q,), jnp.int32).at[dest].set(
+            jnp.arange(pool, dtype=jnp.int32), mode="drop", unique_indices=True)
+        kept = jnp.arange(q) < n_keep
         tri_det = jnp.take_along_axis(combos, vertex, axis=1)  # ↔ candidate stars 0, 1, 2
-        votes = cast_matched_votes(tri_det, cand_stars, cand_valid & side_ok, n, n_ref)
+        votes = cast_matched_votes(tri_det[tri[slot]], db.triangles[index[slot]][:, None, :],
+                                   kept[:, None], n, n_ref)
+        pool_overflow = (pool_total > pool) | (n_keep > q)
     else:  # the paper's voting (Fig. 3)
-        votes = cast_votes(combos, cand_stars, cand_valid, n, n_ref)
-    cand, n_votes, _ = best_candidates(votes)
+        votes = cast_votes(combos[tri], db.triangles[index][:, None, :], cand_valid[:, None], n,
+                           n_ref)
+        pool_overflow = pool_total > pool
+    cand, n_votes = best_candidates(votes)
     has_cand = valid & (n_votes >= config.min_votes)
-    agree = agreement(vec, db.star_vectors[cand], cand, has_cand, config.eps_rad)  # eq. 8
+    agree = agreement(vec, db.star_vectors[cand], cand, has_cand, tuning.eps_rad)  # eq. 8
     first, common, size = largest_cluster(agree)
     members = (common if config.require_unique_cluster else first) & has_cand
     if config.attitude_check:
@@ -154,20 +248,35 @@ def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_x
         "n_candidates": jnp.where(tri_valid, total, 0),
         "candidates": jnp.where(has_cand, db.star_rows[cand], -1), "votes": n_votes,
         "cluster_size": size, "field_predicted": n_pred, "field_seen": n_seen,
+        "pool_total": pool_total, "pool_overflow": pool_overflow,
     }
 
 
-@functools.partial(jax.jit, static_argnames=("config", "capacity"))
-def _identify_batch(xy, valid, all_xy, all_valid, db, config, capacity):
-    return jax.vmap(identify_scene, in_axes=(0, 0, None, None, None, 0, 0))(
-        xy, valid, db, config, capacity, all_xy, all_valid)
+@functools.partial(jax.jit, static_argnames=("config", "capacity", "pool", "th1_max"))
+def _identify_batch(xy, valid, all_xy, all_valid, tuning, db, config, capacity, pool, th1_max):
+    def one(args):
+        xy, valid, all_xy, all_valid, tuning = args
+        return identify_scene(xy, valid, db, config, capacity, all_xy, all_valid, tuning,
+                              pool=pool, th1_max=th1_max)
+
+    args = (xy, valid, all_xy, all_valid, tuning)
+    if xy.shape[0] <= config.map_batch:
+        return jax.vmap(one)(args)
+    # vmapped groups of map_batch scenes in a loop: the (group, P) candidate arrays stay in cache
+    return jax.lax.map(one, args, batch_size=config.map_batch)
 
 
 def _kernel_config(config: Config) -> Config:
-    """The config with the fields the compiled kernel does not read set to their defaults, so that
-    configs differing only in buffers, chunking or database settings share one compilation."""
-    return dataclasses.replace(config, candidate_capacity=256, max_candidate_capacity=1024,
-                               batch_chunk=500, n_boresights=100_000, database_roll_deg=None)
+    """The config with the fields the compiled kernel does not read as static values set to their
+    defaults, so that configs differing only in buffers, chunking, database settings or the traced
+    tolerances (:class:`Tuning`) share one compilation."""
+    d = Config()
+    return dataclasses.replace(config, candidate_capacity=d.candidate_capacity,
+                               max_candidate_capacity=d.max_candidate_capacity,
+                               candidate_pool=d.candidate_pool, batch_chunk=d.batch_chunk,
+                               n_boresights=d.n_boresights, database_roll_deg=d.database_roll_deg,
+                               th1=d.th1, th2=d.th2, eps_deg=d.eps_deg,
+                               side_tol_deg=d.side_tol_deg)
 
 
 def _brightest(scenes: Scene, n: int):
@@ -180,42 +289,91 @@ def _brightest(scenes: Scene, n: int):
     return xy.astype(jnp.float32), valid
 
 
-def identify_with_diagnostics(database: Database, scenes: Scene,
-                              config: Config | None = None):
-    """:func:`identify` plus its :class:`Diagnostics`.
+def _per_scene(value, default, b: int, dtype):
+    """(b,) array of a scalar or (b,) per-scene value (``None``: ``default``)."""
+    a = jnp.asarray(default if value is None else value, dtype)
+    if a.ndim == 0:
+        return jnp.full((b,), a, dtype)
+    if a.shape != (b,):
+        raise ValueError(f"per-scene values must be scalars or ({b},) arrays, got {a.shape}")
+    return a
+
+
+def _pad_rows(tree, size: int):
+    """Pad every leaf's leading axis with zeros (empty scenes) to ``size``."""
+    def pad(a):
+        return jnp.pad(a, [(0, size - a.shape[0])] + [(0, 0)] * (a.ndim - 1))
+
+    return jax.tree_util.tree_map(pad, tree)
+
+
+def identify_with_diagnostics(database: Database, scenes: Scene, config: Config | None = None, *,
+                              th1=None, th2=None, eps_deg=None, side_tol_deg=None):
+    """:func:`identify` plus its :class:`Diagnostics`, with optional per-scene tolerances.
 
     Scenes are processed in chunks of ``config.batch_chunk`` (the last chunk padded, so one
-    compilation serves any batch size above it). When a chunk flags a candidate overflow, it is
-    recomputed with a doubled buffer, up to ``config.max_candidate_capacity``; overflow remaining at
-    that bound is reported in the diagnostics and with a warning.
+    compilation serves any batch size above it). When a chunk flags a candidate overflow (a
+    triangle with more than K candidates), it is recomputed with a doubled K, up to
+    ``config.max_candidate_capacity``; overflow remaining at that bound is reported in the
+    diagnostics and with a warning. Scenes whose candidates exceed the shared buffer P
+    (:func:`default_pool`) are recomputed with a doubled P, up to T·K (which always suffices),
+    so the result never depends on P.
+
+    Args:
+        database, scenes, config: as :func:`identify`.
+        th1, th2: Th1, Th2 (bins), scalars or (B,) int arrays; ``None``: the config's.
+        eps_deg: ε (deg), scalar or (B,); ``None``: the config's.
+        side_tol_deg: vertex-match side tolerance (deg), scalar or (B,); ``None``: the config's.
+            These are traced (:class:`Tuning`): a grid of values is a batch axis served by one
+            compilation (one per max Th1, which sets the window's shape).
+
+    Returns:
+        ``(Identification, Diagnostics)``.
     """
     config = Config() if config is None else config
     # build statistics are static metadata: drop them so cached and fresh databases share a compile
     database = dataclasses.replace(database, info=())
     b, cap = scenes.batch_size, scenes.capacity
+    tuning = Tuning(
+        th1=_per_scene(th1, config.th1, b, jnp.int32), th2=_per_scene(th2, config.th2, b, jnp.int32),
+        eps_rad=jnp.deg2rad(_per_scene(eps_deg, config.eps_deg, b, jnp.float32)),
+        side_tol_rad=jnp.deg2rad(_per_scene(side_tol_deg, config.side_tol_deg, b, jnp.float32)))
+    if bool(jnp.any(tuning.th1 < 0)) or bool(jnp.any(tuning.th2 < 0)):
+        raise ValueError("th1 and th2 must be ≥ 0")
+    th1_max, th2_max = int(jnp.max(tuning.th1)), int(jnp.max(tuning.th2))
     xy, valid = _brightest(scenes, config.n_stars)
     all_xy, all_valid = scenes.xy.astype(jnp.float32), scenes.valid
     if all_xy.shape[1] < config.n_stars:
         all_xy, all_valid = xy, valid
+    kernel_config = _kernel_config(config)
+    t = math.comb(config.n_stars, 3)
     chunk = min(config.batch_chunk, b)
     outs, k_used = [], config.candidate_capacity
     for lo in range(0, b, chunk):
         hi = min(lo + chunk, b)
-        cxy, cvalid = xy[lo:hi], valid[lo:hi]
-        axy, avalid = all_xy[lo:hi], all_valid[lo:hi]
+        args = (xy[lo:hi], valid[lo:hi], all_xy[lo:hi], all_valid[lo:hi],
+                jax.tree_util.tree_map(lambda a, lo=lo, hi=hi: a[lo:hi], tuning))
         if hi - lo < chunk:  # pad the last chunk to the compiled shape with empty scenes
-            pad = chunk - (hi - lo)
-            cxy = jnp.pad(cxy, ((0, pad), (0, 0), (0, 0)))
-            cvalid = jnp.pad(cvalid, ((0, pad), (0, 0)))
-            axy = jnp.pad(axy, ((0, pad), (0, 0), (0, 0)))
-            avalid = jnp.pad(avalid, ((0, pad), (0, 0)))
+            args = _pad_rows(args, chunk)
         k = config.candidate_capacity
         while True:
-            out = _identify_batch(cxy, cvalid, axy, avalid, database, _kernel_config(config), k)
+            pool = default_pool(config, th1_max, th2_max, k, database.n_triangles)
+            out = _identify_batch(*args, database, kernel_config, k, pool, th1_max)
             if not bool(jnp.any(out["overflow"])) or k >= config.max_candidate_capacity:
                 break
             k = min(2 * k, config.max_candidate_capacity)
         k_used = max(k_used, k)
+        redo = np.flatnonzero(np.asarray(out["pool_overflow"]))
+        # rare (≈ 0.2 % of scenes): recompute those scenes with a doubled buffer, up to P = T·K
+        # (which cannot overflow), _REDO scenes at a time (one compilation per buffer size)
+        while redo.size and pool < t * k:
+            pool = min(2 * pool, t * k)
+            for i in range(0, redo.size, _REDO):
+                r = redo[i:i + _REDO]
+                sub = _pad_rows(jax.tree_util.tree_map(lambda a, r=r: a[r], args), _REDO)
+                fix = _identify_batch(*sub, database, kernel_config, k, pool, th1_max)
+                out = jax.tree_util.tree_map(lambda a, f, r=r: a.at[r].set(f[: r.size]), out, fix)
+            redo = np.flatnonzero(np.asarray(out["pool_overflow"]))
         outs.append(jax.tree_util.tree_map(lambda a, n=hi - lo: a[:n], out))
     out = {key: jnp.concatenate([o[key] for o in outs]) for key in outs[0]}
     if bool(jnp.any(out["overflow"])):

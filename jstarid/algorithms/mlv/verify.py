@@ -72,17 +72,22 @@ def largest_cluster(agree):
         trivial cluster; callers compare with ``ver_min`` ≥ 2).
     """
     n = agree.shape[0]
-    masks = jnp.asarray(subset_masks(n))  # (2^n, n)
-    disagree = (~agree & ~jnp.eye(n, dtype=bool)).astype(jnp.float32)
-    # a subset is a clique iff it contains no disagreeing pair: m·D·mᵀ = 0
-    violations = jnp.sum((masks @ disagree) * masks, axis=1)
-    size = jnp.sum(masks, axis=1).astype(jnp.int32)
-    score = jnp.where(violations == 0, size, -1)
+    masks_np = subset_masks(n)
+    member = jnp.asarray(masks_np > 0)  # (2^n, n)
+    subsets = jnp.arange(2**n, dtype=jnp.int32)
+    bit = jnp.left_shift(1, jnp.arange(n, dtype=jnp.int32))  # (n,)
+    # disagree[i] as a bitmask of the detections that detection i disagrees with
+    disagree = jnp.sum(jnp.where(~agree & ~jnp.eye(n, dtype=bool), bit[None, :], 0), axis=1)
+    # a subset is a clique iff none of its members disagrees with another member (integer bit
+    # tests: far cheaper on CPU than the equivalent (2^n, n) × (n, n) float products)
+    clash = jnp.any(member & ((subsets[:, None] & disagree[None, :]) != 0), axis=1)
+    size = jnp.asarray(masks_np.sum(axis=1), jnp.int32)
+    score = jnp.where(clash, -1, size)
     best = jnp.argmax(score)
     best_size = score[best]
     is_best = (score == best_size)[:, None]
-    common = jnp.all(jnp.where(is_best, masks > 0, True), axis=0)
-    return masks[best] > 0, common, best_size
+    common = jnp.all(jnp.where(is_best, member, True), axis=0)
+    return member[best], common, best_size
 
 
 def _wahba(v_cam, r_icrs, weights):
@@ -180,8 +185,12 @@ def field_check(att, scene_vectors, scene_valid, catalog_vectors, camera, n: int
     """
     v = catalog_vectors @ att.T  # (M, 3) camera frame
     _, in_field = camera.project(v)
-    rows = jnp.nonzero(in_field, size=n, fill_value=-1)[0]  # the n brightest in the frame
-    predicted = rows >= 0
+    # the n brightest in the frame: the rows where the running in-field count reaches 1, …, n (n
+    # binary searches: much cheaper on CPU than jnp.nonzero's scatter over the whole catalog)
+    running = jnp.cumsum(in_field, dtype=jnp.int32)
+    rows = jnp.searchsorted(running, jnp.arange(1, n + 1, dtype=jnp.int32), side="left")
+    predicted = rows < in_field.shape[0]
+    rows = jnp.where(predicted, rows, -1)
     cos = v[jnp.maximum(rows, 0)] @ scene_vectors.T  # (n, m)
     seen = jnp.any(scene_valid[None, :] & (cos >= math.cos(tol_rad)), axis=1)
     return jnp.sum(predicted, dtype=jnp.int32), jnp.sum(predicted & seen, dtype=jnp.int32)
