@@ -1,5 +1,7 @@
 """SGM end to end: database, Algorithm 1 search and identification on simulated scenes."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -101,12 +103,13 @@ def test_false_stars_only_fail_cleanly(setup):
     scenes = js.scenes_from_centroids(xy, capacity=32)
     # Δw_max cut to 0.5° to keep the test fast (the full 6° window matches ~2,700 graphs per scene)
     result, info = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5), details=True)
-    assert np.all(info["n_matched_graphs"] > 20)  # candidates were really matched and rejected
+    # candidates were really examined (spectral matching or the exact pruning bound) and rejected
+    assert np.all(info["n_matched_graphs"] + info["n_pruned"] > 20)
     # a second call with the same shapes compiles nothing new (STYLE §4)
     from jstarid.algorithms.sgm import search
-    n_compiled = search._match_chunk._cache_size()
+    n_compiled = search._match_pairs._cache_size(), search._bound_pairs._cache_size()
     again = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5))
-    assert search._match_chunk._cache_size() == n_compiled
+    assert (search._match_pairs._cache_size(), search._bound_pairs._cache_size()) == n_compiled
     np.testing.assert_array_equal(np.asarray(again.ids), np.asarray(result.ids))
     assert not np.any(np.asarray(result.ok))
     assert np.all(np.asarray(result.ids) == -1)
@@ -173,13 +176,18 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
         assert info["level"][s] == level
         if best >= 0:
             np.testing.assert_allclose(info["error"][s], err, rtol=1e-4, atol=1e-6)
-            assert info["n_matched_graphs"][s] >= n_tried
+            assert info["n_matched_graphs"][s] + info["n_pruned"][s] >= n_tried
         levels.append(level)
         single = sgm.identify(db, scenes[s], cfg)
         np.testing.assert_array_equal(np.asarray(single.ids)[0], np.asarray(batch.ids)[s])
         assert bool(single.ok[0]) == bool(batch.ok[s])
     # the test exercised success at level 0, at a later level, and failure
     assert 0 in levels and max(levels) > 0 and -1 in levels, levels
+    # the exact pruning bound changes nothing but the work done
+    full, info_full = sgm.identify(db, scenes, dataclasses.replace(cfg, prune=False), details=True)
+    np.testing.assert_array_equal(np.asarray(full.ids), np.asarray(batch.ids))
+    np.testing.assert_array_equal(info_full["best"], info["best"])
+    assert np.all(info_full["n_pruned"] == 0) and np.sum(info["n_pruned"]) > 0
 
 
 def test_capacity_and_padding_do_not_change_ids(setup):
@@ -262,3 +270,31 @@ def test_verification_at_three_pixels_names_nothing_wrong(setup):
     # verification only unnames: every kept id is the match's
     assert np.all((ids == -1) | (ids == np.asarray(raw.ids)))
     assert ok.sum() >= 2
+
+
+def test_grid_replay_equals_separate_searches(setup5):
+    """One c × ε_δ grid evaluation (tuning module) gives each grid point's own Algorithm 1 result."""
+    from jstarid.algorithms.sgm import tuning
+    from jstarid.algorithms.sgm.identify import scene_graphs
+    cat, cam, db = setup5
+    base = sgm.Config(dw_max_deg=0.5, verify=False)
+    rows = np.random.default_rng(3).choice(len(cat), 6, replace=False)
+    scenes = js.simulate(jax.random.key(9), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
+                         capacity=CAPACITY, boresight_ids=rows)
+    g = {k: np.asarray(v) for k, v in scene_graphs(scenes.xy, scenes.valid, camera=cam,
+                                                    radius_deg=base.radius_deg,
+                                                    capacity=db.capacity).items()}
+    usable = g["any"] & ~g["overflow"] & (g["n"] >= base.min_stars)
+    cs, eps = [1.0, 1.74], [0.05, 0.1, 0.4]
+    errors = tuning.candidate_errors(db, g, usable, base, cs, max(eps))
+    ok, rank = tuning.replay_algorithm1(errors["level"], errors["error"], eps)
+    ids = tuning.grid_identifications(db, g, errors, ok, rank, scenes.xy.shape[1])
+    for ci, c in enumerate(cs):
+        for ei, e in enumerate(eps):
+            res, info = sgm.identify(db, scenes, dataclasses.replace(base, c=c, max_error_deg=e),
+                                     with_attitude=False, details=True)
+            np.testing.assert_array_equal(ok[:, ci, ei], np.asarray(res.ok))
+            best = np.where(ok[:, ci, ei], errors["cand"][np.arange(rows.size), rank[:, ci, ei]], -1)
+            np.testing.assert_array_equal(best, info["best"])
+            np.testing.assert_array_equal(ids[:, ci, ei], np.asarray(res.ids))
+    assert ok.any() and not ok.all()  # the grid has successes and failures

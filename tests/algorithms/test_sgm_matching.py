@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 from scipy.sparse.csgraph import minimum_spanning_tree
 
+from jstarid.algorithms.sgm.bound import error_lower_bound, sorted_rows
+from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import mst_weight
 from jstarid.algorithms.sgm.matching import (
     affinity,
@@ -131,7 +133,7 @@ def test_noisy_subgraph_and_false_vertex(case):
 
 
 def test_power_iteration_converges_like_eigh_with_default_steps():
-    """The default 60 steps agree with eigh closely enough that greedy binarization is unchanged."""
+    """The default steps agree with eigh closely enough that greedy binarization is unchanged."""
     rng = np.random.default_rng(3)
     pts = rng.uniform(-6, 6, (14, 2))
     a = np.linalg.norm(pts[:, None] - pts[None], axis=-1).astype(np.float32)
@@ -140,7 +142,7 @@ def test_power_iteration_converges_like_eigh_with_default_steps():
     np.fill_diagonal(a_n, 0)
     m = np.ones(14, bool)
     k = affinity(jnp.asarray(a_n), m, jnp.asarray(a), m, C)
-    x = principal_eigenvector(k, 60)
+    x = principal_eigenvector(k, Config().power_iterations)
     _, vecs = jnp.linalg.eigh(k)
     v = jnp.abs(vecs[:, -1])
     np.testing.assert_allclose(np.asarray(x), np.asarray(v), atol=1e-3)
@@ -195,3 +197,58 @@ def test_vertex_check_unnames_the_inconsistent_vertex():
     # too few consistent vertices left → the scene fails
     m, ok = _check_vertices(a_i, a_j, res, dataclasses.replace(cfg, min_matched=10))
     assert not bool(ok[0]) and np.all(m == -1)
+
+
+def test_power_iteration_early_stop_agrees_with_fixed_steps():
+    rng = np.random.default_rng(4)
+    a, m = _random_graph(rng, 9, 12)
+    b = a + np.where(a > 0, rng.normal(0, 0.03, a.shape), 0).astype(np.float32)
+    b = (b + b.T) / 2
+    k = affinity(jnp.asarray(a), m, jnp.asarray(b), m, C)
+    x_fixed = principal_eigenvector(k, 300)
+    x_tol = jax.jit(principal_eigenvector, static_argnums=1)(k, 300, 1e-7)
+    np.testing.assert_allclose(np.asarray(x_tol), np.asarray(x_fixed), atol=1e-5)
+
+
+def _brute_force_min_error(a_i, n_i, a_j, n_j):
+    """min over every one-to-one correspondence of min(n_I, n_J) pairs of eq. 5 (deg)."""
+    small, large = (a_i[:n_i, :n_i], a_j[:n_j, :n_j]) if n_i <= n_j else (a_j[:n_j, :n_j], a_i[:n_i, :n_i])
+    m = small.shape[0]
+    best = np.inf
+    for perm in itertools.permutations(range(large.shape[0]), m):
+        p = np.array(perm)
+        d = small - large[np.ix_(p, p)]
+        best = min(best, np.sqrt(np.sum(d * d)) / m)
+    return best
+
+
+def test_error_lower_bound_never_exceeds_the_best_correspondence():
+    """The pruning bound is below eq. 5 for every correspondence (brute force), and tight for a copy."""
+    rng = np.random.default_rng(11)
+    bound = jax.jit(error_lower_bound, static_argnames="max_skip")
+    ratios = []
+    for trial in range(60):
+        n_i, n_j = (int(x) for x in rng.integers(2, 7, 2))
+        a_i, m_i = _random_graph(rng, n_i, 8)
+        if trial % 2:  # unrelated graph
+            a_j, m_j = _random_graph(rng, n_j, 8)
+        else:  # the same points (plus others, or fewer) with noise
+            pts = rng.uniform(-6, 6, (8, 2))
+            a_i = np.zeros((8, 8), np.float32)
+            a_i[:n_i, :n_i] = np.linalg.norm(pts[:n_i, None] - pts[None, :n_i], axis=-1)
+            q = pts[:n_j] + rng.normal(0, 0.05, (n_j, 2))
+            a_j = np.zeros((8, 8), np.float32)
+            a_j[:n_j, :n_j] = np.linalg.norm(q[:, None] - q[None], axis=-1)
+            m_j = np.arange(8) < n_j
+        lb = float(bound(sorted_rows(jnp.asarray(a_i), m_i), n_i, sorted_rows(jnp.asarray(a_j), m_j),
+                         n_j, max_skip=6))
+        best = _brute_force_min_error(a_i, n_i, a_j, n_j)
+        assert lb <= best * (1 + 1e-5) + 1e-6, (trial, lb, best)
+        ratios.append(lb / best if best > 0 else 1.0)
+    assert max(ratios) > 0.99  # not a vacuous bound: tight for some pairs
+    # identical graphs → 0; more vertex difference than max_skip → 0 (no pruning)
+    a, m = _random_graph(rng, 6, 8)
+    r = sorted_rows(jnp.asarray(a), m)
+    assert float(bound(r, 6, r, 6, max_skip=2)) < 1e-6
+    b, mb = _random_graph(rng, 2, 8)
+    assert float(bound(r, 6, sorted_rows(jnp.asarray(b), mb), 2, max_skip=2)) == 0.0

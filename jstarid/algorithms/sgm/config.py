@@ -23,8 +23,20 @@ class Config:
             included); ``None`` chooses it from the data (largest graph, rounded up to
             ``size_bucket``). The image graph uses the same capacity; a scene with more detections
             inside its neighbor circle fails (flagged, never truncated silently).
-        chunk_size: candidates matched per scene per step of the batched search.
-        power_iterations: fixed number of power-iteration steps for the principal eigenvector.
+        chunk_size: candidate ranks per scene in the first step of the batched search (each later
+            step takes twice as many, up to 512).
+        power_iterations: number of power-iteration steps for the principal eigenvector (the
+            largest number when ``power_tol`` > 0). 30 gave the same correspondence as 400 steps
+            on all 12,732 (image, candidate) pairs of 40 σ = 2 px scenes within ±1° of w_I (so did
+            20; 60 was the previous default).
+        power_tol: stop the power iteration once no entry of the vector changes by more than this
+            in a step (0: always ``power_iterations`` steps).
+        prune: not in the paper, and it does not change the outcome: skip the spectral matching
+            of candidates whose matching error provably exceeds ε_δ (:mod:`.bound`; such a candidate
+            can never be returned by Algorithm 1). ``False`` matches every candidate (diagnostics such
+            as ``error`` of failed scenes then cover every candidate).
+        prune_max_skip: candidates whose vertex count differs from the image graph's by more than
+            this are not bounded (always matched); the bound's cost grows with it.
         min_stars: fewest vertices (main star included) an image neighbor graph needs; fewer → fail.
             Not in the paper (which never meets tiny graphs): a 1- or 2-vertex graph matches almost
             anything.
@@ -76,7 +88,10 @@ class Config:
     max_error_deg: float = 0.4
     neighbor_capacity: int | None = None
     chunk_size: int = 16
-    power_iterations: int = 60
+    power_iterations: int = 30
+    power_tol: float = 0.0
+    prune: bool = True
+    prune_max_skip: int = 8
     min_stars: int = 3
     min_matched: int = 3
     memory_budget_mb: int = 1024
@@ -99,6 +114,8 @@ class Config:
             raise ValueError("c must be > 0 and max_error_deg ≥ 0")
         if self.neighbor_capacity is not None and self.neighbor_capacity < 2:
             raise ValueError("neighbor_capacity must be ≥ 2")
+        if self.power_tol < 0 or self.prune_max_skip < 0:
+            raise ValueError("power_tol and prune_max_skip must be ≥ 0")
         if min(self.chunk_size, self.power_iterations, self.size_bucket, self.memory_budget_mb) < 1:
             raise ValueError("chunk_size, power_iterations, size_bucket, memory_budget_mb must be ≥ 1")
         if self.min_stars < 1 or self.min_matched < 1:

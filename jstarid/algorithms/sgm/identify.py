@@ -115,7 +115,8 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         info = {"n_i": g["n"], "w_i": g["w"], "main": g["main"], "overflow": g["overflow"],
                 "usable": usable, "best_main": np.where(ok, db.main[np.clip(res["best"], 0, None)],
                                                          -1),
-                "match_ok": ok, **{k: res[k] for k in ("error", "level", "n_matched_graphs", "best")}}
+                "match_ok": ok,
+                **{k: res[k] for k in ("error", "level", "n_matched_graphs", "n_pruned", "best")}}
         return result, info
     return result
 

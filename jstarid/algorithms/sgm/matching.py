@@ -26,6 +26,11 @@ __all__ = ["affinity", "principal_eigenvector", "greedy_binarize", "matching_err
 def affinity(a_i, mask_i, a_j, mask_j, c: float):
     """Affinity matrix of eq. 2.
 
+    ``exp(−c|a − b|) = min(e^{c a}·e^{−c b}, e^{−c a}·e^{c b})`` (the smaller of the two is the one
+    with a non-positive exponent), so the (P·Q)² entries need P² + Q² exponentials and two products
+    each, instead of (P·Q)² exponentials. Exponents are taken about a common centre so that
+    e^{±c·a} stays in float32 range for c·(largest edge) up to ≈ 170.
+
     Args:
         a_i: (P, P) image adjacency (deg).
         mask_i: (P,) bool image vertices.
@@ -37,16 +42,22 @@ def affinity(a_i, mask_i, a_j, mask_j, c: float):
         (P·Q, P·Q) float32 symmetric non-negative matrix, index ``i·Q + j``.
     """
     p, q = a_i.shape[0], a_j.shape[0]
-    # (i, j, k, m): edge ik of G_I against edge jm of G_J
-    diff = a_i[:, None, :, None] - a_j[None, :, None, :]
-    pair = mask_i[:, None] & mask_j[None, :]
-    distinct = (~jnp.eye(p, dtype=bool))[:, None, :, None] & (~jnp.eye(q, dtype=bool))[None, :, None, :]
-    keep = pair[:, :, None, None] & pair[None, None, :, :] & distinct
-    k = jnp.where(keep, jnp.exp(-c * jnp.abs(diff)), 0.0)
+    keep_i = mask_i[:, None] & mask_i[None, :] & ~jnp.eye(p, dtype=bool)
+    keep_j = mask_j[:, None] & mask_j[None, :] & ~jnp.eye(q, dtype=bool)
+    # half the mean largest edge: exponents stay within ±c·(largest edge)/2
+    centre = 0.25 * (jnp.max(jnp.where(keep_i, a_i, 0.0)) + jnp.max(jnp.where(keep_j, a_j, 0.0)))
+    up_i = jnp.where(keep_i, jnp.exp(c * (a_i - centre)), 0.0)
+    dn_i = jnp.where(keep_i, jnp.exp(-c * (a_i - centre)), 0.0)
+    up_j = jnp.where(keep_j, jnp.exp(c * (a_j - centre)), 0.0)
+    dn_j = jnp.where(keep_j, jnp.exp(-c * (a_j - centre)), 0.0)
+    # (i, j, k, m): edge ik of G_I against edge jm of G_J; zero rows/columns for diagonal, conflicting
+    # pairs (i = k or j = m) and padding come from the zeros of up/dn
+    k = jnp.minimum(up_i[:, None, :, None] * dn_j[None, :, None, :],
+                    dn_i[:, None, :, None] * up_j[None, :, None, :])
     return k.reshape(p * q, p * q).astype(jnp.float32)
 
 
-def principal_eigenvector(k, n_iter: int):
+def principal_eigenvector(k, n_iter: int, tol: float = 0.0):
     """Unit principal eigenvector of a symmetric non-negative matrix by power iteration.
 
     Starts from the uniform vector, which is not orthogonal to the Perron vector of a non-negative
@@ -54,19 +65,32 @@ def principal_eigenvector(k, n_iter: int):
 
     Args:
         k: (M, M) symmetric, non-negative.
-        n_iter: static number of steps.
+        n_iter: static largest number of steps.
+        tol: stop early once no entry changed by more than ``tol`` in one step (0: always
+            ``n_iter`` steps). Under ``vmap`` the loop runs until every lane has stopped; a lane that
+            stopped keeps its vector, so batched and single calls agree.
 
     Returns:
         (M,) non-negative unit vector (or zeros).
     """
     x0 = jnp.full((k.shape[0],), 1.0 / jnp.sqrt(k.shape[0]), k.dtype)
 
-    def step(_, x):
+    def step(x):
         y = k @ x
         norm = jnp.linalg.norm(y)
         return jnp.where(norm > 0, y / jnp.where(norm > 0, norm, 1.0), 0.0)
 
-    return jax.lax.fori_loop(0, n_iter, step, x0)
+    def cond(carry):
+        t, _, change = carry
+        return (t < n_iter) & (change > tol)
+
+    def body(carry):
+        t, x, _ = carry
+        y = step(x)
+        return t + 1, y, jnp.max(jnp.abs(y - x))
+
+    _, x, _ = jax.lax.while_loop(cond, body, (0, x0, jnp.asarray(jnp.inf, k.dtype)))
+    return x
 
 
 def greedy_binarize(conf, mask_i, mask_j):
@@ -121,20 +145,22 @@ def matching_error(a_i, a_j, match, min_matched: int = 1):
     return jnp.where(n >= min_matched, err, jnp.inf)
 
 
-def spectral_match(a_i, mask_i, a_j, mask_j, *, c: float, n_iter: int, min_matched: int = 1):
+def spectral_match(a_i, mask_i, a_j, mask_j, *, c: float, n_iter: int, min_matched: int = 1,
+                   tol: float = 0.0):
     """Match two padded neighbor graphs (eqs. 2–5).
 
     Args:
         a_i: (P, P) image adjacency (deg); mask_i: (P,) bool.
         a_j: (Q, Q) database adjacency (deg); mask_j: (Q,) bool.
-        c: eq. 2 adjustor (1/deg). n_iter: power-iteration steps. min_matched: see
-            :func:`matching_error`.
+        c: eq. 2 adjustor (1/deg). n_iter: largest number of power-iteration steps. min_matched: see
+            :func:`matching_error`. tol: early stop of the power iteration
+            (:func:`principal_eigenvector`).
 
     Returns:
         ``(match, error)``: (P,) int32 database vertex per image vertex (−1 none), () error (deg).
     """
     p, q = a_i.shape[0], a_j.shape[0]
     k = affinity(a_i, mask_i, a_j, mask_j, c)
-    gamma = principal_eigenvector(k, n_iter).reshape(p, q)
+    gamma = principal_eigenvector(k, n_iter, tol).reshape(p, q)
     match = greedy_binarize(gamma, mask_i, mask_j)
     return match, matching_error(a_i, a_j, match, min_matched)

@@ -28,11 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.algorithms.sgm.bound import error_lower_bound, sorted_rows
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.geometry import range_search
 
-__all__ = ["candidate_windows", "order_candidates", "dynamic_search"]
+__all__ = ["candidate_windows", "order_candidates", "prune_mask", "dynamic_search"]
 
 
 def _bucket(x: int, m: int) -> int:
@@ -77,39 +78,115 @@ def order_candidates(w_db, start, stop, w_i, *, width: int, dw0: float, step: fl
     return cand.astype(jnp.int32), level.astype(jnp.int32)
 
 
-@functools.partial(jax.jit, static_argnames=("p", "q", "c", "n_iter", "min_matched"))
-def _match_chunk(a_i, mask_i, cand, db_adj, db_n, *, p, q, c, n_iter, min_matched):
-    """Spectral matching of S image graphs against C candidates each → (S, C, p) match, (S, C) δ."""
-    safe = jnp.clip(cand, 0, db_adj.shape[0] - 1)
-    a_j = db_adj[safe][:, :, :q, :q]
-    mask_j = (jnp.arange(q)[None, None, :] < db_n[safe][:, :, None]) & (cand >= 0)[:, :, None]
-    match_one = functools.partial(spectral_match, c=c, n_iter=n_iter, min_matched=min_matched)
-    over_cand = jax.vmap(match_one, in_axes=(None, None, 0, 0))
-    match, err = jax.vmap(over_cand)(a_i[:, :p, :p], mask_i[:, :p], a_j, mask_j)
-    return match, jnp.where(cand >= 0, err, jnp.inf)
+@functools.partial(jax.jit, static_argnames=("p", "q", "c", "n_iter", "tol", "min_matched"))
+def _match_pairs(a_i, n_i, cand, db_adj, db_n, *, p, q, c, n_iter, tol, min_matched):
+    """Spectral matching of N (image graph, database graph) pairs → (N, p) match, (N,) δ (deg)."""
+    a_j = db_adj[cand][:, :q, :q]
+    mask_i = jnp.arange(p)[None, :] < n_i[:, None]
+    mask_j = jnp.arange(q)[None, :] < db_n[cand][:, None]
+    match_one = functools.partial(spectral_match, c=c, n_iter=n_iter, min_matched=min_matched, tol=tol)
+    return jax.vmap(match_one)(a_i, mask_i, a_j, mask_j)
 
 
-def _groups(order, n_i, n_j_max, config: Config, chunk: int):
-    """Split scenes (sorted by n_I) into sub-batches whose affinity matrices fit the budget."""
-    budget = config.memory_budget_mb * 2**20
-    groups, cur, p, q = [], [], 0, 0
-    for s in order:
-        p2 = max(p, _bucket(int(n_i[s]), config.size_bucket))
-        q2 = max(q, _bucket(int(n_j_max[s]), config.size_bucket))
-        need = _pow2(len(cur) + 1) * chunk * (p2 * q2) ** 2 * 4 * 3  # K, |ΔA| and exp temporaries
-        if cur and need > budget:
-            groups.append((cur, p, q))
-            cur, p2, q2 = [], _bucket(int(n_i[s]), config.size_bucket), _bucket(
-                int(n_j_max[s]), config.size_bucket)
-        cur.append(s)
-        p, q = p2, q2
-    if cur:
-        groups.append((cur, p, q))
-    return groups
+@functools.partial(jax.jit, static_argnames=("r", "max_skip"))
+def _bound_pairs(a_i, n_i, cand, db_adj, db_n, *, r, max_skip):
+    """:func:`~.bound.error_lower_bound` of N (image graph, database graph) pairs → (N,) (deg)."""
+    a_j = db_adj[cand][:, :r, :r]
+    n_j = db_n[cand]
+    rows_i = sorted_rows(a_i, jnp.arange(r)[None, :] < n_i[:, None])
+    rows_j = sorted_rows(a_j, jnp.arange(r)[None, :] < n_j[:, None])
+    bound = functools.partial(error_lower_bound, max_skip=max_skip)
+    return jax.vmap(bound)(rows_i, n_i, rows_j, n_j)
+
+
+def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
+    """Slices of ≤ the budget, each padded to a power of two (≥ 16) to bound recompilation."""
+    cap = max(16, 1 << int(math.floor(math.log2(max(budget_bytes // max(per_pair_bytes, 1), 16)))))
+    for lo in range(0, n_pairs, cap):
+        hi = min(lo + cap, n_pairs)
+        yield lo, hi, max(16, _pow2(hi - lo))
+
+
+def _run_pairs(kernel, key_sizes, adj_i, n_i, scene, cand, per_pair_bytes, budget, size_names, out_tails,
+               **kw):
+    """Run a pair kernel over flat (scene, candidate) pairs grouped by padded graph size.
+
+    Args:
+        kernel: :func:`_match_pairs` or :func:`_bound_pairs`; called with the image adjacency sliced to
+            the group's size and ``**kw`` plus the group's static sizes.
+        key_sizes: (N, k) int static sizes of each pair (e.g. (p, q) or (r,)); pairs are grouped by row.
+        adj_i: (B, K, K) image adjacencies (NumPy). n_i: (B,) image vertex counts.
+        scene, cand: (N,) int scene row and database row of each pair.
+        per_pair_bytes: function of the sizes → bytes one pair needs inside the kernel.
+        budget: bytes per call. size_names: the kernel's static keyword for each column of
+            ``key_sizes``.
+        out_tails: trailing shape of each kernel output in the result (a per-vertex axis, which the
+            kernel returns at its group's size, is given as K and padded with −1).
+
+    Returns:
+        List of the kernel outputs in pair order (NumPy arrays of shape (N,) + tail).
+    """
+    outs = None
+    groups = {}
+    for idx, key in enumerate(map(tuple, key_sizes)):
+        groups.setdefault(key, []).append(idx)
+    for sizes, members in groups.items():
+        members = np.asarray(members)
+        for lo, hi, padded in _batches(members.size, per_pair_bytes(*sizes), budget):
+            sel = members[lo:hi]
+            fill = np.concatenate([sel, np.repeat(sel[:1], padded - sel.size)])
+            res = kernel(jnp.asarray(adj_i[scene[fill], :sizes[0], :sizes[0]]),
+                         jnp.asarray(n_i[scene[fill]]), jnp.asarray(cand[fill]), **kw,
+                         **dict(zip(size_names, sizes, strict=True)))
+            res = res if isinstance(res, tuple) else (res,)
+            if outs is None:
+                outs = [np.full((scene.size,) + tuple(t), -1, np.asarray(r).dtype)
+                        for r, t in zip(res, out_tails, strict=True)]
+            for o, r in zip(outs, res, strict=True):
+                r = np.asarray(r)[:sel.size]
+                o[(sel,) + tuple(slice(0, d) for d in r.shape[1:])] = r
+    return outs
+
+
+def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float) -> np.ndarray:
+    """Which (scene, candidate) pairs survive the exact bound of :mod:`.bound`.
+
+    Args:
+        db: the database. adj_i: (B, K, K) image adjacencies (deg). n_i: (B,) image vertex counts.
+        scene, rows: (N,) scene and database row of each pair.
+        config: :class:`Config` (``prune_max_skip``, ``size_bucket``, ``memory_budget_mb``).
+        max_error_deg: ε; a pair is dropped when its bound on δ exceeds it (with a small margin
+            for the float32 rounding of the two computations).
+
+    Returns:
+        (N,) bool, True for the pairs to match (pairs differing by more than ``prune_max_skip``
+        vertices are always kept).
+    """
+    n_j = db.n[rows]
+    s_diff = np.abs(n_i[scene] - n_j)
+    bounded = np.nonzero(s_diff <= config.prune_max_skip)[0]
+    lb = np.zeros(rows.size, np.float32)
+    if bounded.size:
+        # grouped by padded size and by skip count (0, 1, 2, 4, 8, …: the programme's width)
+        r = np.maximum(_bucket_arr(n_i[scene[bounded]], config.size_bucket),
+                       _bucket_arr(n_j[bounded], config.size_bucket))
+        sk = np.where(s_diff[bounded] == 0, 0,
+                      1 << np.ceil(np.log2(np.maximum(s_diff[bounded], 1))).astype(np.int64))
+        (lb[bounded],) = _run_pairs(
+            _bound_pairs, np.stack([r, sk], axis=1), adj_i, n_i, scene[bounded], rows[bounded],
+            lambda r_, s_: r_ * r_ * (r_ - 1 + 3 * (s_ + 1)) * 4, config.memory_budget_mb * 2**20,
+            ("r", "max_skip"), [()], db_adj=db.device_adj, db_n=jnp.asarray(db.n))
+    return ~(lb > max_error_deg * (1 + 1e-4) + 1e-5)
 
 
 def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict:
-    """Algorithm 1 for a batch of image graphs (host loop over candidate chunks).
+    """Algorithm 1 for a batch of image graphs (host loop over blocks of candidate ranks).
+
+    Each step takes the next block of ranks of every unfinished scene (16 ranks, then twice as many
+    at every step up to 512: most scenes finish within their first few dozen candidates), drops the
+    candidates whose :mod:`.bound` proves δ > ε_δ (``Config.prune``; exact, see that module), and
+    runs the spectral matching on the rest as flat (scene, candidate) pairs grouped by padded graph
+    sizes.
 
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database`.
@@ -121,52 +198,59 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
     Returns:
         dict of NumPy arrays: ``ok`` (B,) bool, ``best`` (B,) int32 database row of J* (−1),
         ``match`` (B, K) int32 database vertex of each image vertex (−1), ``error`` (B,) δ_{I,J*}
-        (deg, inf when nothing was matched), ``n_matched_graphs`` (B,) candidates matched,
-        ``level`` (B,) index of the Δw level that succeeded (−1).
+        (deg; inf when nothing was matched — with pruning, also when every candidate was pruned),
+        ``n_matched_graphs`` (B,) candidates whose spectral matching ran, ``n_pruned`` (B,)
+        candidates the bound removed, ``level`` (B,) index of the Δw level that succeeded (−1).
     """
     b, k = graphs["mask"].shape
-    chunk = int(config.chunk_size)
     n_levels = config.n_levels
     w_i = jnp.asarray(graphs["w"], jnp.float32)
     start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
-    width = _pow2(max(int(count.max(initial=0)), chunk))
+    block = int(config.chunk_size)
+    width = _pow2(max(int(count.max(initial=0)), block))
     cand_all, level_all = order_candidates(
         jnp.asarray(db.w), start, stop, w_i, width=width, dw0=float(config.dw0_deg),
         step=float(config.dw_step_deg), n_levels=n_levels)
     cand_all, level_all = np.asarray(cand_all), np.asarray(level_all)
-    n_j_all = np.where(cand_all >= 0, db.n[np.clip(cand_all, 0, len(db) - 1)], 0)
 
     best_err = np.full(b, np.inf, np.float32)
     best = np.full(b, -1, np.int32)
     best_match = np.full((b, k), -1, np.int32)
     lstar = np.full(b, n_levels, np.int32)  # level of the first success; n_levels = none yet
     n_done = np.zeros(b, np.int32)
+    n_pruned = np.zeros(b, np.int32)
     done = ~usable | (count == 0)
-    adj_i, mask_i = graphs["adj"], graphs["mask"]
+    adj_i, n_i = graphs["adj"], graphs["n"].astype(np.int32)
     db_adj, db_n = db.device_adj, jnp.asarray(db.n)
+    budget = config.memory_budget_mb * 2**20
+    prune_at = config.max_error_deg
     r0 = 0
     while not np.all(done) and r0 < width:
         act = np.nonzero(~done)[0]
-        cand = cand_all[act, r0:r0 + chunk]
-        lev = level_all[act, r0:r0 + chunk]
+        cand = cand_all[act, r0:r0 + block]
+        lev = level_all[act, r0:r0 + block]
         cand = np.where(lev <= lstar[act, None], cand, -1)
-        nj = np.where(cand >= 0, n_j_all[act, r0:r0 + chunk], 0).max(axis=1)
+        s_idx, c_idx = np.nonzero(cand >= 0)
+        scene, rows = act[s_idx], cand[s_idx, c_idx]
+        n_j = db.n[rows]
+        if config.prune and rows.size:
+            keep = prune_mask(db, adj_i, n_i, scene, rows, config, prune_at)
+            np.add.at(n_pruned, scene[~keep], 1)
+            s_idx, c_idx, scene, rows, n_j = (x[keep] for x in (s_idx, c_idx, scene, rows, n_j))
+        np.add.at(n_done, scene, 1)
         err = np.full(cand.shape, np.inf, np.float32)
-        match = np.full(cand.shape + (k,), -1, np.int32)
-        order = np.argsort(graphs["n"][act], kind="stable")
-        for members, p, q in _groups(order, graphs["n"][act], nj, config, cand.shape[1]):
-            sel = np.asarray(members)
-            pad = _pow2(sel.size) - sel.size
-            rows = act[np.concatenate([sel, np.repeat(sel[:1], pad)])]
-            c_in = np.concatenate([cand[sel], np.full((pad, cand.shape[1]), -1, np.int32)])
-            m, e = _match_chunk(jnp.asarray(adj_i[rows]), jnp.asarray(mask_i[rows]),
-                                jnp.asarray(c_in), db_adj, db_n, p=p, q=q, c=float(config.c),
-                                n_iter=int(config.power_iterations),
-                                min_matched=int(config.min_matched))
-            err[sel] = np.asarray(e)[:sel.size]
-            match[sel, :, :p] = np.asarray(m)[:sel.size]
-        n_done[act] += np.sum(cand >= 0, axis=1)
+        pair_of = np.full(cand.shape, -1, np.int64)
+        if rows.size:
+            pq = np.stack([_bucket_arr(n_i[scene], config.size_bucket),
+                           _bucket_arr(n_j, config.size_bucket)], axis=1)
+            match_flat, err_flat = _run_pairs(
+                _match_pairs, pq, adj_i, n_i, scene, rows, lambda p, q: (p * q) ** 2 * 4 * 3, budget,
+                ("p", "q"), [(k,), ()], db_adj=db_adj, db_n=db_n, c=float(config.c),
+                n_iter=int(config.power_iterations), tol=float(config.power_tol),
+                min_matched=int(config.min_matched))
+            err[s_idx, c_idx] = err_flat
+            pair_of[s_idx, c_idx] = np.arange(rows.size)
         # first success fixes l*; ranks beyond the l* prefix do not take part (Algorithm 1, line 10)
         succ = err <= config.max_error_deg
         first = np.where(succ.any(axis=1), lev[np.arange(act.size), np.argmax(succ, axis=1)],
@@ -179,11 +263,18 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
         upd = act[better]
         best_err[upd] = e_best[better]
         best[upd] = cand[better, j[better]]
-        best_match[upd] = match[better, j[better]]
-        r0 += chunk
+        if upd.size:
+            best_match[upd] = match_flat[pair_of[better, j[better]]]
+        r0 += block
+        block = min(2 * block, 512)
         nxt = level_all[act, r0] if r0 < width else np.full(act.size, n_levels)
         done[act] = (r0 >= count[act]) | (nxt > lstar[act])
     ok = usable & (best_err <= config.max_error_deg)
     return {"ok": ok, "best": np.where(ok, best, -1), "match": np.where(ok[:, None], best_match, -1),
-            "error": best_err, "n_matched_graphs": n_done,
+            "error": best_err, "n_matched_graphs": n_done, "n_pruned": n_pruned,
             "level": np.where(ok, lstar, -1).astype(np.int32)}
+
+
+def _bucket_arr(x: np.ndarray, m: int) -> np.ndarray:
+    """Round each entry up to a multiple of ``m`` (at least ``m``)."""
+    return np.maximum(m, -(-np.asarray(x) // m) * m).astype(np.int64)

@@ -1,0 +1,111 @@
+"""A cheap lower bound on the matching error δ (eq. 5) that holds for every vertex correspondence.
+
+Algorithm 1 only ever returns a candidate J with δ_{I,J} ≤ ε_δ (otherwise the scene fails), and a
+candidate with δ_{I,J} > ε_δ can neither be the first success of a level nor the argmin of a level
+that succeeds. So a candidate whose δ is *provably* above ε_δ, whatever correspondence the spectral
+step would return, can be skipped without changing the outcome. Not in the paper; it replaces the
+(n_I·n_J)² affinity matrix and its power iteration by O(n_I·n_J·n·s) work for most candidates.
+
+The bound. Let m = min(n_I, n_J) and call S the graph with m vertices, L the other one
+(s = n_L − m ≥ 0 extra vertices). Greedy binarization matches m pairs, so every vertex of S is matched
+to a distinct vertex π(i) of L, and eq. 5 reads
+
+    (m·δ)² = Σ_{i ∈ S} Σ_{k ∈ S, k ≠ i} (A_S(i,k) − A_L(π(i), π(k)))².
+
+For one i the inner sum compares the m − 1 entries of row i of A_S with m − 1 distinct entries of row
+π(i) of A_L (whose n_L − 1 entries include s that are not used). On a line with a convex cost, the
+cheapest injective assignment of a sorted short list into a sorted long list is order preserving, so
+the inner sum is at least ``C(i, π(i))``, the cheapest monotone assignment of the sorted rows, which a
+small dynamic programme over "how many long-row entries were skipped so far" (0 … s) computes in
+O(n·s). Relaxing the one-to-one constraint between vertices, ``(m·δ)² ≥ Σ_{i ∈ S} min_j C(i, j)``;
+when n_I = n_J every vertex of L is matched as well and ``Σ_{j ∈ L} min_i C(i, j)`` bounds it too.
+
+With s = 0 (same vertex count, e.g. noise-free scenes) the bound is the sorted-row distance. For
+s > ``max_skip`` the bound is set to 0 (no pruning): the programme's cost grows with s.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["sorted_rows", "error_lower_bound"]
+
+
+def sorted_rows(adj, mask):
+    """Rows of a padded adjacency without the diagonal, each sorted ascending, +inf padded.
+
+    Args:
+        adj: (..., K, K) adjacency (deg). mask: (..., K) bool vertices.
+
+    Returns:
+        (..., K, K − 1) float32: row i holds its n − 1 edge lengths first (ascending), then +inf; rows of
+        padding vertices are all +inf.
+    """
+    k = adj.shape[-1]
+    off = ~jnp.eye(k, dtype=bool)
+    keep = mask[..., :, None] & mask[..., None, :] & off
+    rows = jnp.sort(jnp.where(keep, adj, jnp.inf), axis=-1)
+    return rows[..., : k - 1].astype(jnp.float32)
+
+
+def _row_cost(short, long, n_short, max_skip: int):
+    """Cheapest monotone injective assignment of each short row into each long row.
+
+    Args:
+        short: (P, R) sorted rows with ``n_short`` finite entries each (R ≥ n_short).
+        long: (Q, R) sorted rows with n_short + s finite entries.
+        n_short: () int number of entries of a short row (m − 1).
+        max_skip: static s_max; long entries beyond n_short + max_skip are never reached.
+
+    Returns:
+        (P, Q) Σ (short_t − long_{t+u_t})² minimised over non-decreasing skips 0 ≤ u_t ≤ max_skip.
+    """
+    r = short.shape[-1]
+    big = jnp.asarray(jnp.inf, jnp.float32)
+    # pad so that entry t + u is always in range
+    long_pad = jnp.concatenate([long, jnp.full((long.shape[0], max_skip + 1), big)], axis=-1)
+
+    def step(t, d):
+        # d[u]: (P, Q) cost of the first t entries with short entry t − 1 on long entry t − 1 + u
+        x = short[:, t][:, None]
+        y = jax.lax.dynamic_slice_in_dim(long_pad, t, max_skip + 1, axis=1)  # (Q, s+1)
+        out, best = [], big
+        for u in range(max_skip + 1):  # unrolled: (P, Q) planes vectorize well, the u axis is tiny
+            best = jnp.minimum(best, d[u])  # non-decreasing skips: min over u' ≤ u
+            out.append((x - y[None, :, u]) ** 2 + best)
+        return jnp.where(t < n_short, jnp.stack(out), d)
+
+    zeros = jnp.zeros((short.shape[0], long.shape[0]), jnp.float32)
+    d0 = jnp.stack([zeros] + [zeros + big] * max_skip)
+    d = jax.lax.fori_loop(0, r, step, d0)
+    return jnp.min(d, axis=0)
+
+
+def error_lower_bound(rows_i, n_i, rows_j, n_j, *, max_skip: int):
+    """Lower bound on δ_{I,J} of eq. 5 valid for every one-to-one correspondence of min(n_I, n_J) pairs.
+
+    Args:
+        rows_i: (R + 1, R) :func:`sorted_rows` of the image graph (padded to R + 1 vertices).
+        n_i: () int image vertex count.
+        rows_j: (R + 1, R) sorted rows of the database graph, same padding.
+        n_j: () int database vertex count.
+        max_skip: static; candidates with |n_I − n_J| > max_skip get bound 0.
+
+    Returns:
+        () float32 bound on δ (deg); 0 when |n_I − n_J| > ``max_skip`` or m < 2.
+    """
+    i_small = n_i <= n_j
+    short = jnp.where(i_small, rows_i, rows_j)
+    long = jnp.where(i_small, rows_j, rows_i)
+    m = jnp.minimum(n_i, n_j)
+    s = jnp.abs(n_i - n_j)
+    cost = _row_cost(short, long, m - 1, max_skip)  # (R+1, R+1)
+    # short-side vertices are its first m rows; long-side rows beyond n_L are padding (+inf rows)
+    used = jnp.arange(short.shape[0]) < m
+    total = jnp.sum(jnp.where(used, jnp.min(cost, axis=1), 0.0))
+    # equal vertex counts: every long-side vertex is matched too, so its column minimum also counts
+    cols = jnp.sum(jnp.where(used, jnp.min(jnp.where(used[:, None], cost, jnp.inf), axis=0), 0.0))
+    total = jnp.where(s == 0, jnp.maximum(total, cols), total)
+    bound = jnp.sqrt(jnp.maximum(total, 0.0)) / jnp.maximum(m, 1)
+    return jnp.where((s <= max_skip) & (m >= 2) & jnp.isfinite(bound), bound, 0.0)
