@@ -19,7 +19,15 @@ import pytest
 import jstarid as js
 from jstarid.algorithms import rpnet
 from jstarid.algorithms.rpnet import data, pattern, train
-from jstarid.algorithms.rpnet.identify import PAIRS, anchor_names, name_stars, weight_search
+from jstarid.algorithms.rpnet.identify import (
+    PAIRS,
+    _first_argmax,
+    anchor_names,
+    name_stars,
+    network_candidates,
+    weight_search,
+)
+from jstarid.algorithms.rpnet.tune import pair_tables, simplex_grid, weight_grid_search
 
 # ---------------------------------------------------------------- NumPy reference of eq. 3
 
@@ -356,6 +364,102 @@ def test_identify_more_pair_trials_never_worse(tiny, clean_scenes):
     np.testing.assert_array_equal(np.asarray(three.ids)[ok1], np.asarray(one.ids)[ok1])
     rep = js.evaluate(s, three, "rpnet", camera=db.camera)
     assert rep["n_wrong"] == 0
+
+
+# ---------------------------------------------------------------- vectorized weight search, fast paths
+
+
+def test_simplex_grid():
+    g = simplex_grid(0.25)
+    np.testing.assert_allclose(g.sum(1), 1.0, atol=1e-6)
+    assert np.all(np.diff(g, axis=1) <= 1e-7)  # w1 ≥ w2 ≥ w3
+    assert len(g) == 4  # (1,0,0) (.75,.25,0) (.5,.5,0) (.5,.25,.25)
+    assert len(simplex_grid(0.25, decreasing=False)) == 15  # C(6, 2)
+    with pytest.raises(ValueError):
+        simplex_grid(0.3)
+
+
+def test_weight_grid_matches_per_weight_calls():
+    """The vmapped grid equals one weight_search call per (po, pr) and scene on hand-made tables."""
+    rng = np.random.default_rng(7)
+    b = 40
+    probs = -np.sort(-rng.dirichlet(np.ones(5), size=(b, 3))[..., :3], axis=-1).astype(np.float32)
+    ok = rng.uniform(size=(b, 27)) < 0.6
+    ok[0] = False  # a scene without any admissible pair
+    correct = rng.uniform(size=(b, 27)) < 0.3
+    po = simplex_grid(0.25, decreasing=False)[:6]
+    pr = np.array([[0.6, 0.25, 0.15], [0.2, 0.3, 0.5], [1.0, 0.0, 0.0]], np.float32)
+    grid = weight_grid_search(probs, ok, correct, po, pr)
+    assert grid["correct"].shape == grid["wrong"].shape == grid["none"].shape == (6, 3)
+    for a in range(6):
+        for c in range(3):
+            right = wrong = none = 0
+            for s in range(b):
+                best, _, found = weight_search(jnp.asarray(probs[s]), jnp.asarray(ok[s]), po[a], pr[c])
+                if not bool(found):
+                    none += 1
+                elif correct[s, int(best)]:
+                    right += 1
+                else:
+                    wrong += 1
+            np.testing.assert_allclose([grid["correct"][a, c], grid["wrong"][a, c], grid["none"][a, c]],
+                                       np.array([right, wrong, none]) / b, atol=1e-6)
+    best = grid["best"]
+    a, c = np.unravel_index(np.argmax(grid["correct"]), (6, 3))
+    assert best["correct"] == pytest.approx(float(grid["correct"].max()))
+    np.testing.assert_allclose(best["position_weights"], po[a])
+    np.testing.assert_allclose(best["probability_weights"], pr[c])
+
+
+def test_first_argmax_matches_argmax():
+    rng = np.random.default_rng(3)
+    x = rng.integers(0, 4, size=(50, 17)).astype(np.float32)  # many ties
+    np.testing.assert_array_equal(np.asarray(_first_argmax(jnp.asarray(x))), np.argmax(x, -1))
+    inf = np.full((2, 5), np.inf, np.float32)
+    np.testing.assert_array_equal(np.asarray(_first_argmax(-jnp.asarray(inf))), [0, 0])
+
+
+def test_network_candidates_are_softmax_top3(tiny, clean_scenes):
+    _, cam, cfg, db, _ = tiny
+    s = clean_scenes[:16]
+    near, p, cls = network_candidates(s.xy, s.valid, db.variables, camera=cam, config=cfg,
+                                      n_classes=db.n_classes)
+    inputs = pattern.scene_inputs(s.xy, s.valid, near, camera=cam, **pattern.config_kwargs(cfg))
+    logits = train.predict_logits(db.variables, inputs, config=cfg, n_classes=db.n_classes)
+    p_ref, cls_ref = jax.lax.top_k(jax.nn.softmax(logits, -1), 3)
+    np.testing.assert_array_equal(np.asarray(cls), np.asarray(cls_ref))
+    np.testing.assert_allclose(np.asarray(p), np.asarray(p_ref), rtol=1e-6)
+    d = np.linalg.norm(np.asarray(s.xy) - [cam.cx, cam.cy], axis=-1)
+    d[~np.asarray(s.valid)] = np.inf
+    np.testing.assert_array_equal(np.sort(d, 1)[:, :3], np.take_along_axis(d, np.asarray(near), 1))
+
+
+def test_identify_invariant_to_detection_order_and_chunks(tiny, clean_scenes):
+    """Unpacked / permuted detection columns and other chunk sizes give the same ids (width cut)."""
+    _, _, cfg, db, _ = tiny
+    s = clean_scenes[:40]
+    ref = rpnet.identify(db, s)
+    perm = np.random.default_rng(2).permutation(s.xy.shape[1])
+    shuffled = dataclasses.replace(s, xy=s.xy[:, perm], mag=s.mag[:, perm], truth=s.truth[:, perm],
+                                   valid=s.valid[:, perm])
+    got = rpnet.identify(db, shuffled, dataclasses.replace(cfg, batch_chunk=16, name_chunk=8))
+    np.testing.assert_array_equal(np.asarray(got.ids), np.asarray(ref.ids)[:, perm])
+    np.testing.assert_array_equal(np.asarray(got.ok), np.asarray(ref.ok))
+
+
+def test_pair_tables_tiny(tiny, clean_scenes):
+    _, _, cfg, db, _ = tiny
+    s = clean_scenes[:64]
+    t = pair_tables(db, s, cfg)
+    assert t["probs"].shape == (64, 3, 3) and t["pair_ok"].shape == t["pair_correct"].shape == (64, 27)
+    assert t["guide_correct"].shape == (64, 3) and t["guide_correct"][:, 0].mean() > 0.5
+    grid = weight_grid_search(t["probs"], t["pair_ok"], t["pair_correct"], [cfg.position_weights],
+                              [cfg.probability_weights])
+    bound = np.mean(np.any(t["pair_ok"] & t["pair_correct"], axis=1))
+    assert 0.5 < grid["correct"][0, 0] <= bound + 1e-9
+    # the scenes identify confirms with Table 5 weights are (almost all) scenes whose chosen pair is right
+    res = rpnet.identify(db, s)
+    assert np.mean(np.asarray(res.ok)) <= grid["correct"][0, 0] + 0.05
 
 
 @pytest.mark.slow

@@ -159,8 +159,11 @@ class Config:
             confirmed by ``min_verified`` named stars (1 = the paper's single confident pair, the
             default). 3 gained 0.3–0.8 points on σ = 1.6 px, 3 missing, 20 % false stars with a
             2-minute CPU model, at 3× the identification time.
-        batch_chunk: scenes per compiled identification call (memory: ≈ chunk × n_pair_trials × N
-            × catalog size floats per intermediate).
+        batch_chunk: scenes per compiled identification call; the network runs on all of them at
+            once (3 × chunk inputs per matmul: large matrices run near the CPU's matmul peak).
+        name_chunk: scenes vmapped together in the naming steps inside a call (``lax.map`` groups;
+            memory ≈ name_chunk × n_pair_trials × N × local stars floats per intermediate, kept
+            small so that it stays in cache).
     """
 
     rho_deg: float = 6.0
@@ -182,7 +185,8 @@ class Config:
     match_tol_min_px: float = 1.5
     min_verified: int = 5
     n_pair_trials: int = 1
-    batch_chunk: int = 64
+    batch_chunk: int = 512
+    name_chunk: int = 64
 
     def __post_init__(self):
         if not 0 < self.e_deg < self.rho_deg:

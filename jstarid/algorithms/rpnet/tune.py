@@ -1,0 +1,127 @@
+"""Vectorized search of the weight-searching strategy's weights (§II-E, eqs. 9–11, Table 5).
+
+The paper picks the position weights po_i and the probability weights pr_j by a grid search. Only the
+choice of the confident pair depends on them, so the network runs once: :func:`pair_tables` stores,
+per scene, the top-3 probabilities p_ij, the admissibility of the 27 candidate pairs and whether each
+pair is the true one; :func:`weight_grid_search` then scores every (po, pr) of a grid in one
+``vmap`` over the stored tables (no network call, no simulation per grid point).
+
+The figure of merit is the pair level: the scene's chosen pair (the highest eq. 11 score among the
+admissible ones) names both detections correctly. A correct pair is what the naming step needs to
+identify the scene; a wrong one is a failure (or, rarely, a mis-identification) after verification.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jstarid.algorithms.rpnet.config import Config
+from jstarid.algorithms.rpnet.identify import PAIRS, network_candidates, pair_checks, weight_search
+
+__all__ = ["pair_tables", "simplex_grid", "weight_grid_search"]
+
+
+def simplex_grid(step: float = 0.05, *, decreasing: bool = True) -> np.ndarray:
+    """Weight triples on the simplex w1 + w2 + w3 = 1 (eq. 9), w ≥ 0, in steps of ``step``.
+
+    Args:
+        step: grid spacing (1/step must be an integer).
+        decreasing: keep only w1 ≥ w2 ≥ w3 (nearest detection / most probable candidate first, as
+            the paper assigns them).
+
+    Returns:
+        (G, 3) float32 weights.
+    """
+    n = round(1.0 / step)
+    if abs(n * step - 1.0) > 1e-9:
+        raise ValueError(f"1/step must be an integer, got step={step}")
+    out = [(a, b, n - a - b) for a, b in itertools.product(range(n + 1), repeat=2) if a + b <= n]
+    if decreasing:
+        out = [w for w in out if w[0] >= w[1] >= w[2]]
+    return (np.asarray(out, np.float64) / n).astype(np.float32)
+
+
+def pair_tables(database, scenes, config: Config | None = None) -> dict[str, np.ndarray]:
+    """Run the network once and tabulate what the weight search needs, per scene.
+
+    Args:
+        database: :class:`~jstarid.algorithms.rpnet.database.Database`.
+        scenes: (B, N) :class:`~jstarid.scene.Scene` (with ``truth``).
+        config: identification settings (pair checks); ``None`` uses ``database.config``.
+
+    Returns:
+        dict of NumPy arrays: ``probs`` (B, 3, 3) float32 p_ij; ``pair_ok`` (B, 27) bool admissible
+        pairs (:data:`~jstarid.algorithms.rpnet.identify.PAIRS` order); ``pair_correct`` (B, 27) bool
+        both candidates are the true stars of their detections; ``guide_correct`` (B, 3) bool the top
+        candidate of S_i is its true star.
+    """
+    config = database.config if config is None else config
+    camera = database.camera
+    guide_rows = jnp.asarray(database.guide_rows, jnp.int32)
+    out = {k: [] for k in ("probs", "pair_ok", "pair_correct", "guide_correct")}
+    chunk = max(1, config.batch_chunk)
+    for start in range(0, scenes.batch_size, chunk):
+        part = scenes[start:start + chunk]
+        near, probs, cls = network_candidates(part.xy, part.valid, database.variables, camera=camera,
+                                              config=config, n_classes=database.n_classes)
+        ok, correct, top = _tables_chunk(part.xy, part.valid, part.truth, near, cls, guide_rows,
+                                         database.star_vectors, camera=camera, config=config)
+        for name, value in (("probs", probs), ("pair_ok", ok), ("pair_correct", correct),
+                            ("guide_correct", top)):
+            out[name].append(np.asarray(value))
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "config"))
+def _tables_chunk(xy, valid, truth, near, cls, guide_rows, star_vectors, *, camera, config):
+    def one(xy_s, valid_s, truth_s, near_s, cls_s):
+        body = camera.unproject(xy_s)
+        cand_rows = guide_rows[cls_s]  # (3, 3)
+        ok = pair_checks(body, valid_s, near_s, cand_rows, star_vectors, camera=camera, config=config)
+        hit = (cand_rows == truth_s[near_s][:, None]) & valid_s[near_s][:, None]  # (3, 3)
+        i, j, k, m = (jnp.asarray(PAIRS[:, c]) for c in range(4))
+        return ok, hit[i, j] & hit[k, m], hit[:, 0]
+
+    return jax.vmap(one)(xy, valid, truth, near, cls)
+
+
+@jax.jit
+def _grid(probs, pair_ok, pair_correct, po, pr):
+    def one_setting(po_w, pr_w):
+        best, _, found = jax.vmap(lambda p, ok: weight_search(p, ok, po_w, pr_w))(probs, pair_ok)
+        right = found & jnp.take_along_axis(pair_correct, best[:, None], axis=1)[:, 0]
+        return jnp.mean(right), jnp.mean(found & ~right), jnp.mean(~found)
+
+    over_pr = jax.vmap(one_setting, in_axes=(None, 0))
+    return jax.vmap(over_pr, in_axes=(0, None))(po, pr)
+
+
+def weight_grid_search(probs, pair_ok, pair_correct, position_weights, probability_weights) -> dict:
+    """Eq. 11 pair choice for every (po, pr) combination of two weight lists, in one batched call.
+
+    Args:
+        probs: (B, 3, 3) p_ij per scene.
+        pair_ok: (B, 27) bool admissible pairs.
+        pair_correct: (B, 27) bool pair names both detections correctly.
+        position_weights: (P, 3) po triples.
+        probability_weights: (Q, 3) pr triples.
+
+    Returns:
+        dict with (P, Q) float arrays ``correct`` (rate of scenes whose chosen pair is correct),
+        ``wrong`` (a wrong pair chosen) and ``none`` (no admissible pair), and ``best``: the
+        ``(po, pr)`` of the highest ``correct`` (first in grid order on ties) with its rates.
+    """
+    po = jnp.asarray(position_weights, jnp.float32).reshape(-1, 3)
+    pr = jnp.asarray(probability_weights, jnp.float32).reshape(-1, 3)
+    correct, wrong, none = (np.asarray(a) for a in _grid(jnp.asarray(probs, jnp.float32),
+                                                         jnp.asarray(pair_ok, bool),
+                                                         jnp.asarray(pair_correct, bool), po, pr))
+    a, b = np.unravel_index(int(np.argmax(correct)), correct.shape)
+    best = {"position_weights": np.asarray(po[a]).tolist(), "probability_weights": np.asarray(pr[b]).tolist(),
+            "correct": float(correct[a, b]), "wrong": float(wrong[a, b]), "none": float(none[a, b])}
+    return {"correct": correct, "wrong": wrong, "none": none, "best": best}
