@@ -123,13 +123,18 @@ def _table(results, cfg) -> str:
     for c in cfg.cs:
         cells = [r for r in results["grid"] if r["c"] == float(c)]
         lines.append(f"| {c:g} | " + " | ".join(
-            f"{100 * r['accuracy']:.1f} / {100 * r['failure_rate']:.1f} / {100 * r['misid_rate']:.1f}"
+            f"{_pct(r['accuracy'])} / {_pct(r['failure_rate'])} / {_pct(r['misid_rate'])}"
             for r in cells) + " |")
     lines += ["", f"Grid of {len(cfg.cs)} c × {len(cfg.eps)} ε_δ evaluated in "
               f"{results['grid_seconds']:.0f} s ({results['matched_pairs']} of {results['candidates']} "
               "candidate graphs matched, the rest "
               "pruned by the exact bound)."]
     return "\n".join(lines) + "\n"
+
+
+def _pct(x: float) -> str:
+    """A rate as a percentage; accuracy (eq. 9) is undefined when every scene failed → "—"."""
+    return "—" if not np.isfinite(x) else f"{100 * x:.1f}"
 
 
 def _plot(results, cfg, out):
