@@ -22,6 +22,10 @@ Per scene:
    ``[false_mag_min, false_mag_max]``; position noise does not apply (their position is random anyway);
 7. all detections are ordered by observed magnitude and the brightest ``capacity`` kept; ``overflow``
    says more were present. False stars beyond the false-star buffer also set ``overflow``.
+
+Randomness: step 1 uses ``jax.random`` on the scene key; steps 2–7 draw from Threefry-2x32 (the same
+hash) written out in ``jnp`` on a per-scene seed, one counter stream per kind of draw, so the draws
+fuse into vectorised loops on CPU and candidate i's draws do not depend on the list width.
 """
 
 from __future__ import annotations
@@ -196,27 +200,28 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         camera=camera, capacity=int(capacity),
         false_capacity=_false_capacity(noise, int(capacity)),
         max_missing=int(np.max(np.asarray(noise.n_missing))),
+        false_disk=bool(np.any(np.isfinite(np.asarray(noise.false_radius_px)))),
     )
     rows = (jnp.zeros((batch_size,), jnp.int32) if boresight_ids is None
             else jnp.asarray(boresight_ids, jnp.int32))
     cells, counts = index.device_arrays()
     noise_b = noise.broadcast(batch_size)
-    keys, att, cell = _attitudes(key, rows, tables[3], grid=index.grid,
+    seeds, att, cell = _attitudes(key, rows, tables[3], grid=index.grid,
                                  mode_b=boresight_ids is not None)
     replicated = (cells, counts, *tables[:3])
     statics["n_candidates"] = index.capacity
     if shard:
-        return map_batch(_stage2, (keys, noise_b, att, cell), replicated, static=statics)
-    return _stage2(keys, noise_b, att, cell, *replicated, **statics)
+        return map_batch(_stage2, (seeds, noise_b, att, cell), replicated, static=statics)
+    return _stage2(seeds, noise_b, att, cell, *replicated, **statics)
 
 
-def _stage2(keys, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row, *, n_candidates,
+def _stage2(seeds, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row, *, n_candidates,
             **statics):
     """Steps 2–7 for a batch: one vmapped call for small batches, sorted chunks for large ones."""
-    if keys.shape[0] < _CHUNK_MIN_BATCH:
-        return _scenes_batch(keys, noise_b, att, cell, cells, star_vec, star_mag, star_row,
+    if seeds.shape[0] < _CHUNK_MIN_BATCH:
+        return _scenes_batch(seeds, noise_b, att, cell, cells, star_vec, star_mag, star_row,
                              n_candidates=n_candidates, **statics)
-    return _scenes_chunked(keys, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row,
+    return _scenes_chunked(seeds, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row,
                            widths=_candidate_widths(n_candidates), **statics)
 
 
@@ -225,26 +230,26 @@ def _stage2(keys, noise_b, att, cell, cells, counts, star_vec, star_mag, star_ro
 # densest cell's list length. One compilation serves every batch of the same size.
 _CHUNK_MIN_BATCH = 2048
 _CHUNK = 256
-_RNG_BLOCK = 64  # candidate stars per RNG block: draws do not depend on the list length used
+_WIDTH_STEP = 64  # candidate-list widths are multiples of this
 
 
 def _candidate_widths(k: int) -> tuple[int, ...]:
-    """A few list widths (multiples of the RNG block) up to the index capacity k."""
+    """A few list widths (multiples of ``_WIDTH_STEP``) up to the index capacity k."""
     fractions = (0.25, 0.5, 0.75, 1.0)
-    return tuple(sorted({max(_RNG_BLOCK, -(-int(k * f) // _RNG_BLOCK) * _RNG_BLOCK) for f in fractions}))
+    return tuple(sorted({max(_WIDTH_STEP, -(-int(k * f) // _WIDTH_STEP) * _WIDTH_STEP) for f in fractions}))
 
 
 @functools.partial(jax.jit, static_argnames=(
-    "camera", "capacity", "false_capacity", "max_missing", "widths"))
-def _scenes_chunked(keys, noise, att, cell, cells, counts, star_vec, star_mag, star_row, *, camera,
-                    capacity, false_capacity, max_missing, widths):
+    "camera", "capacity", "false_capacity", "max_missing", "false_disk", "widths"))
+def _scenes_chunked(seeds, noise, att, cell, cells, counts, star_vec, star_mag, star_row, *, camera,
+                    capacity, false_capacity, max_missing, false_disk, widths):
     """Steps 2–7 for a large batch: sort by candidate count, chunk, pick a width per chunk."""
     b = cell.shape[0]
     n_chunks = -(-b // _CHUNK)
     order = jnp.argsort(counts[cell])
     order = jnp.concatenate([order, jnp.broadcast_to(order[-1:], (n_chunks * _CHUNK - b,))])
     chunked = jax.tree.map(lambda a: a[order].reshape(n_chunks, _CHUNK, *a.shape[1:]),
-                           (keys, noise, att, cell))
+                           (seeds, noise, att, cell))
     need = counts[cell][order].reshape(n_chunks, _CHUNK).max(axis=1)
     branch = jnp.searchsorted(jnp.asarray(widths), need)  # first width ≥ the chunk's need
 
@@ -253,7 +258,8 @@ def _scenes_chunked(keys, noise, att, cell, cells, counts, star_vec, star_mag, s
             k, nz, a, c = args
             return _scenes_batch(
                 k, nz, a, c, cells, star_vec, star_mag, star_row, camera=camera, capacity=capacity,
-                false_capacity=false_capacity, max_missing=max_missing, n_candidates=width)
+                false_capacity=false_capacity, max_missing=max_missing, false_disk=false_disk,
+                n_candidates=width)
         return fn
 
     branches = [run(w) for w in widths]
@@ -291,58 +297,171 @@ def _attitude_one(key, row, cat_vec, mode_b):
 
 @functools.partial(jax.jit, static_argnames=("grid", "mode_b"))
 def _attitudes(key, rows, cat_vec, *, grid, mode_b):
-    """Per-scene keys, attitudes (B, 3, 3) and sky cells (B,) of a batch."""
+    """Per-scene seeds (B, 2) uint32 (:func:`_scene_seed`), attitudes (B, 3, 3), sky cells (B,).
+
+    The seeds are materialised here, in their own computation, so that stage 2 reads them instead of
+    re-deriving them inside every fused per-candidate loop.
+    """
     keys = jax.random.split(key, rows.shape[0])
     att = jax.vmap(lambda k, r: _attitude_one(k, r, cat_vec, mode_b))(keys, rows)
-    return keys, att, cell_of(att[:, 2], grid)
+    return jax.vmap(_scene_seed)(keys), att, cell_of(att[:, 2], grid)
 
 
 @functools.partial(jax.jit, static_argnames=(
-    "camera", "capacity", "false_capacity", "max_missing", "n_candidates"))
-def _scenes_batch(keys, noise, att, cell, cells, star_vec, star_mag, star_row, *, camera, capacity,
-                  false_capacity, max_missing, n_candidates):
+    "camera", "capacity", "false_capacity", "max_missing", "false_disk", "n_candidates"))
+def _scenes_batch(seeds, noise, att, cell, cells, star_vec, star_mag, star_row, *, camera, capacity,
+                  false_capacity, max_missing, false_disk, n_candidates):
     """Steps 2–7 for a batch, given attitudes and sky cells; ``cells[:, :n_candidates]`` is used."""
-    def one(key, noise_i, att_i, cell_i):
+    def one(seed, noise_i, att_i, cell_i):
         return _scene_from_attitude(
-            key, noise_i, att_i, cells[cell_i, :n_candidates], star_vec=star_vec,
+            seed, noise_i, att_i, cells[cell_i, :n_candidates], star_vec=star_vec,
             star_mag=star_mag, star_row=star_row, camera=camera, capacity=capacity,
-            false_capacity=false_capacity, max_missing=max_missing, max_candidates=cells.shape[1])
-    return jax.vmap(one)(keys, noise, att, cell)
+            false_capacity=false_capacity, max_missing=max_missing, false_disk=false_disk)
+    return jax.vmap(one)(seeds, noise, att, cell)
 
 
 def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_vec, camera, capacity,
-                  grid, false_capacity, max_missing, mode_b):
+                  grid, false_capacity, max_missing, mode_b, false_disk=True):
     """One whole scene (steps 1–7) with the full candidate list: the per-scene reference."""
     att = _attitude_one(key, row, cat_vec, mode_b)
     return _scene_from_attitude(
-        key, noise, att, cells[cell_of(att[2], grid)], star_vec=star_vec, star_mag=star_mag,
+        _scene_seed(key), noise, att, cells[cell_of(att[2], grid)], star_vec=star_vec, star_mag=star_mag,
         star_row=star_row, camera=camera, capacity=capacity, false_capacity=false_capacity,
-        max_missing=max_missing, max_candidates=cells.shape[1])
+        max_missing=max_missing, false_disk=false_disk)
 
 
-def _block_draws(key, n, draw, n_max):
-    """``n`` draws (n a multiple of the block), block j from the j-th of ``n_max / block`` sub-keys.
+def _threefry2x32(k0, k1, x0, x1):
+    """Threefry-2x32 (20 rounds), bit-identical to ``jax.extend.random.threefry_2x32``, unrolled.
 
-    The sub-keys come from one split of ``key`` into a fixed number of blocks (set by the longest
-    list, ``n_max``), so the first m draws are the same for any n ≥ m: a scene gets identical noise
-    whatever candidate-list width its chunk uses.
+    JAX lowers its Threefry to a 5-step ``while`` loop on CPU; inside the simulator's vmapped chunks
+    that loop cannot fuse with its consumers and costs more than the rest of the scene. Written out
+    in ``jnp`` the hash fuses with the uniform → normal transform into one vectorised loop.
+    All arguments are uint32 arrays (broadcast together); returns the two output words.
     """
-    sub = jax.random.split(key, -(-n_max // _RNG_BLOCK))[: n // _RNG_BLOCK]
-    return jax.vmap(lambda k: draw(k, (_RNG_BLOCK,)))(sub).reshape(n)
+    def rotl(v, r):
+        return (v << np.uint32(r)) | (v >> np.uint32(32 - r))
+
+    ks = (k0, k1, k0 ^ k1 ^ np.uint32(0x1BD11BDA))
+    rotations = ((13, 15, 26, 6), (17, 29, 16, 24))
+    x0, x1 = x0 + ks[0], x1 + ks[1]
+    for i in range(5):
+        for r in rotations[i % 2]:
+            x0 = x0 + x1
+            x1 = rotl(x1, r) ^ x0
+        x0 = x0 + ks[(i + 1) % 3]
+        x1 = x1 + ks[(i + 2) % 3] + np.uint32(i + 1)
+    return x0, x1
 
 
-def _scene_from_attitude(key, noise, att, idx, *, star_vec, star_mag, star_row, camera, capacity,
-                         false_capacity, max_missing, max_candidates):
+# Counter-space streams of a scene's seed (the second Threefry input word): one per kind of draw.
+_STREAM_POSITION, _STREAM_MAG, _STREAM_MISSING, _STREAM_FALSE_XY, _STREAM_FALSE_MAG = 1, 2, 3, 4, 5
+_STREAM_FALSE_R, _STREAM_FALSE_T = 6, 7
+
+
+def _scene_seed(key):
+    """(2,) uint32 Threefry key for a scene's steps 2–7, derived from the scene key."""
+    if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
+        data = jax.random.key_data(key)
+    else:  # legacy uint32 key
+        data = jnp.asarray(key, jnp.uint32)
+    if data.shape != (2,):  # another key implementation: draw a Threefry key from it
+        data = jax.random.bits(key, (2,), jnp.uint32)
+    # hashed once so the streams below share no counter with jax.random's use of the scene key
+    return jnp.stack(_threefry2x32(data[0], data[1], np.uint32(0x243F6A88), np.uint32(0x85A308D3)))
+
+
+def _words(seed, stream, n):
+    """Random uint32 words of one stream of a scene.
+
+    Word i (row-major position) is the first output word of Threefry(seed, (i, stream)), so for a
+    1-d ``n`` the first m words are the same for any n ≥ m: a scene gets identical noise whatever
+    candidate-list width its chunk uses. (Using both output words would halve the hashing, but
+    interleaving them defeats XLA's vectorisation, and the hash is the cheap part next to the normal
+    transform.)
+
+    Args:
+        seed: (2,) uint32 scene seed (:func:`_scene_seed`).
+        stream: static int, the kind of draw (one of the ``_STREAM_*`` constants).
+        n: static int or shape tuple.
+
+    Returns:
+        uint32 array of shape ``(n,)`` or ``n``.
+    """
+    shape = (n,) if isinstance(n, int) else tuple(n)
+    # row-major counters of an n-d shape, built from iotas (a reshaped arange would not fuse as well)
+    count = jnp.zeros(shape, jnp.uint32)
+    for d in range(len(shape)):
+        count = count * np.uint32(shape[d]) + jax.lax.broadcasted_iota(jnp.uint32, shape, d)
+    return _threefry2x32(seed[0], seed[1], count, np.uint32(stream))[0]
+
+
+def _unit_uniform(words):
+    """uint32 words → float32 uniforms in [0, 1) (23 random mantissa bits, as ``jax.random.uniform``)."""
+    bits = jax.lax.shift_right_logical(words, jnp.uint32(9)) | jnp.uint32(0x3F800000)
+    return jax.lax.bitcast_convert_type(bits, jnp.float32) - 1.0
+
+
+def _uniforms(seed, stream, n):
+    """float32 uniforms in [0, 1) of shape ``(n,)`` or ``n``, prefix-stable in n (see :func:`_words`)."""
+    return _unit_uniform(_words(seed, stream, n))
+
+
+def _normals(seed, stream, n):
+    """Standard normal float32 draws of shape ``(n,)`` or ``n``, prefix-stable in n (:func:`_words`).
+
+    ``jax.random.normal``'s transform: √2 · erfinv(u) with u uniform in (−1, 1), u's lower end nudged
+    off −1 as JAX does.
+    """
+    lo = np.nextafter(np.float32(-1.0), np.float32(0.0))
+    u = jnp.maximum(lo, _unit_uniform(_words(seed, stream, n)) * (1.0 - lo) + lo)
+    return np.float32(math.sqrt(2.0)) * jax.lax.erf_inv(u)
+
+
+def _drop_missing(seed, detected, n_missing, max_missing):
+    """Step 5: remove ``n_missing`` of the ``detected`` stars, a uniform random subset.
+
+    Drawn without replacement one at a time: the i-th removal takes the ⌊u_i (N − i)⌋-th remaining
+    detection, N detected. One uniform per removal instead of one per candidate, and a scene's choice
+    does not depend on the batch's ``max_missing``.
+
+    Args:
+        seed: the scene's Threefry key pair (:func:`_scene_seed`).
+        detected: (K,) bool, detected true stars.
+        n_missing: int32 scalar, stars to remove (≤ ``max_missing``).
+        max_missing: static bound on ``n_missing`` over the batch.
+
+    Returns:
+        (K,) bool, the detections left.
+    """
+    u = _uniforms(seed, _STREAM_MISSING, max_missing)
+
+    def drop(i, det):
+        n_left = jnp.sum(det, dtype=jnp.int32)
+        j = jnp.minimum((u[i] * n_left.astype(jnp.float32)).astype(jnp.int32), n_left - 1)
+        rank = jnp.cumsum(det, dtype=jnp.int32)  # 1-based rank of each detection
+        return det & ~((rank == j + 1) & (i < n_missing))
+
+    if max_missing <= 8:  # unrolled: XLA fuses the few steps; a loop for large bounds
+        for i in range(max_missing):
+            detected = drop(i, detected)
+        return detected
+    return jax.lax.fori_loop(0, max_missing, drop, detected)
+
+
+def _scene_from_attitude(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, capacity,
+                         false_capacity, max_missing, false_disk=True):
     """Steps 2–7 for one scene (see the module docstring); ``noise`` fields are scalars here.
 
     Args:
-        key: the scene key (split as in step 1).
+        seed: (2,) uint32, the scene's Threefry key pair for steps 2–7 (:func:`_scene_seed` of the
+            scene key, whose own draws gave the attitude in step 1).
         noise: per-scene :class:`NoiseConfig`.
         att: (3, 3) attitude.
-        idx: (K,) candidate simulation-star indices, K a multiple of the RNG block.
-        max_candidates: the full list length of the sky index (fixes the RNG block split).
+        idx: (K,) candidate simulation-star indices (a prefix of the cell's list, padded with the
+            sentinel row); the random draws of candidate i do not depend on K.
+        false_disk: static; False when no scene of the batch has a finite ``false_radius_px``, so
+            the disk draws (which would all be discarded) are skipped.
     """
-    _, k_pos, k_mag, k_miss, k_fxy, k_fmag = jax.random.split(key, 6)
     n_cand = idx.shape[0]
 
     # 2. candidates rotated (v_cam = C r, written out so it fuses) and projected
@@ -351,19 +470,15 @@ def _scene_from_attitude(key, noise, att, idx, *, star_vec, star_mag, star_row, 
     vy = att[1, 0] * rx + att[1, 1] * ry + att[1, 2] * rz
     vz = att[2, 0] * rx + att[2, 1] * ry + att[2, 2] * rz
     x, y, in_field = camera.project_components(vx, vy, vz)
+    xy = jnp.stack([x, y], -1)
 
     # 3. magnitude noise before the detection limit; the star is in the field by its true position
-    obs_mag = star_mag[idx] + noise.magnitude_sigma * _block_draws(k_mag, n_cand, jax.random.normal,
-                                                                      max_candidates)
+    obs_mag = star_mag[idx] + noise.magnitude_sigma * _normals(seed, _STREAM_MAG, n_cand)
     detected = in_field & (obs_mag <= camera.mag_limit) & jnp.isfinite(obs_mag)
 
-    # 5. missing stars: drop the `n_missing` detected true stars with the smallest random keys
+    # 5. missing stars
     if max_missing > 0:
-        r = jnp.where(detected, _block_draws(k_miss, n_cand, jax.random.uniform, max_candidates),
-                      2.0)
-        _, drop = jax.lax.top_k(-r, min(max_missing, n_cand))
-        drop_ok = jnp.arange(drop.shape[0]) < noise.n_missing
-        detected = detected.at[drop].set(detected[drop] & ~drop_ok)
+        detected = _drop_missing(seed, detected, noise.n_missing, max_missing)
     truth = star_row[idx]
 
     # 6. false stars
@@ -372,13 +487,12 @@ def _scene_from_attitude(key, noise, att, idx, *, star_vec, star_mag, star_row, 
         p = noise.false_ratio
         from_ratio = jnp.round(p * n_true / jnp.maximum(1.0 - p, 1e-6)).astype(jnp.int32)
         n_false = noise.n_false + from_ratio
-        f_xy = _false_positions(k_fxy, false_capacity, noise.false_radius_px, camera)
-        f_mag = jax.random.uniform(k_fmag, (false_capacity,), minval=noise.false_mag_min,
-                                   maxval=noise.false_mag_max)
+        f_xy = _false_positions(seed, false_capacity, noise.false_radius_px, camera, disk=false_disk)
+        f_mag = noise.false_mag_min + (noise.false_mag_max - noise.false_mag_min) * _uniforms(
+            seed, _STREAM_FALSE_MAG, false_capacity)
         f_on = jnp.arange(false_capacity) < n_false
         false_overflow = n_false > false_capacity
-        x = jnp.concatenate([x, f_xy[:, 0]])
-        y = jnp.concatenate([y, f_xy[:, 1]])
+        xy = jnp.concatenate([xy, f_xy])
         obs_mag = jnp.concatenate([obs_mag, f_mag])
         detected = jnp.concatenate([detected, f_on])
         truth = jnp.concatenate([truth, jnp.full((false_capacity,), -1, jnp.int32)])
@@ -393,9 +507,12 @@ def _scene_from_attitude(key, noise, att, idx, *, star_vec, star_mag, star_row, 
     valid = detected[keep]
     # 4. position noise on the kept true stars only (false stars are placed at random anyway), so the
     #    cost does not grow with the number of candidate stars.
-    jitter = noise.position_sigma_px * jax.random.normal(k_pos, (k_keep, 2))
+    #    The (k, 2) draws come straight from 2-d counters and the positions from one gather of (x, y)
+    #    rows: fused with a stack of separate x and y columns, the draws were recomputed per output
+    #    element and not vectorised.
+    jitter = noise.position_sigma_px * _normals(seed, _STREAM_POSITION, (k_keep, 2))
     jitter = jnp.where((keep < n_cand)[:, None], jitter, 0.0)
-    out_xy = jnp.where(valid[:, None], jnp.stack([x[keep], y[keep]], -1) + jitter, 0.0)
+    out_xy = jnp.where(valid[:, None], xy[keep] + jitter, 0.0)
     out_mag = jnp.where(valid, obs_mag[keep], jnp.inf)
     out_truth = jnp.where(valid, truth[keep], -1)
     if k_keep < capacity:  # fewer candidates than capacity: pad
@@ -409,18 +526,19 @@ def _scene_from_attitude(key, noise, att, idx, *, star_vec, star_mag, star_row, 
                  attitude=att.astype(jnp.float32), overflow=(n_det > capacity) | false_overflow)
 
 
-def _false_positions(key, n, radius_px, camera, tries: int = 8):
+def _false_positions(seed, n, radius_px, camera, *, disk: bool, tries: int = 8):
     """n uniform positions in the frame, or in (disk of ``radius_px`` about (cx, cy)) ∩ frame.
 
     Uniform in the disk by rejection against the frame: ``tries`` candidates each, the first inside
     is used (a disk mostly outside the frame is rare; the last candidate is clipped in as a fallback).
     """
-    k_u, k_r, k_t = jax.random.split(key, 3)
     w, h = camera.width - 1.0, camera.height - 1.0
-    frame = jax.random.uniform(k_u, (n, 2)) * jnp.array([w, h])
+    frame = _uniforms(seed, _STREAM_FALSE_XY, (n, 2)) * jnp.array([w, h])
+    if not disk:  # no finite radius in the batch: the disk draws would all be discarded
+        return frame
     rad = jnp.minimum(radius_px, 2.0 * (w + h))  # inf → a disk that covers the frame
-    r = rad * jnp.sqrt(jax.random.uniform(k_r, (tries, n)))
-    t = 2.0 * jnp.pi * jax.random.uniform(k_t, (tries, n))
+    r = rad * jnp.sqrt(_uniforms(seed, _STREAM_FALSE_R, (tries, n)))
+    t = 2.0 * jnp.pi * _uniforms(seed, _STREAM_FALSE_T, (tries, n))
     cand = jnp.stack([camera.cx + r * jnp.cos(t), camera.cy + r * jnp.sin(t)], -1)  # (tries, n, 2)
     inside = camera.contains(cand)
     first = jnp.argmax(inside, axis=0)
