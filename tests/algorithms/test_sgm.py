@@ -162,7 +162,7 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     # tight ε → several Δw levels are visited; Δw_max cut to 0.5° to bound the work of failures
     cfg = sgm.Config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5)
     rows = np.random.default_rng(2).choice(len(cat), 4, replace=False)
-    scenes = js.simulate(jax.random.key(4), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
+    scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)
     batch, info = sgm.identify(db, scenes, cfg, details=True)
     from jstarid.algorithms.sgm.identify import scene_graphs
