@@ -229,7 +229,9 @@ def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_x
             max_tol_rad=math.radians(config.residual_max_deg),
             ambiguity_rad=math.radians(config.ambiguity_deg),
             scene_vectors=None if all_xy is None else db.camera.unproject(all_xy),
-            scene_valid=all_valid)
+            scene_valid=all_valid,
+            outlier_sigmas=config.outlier_sigmas if config.outlier_sigmas > 0 else None,
+            outlier_min_others=config.outlier_min_others)
     ok = jnp.sum(members) >= config.ver_min
     att = fit_attitude(vec, members, db.star_rows[cand], db.catalog_vectors)
     if config.field_check:
