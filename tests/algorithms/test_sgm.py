@@ -277,7 +277,7 @@ def test_grid_replay_equals_separate_searches(setup5):
     from jstarid.algorithms.sgm import tuning
     from jstarid.algorithms.sgm.identify import scene_graphs
     cat, cam, db = setup5
-    base = sgm.Config(dw_max_deg=0.5, verify=False)
+    base = sgm.Config(dw_max_deg=0.5, verify=False, leftover_tol_deg=None)
     rows = np.random.default_rng(3).choice(len(cat), 6, replace=False)
     scenes = js.simulate(jax.random.key(9), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)

@@ -52,11 +52,15 @@ class Config:
             Greedy binarization always pairs min(n_I, n_J) vertices, so a star that crossed the
             circle boundary (or a false star) is otherwise paired with a leftover database vertex
             and named wrongly.
-        leftover_tol_deg: not in the paper (``None`` = off). When set, detections inside the image
-            neighbor circle left unnamed by the match (typically a star that crossed the circle
-            boundary under position noise, so it is not in G_J) are named by the attitude solved
-            from the matched stars: the nearest catalog star within this angle (deg), if not
-            already used in the scene.
+        leftover_tol_deg: not in the paper; 0.3° by default (``None`` = off, the paper's
+            behaviour). Detections inside the image neighbor circle left unnamed by the match
+            (typically a star that crossed the circle boundary under position noise, so it is not in
+            G_J) are named by the attitude solved from the matched stars: the nearest catalog star
+            within this angle (deg), if not already used in the scene; the verification step then
+            checks them like every other name. Measured with ``reproduce_sgm.py --n-stars 100
+            --sigmas 0 1.5 3 --experiments position lost`` (same scenes, verification on): accuracy
+            79.0 → 90.9 % (position, 1.5 px), 72.7 → 74.2 % (3 px), 84.7 → 88.4 % (lost, 1.5 px),
+            62.4 → 72.5 % (lost, 3 px), mis-identifications unchanged (1 of 600 scenes, in both).
         verify: not in the paper; on by default (``False`` = the paper's behaviour). After the match
             (and the optional steps above) every named star is checked against the attitude fitted
             from the named stars (:mod:`.verify`): stars whose residual exceeds
@@ -97,7 +101,7 @@ class Config:
     memory_budget_mb: int = 1024
     size_bucket: int = 8
     vertex_check_deg: float | None = None
-    leftover_tol_deg: float | None = None
+    leftover_tol_deg: float | None = 0.3
     verify: bool = True
     verify_k: float = 3.5
     verify_floor_deg: float = 0.02

@@ -7,7 +7,7 @@ through the vertex correspondence of the best match, never through the candidate
 (≈7 % of main stars have a twin graph holding the same stars, SPEC §7 pitfall 2). Detections outside
 the neighbor circle, and vertices left unmatched (e.g. a false star when n_I > n_J), get −1.
 
-Two optional steps that are not in the paper (both off by default, see :class:`Config`):
+Two optional steps that are not in the paper (see :class:`Config`; the second is on by default):
 ``vertex_check_deg`` unnames matched vertices whose edges disagree with the database graph, and
 ``leftover_tol_deg`` names the detections of G_I the match left unnamed (stars that crossed the
 circle boundary under position noise) by the attitude of the matched stars.
