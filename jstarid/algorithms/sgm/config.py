@@ -60,7 +60,7 @@ class Config:
             checks them like every other name. Measured with ``reproduce_sgm.py --n-stars 100
             --sigmas 0 1.5 3 --experiments position lost`` (same scenes, verification on): accuracy
             79.0 → 90.9 % (position, 1.5 px), 72.7 → 74.2 % (3 px), 84.7 → 88.4 % (lost, 1.5 px),
-            62.4 → 72.5 % (lost, 3 px), mis-identifications unchanged (1 of 600 scenes, in both).
+            62.4 → 72.5 % (lost, 3 px); one mis-identified scene of 600 in each run.
         verify: not in the paper; on by default (``False`` = the paper's behaviour). After the match
             (and the optional steps above) every named star is checked against the attitude fitted
             from the named stars (:mod:`.verify`): stars whose residual exceeds
