@@ -33,14 +33,15 @@ from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.geometry import range_search
 
-__all__ = ["candidate_windows", "order_candidates", "prune_mask", "dynamic_search"]
+__all__ = ["candidate_windows", "order_candidates", "prune_mask", "dynamic_search", "run_pairs", "bucket_up",
+           "next_pow2"]
 
 
 def _bucket(x: int, m: int) -> int:
     return max(m, int(math.ceil(x / m) * m))
 
 
-def _pow2(x: int) -> int:
+def next_pow2(x: int) -> int:
     return 1 << max(0, int(math.ceil(math.log2(max(x, 1)))))
 
 
@@ -104,10 +105,10 @@ def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
     cap = max(16, 1 << int(math.floor(math.log2(max(budget_bytes // max(per_pair_bytes, 1), 16)))))
     for lo in range(0, n_pairs, cap):
         hi = min(lo + cap, n_pairs)
-        yield lo, hi, max(16, _pow2(hi - lo))
+        yield lo, hi, max(16, next_pow2(hi - lo))
 
 
-def _run_pairs(kernel, key_sizes, adj_i, n_i, scene, cand, per_pair_bytes, budget, size_names, out_tails,
+def run_pairs(kernel, key_sizes, adj_i, n_i, scene, cand, per_pair_bytes, budget, size_names, out_tails,
                **kw):
     """Run a pair kernel over flat (scene, candidate) pairs grouped by padded graph size.
 
@@ -168,11 +169,11 @@ def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float
     lb = np.zeros(rows.size, np.float32)
     if bounded.size:
         # grouped by padded size and by skip count (0, 1, 2, 4, 8, …: the programme's width)
-        r = np.maximum(_bucket_arr(n_i[scene[bounded]], config.size_bucket),
-                       _bucket_arr(n_j[bounded], config.size_bucket))
+        r = np.maximum(bucket_up(n_i[scene[bounded]], config.size_bucket),
+                       bucket_up(n_j[bounded], config.size_bucket))
         sk = np.where(s_diff[bounded] == 0, 0,
                       1 << np.ceil(np.log2(np.maximum(s_diff[bounded], 1))).astype(np.int64))
-        (lb[bounded],) = _run_pairs(
+        (lb[bounded],) = run_pairs(
             _bound_pairs, np.stack([r, sk], axis=1), adj_i, n_i, scene[bounded], rows[bounded],
             lambda r_, s_: r_ * r_ * (r_ - 1 + 3 * (s_ + 1)) * 4, config.memory_budget_mb * 2**20,
             ("r", "max_skip"), [()], db_adj=db.device_adj, db_n=jnp.asarray(db.n))
@@ -208,7 +209,7 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
     start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
     block = int(config.chunk_size)
-    width = _pow2(max(int(count.max(initial=0)), block))
+    width = next_pow2(max(int(count.max(initial=0)), block))
     cand_all, level_all = order_candidates(
         jnp.asarray(db.w), start, stop, w_i, width=width, dw0=float(config.dw0_deg),
         step=float(config.dw_step_deg), n_levels=n_levels)
@@ -242,9 +243,9 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
         err = np.full(cand.shape, np.inf, np.float32)
         pair_of = np.full(cand.shape, -1, np.int64)
         if rows.size:
-            pq = np.stack([_bucket_arr(n_i[scene], config.size_bucket),
-                           _bucket_arr(n_j, config.size_bucket)], axis=1)
-            match_flat, err_flat = _run_pairs(
+            pq = np.stack([bucket_up(n_i[scene], config.size_bucket),
+                           bucket_up(n_j, config.size_bucket)], axis=1)
+            match_flat, err_flat = run_pairs(
                 _match_pairs, pq, adj_i, n_i, scene, rows, lambda p, q: (p * q) ** 2 * 4 * 3, budget,
                 ("p", "q"), [(k,), ()], db_adj=db_adj, db_n=db_n, c=float(config.c),
                 n_iter=int(config.power_iterations), tol=float(config.power_tol),
@@ -275,6 +276,6 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
             "level": np.where(ok, lstar, -1).astype(np.int32)}
 
 
-def _bucket_arr(x: np.ndarray, m: int) -> np.ndarray:
+def bucket_up(x: np.ndarray, m: int) -> np.ndarray:
     """Round each entry up to a multiple of ``m`` (at least ``m``)."""
     return np.maximum(m, -(-np.asarray(x) // m) * m).astype(np.int64)

@@ -24,12 +24,12 @@ import numpy as np
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.algorithms.sgm.search import (
-    _bucket_arr,
-    _pow2,
-    _run_pairs,
+    bucket_up,
     candidate_windows,
+    next_pow2,
     order_candidates,
     prune_mask,
+    run_pairs,
 )
 
 __all__ = ["candidate_errors", "replay_algorithm1", "grid_identifications"]
@@ -75,7 +75,7 @@ def candidate_errors(db, graphs: dict, usable: np.ndarray, config: Config, cs, m
     w_i = jnp.asarray(graphs["w"], jnp.float32)
     start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
-    width = _pow2(max(int(count.max(initial=0)), 1))
+    width = next_pow2(max(int(count.max(initial=0)), 1))
     cand_all, level_all = order_candidates(
         jnp.asarray(db.w), start, stop, w_i, width=width, dw0=float(config.dw0_deg),
         step=float(config.dw_step_deg), n_levels=config.n_levels)
@@ -96,9 +96,9 @@ def candidate_errors(db, graphs: dict, usable: np.ndarray, config: Config, cs, m
             s_idx, r_idx, rows, n_j = s_idx[keep], r_idx[keep], rows[keep], n_j[keep]
         if not rows.size:
             continue
-        pq = np.stack([_bucket_arr(n_i[s_idx], config.size_bucket),
-                       _bucket_arr(n_j, config.size_bucket)], axis=1)
-        m, e = _run_pairs(_match_pairs_grid, pq, adj_i, n_i, s_idx, rows,
+        pq = np.stack([bucket_up(n_i[s_idx], config.size_bucket),
+                       bucket_up(n_j, config.size_bucket)], axis=1)
+        m, e = run_pairs(_match_pairs_grid, pq, adj_i, n_i, s_idx, rows,
                           lambda p, q: (p * q) ** 2 * 4 * 3 * cs.size, budget, ("p", "q"),
                           [(cs.size, k), (cs.size,)], db_adj=db_adj, db_n=db_n, cs=jnp.asarray(cs),
                           n_iter=int(config.power_iterations), tol=float(config.power_tol),
