@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -53,7 +54,7 @@ from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, cell_of
 
 __all__ = ["PAIRS", "anchor_names", "identify", "name_stars", "network_candidates", "pair_checks",
-           "weight_search"]
+           "top3_blocked", "weight_search"]
 
 WIDTH_STEP = 32  # detection columns per scene are cut to a multiple of this in each chunk (identify)
 
@@ -205,11 +206,44 @@ def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int)
         return near, inputs
 
     near, inputs = jax.vmap(one)(xy, valid)
-    logits = predict_logits(variables, inputs, config=config, n_classes=n_classes)  # (B, 3, K)
-    top, cls = jax.lax.top_k(logits, 3)  # eq. 8: softmax is monotonic
-    mx = jnp.max(logits, -1, keepdims=True)
-    p = jnp.exp(top - mx) / jnp.sum(jnp.exp(logits - mx), -1, keepdims=True)  # eq. 4 (jax.nn.softmax)
-    return near, p, cls
+    logits = predict_logits(variables, inputs, config=config, n_classes=n_classes,
+                            bf16=config.network_bf16)  # (B, 3, K)
+    top, cls = top3_blocked(logits)  # eq. 8: softmax is monotonic
+    p = jnp.exp(top - top[..., :1]) / jnp.sum(jnp.exp(logits - top[..., :1]), -1, keepdims=True)  # eq. 4
+    return near, p, cls.astype(jnp.int32)
+
+
+def top3_blocked(x):
+    """``jax.lax.top_k(x, 3)`` along the last axis through block maxima (≈ 3× faster on CPU for K ≈ 5,000).
+
+    The last axis is cut into blocks of ⌊√K⌋ entries plus a shorter tail; the three largest entries lie
+    in the tail or in the three blocks with the largest maxima (an entry's block maximum is ≥ the
+    entry, and at most two entries are larger), so a top-3 over the block maxima, then over those three
+    blocks and the tail, is exact. Values are identical to ``lax.top_k``; with exactly tied values the
+    index chosen may differ. (No padding: a padded copy of the logits costs more than ``top_k``.)
+
+    Args:
+        x: (..., K) float scores (no NaN).
+
+    Returns:
+        ``(values, indices)``: (..., 3) in decreasing order, and their int32 positions in ``x``.
+    """
+    k = x.shape[-1]
+    if k < 3:
+        raise ValueError(f"top-3 needs at least 3 classes, got {k}")
+    size = max(3, math.isqrt(k))
+    n_blocks = k // size
+    if n_blocks < 4:  # too short to gain anything
+        values, index = jax.lax.top_k(x, 3)
+        return values, index.astype(jnp.int32)
+    lead = x.shape[:-1]
+    blocks = x[..., :n_blocks * size].reshape(*lead, n_blocks, size)
+    _, which = jax.lax.top_k(jnp.max(blocks, -1), 3)  # (..., 3) blocks holding the top 3 (tail aside)
+    picked = jnp.take_along_axis(blocks, which[..., None], axis=-2).reshape(*lead, 3 * size)
+    values, pos = jax.lax.top_k(jnp.concatenate([picked, x[..., n_blocks * size:]], -1), 3)
+    in_block = jnp.take_along_axis(which, jnp.minimum(pos // size, 2), axis=-1) * size + pos % size
+    index = jnp.where(pos < 3 * size, in_block, n_blocks * size + pos - 3 * size)
+    return values, index.astype(jnp.int32)
 
 
 def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camera, config: Config, grid):
@@ -271,6 +305,7 @@ def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camer
     return ids.astype(jnp.int32), ok, att.astype(jnp.float32)
 
 
+@functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes"))
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes"))
 def network_candidates(xy, valid, variables, *, camera, config: Config, n_classes: int):
     """The network part of identification alone (benchmarks, the weight-grid search).

@@ -30,16 +30,24 @@ from tqdm.auto import tqdm
 
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.data import FAMILIES, build_tables, make_batch
-from jstarid.algorithms.rpnet.model import Classifier, Decoder, Generator, ce_loss, l2_penalty, mse_loss
+from jstarid.algorithms.rpnet.model import (
+    Classifier,
+    Decoder,
+    Generator,
+    bf16_dot_general,
+    ce_loss,
+    l2_penalty,
+    mse_loss,
+)
 
 __all__ = ["checkpoint_meta", "init_variables", "load_checkpoint", "predict_logits", "save_checkpoint",
            "train"]
 
 
-def _modules(config: Config, n_classes: int):
-    gen = Generator(widths=tuple(config.gen_widths))
+def _modules(config: Config, n_classes: int, dot_general=None):
+    gen = Generator(widths=tuple(config.gen_widths), dot_general=dot_general)
     dec = Decoder(hidden=config.gen_widths[0], n_out=config.input_size)
-    clf = Classifier(n_classes=n_classes, hidden=config.clf_width)
+    clf = Classifier(n_classes=n_classes, hidden=config.clf_width, dot_general=dot_general)
     return gen, dec, clf
 
 
@@ -54,10 +62,14 @@ def init_variables(key, config: Config, n_classes: int) -> dict:
             "classifier": {"params": c["params"], "batch_stats": c["batch_stats"]}}
 
 
-@functools.partial(jax.jit, static_argnames=("config", "n_classes"))
-def predict_logits(variables, inputs, *, config: Config, n_classes: int):
-    """(..., 2⌊ρ/e⌋) initial inputs → (..., K) logits (generator, then classifier in inference mode)."""
-    gen, _, clf = _modules(config, n_classes)
+@functools.partial(jax.jit, static_argnames=("config", "n_classes", "bf16"))
+def predict_logits(variables, inputs, *, config: Config, n_classes: int, bf16: bool = False):
+    """(..., 2⌊ρ/e⌋) initial inputs → (..., K) float32 logits (generator, then classifier, inference mode).
+
+    ``bf16``: matmuls on bfloat16 operands with float32 accumulation (:func:`bf16_dot_general`;
+    ``Config.network_bf16`` at identification); training and its held-out metrics use float32.
+    """
+    gen, _, clf = _modules(config, n_classes, bf16_dot_general if bf16 else None)
     z = gen.apply({"params": variables["generator"]}, inputs)
     return clf.apply(variables["classifier"], z, train=False)
 
