@@ -450,6 +450,51 @@ def test_identify_invariant_to_detection_order_and_chunks(tiny, clean_scenes):
     np.testing.assert_array_equal(np.asarray(got.ok), np.asarray(ref.ok))
 
 
+def test_coverage_check_fails_scenes_that_name_few_of_the_expected_stars(tiny, clean_scenes):
+    """Named stars must cover ``min_coverage`` of the stars the attitude puts in the frame.
+
+    The detections outside the network inputs of S1–S3 (their m nearest neighbours) are pushed 40 px
+    radially outward: the inputs, the pair and the inner stars are unchanged, but the moved stars can no
+    longer be named. Clean scenes name all the expected stars, so a threshold of 0.9 changes nothing
+    there; the pushed scenes name too few of them and fail, while without the check they are confirmed.
+    """
+    _, cam, cfg, db, _ = tiny
+    s = clean_scenes[:96]
+    strict = dataclasses.replace(cfg, min_coverage=0.9)
+    full = rpnet.identify(db, s, strict)
+    base = rpnet.identify(db, s, dataclasses.replace(cfg, min_coverage=0.0))
+    # the expected-star count matches the named stars: the check changes nothing on clean scenes
+    np.testing.assert_array_equal(np.asarray(full.ok), np.asarray(base.ok))
+    np.testing.assert_array_equal(np.asarray(full.ids), np.asarray(base.ids))
+
+    xy, valid = np.asarray(s.xy).copy(), np.asarray(s.valid)
+    near, _, _ = network_candidates(s.xy, s.valid, db.variables, camera=cam, config=cfg,
+                                    n_classes=db.n_classes)
+    body = np.asarray(cam.unproject(s.xy))
+    keep = np.zeros_like(valid)
+    for b in range(len(valid)):
+        for g in np.asarray(near)[b]:
+            ang = np.where(valid[b], np.arccos(np.clip(body[b] @ body[b, g], -1, 1)), np.inf)
+            keep[b, g] = True
+            keep[b, np.argsort(ang)[:cfg.m + 1]] = True
+    move = valid & ~keep
+    out = xy - [cam.cx, cam.cy]
+    xy = np.where(move[..., None], xy + 40.0 * out / np.linalg.norm(out, axis=-1, keepdims=True), xy)
+    pushed = dataclasses.replace(s, xy=jnp.asarray(xy, jnp.float32))
+    chosen = np.asarray(full.ok) & (move.sum(1) >= 0.3 * valid.sum(1))
+    assert chosen.sum() >= 5
+
+    off = rpnet.identify(db, pushed, dataclasses.replace(cfg, min_coverage=0.0))
+    on = rpnet.identify(db, pushed, strict)
+    ids_off, truth = np.asarray(off.ids), np.asarray(s.truth)
+    assert np.mean(np.asarray(off.ok)[chosen]) >= 0.8
+    assert np.sum((ids_off != truth) & (ids_off >= 0)) <= 2  # measured 1: what the check is for
+    assert not np.any(np.asarray(on.ok)[chosen])
+    assert np.all(np.asarray(on.ids)[chosen] == -1)
+    ids_on = np.asarray(on.ids)
+    assert np.all((ids_on == truth) | (ids_on == -1))
+
+
 def test_pair_tables_tiny(tiny, clean_scenes):
     _, _, cfg, db, _ = tiny
     s = clean_scenes[:64]

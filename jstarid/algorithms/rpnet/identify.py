@@ -18,7 +18,9 @@ Per scene (written once, batched with ``vmap``):
    star (Wahba) and the naming repeated (``n_refine`` passes), then once more with a tolerance of
    ``match_sigmas`` × the centroid noise estimated from the residuals (clipped to
    [``match_tol_min_px``, ``match_tol_px``]) and a last refit;
-5. the scene is identified (``ok``) when at least ``min_verified`` detections are named; otherwise
+5. the scene is identified (``ok``) when at least ``min_verified`` detections are named and they are
+   at least ``min_coverage`` of the catalog stars that the final attitude puts inside the frame (a
+   wrong or badly rolled attitude names a few stars by coincidence, a right one nearly all); otherwise
    (extension, ``n_pair_trials`` > 1) the next-best admissible pairs are tried in score order, and
    when none is confirmed the scene fails with every id −1 (a mis-identification is worse than a
    failure). ``n_pair_trials = 1`` is the paper's single confident pair.
@@ -291,12 +293,21 @@ def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camer
         tol2 = jnp.clip(config.match_sigmas * sigma, config.match_tol_min_px, config.match_tol_px)
         rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / camera.f_px)
         c2 = solve_wahba(body, loc_vec[rows1], named1.astype(jnp.float32))
-        return loc[rows1], named1, jnp.where(jnp.sum(named1) >= 2, c2, c1)
+        c2 = jnp.where(jnp.sum(named1) >= 2, c2, c1)
+        # coverage: catalog stars the final attitude puts inside the frame (inset by the tolerance)
+        xy_pred, in_field = camera.project(loc_vec @ c2.T)
+        inset = config.match_tol_px
+        inside = ((loc < star_vectors.shape[0]) & in_field
+                  & (xy_pred[:, 0] >= inset) & (xy_pred[:, 0] <= camera.width - 1 - inset)
+                  & (xy_pred[:, 1] >= inset) & (xy_pred[:, 1] <= camera.height - 1 - inset))
+        return loc[rows1], named1, c2, jnp.sum(inside)
 
     # the best admissible pair (eq. 11) first; the next ones only when it is not confirmed
     top_score, order = jax.lax.top_k(score, config.n_pair_trials)
-    rows_t, named_t, att_t = jax.vmap(verify)(order)
-    confirmed = jnp.isfinite(top_score) & (jnp.sum(named_t, axis=1) >= config.min_verified)
+    rows_t, named_t, att_t, expected_t = jax.vmap(verify)(order)
+    n_named = jnp.sum(named_t, axis=1)
+    confirmed = (jnp.isfinite(top_score) & (n_named >= config.min_verified)
+                 & (n_named >= config.min_coverage * expected_t))
     pick = jnp.argmax(confirmed)  # the first confirmed pair in score order
     ok = confirmed[pick]
     rows1, named1, c1 = rows_t[pick], named_t[pick], att_t[pick]
@@ -305,7 +316,6 @@ def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camer
     return ids.astype(jnp.int32), ok, att.astype(jnp.float32)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes"))
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes"))
 def network_candidates(xy, valid, variables, *, camera, config: Config, n_classes: int):
     """The network part of identification alone (benchmarks, the weight-grid search).
