@@ -479,7 +479,8 @@ def test_coverage_check_fails_scenes_that_name_few_of_the_expected_stars(tiny, c
             keep[b, np.argsort(ang)[:cfg.m + 1]] = True
     move = valid & ~keep
     out = xy - [cam.cx, cam.cy]
-    xy = np.where(move[..., None], xy + 40.0 * out / np.linalg.norm(out, axis=-1, keepdims=True), xy)
+    out /= np.maximum(np.linalg.norm(out, axis=-1, keepdims=True), 1e-6)  # a star can sit at the centre
+    xy = np.where(move[..., None], xy + 40.0 * out, xy)
     pushed = dataclasses.replace(s, xy=jnp.asarray(xy, jnp.float32))
     chosen = np.asarray(full.ok) & (move.sum(1) >= 0.3 * valid.sum(1))
     assert chosen.sum() >= 5
