@@ -29,8 +29,10 @@ class Config:
             largest number when ``power_tol`` > 0). In a one-off measurement, 30 gave the same
             correspondence as 400 steps on all 12,732 (image, candidate) pairs of 40 σ = 2 px
             scenes within ±1° of w_I (so did 20; 60 was the previous default).
-        power_tol: stop the power iteration once no entry of the vector changes by more than this
-            in a step (0: always ``power_iterations`` steps).
+        power_tol: stop the power iteration of a pair once no entry of its unit vector changes by
+            more than this in a step (0: always ``power_iterations`` steps). Pairs are matched one
+            after the other, so each stops on its own: 1e-4 made identification ≈ 1.9× faster and
+            gave the same ids, J* and δ as 0 on 448 scenes at σ = 0.5–3 px (one-off measurement).
         prune: not in the paper, and it does not change the outcome: skip the spectral matching
             of candidates whose matching error provably exceeds ε_δ (:mod:`.bound`; such a candidate
             can never be returned by Algorithm 1). ``False`` matches every candidate (diagnostics such
@@ -93,7 +95,7 @@ class Config:
     neighbor_capacity: int | None = None
     chunk_size: int = 16
     power_iterations: int = 30
-    power_tol: float = 0.0
+    power_tol: float = 1e-4
     prune: bool = True
     prune_max_skip: int = 8
     min_stars: int = 3

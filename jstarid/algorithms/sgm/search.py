@@ -81,12 +81,18 @@ def order_candidates(w_db, start, stop, w_i, *, width: int, dw0: float, step: fl
 
 @functools.partial(jax.jit, static_argnames=("p", "q", "c", "n_iter", "tol", "min_matched"))
 def _match_pairs(a_i, n_i, cand, db_adj, db_n, *, p, q, c, n_iter, tol, min_matched):
-    """Spectral matching of N (image graph, database graph) pairs → (N, p) match, (N,) δ (deg)."""
+    """Spectral matching of N (image graph, database graph) pairs → (N, p) match, (N,) δ (deg).
+
+    The pairs run one after the other (``lax.map``), not side by side (``vmap``): each power step
+    reads the pair's whole (p·q)² affinity matrix, which stays in cache for all its steps when only
+    one pair is live, while a vmapped batch streams every matrix from memory at every step (measured
+    ≈ 2× faster for p = q = 16–48). It also lets ``Config.power_tol`` stop each pair on its own.
+    """
     a_j = db_adj[cand][:, :q, :q]
     mask_i = jnp.arange(p)[None, :] < n_i[:, None]
     mask_j = jnp.arange(q)[None, :] < db_n[cand][:, None]
     match_one = functools.partial(spectral_match, c=c, n_iter=n_iter, min_matched=min_matched, tol=tol)
-    return jax.vmap(match_one)(a_i, mask_i, a_j, mask_j)
+    return jax.lax.map(lambda args: match_one(*args), (a_i, mask_i, a_j, mask_j))
 
 
 @functools.partial(jax.jit, static_argnames=("r", "max_skip"))

@@ -46,7 +46,8 @@ def _match_pairs_grid(a_i, n_i, cand, db_adj, db_n, cs, *, p, q, n_iter, tol, mi
         return spectral_match(a, ma, b, mb, c=c, n_iter=n_iter, min_matched=min_matched, tol=tol)
 
     over_c = jax.vmap(one, in_axes=(None, None, None, None, 0))
-    return jax.vmap(over_c, in_axes=(0, 0, 0, 0, None))(a_i, mask_i, a_j, mask_j, cs)
+    # pairs one after the other, the c values of a pair side by side (see search._match_pairs)
+    return jax.lax.map(lambda args: over_c(*args, cs), (a_i, mask_i, a_j, mask_j))
 
 
 def candidate_errors(db, graphs: dict, usable: np.ndarray, config: Config, cs, max_error_deg: float,
