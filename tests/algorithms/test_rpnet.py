@@ -557,3 +557,19 @@ def test_top3_blocked_matches_lax_top_k(k):
     np.testing.assert_array_equal(np.asarray(v), np.asarray(v_ref))
     np.testing.assert_array_equal(np.asarray(i), np.asarray(i_ref))
     assert i.dtype == jnp.int32
+
+
+def test_more_pair_trials_only_add_scenes(tiny):
+    """The next-best pairs run only where the best pair was not confirmed: scenes it confirms keep
+    their ids, and more scenes are identified, none wrongly (σ 1 px, 2 missing stars)."""
+    cat, cam, cfg, db, _ = tiny
+    noise = js.NoiseConfig(position_sigma_px=1.0, n_missing=2)
+    s = js.simulate(jax.random.key(21), cat, cam, noise, capacity=48, boresight_ids=np.asarray(db.guide_rows))
+    one = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=1))
+    three = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=3))
+    ok1, ok3 = np.asarray(one.ok), np.asarray(three.ok)
+    assert np.all(ok3[ok1])
+    np.testing.assert_array_equal(np.asarray(three.ids)[ok1], np.asarray(one.ids)[ok1])
+    assert ok3.sum() > ok1.sum()
+    ids, truth = np.asarray(three.ids), np.asarray(s.truth)
+    assert np.all((ids == truth) | (ids == -1))
