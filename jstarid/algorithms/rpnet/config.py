@@ -171,6 +171,14 @@ class Config:
             scenes the best one did not confirm (a second pass), so the cost grows with the failure
             rate, not with n. With the ``paper`` network on 10,000 scenes at σ = 1 px, 3 instead of
             1 turned 0.2 % failures into 0.01 % (99.79 → 99.98 % identified; 1.6 px: +0.75 points).
+        n_guide_triples: extension: when no pair of S1–S3 is confirmed, the next three
+            detections by distance from the centre (ranks 4–6, then 7–9, …) go through steps 2–5
+            in turn, up to this many triples (1 = the paper's S1–S3 only). Run only on the scenes
+            still unconfirmed, so the cost grows with the failure rate. With the ``paper`` network
+            on 2,000 scenes per level (``reproduce_rpnet.py --sweeps fig9,fig10``), 1 / 3 / 6 / 12 / 20
+            triples identified 72.0 / 91.3 / 96.85 / 97.6 / 97.7 % at σ_m = 0.969 mag and 36.0 /
+            50.3 / 66.1 / 81.8 / 88.0 % at 50 % false stars, with the same mis-identified scenes
+            (1 and 2) throughout; 12 covers the ≈ 30–38 detections of a typical ``rpnet2019`` scene.
         network_bf16: run the network's matmuls on bfloat16 operands with float32 accumulation
             (parameters stay float32): ≈ 2× the matmul rate on CPUs with AVX512-BF16 and on GPUs.
             Measured against float32 in the README (RpNet section); ``False`` = float32 throughout.
@@ -201,6 +209,7 @@ class Config:
     min_verified: int = 5
     min_coverage: float = 0.4
     n_pair_trials: int = 3
+    n_guide_triples: int = 12
     network_bf16: bool = True
     batch_chunk: int = 512
     name_chunk: int = 64
@@ -214,6 +223,8 @@ class Config:
             raise ValueError(f"min_coverage must be in [0, 1], got {self.min_coverage}")
         if not 1 <= self.n_pair_trials <= 27:
             raise ValueError(f"n_pair_trials must be in [1, 27], got {self.n_pair_trials}")
+        if self.n_guide_triples < 1:
+            raise ValueError(f"n_guide_triples must be ≥ 1, got {self.n_guide_triples}")
         if self.n_candidates != 3 or len(self.position_weights) != 3 or len(self.probability_weights) != 3:
             raise ValueError("the weight search uses three detections and three candidates (Table 5)")
 

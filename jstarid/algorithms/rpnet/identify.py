@@ -21,10 +21,12 @@ Per scene (written once, batched with ``vmap``):
 5. the scene is identified (``ok``) when at least ``min_verified`` detections are named and they are
    at least ``min_coverage`` of the catalog stars that the final attitude puts inside the frame (a
    wrong or badly rolled attitude names a few stars by coincidence, a right one nearly all); otherwise
-   (extension, ``n_pair_trials`` > 1) the next-best admissible pairs are tried in score order, and
-   when none is confirmed the scene fails with every id −1 (a mis-identification is worse than a
-   failure). ``n_pair_trials = 1`` is the paper's single confident pair; the next pairs are only
-   tried, in a second pass, on the scenes whose best pair was not confirmed.
+   (extension, ``n_pair_trials`` > 1) the next-best admissible pairs are tried in score order, then
+   (extension, ``n_guide_triples`` > 1) steps 2–5 run again on the next three detections by distance
+   from the centre (ranks 4–6, 7–9, …), and when none is confirmed the scene fails with every id −1
+   (a mis-identification is worse than a failure). ``n_pair_trials = n_guide_triples = 1`` is the
+   paper's single confident pair of S1–S3; the later pairs and triples are only tried, in later
+   passes, on the scenes still unconfirmed.
 
 The paper does not say how the "GNSs are identified easily" once the pair is known; step 4 is that
 step made explicit, and its count threshold is the verification.
@@ -188,11 +190,14 @@ def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_r
     return best.astype(jnp.int32), named & (jnp.sum(same, axis=1) == 1)
 
 
-def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int):
+def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int, triple=0):
     """Steps 1–2 for a batch: S1–S3 (eq. 7), their inputs (eq. 3), network, top-3 (eqs. 4, 8).
 
     One matmul chain over all ``3 B`` inputs (large matrices run near the CPU's matmul peak); the
     softmax's top 3 are taken on the logits (same order) and normalised by the softmax's sum.
+    ``triple = t`` (an int32 scalar, traced: one compilation serves every t) takes the detections of
+    distance rank 3t … 3t + 2 instead (t = 0: the paper's S1–S3; later triples are the fallback of
+    ``Config.n_guide_triples``).
 
     Returns:
         ``(near, probs, classes)``: (B, 3) int32, (B, 3, 3) float32, (B, 3, 3) int32.
@@ -204,7 +209,9 @@ def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int)
     def one(xy_s, valid_s):
         body = camera.unproject(xy_s)  # (N, 3) camera frame
         d2 = jnp.where(valid_s, jnp.sum((xy_s - centre) ** 2, -1), jnp.inf)
-        _, near = jax.lax.top_k(-d2, 3)  # S1, S2, S3 (eq. 7)
+        # S1, S2, S3 (eq. 7) for triple 0; invalid detections sort last (an invalid S_i makes its
+        # pairs inadmissible)
+        near = jax.lax.dynamic_slice(jnp.argsort(d2), (3 * triple,), (3,))
         inputs = jax.vmap(lambda g: initial_input(body[g], body, valid_s & (jnp.arange(n) != g), **kw))(near)
         return near, inputs
 
@@ -332,24 +339,28 @@ def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camer
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes"))
-def network_candidates(xy, valid, variables, *, camera, config: Config, n_classes: int):
+def network_candidates(xy, valid, variables, triple=0, *, camera, config: Config, n_classes: int):
     """The network part of identification alone (benchmarks, the weight-grid search).
 
     Args:
         xy: (B, N, 2) centroids (px); valid: (B, N) bool.
-        variables: network variables; camera, config, n_classes: static.
+        variables: network variables.
+        triple: int32 scalar t: the detections of distance rank 3t … 3t + 2 (0: S1–S3).
+        camera, config, n_classes: static.
 
     Returns:
         ``(near, probs, classes)``: (B, 3) int32 detection index of S1, S2, S3 (eq. 7), (B, 3, 3)
         float32 top-3 softmax probabilities p_ij (eq. 8) and (B, 3, 3) int32 their classes.
     """
-    return _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes)
+    return _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
+                       triple=triple)
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid", "trials"))
-def _identify_chunk(xy, valid, variables, guide_rows, star_vectors, cells, *, camera, config, n_classes,
-                    grid, trials):
-    near, p, cls = _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes)
+def _identify_chunk(xy, valid, variables, guide_rows, star_vectors, cells, triple, *, camera, config,
+                    n_classes, grid, trials):
+    near, p, cls = _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
+                               triple=triple)
     fn = functools.partial(_name_one, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
                            camera=camera, config=config, grid=grid, trials=trials)
     # naming in small vmapped groups: its (N × local stars) intermediates stay in cache
@@ -368,6 +379,11 @@ def _local_index(database, config: Config):
     margin = (config.anchor_radius_px + config.match_tol_px) / cam.f_px + np.radians(1.0)
     return build_sky_index(np.asarray(database.star_vectors, np.float64), cam.half_diagonal_rad,
                            margin_rad=float(margin), key=f"rpnet-{database.catalog_fingerprint}")
+
+
+def _pass_chunk(n_scenes: int, config: Config) -> int:
+    """Chunk size of a later pass over ``n_scenes`` unconfirmed scenes: a power of two ≥ 16."""
+    return min(config.batch_chunk, max(16, 1 << int(np.ceil(np.log2(n_scenes)))))
 
 
 def identify(database, scenes: Scene, config: Config | None = None) -> Identification:
@@ -402,7 +418,7 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
     ok_out = np.zeros((b,), bool)
     att_out = np.full((b, 3, 3), np.nan, np.float32)
 
-    def run(subset, trials, chunk):
+    def run(subset, trials, chunk, triple=0):
         order = subset[np.argsort(last[subset], kind="stable")]
         for start in range(0, order.size, chunk):
             sel = order[start:start + chunk]
@@ -413,7 +429,7 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
                 xy = np.pad(xy, ((0, pad), (0, 0), (0, 0)))
                 valid = np.pad(valid, ((0, pad), (0, 0)))
             ids, ok, att = _identify_chunk(jnp.asarray(xy), jnp.asarray(valid), database.variables,
-                                           guide_rows, database.star_vectors, cells,
+                                           guide_rows, database.star_vectors, cells, jnp.int32(triple),
                                            camera=database.camera, config=config,
                                            n_classes=database.n_classes, grid=index.grid, trials=trials)
             keep = len(sel)
@@ -422,10 +438,17 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
             att_out[sel] = np.asarray(att)[:keep]
 
     run(np.arange(b), (0, 1), max(1, min(config.batch_chunk, b)))
-    failed = np.nonzero(~ok_out)[0]
-    if config.n_pair_trials > 1 and failed.size:
-        # the next-best pairs, only where the best one was not confirmed: the same outcome as trying
-        # them all at once (the first confirmed pair in score order wins) at a fraction of the cost
-        chunk = min(config.batch_chunk, max(16, 1 << int(np.ceil(np.log2(failed.size)))))
-        run(failed, (1, config.n_pair_trials - 1), chunk)
+    n_valid = valid_all.sum(1)
+    for triple in range(config.n_guide_triples):
+        # Later passes, only on the scenes still unconfirmed: the same outcome as trying everything
+        # at once in order (the first confirmed pair wins) at a fraction of the cost. Triple 0: the
+        # next-best pairs of S1–S3 (its best pair is tried again, and fails again, so that every
+        # later pass shares one compilation); triple t ≥ 1 (fallback): detections 3t … 3t + 2 by
+        # distance from the centre, where the nearer ones confirmed nothing (typically one of them
+        # is a false star or a star outside the guide catalog).
+        if triple == 0 and config.n_pair_trials == 1:
+            continue
+        failed = np.nonzero(~ok_out & (n_valid >= 3 * triple + 2))[0]
+        if failed.size:
+            run(failed, (0, config.n_pair_trials), _pass_chunk(failed.size, config), triple)
     return Identification(ids=jnp.asarray(ids_out), ok=jnp.asarray(ok_out), attitude=jnp.asarray(att_out))
