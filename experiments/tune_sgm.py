@@ -198,4 +198,5 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
+    js.enable_compilation_cache()  # later runs skip XLA compilation (a command-line run only)
     main()

@@ -14,6 +14,7 @@ from jstarid.attitude import (
 )
 from jstarid.camera import Camera, camera_preset, preset_names
 from jstarid.catalog import Catalog, load_catalog, v_from_hp
+from jstarid.compilation_cache import enable_compilation_cache
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.scene import Identification, Scene, scenes_from_centroids
 from jstarid.simulator import NoiseConfig, noise_grid, simulate
@@ -22,8 +23,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Camera", "Catalog", "Identification", "NoiseConfig", "Scene", "algorithms", "plotting", "sweep",
-    "attitude_errors_arcsec", "camera_preset", "estimate_attitude", "evaluate", "load_catalog",
-    "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation",
+    "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache", "estimate_attitude",
+    "evaluate", "load_catalog", "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation",
     "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",
     "rotation_to_radec_roll", "scene_outcomes", "scenes_from_centroids", "simulate", "solve_wahba",
     "v_from_hp",

@@ -167,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if argv is None:  # a command-line run (tests pass argv): keep compiled code for the next run
+        from jstarid.compilation_cache import enable_compilation_cache
+        enable_compilation_cache()
     try:
         return args.func(args)
     except ValueError as err:  # bad settings: a clear message, not a traceback
