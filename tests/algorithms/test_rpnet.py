@@ -246,6 +246,67 @@ def test_checkpoint_round_trip_and_wrong_catalog(tiny, tmp_path):
         rpnet.load_database(path, cat, cam, dataclasses.replace(cfg, m=9))
 
 
+class _Interrupting:
+    """Stand-in for tqdm that raises KeyboardInterrupt after ``limit`` iterations in total."""
+
+    def __init__(self, limit):
+        self.left = limit
+
+    def __call__(self, iterable, **_):
+        outer = self
+
+        class Bar:
+            def __iter__(self):
+                for item in iterable:
+                    if outer.left == 0:
+                        raise KeyboardInterrupt
+                    outer.left -= 1
+                    yield item
+
+            def set_postfix(self, **_):
+                pass
+
+        return Bar()
+
+
+def _small_schedule(cfg):
+    return dataclasses.replace(cfg, training=dataclasses.replace(cfg.training, dae_steps=60, clf_steps=60,
+                                                                 eval_every=20))
+
+
+@pytest.mark.parametrize("stop_at", [45, 95])  # stage 1 step 45 / stage 2 step 35 (of 60 each)
+def test_training_resumes_from_snapshot(tiny, tmp_path, monkeypatch, stop_at):
+    """An interrupted training resumed from its snapshot ends exactly as an uninterrupted one."""
+    cat, cam, cfg, db, _ = tiny
+    small = _small_schedule(cfg)
+    ref, ref_history = train.train(cat, cam, small, db.guide_rows, progress=False)
+    snap = tmp_path / "run.partial.msgpack"
+    monkeypatch.setattr(train, "tqdm", _Interrupting(stop_at))
+    with pytest.raises(KeyboardInterrupt):
+        train.train(cat, cam, small, db.guide_rows, progress=False, snapshot_path=snap, snapshot_every=20)
+    assert snap.exists()
+    counter = _Interrupting(10**6)
+    monkeypatch.setattr(train, "tqdm", counter)
+    got, history = train.train(cat, cam, small, db.guide_rows, progress=False, snapshot_path=snap,
+                               snapshot_every=20)
+    monkeypatch.undo()
+    # it went on from the last snapshot (step 40 of stage 1, or step 20 of stage 2), not from scratch
+    assert 10**6 - counter.left == (120 - 40 if stop_at < 60 else 60 - 20)
+    jax.tree_util.tree_map(np.testing.assert_array_equal, got, ref)
+    assert history == ref_history
+    other_seed = dataclasses.replace(small, training=dataclasses.replace(small.training, seed=2))
+    with pytest.raises(ValueError, match="snapshot"):
+        train.train(cat, cam, other_seed, db.guide_rows, progress=False, snapshot_path=snap)
+
+
+def test_build_database_removes_its_snapshot(tiny, tmp_path, monkeypatch):
+    cat, cam, cfg, db, _ = tiny
+    monkeypatch.setenv("JSTARID_CACHE", str(tmp_path))
+    built = rpnet.build_database(cat, cam, _small_schedule(cfg), progress=False)
+    assert built.path.exists()
+    assert not list(built.path.parent.glob("*.partial.msgpack"))
+
+
 # ---------------------------------------------------------------- weight search and identification
 
 

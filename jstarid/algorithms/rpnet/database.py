@@ -67,7 +67,9 @@ def build_database(catalog, camera, config: Config | None = None, *, cache: bool
         config: :class:`Config` (default: paper); ``config.training`` sets the training run.
         cache: read / write the checkpoint under the cache directory.
         progress: progress bars while training.
-        train_if_missing: train when no checkpoint exists (else raise ``FileNotFoundError``).
+        train_if_missing: train when no checkpoint exists (else raise ``FileNotFoundError``). With
+            ``cache``, training writes snapshots (``….partial.msgpack`` beside the checkpoint) and
+            an interrupted training resumes from the last one.
 
     Returns:
         :class:`Database`.
@@ -82,9 +84,14 @@ def build_database(catalog, camera, config: Config | None = None, *, cache: bool
     elif not train_if_missing:
         raise FileNotFoundError(f"no RpNet checkpoint at {path}; train with experiments/train_rpnet.py")
     else:
-        variables, history = train(catalog, camera, config, rows, progress=progress)
+        # with the cache, training leaves snapshots next to the checkpoint: an interrupted run
+        # resumes where it stopped when called again
+        snapshot = path.with_name(path.stem + ".partial.msgpack") if cache else None
+        variables, history = train(catalog, camera, config, rows, progress=progress,
+                                   snapshot_path=snapshot)
         if cache:
             save_checkpoint(path, variables, meta)
+            snapshot.unlink(missing_ok=True)
     return _database(catalog, camera, config, rows, variables, history, path if cache else None)
 
 

@@ -39,6 +39,7 @@ from jstarid.algorithms.rpnet.model import (
     l2_penalty,
     mse_loss,
 )
+from jstarid.algorithms.rpnet.snapshot import Snapshot, load_snapshot, save_snapshot
 
 __all__ = ["checkpoint_meta", "init_variables", "load_checkpoint", "predict_logits", "save_checkpoint",
            "train"]
@@ -125,8 +126,8 @@ def _accuracy(variables, batch, config, n_classes) -> tuple[float, dict[str, flo
     return float(hit.mean()), {name: float(hit[fam == i].mean()) for i, name in enumerate(FAMILIES)}
 
 
-def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True, variables=None) -> tuple[
-        dict, dict]:
+def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True, variables=None,
+          snapshot_path=None, snapshot_every: int = 500) -> tuple[dict, dict]:
     """Train RpNet (both stages) for ``config.training``.
 
     Args:
@@ -136,9 +137,17 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
         guide_rows: (K,) catalog rows of the classes.
         progress: show tqdm progress bars (loss, held-out metrics).
         variables: start from these variables instead of a fresh initialisation.
+        snapshot_path: optional file for training snapshots (:mod:`.snapshot`): written every
+            ``snapshot_every`` steps of each stage and at the end of stage 1; when it exists at
+            the start, training resumes from it (same result as an uninterrupted run). The caller
+            deletes it once the final checkpoint is safe.
+        snapshot_every: steps between snapshots.
 
     Returns:
         ``(variables, history)``; history holds the per-step losses and held-out metrics.
+
+    Raises:
+        ValueError: ``snapshot_path`` holds a snapshot of another catalog, camera or config.
     """
     t = config.training
     n_classes = int(len(guide_rows))
@@ -147,6 +156,8 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
     k_init, k_eval, k_dae, k_clf = jax.random.split(key, 4)
     if variables is None:
         variables = init_variables(k_init, config, n_classes)
+    meta = checkpoint_meta(catalog, camera, config, guide_rows)
+    snapshot_every = max(1, int(snapshot_every))
     held_out = make_batch(k_eval, catalog, camera, config, tables, t.eval_size)
     dae_steps, clf_steps = t.steps(n_classes)
     if t.pool_batches:  # pool mode: n batches drawn once, cycled through by both stages
@@ -160,13 +171,30 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
         return make_batch(jax.random.fold_in(k, s), catalog, camera, config, tables, t.batch_size)
 
     history: dict = {"dae_loss": [], "dae_eval": [], "clf_loss": [], "clf_eval": []}
+    tx_dae = optax.adam(t.dae_lr)  # stage 1: Adam at the PGN rate, no rate decay
+    # stage 2: cosine rate decay and early stop (Table 3)
+    lr = (optax.cosine_decay_schedule(t.clf_lr, max(clf_steps, 1), alpha=0.01) if t.clf_lr_decay
+          else t.clf_lr)
+    tx_clf = optax.adam(lr)
+    resume = None
+    if snapshot_path is not None and Path(snapshot_path).exists():
+        resume = load_snapshot(snapshot_path, meta, variables, lambda stage: (
+            tx_dae.init({"generator": variables["generator"], "decoder": variables["decoder"]})
+            if stage == 1 else tx_clf.init(variables["classifier"]["params"])))
+        variables, history = resume.variables, resume.history
 
-    # Stage 1: denoising autoencoder (eq. 5), Adam at the PGN rate, no rate decay.
-    tx = optax.adam(t.dae_lr)
+    def snapshot(stage, step, opt_state, best=(-1.0, None)):
+        if snapshot_path is not None:
+            save_snapshot(snapshot_path, Snapshot(stage, step, variables, opt_state, best[0], best[1],
+                                                  history), meta)
+
+    # Stage 1: denoising autoencoder (eq. 5).
     dae_params = {"generator": variables["generator"], "decoder": variables["decoder"]}
-    opt_state = tx.init(dae_params)
-    dae_step, dae_eval = _make_dae_step(config, n_classes, tx)
-    bar = tqdm(range(dae_steps), desc="RpNet stage 1 (DAE)", disable=not progress)
+    opt_state = resume.opt_state if resume is not None and resume.stage == 1 else tx_dae.init(dae_params)
+    start = 0 if resume is None else (resume.step if resume.stage == 1 else dae_steps)
+    dae_step, dae_eval = _make_dae_step(config, n_classes, tx_dae)
+    bar = tqdm(range(start, dae_steps), desc="RpNet stage 1 (DAE)", disable=not progress, initial=start,
+               total=dae_steps)
     for s in bar:
         batch = next_batch(k_dae, s)
         dae_params, opt_state, mse = dae_step(dae_params, opt_state, batch.noisy, batch.clean)
@@ -175,18 +203,25 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
             ev = float(dae_eval(dae_params, held_out.noisy, held_out.clean))
             history["dae_eval"].append((s + 1, ev))
             bar.set_postfix(mse=f"{history['dae_loss'][-1]:.4f}", held_out=f"{ev:.4f}")
+        if (s + 1) % snapshot_every == 0 and s + 1 < dae_steps:
+            variables = {**variables, **dae_params}
+            snapshot(1, s + 1, opt_state)
     variables = {**variables, **dae_params}
 
-    # Stage 2: classifier on frozen generator codes (eq. 6); cosine rate decay and early stop (Table 3).
-    lr = (optax.cosine_decay_schedule(t.clf_lr, max(clf_steps, 1), alpha=0.01) if t.clf_lr_decay
-          else t.clf_lr)
-    tx = optax.adam(lr)
+    # Stage 2: classifier on frozen generator codes (eq. 6).
     clf_params = variables["classifier"]["params"]
     batch_stats = variables["classifier"]["batch_stats"]
-    opt_state = tx.init(clf_params)
-    clf_step = _make_clf_step(config, n_classes, tx)
-    best = (-1.0, variables["classifier"])
-    bar = tqdm(range(clf_steps), desc="RpNet stage 2 (classifier)", disable=not progress)
+    clf_step = _make_clf_step(config, n_classes, tx_clf)
+    if resume is not None and resume.stage == 2:
+        opt_state, start = resume.opt_state, resume.step
+        best = (resume.best_accuracy, resume.best if resume.best is not None else variables["classifier"])
+    else:
+        opt_state, start = tx_clf.init(clf_params), 0
+        best = (-1.0, variables["classifier"])
+        if dae_steps > 0:
+            snapshot(2, 0, opt_state, best)  # stage 1 is safe from here on
+    bar = tqdm(range(start, clf_steps), desc="RpNet stage 2 (classifier)", disable=not progress,
+               initial=start, total=clf_steps)
     for s in bar:
         batch = next_batch(k_clf, s)
         clf_params, batch_stats, opt_state, ce = clf_step(clf_params, batch_stats, opt_state,
@@ -199,6 +234,9 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
             if acc > best[0] or not t.early_stop:
                 best = (acc, current)
             bar.set_postfix(ce=f"{history['clf_loss'][-1]:.3f}", held_out_acc=f"{acc:.3f}")
+        if (s + 1) % snapshot_every == 0 and s + 1 < clf_steps:
+            variables = {**variables, "classifier": {"params": clf_params, "batch_stats": batch_stats}}
+            snapshot(2, s + 1, opt_state, best)
     if clf_steps == 0:
         best = (-1.0, {"params": clf_params, "batch_stats": batch_stats})
     variables = {**variables, "classifier": best[1]}

@@ -1,0 +1,104 @@
+"""Training snapshots: resume an interrupted RpNet training where it stopped.
+
+A ``paper``-scale training takes 80 min on two CPU cores; a crash or a killed job must not lose it.
+:func:`~jstarid.algorithms.rpnet.train.train` writes a snapshot every few hundred steps (the stage,
+the next step, the variables, the optimizer state, the classifier kept by early stopping and the
+history), and a later call with the same snapshot file continues from it. Training batches depend
+only on (key, step) (``make_batch(fold_in(key, step))``, or the pool cycled by step), so a resumed
+run draws the same batches as an uninterrupted one and ends with the same variables.
+
+Snapshots are msgpack files (``flax.serialization``) carrying the checkpoint fingerprints
+(:func:`~jstarid.algorithms.rpnet.train.checkpoint_meta`) and the training schedule; one written for
+another catalog, camera, config or schedule is an error, never silently resumed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import flax.serialization
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Snapshot", "load_snapshot", "save_snapshot"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Snapshot:
+    """Training state at the start of step ``step`` of stage ``stage`` (1: DAE, 2: classifier).
+
+    Attributes:
+        stage: 1 or 2.
+        step: the next step of that stage to run (0-based).
+        variables: model variables (stage 1: generator and decoder being trained).
+        opt_state: the stage's optax state.
+        best_accuracy: stage 2: held-out accuracy of ``best`` (−1 before the first evaluation).
+        best: stage 2: the classifier variables kept by early stopping (``None`` in stage 1).
+        history: the training history so far.
+    """
+
+    stage: int
+    step: int
+    variables: dict
+    opt_state: object
+    best_accuracy: float
+    best: dict | None
+    history: dict
+
+
+def _state(tree):
+    return flax.serialization.to_state_dict(jax.tree_util.tree_map(np.asarray, tree))
+
+
+def save_snapshot(path, snap: Snapshot, meta: dict[str, str]) -> Path:
+    """Write ``snap`` with ``meta`` (fingerprints and schedule) to ``path`` (atomic rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {"meta": dict(meta), "stage": snap.stage, "step": snap.step,
+               "variables": _state(snap.variables), "opt_state": _state(snap.opt_state),
+               "best_accuracy": float(snap.best_accuracy),
+               "best": _state(snap.best) if snap.best is not None else {},
+               "history": json.dumps(snap.history)}
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_bytes(flax.serialization.msgpack_serialize(payload))
+    tmp.replace(path)
+    return path
+
+
+def load_snapshot(path, meta: dict[str, str], variables_template: dict, opt_state_template) -> Snapshot:
+    """Read a snapshot written for ``meta``.
+
+    Args:
+        path: snapshot file.
+        meta: the fingerprints and schedule of the run to resume; must equal the saved ones.
+        variables_template: model variables of the right structure (e.g. a fresh initialisation).
+        opt_state_template: function ``stage → optax state`` of the right structure for that stage.
+
+    Returns:
+        :class:`Snapshot`.
+
+    Raises:
+        ValueError: the snapshot belongs to another catalog, camera, config or schedule.
+    """
+    raw = flax.serialization.msgpack_restore(Path(path).read_bytes())
+    saved = raw.get("meta", {})
+    for name in sorted(meta):
+        if saved.get(name) != meta[name]:
+            raise ValueError(f"RpNet training snapshot {path} was written for another {name} "
+                             f"({saved.get(name)!r}, expected {meta[name]!r}); delete it to start over")
+    stage = int(raw["stage"])
+
+    def restore(template, state):
+        return jax.tree_util.tree_map(jnp.asarray, flax.serialization.from_state_dict(template, state))
+
+    variables = restore(variables_template, raw["variables"])
+    best = restore(variables_template["classifier"], raw["best"]) if raw["best"] else None
+    history = json.loads(raw["history"])
+    for name in ("dae_eval", "clf_eval"):  # JSON turned the (step, value, …) tuples into lists
+        history[name] = [tuple(entry) for entry in history.get(name, [])]
+    return Snapshot(stage=stage, step=int(raw["step"]), variables=variables,
+                    opt_state=restore(opt_state_template(stage), raw["opt_state"]),
+                    best_accuracy=float(raw["best_accuracy"]), best=best, history=history)
