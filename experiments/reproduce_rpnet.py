@@ -75,6 +75,7 @@ def parse_args(argv=None):
     p.add_argument("--capacity", type=int, default=128, help="detections kept per scene")
     p.add_argument("--n-pair-trials", type=int, default=None, help="Config.n_pair_trials override")
     p.add_argument("--n-guide-triples", type=int, default=None, help="Config.n_guide_triples override")
+    p.add_argument("--n-pool-pairs", type=int, default=None, help="Config.n_pool_pairs override")
     p.add_argument("--sim-margin", type=float, default=None,
                    help="simulate from a catalog whose simulation list reaches V 6 + this (default 1.0, the "
                         "paper's 7.0); 0: magnitude noise only removes stars (diagnostic)")
@@ -88,6 +89,8 @@ def make_config(args) -> rpnet.Config:
         cfg = dataclasses.replace(cfg, n_pair_trials=args.n_pair_trials)
     if args.n_guide_triples is not None:
         cfg = dataclasses.replace(cfg, n_guide_triples=args.n_guide_triples)
+    if args.n_pool_pairs is not None:
+        cfg = dataclasses.replace(cfg, n_pool_pairs=args.n_pool_pairs)
     return cfg
 
 

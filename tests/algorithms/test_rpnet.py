@@ -654,3 +654,21 @@ def test_fallback_triples_only_add_scenes(tiny):
     assert np.all((ids == truth) | (ids == -1))
     with pytest.raises(ValueError, match="n_guide_triples"):
         dataclasses.replace(cfg, n_guide_triples=0)
+
+
+def test_pool_pairs_only_add_scenes(tiny):
+    """The pool pass (extension) runs only where every triple failed: confirmed scenes keep their ids,
+    and pairs of correctly classified detections from different triples identify more scenes."""
+    cat, cam, cfg, db, _ = tiny
+    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=4, false_radius_px=120.0)
+    s = js.simulate(jax.random.key(23), cat, cam, noise, capacity=48, boresight_ids=np.asarray(db.guide_rows))
+    off = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=2, n_pool_pairs=0))
+    on = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=2, n_pool_pairs=8))
+    ok0, ok1 = np.asarray(off.ok), np.asarray(on.ok)
+    assert np.all(ok1[ok0])
+    np.testing.assert_array_equal(np.asarray(on.ids)[ok0], np.asarray(off.ids)[ok0])
+    assert ok1.sum() >= ok0.sum() + 10, (ok0.sum(), ok1.sum())  # 21 → 48 of 176 when written
+    ids, truth = np.asarray(on.ids), np.asarray(s.truth)
+    assert np.all((ids == truth) | (ids == -1))
+    with pytest.raises(ValueError, match="n_pool_pairs"):
+        dataclasses.replace(cfg, n_pool_pairs=-1)

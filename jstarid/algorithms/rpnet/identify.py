@@ -23,10 +23,12 @@ Per scene (written once, batched with ``vmap``):
    wrong or badly rolled attitude names a few stars by coincidence, a right one nearly all); otherwise
    (extension, ``n_pair_trials`` > 1) the next-best admissible pairs are tried in score order, then
    (extension, ``n_guide_triples`` > 1) steps 2–5 run again on the next three detections by distance
-   from the centre (ranks 4–6, 7–9, …), and when none is confirmed the scene fails with every id −1
-   (a mis-identification is worse than a failure). ``n_pair_trials = n_guide_triples = 1`` is the
-   paper's single confident pair of S1–S3; the later pairs and triples are only tried, in later
-   passes, on the scenes still unconfirmed.
+   from the centre (ranks 4–6, 7–9, …), then (extension, ``n_pool_pairs`` > 0) the best pairs of
+   candidates of any two of those detections (:func:`_name_pool`), and when none is confirmed the
+   scene fails with every id −1 (a mis-identification is worse than a failure).
+   ``n_pair_trials = n_guide_triples = 1, n_pool_pairs = 0`` is the paper's single confident pair of
+   S1–S3; the later pairs, triples and the pool are only tried, in later passes, on the scenes still
+   unconfirmed.
 
 The paper does not say how the "GNSs are identified easily" once the pair is known; step 4 is that
 step made explicit, and its count threshold is the verification.
@@ -190,17 +192,18 @@ def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_r
     return best.astype(jnp.int32), named & (jnp.sum(same, axis=1) == 1)
 
 
-def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int, triple=0):
+def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int, triple=0, count: int = 3):
     """Steps 1–2 for a batch: S1–S3 (eq. 7), their inputs (eq. 3), network, top-3 (eqs. 4, 8).
 
     One matmul chain over all ``3 B`` inputs (large matrices run near the CPU's matmul peak); the
     softmax's top 3 are taken on the logits (same order) and normalised by the softmax's sum.
     ``triple = t`` (an int32 scalar, traced: one compilation serves every t) takes the detections of
     distance rank 3t … 3t + 2 instead (t = 0: the paper's S1–S3; later triples are the fallback of
-    ``Config.n_guide_triples``).
+    ``Config.n_guide_triples``). ``count`` (static) detections from there on (the pool pass of
+    ``Config.n_pool_pairs`` takes all 3 · ``n_guide_triples``).
 
     Returns:
-        ``(near, probs, classes)``: (B, 3) int32, (B, 3, 3) float32, (B, 3, 3) int32.
+        ``(near, probs, classes)``: (B, C) int32, (B, C, 3) float32, (B, C, 3) int32, C = count.
     """
     kw = config_kwargs(config)
     n = xy.shape[1]
@@ -213,13 +216,13 @@ def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int,
         # pairs inadmissible). A static top-k over every triple's ranks, not an argsort: XLA's sort
         # is slow on CPU (network part 3,970 → 3,170 scenes/s with argsort).
         _, order = jax.lax.top_k(-d2, min(n, 3 * config.n_guide_triples))
-        near = jax.lax.dynamic_slice(order, (3 * triple,), (3,))
+        near = jax.lax.dynamic_slice(order, (3 * triple,), (min(count, order.shape[0]),))
         inputs = jax.vmap(lambda g: initial_input(body[g], body, valid_s & (jnp.arange(n) != g), **kw))(near)
         return near, inputs
 
     near, inputs = jax.vmap(one)(xy, valid)
     logits = predict_logits(variables, inputs, config=config, n_classes=n_classes,
-                            bf16=config.network_bf16)  # (B, 3, K)
+                            bf16=config.network_bf16)  # (B, C, K)
     top, cls = top3_blocked(logits)  # eq. 8: softmax is monotonic
     p = jnp.exp(top - top[..., :1]) / jnp.sum(jnp.exp(logits - top[..., :1]), -1, keepdims=True)  # eq. 4
     return near, p, cls.astype(jnp.int32)
@@ -258,86 +261,135 @@ def top3_blocked(x):
     return values, index.astype(jnp.int32)
 
 
+def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, *, camera, config: Config, grid):
+    """Steps 4–5 from one pair: detection ``a`` named catalog row ``row_a``, ``b`` named ``row_b``.
+
+    Returns:
+        ``(rows, named, attitude, expected)``: (N,) catalog row of each detection, (N,) bool named,
+        (3, 3) refined attitude, () number of catalog stars the attitude puts inside the frame.
+    """
+    tol = config.match_tol_px / camera.f_px
+    pair_ref = star_vectors[jnp.stack([row_a, row_b])]
+    # attitude from the pair (two-vector Wahba ≡ TRIAD)
+    c0 = solve_wahba(jnp.stack([body[a], body[b]]), pair_ref, jnp.ones((2,), jnp.float32))
+    # only the catalog stars that can be named matter: those of the sky-index cell of the pair's
+    # boresight (every star within reach of the field, see _local_index); padding → the antipode
+    # of the boresight, never within any tolerance. Local index → catalog row through `loc`.
+    loc = cells[cell_of(c0[2], grid)]  # (K,) catalog rows, M = padding
+    loc_vec = jnp.where((loc < star_vectors.shape[0])[:, None],
+                        star_vectors[jnp.minimum(loc, star_vectors.shape[0] - 1)], -c0[2][None, :])
+    # anchor pass: a close pair fixes the roll poorly, so distances to the pair (roll-free) name
+    # the stars first; the pair attitude only picks the side of the pair axis
+    rows_a, named_a = anchor_names(c0, body, valid, body[a], body[b], pair_ref[0], pair_ref[1],
+                                   loc_vec, tol, config.anchor_radius_px / camera.f_px)
+    c_a = solve_wahba(body, loc_vec[rows_a], named_a.astype(jnp.float32))
+    c0 = jnp.where(jnp.sum(named_a) >= 2, c_a, c0)
+
+    def refine(c):  # name within the fixed tolerance, refit on every named star (Wahba)
+        rows, named = name_stars(c, body, valid, loc_vec, tol)
+        fit = solve_wahba(body, loc_vec[rows], named.astype(jnp.float32))
+        return jnp.where(jnp.sum(named) >= 2, fit, c)
+
+    c1 = c0
+    for _ in range(config.n_refine):  # unrolled: a loop inside vmap runs ≈ 4× slower on CPU
+        c1 = refine(c1)
+    rows0, named0 = name_stars(c1, body, valid, loc_vec, tol)
+    w0 = named0.astype(jnp.float32)
+    # last pass: tolerance from the residuals' RMS (per axis, px) of the refined fit
+    resid = angle_between(body, loc_vec[rows0] @ c1.T) * camera.f_px
+    sigma = jnp.sqrt(jnp.sum(w0 * resid**2) / jnp.maximum(2.0 * jnp.sum(w0) - 3.0, 1.0))
+    tol2 = jnp.clip(config.match_sigmas * sigma, config.match_tol_min_px, config.match_tol_px)
+    rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / camera.f_px)
+    # the pair's two detections were named by the network and the pair check, not by proximity:
+    # they keep their name at the fixed tolerance (a 3.5 σ̂ radius drops 0.2 % of true stars)
+    pair_row = jnp.zeros_like(valid).at[a].set(True).at[b].set(True)
+    expected = jnp.where(jnp.arange(valid.shape[0]) == a, row_a, row_b)
+    keep0 = pair_row & named0 & (loc[rows0] == expected) & ~named1
+    rows1 = jnp.where(keep0, rows0, rows1)
+    named1 = named1 | keep0
+    c2 = solve_wahba(body, loc_vec[rows1], named1.astype(jnp.float32))
+    c2 = jnp.where(jnp.sum(named1) >= 2, c2, c1)
+    # coverage: catalog stars the final attitude puts inside the frame (inset by the tolerance)
+    xy_pred, in_field = camera.project(loc_vec @ c2.T)
+    inset = config.match_tol_px
+    inside = ((loc < star_vectors.shape[0]) & in_field
+              & (xy_pred[:, 0] >= inset) & (xy_pred[:, 0] <= camera.width - 1 - inset)
+              & (xy_pred[:, 1] >= inset) & (xy_pred[:, 1] <= camera.height - 1 - inset))
+    return loc[rows1], named1, c2, jnp.sum(inside)
+
+
+def _first_confirmed(score, a, b, row_a, row_b, body, valid, star_vectors, cells, *, camera,
+                     config: Config, grid):
+    """Verify the pairs in the given (score) order and keep the first confirmed one (step 5).
+
+    Args:
+        score: (T,) score of each pair (−inf: not admissible); a, b, row_a, row_b: (T,) the pairs.
+
+    Returns:
+        ``(ids, ok, attitude)``: (N,) int32 catalog rows (−1 unnamed, all −1 unless ok), () bool,
+        (3, 3) float32 (NaN unless ok).
+    """
+    verify = functools.partial(_verify_pair, body=body, valid=valid, star_vectors=star_vectors,
+                               cells=cells, camera=camera, config=config, grid=grid)
+    rows_t, named_t, att_t, expected_t = jax.vmap(verify)(a, b, row_a, row_b)
+    n_named = jnp.sum(named_t, axis=1)
+    confirmed = (jnp.isfinite(score) & (n_named >= config.min_verified)
+                 & (n_named >= config.min_coverage * expected_t))
+    pick = jnp.argmax(confirmed)  # the first confirmed pair in score order
+    ok = confirmed[pick]
+    ids = jnp.where(ok & named_t[pick], rows_t[pick], -1)
+    att = jnp.where(ok, att_t[pick], jnp.nan)
+    return ids.astype(jnp.int32), ok, att.astype(jnp.float32)
+
+
+def _name_pool(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camera, config: Config, grid):
+    """Pool pass for one scene (extension, ``Config.n_pool_pairs``): pairs across all triples.
+
+    Every pair of candidates of two different detections among ``near`` (the 3 · n_guide_triples
+    nearest the centre) is scored like eq. 11 without the position weights (Table 5 gives them for
+    S1–S3 only): W = pr_j·p_ij + pr_l·p_kl, subject to the checks of :func:`pair_checks`; the
+    ``n_pool_pairs`` best are verified in score order. Where every triple failed, two correctly
+    classified detections often sit in different triples.
+    """
+    body = camera.unproject(xy)
+    t = near.shape[0]
+    rows = guide_rows[cls].reshape(-1)  # (3T,) candidate j of detection slot s at 3 s + j
+    slot = jnp.repeat(jnp.arange(t), 3)
+    det = near[slot]
+    vec = star_vectors[rows]
+    d_cat = angle_between(vec[:, None, :], vec[None, :, :])  # eq. 10
+    obs = body[det]
+    d_obs = angle_between(obs[:, None, :], obs[None, :, :])
+    weight = jnp.asarray(config.probability_weights, jnp.float32)[jnp.tile(jnp.arange(3), t)] * p.reshape(-1)
+    ok = ((slot[:, None] < slot[None, :]) & valid[det][:, None] & valid[det][None, :]
+          & (rows[:, None] != rows[None, :]) & (d_cat <= 2.0 * camera.half_diagonal_rad))
+    if config.pair_tol_px is not None:
+        ok &= jnp.abs(d_cat - d_obs) <= config.pair_tol_px / camera.f_px
+    score = jnp.where(ok, weight[:, None] + weight[None, :], -jnp.inf).reshape(-1)
+    top_score, flat = jax.lax.top_k(score, config.n_pool_pairs)
+    u, v = flat // (3 * t), flat % (3 * t)
+    return _first_confirmed(top_score, det[u], det[v], rows[u], rows[v], body, valid, star_vectors, cells,
+                            camera=camera, config=config, grid=grid)
+
+
 def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camera, config: Config, grid,
               trials=(0, 1)):
     """Steps 3–5 for one scene, from the network's candidates (module docstring).
 
     ``trials = (first, count)``: verify the admissible pairs of score rank first … first + count − 1
-    and keep the first confirmed one (``identify`` runs (0, 1), then (1, n_pair_trials − 1) on the
-    scenes the best pair did not confirm).
+    and keep the first confirmed one (``identify`` runs (0, 1), then later passes on the scenes the
+    best pair did not confirm).
     """
     body = camera.unproject(xy)  # (N, 3) camera frame
     cand_rows = guide_rows[cls]  # (3, 3) catalog rows
-    cand_vec = star_vectors[cand_rows]  # (3, 3, 3)
     i, j, k, m = (jnp.asarray(PAIRS[:, c]) for c in range(4))  # S_ij ↔ S_km
     pair_ok = pair_checks(body, valid, near, cand_rows, star_vectors, camera=camera, config=config)
     _, score, _ = weight_search(p, pair_ok, config.position_weights, config.probability_weights)
-    tol = config.match_tol_px / camera.f_px
-
-    def verify(q):
-        """Name the stars from pair q (index into PAIRS); returns (rows, named, attitude)."""
-        a, b = near[i[q]], near[k[q]]
-        pair_ref = jnp.stack([cand_vec[i[q], j[q]], cand_vec[k[q], m[q]]])
-        # attitude from the pair (two-vector Wahba ≡ TRIAD)
-        c0 = solve_wahba(jnp.stack([body[a], body[b]]), pair_ref, jnp.ones((2,), jnp.float32))
-        # only the catalog stars that can be named matter: those of the sky-index cell of the pair's
-        # boresight (every star within reach of the field, see _local_index); padding → the antipode
-        # of the boresight, never within any tolerance. Local index → catalog row through `loc`.
-        loc = cells[cell_of(c0[2], grid)]  # (K,) catalog rows, M = padding
-        loc_vec = jnp.where((loc < star_vectors.shape[0])[:, None],
-                            star_vectors[jnp.minimum(loc, star_vectors.shape[0] - 1)], -c0[2][None, :])
-        # anchor pass: a close pair fixes the roll poorly, so distances to the pair (roll-free) name
-        # the stars first; the pair attitude only picks the side of the pair axis
-        rows_a, named_a = anchor_names(c0, body, valid, body[a], body[b], pair_ref[0], pair_ref[1],
-                                       loc_vec, tol, config.anchor_radius_px / camera.f_px)
-        c_a = solve_wahba(body, loc_vec[rows_a], named_a.astype(jnp.float32))
-        c0 = jnp.where(jnp.sum(named_a) >= 2, c_a, c0)
-
-        def refine(_, c):  # name within the fixed tolerance, refit on every named star (Wahba)
-            rows, named = name_stars(c, body, valid, loc_vec, tol)
-            fit = solve_wahba(body, loc_vec[rows], named.astype(jnp.float32))
-            return jnp.where(jnp.sum(named) >= 2, fit, c)
-
-        c1 = c0
-        for it in range(config.n_refine):  # unrolled: a loop inside vmap runs ≈ 4× slower on CPU
-            c1 = refine(it, c1)
-        rows0, named0 = name_stars(c1, body, valid, loc_vec, tol)
-        w0 = named0.astype(jnp.float32)
-        # last pass: tolerance from the residuals' RMS (per axis, px) of the refined fit
-        resid = angle_between(body, loc_vec[rows0] @ c1.T) * camera.f_px
-        sigma = jnp.sqrt(jnp.sum(w0 * resid**2) / jnp.maximum(2.0 * jnp.sum(w0) - 3.0, 1.0))
-        tol2 = jnp.clip(config.match_sigmas * sigma, config.match_tol_min_px, config.match_tol_px)
-        rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / camera.f_px)
-        # the pair's two detections were named by the network and the pair check, not by proximity:
-        # they keep their name at the fixed tolerance (a 3.5 σ̂ radius drops 0.2 % of true stars)
-        pair_row = jnp.zeros_like(valid).at[a].set(True).at[b].set(True)
-        expected = jnp.where(jnp.arange(valid.shape[0]) == a, cand_rows[i[q], j[q]], cand_rows[k[q], m[q]])
-        keep0 = pair_row & named0 & (loc[rows0] == expected) & ~named1
-        rows1 = jnp.where(keep0, rows0, rows1)
-        named1 = named1 | keep0
-        c2 = solve_wahba(body, loc_vec[rows1], named1.astype(jnp.float32))
-        c2 = jnp.where(jnp.sum(named1) >= 2, c2, c1)
-        # coverage: catalog stars the final attitude puts inside the frame (inset by the tolerance)
-        xy_pred, in_field = camera.project(loc_vec @ c2.T)
-        inset = config.match_tol_px
-        inside = ((loc < star_vectors.shape[0]) & in_field
-                  & (xy_pred[:, 0] >= inset) & (xy_pred[:, 0] <= camera.width - 1 - inset)
-                  & (xy_pred[:, 1] >= inset) & (xy_pred[:, 1] <= camera.height - 1 - inset))
-        return loc[rows1], named1, c2, jnp.sum(inside)
-
     # the best admissible pair (eq. 11) first; the next ones only when it is not confirmed
-    top_score, order = jax.lax.top_k(score, trials[0] + trials[1])
-    top_score, order = top_score[trials[0]:], order[trials[0]:]
-    rows_t, named_t, att_t, expected_t = jax.vmap(verify)(order)
-    n_named = jnp.sum(named_t, axis=1)
-    confirmed = (jnp.isfinite(top_score) & (n_named >= config.min_verified)
-                 & (n_named >= config.min_coverage * expected_t))
-    pick = jnp.argmax(confirmed)  # the first confirmed pair in score order
-    ok = confirmed[pick]
-    rows1, named1, c1 = rows_t[pick], named_t[pick], att_t[pick]
-    ids = jnp.where(ok & named1, rows1, -1)
-    att = jnp.where(ok, c1, jnp.nan)
-    return ids.astype(jnp.int32), ok, att.astype(jnp.float32)
+    top_score, q = jax.lax.top_k(score, trials[0] + trials[1])
+    top_score, q = top_score[trials[0]:], q[trials[0]:]
+    return _first_confirmed(top_score, near[i[q]], near[k[q]], cand_rows[i[q], j[q]], cand_rows[k[q], m[q]],
+                            body, valid, star_vectors, cells, camera=camera, config=config, grid=grid)
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes"))
@@ -366,6 +418,16 @@ def _identify_chunk(xy, valid, variables, guide_rows, star_vectors, cells, tripl
     fn = functools.partial(_name_one, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
                            camera=camera, config=config, grid=grid, trials=trials)
     # naming in small vmapped groups: its (N × local stars) intermediates stay in cache
+    return jax.lax.map(lambda a: fn(*a), (xy, valid, near, p, cls), batch_size=config.name_chunk)
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid"))
+def _identify_pool_chunk(xy, valid, variables, guide_rows, star_vectors, cells, *, camera, config, n_classes,
+                         grid):
+    near, p, cls = _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
+                               count=3 * config.n_guide_triples)
+    fn = functools.partial(_name_pool, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
+                           camera=camera, config=config, grid=grid)
     return jax.lax.map(lambda a: fn(*a), (xy, valid, near, p, cls), batch_size=config.name_chunk)
 
 
@@ -420,7 +482,7 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
     ok_out = np.zeros((b,), bool)
     att_out = np.full((b, 3, 3), np.nan, np.float32)
 
-    def run(subset, trials, chunk, triple=0):
+    def run(subset, trials, chunk, triple=0, pool=False):
         order = subset[np.argsort(last[subset], kind="stable")]
         for start in range(0, order.size, chunk):
             sel = order[start:start + chunk]
@@ -430,10 +492,15 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
             if pad:  # pad the last chunk to the compiled size with empty scenes
                 xy = np.pad(xy, ((0, pad), (0, 0), (0, 0)))
                 valid = np.pad(valid, ((0, pad), (0, 0)))
-            ids, ok, att = _identify_chunk(jnp.asarray(xy), jnp.asarray(valid), database.variables,
-                                           guide_rows, database.star_vectors, cells, jnp.int32(triple),
-                                           camera=database.camera, config=config,
-                                           n_classes=database.n_classes, grid=index.grid, trials=trials)
+            common = dict(camera=database.camera, config=config, n_classes=database.n_classes,
+                          grid=index.grid)
+            if pool:
+                ids, ok, att = _identify_pool_chunk(jnp.asarray(xy), jnp.asarray(valid), database.variables,
+                                                    guide_rows, database.star_vectors, cells, **common)
+            else:
+                ids, ok, att = _identify_chunk(jnp.asarray(xy), jnp.asarray(valid), database.variables,
+                                               guide_rows, database.star_vectors, cells, jnp.int32(triple),
+                                               trials=trials, **common)
             keep = len(sel)
             ids_out[sel, :width] = np.asarray(ids)[:keep]
             ok_out[sel] = np.asarray(ok)[:keep]
@@ -453,4 +520,7 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
         failed = np.nonzero(~ok_out & (n_valid >= 3 * triple + 2))[0]
         if failed.size:
             run(failed, (0, config.n_pair_trials), _pass_chunk(failed.size, config), triple)
+    failed = np.nonzero(~ok_out & (n_valid >= 2))[0]
+    if config.n_pool_pairs and failed.size:  # last: pairs across the triples (_name_pool)
+        run(failed, None, _pass_chunk(failed.size, config), pool=True)
     return Identification(ids=jnp.asarray(ids_out), ok=jnp.asarray(ok_out), attitude=jnp.asarray(att_out))
