@@ -622,53 +622,51 @@ def test_top3_blocked_matches_lax_top_k(k):
     assert i.dtype == jnp.int32
 
 
+def _assert_only_adds(scenes, base, extended, min_gain):
+    """``extended`` keeps every scene ``base`` confirms, with its ids, confirms ≥ ``min_gain`` more,
+    and names no star wrongly."""
+    ok0, ok1 = np.asarray(base.ok), np.asarray(extended.ok)
+    assert np.all(ok1[ok0])
+    np.testing.assert_array_equal(np.asarray(extended.ids)[ok0], np.asarray(base.ids)[ok0])
+    assert ok1.sum() >= ok0.sum() + min_gain, (ok0.sum(), ok1.sum())
+    ids, truth = np.asarray(extended.ids), np.asarray(scenes.truth)
+    assert np.all((ids == truth) | (ids == -1))
+
+
+def _guide_scenes(tiny, seed, **noise):
+    cat, cam, _, db, _ = tiny
+    return js.simulate(jax.random.key(seed), cat, cam, js.NoiseConfig(**noise), capacity=48,
+                       boresight_ids=np.asarray(db.guide_rows))
+
+
 def test_more_pair_trials_only_add_scenes(tiny):
-    """The next-best pairs run only where the best pair was not confirmed: scenes it confirms keep
-    their ids, and more scenes are identified, none wrongly (σ 1 px, 2 missing stars)."""
-    cat, cam, cfg, db, _ = tiny
-    noise = js.NoiseConfig(position_sigma_px=1.0, n_missing=2)
-    s = js.simulate(jax.random.key(21), cat, cam, noise, capacity=48, boresight_ids=np.asarray(db.guide_rows))
+    """The next-best pairs run only where the best pair was not confirmed (σ 1 px, 2 missing stars)."""
+    _, _, cfg, db, _ = tiny
+    s = _guide_scenes(tiny, 21, position_sigma_px=1.0, n_missing=2)
     one = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=1, n_guide_triples=1))
     three = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=3, n_guide_triples=1))
-    ok1, ok3 = np.asarray(one.ok), np.asarray(three.ok)
-    assert np.all(ok3[ok1])
-    np.testing.assert_array_equal(np.asarray(three.ids)[ok1], np.asarray(one.ids)[ok1])
-    assert ok3.sum() > ok1.sum()
-    ids, truth = np.asarray(three.ids), np.asarray(s.truth)
-    assert np.all((ids == truth) | (ids == -1))
+    _assert_only_adds(s, one, three, 1)
 
 
 def test_fallback_triples_only_add_scenes(tiny):
-    """Later triples (extension) run only where S1–S3 confirmed nothing: scenes the paper's triple
-    confirms keep their ids, and false stars crowding the centre no longer fail the scene."""
-    cat, cam, cfg, db, _ = tiny
-    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=3, false_radius_px=80.0)
-    s = js.simulate(jax.random.key(22), cat, cam, noise, capacity=48, boresight_ids=np.asarray(db.guide_rows))
+    """Later triples (extension) run only where S1–S3 confirmed nothing: false stars crowding the
+    centre no longer fail the scene."""
+    _, _, cfg, db, _ = tiny
+    s = _guide_scenes(tiny, 22, position_sigma_px=0.5, n_false=3, false_radius_px=80.0)
     one = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=1))
     more = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=4))
-    ok1, ok4 = np.asarray(one.ok), np.asarray(more.ok)
-    assert np.all(ok4[ok1])
-    np.testing.assert_array_equal(np.asarray(more.ids)[ok1], np.asarray(one.ids)[ok1])
-    assert ok4.sum() > ok1.sum() + 10, (ok1.sum(), ok4.sum())
-    ids, truth = np.asarray(more.ids), np.asarray(s.truth)
-    assert np.all((ids == truth) | (ids == -1))
+    _assert_only_adds(s, one, more, 11)
     with pytest.raises(ValueError, match="n_guide_triples"):
         dataclasses.replace(cfg, n_guide_triples=0)
 
 
 def test_pool_pairs_only_add_scenes(tiny):
-    """The pool pass (extension) runs only where every triple failed: confirmed scenes keep their ids,
-    and pairs of correctly classified detections from different triples identify more scenes."""
-    cat, cam, cfg, db, _ = tiny
-    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=4, false_radius_px=120.0)
-    s = js.simulate(jax.random.key(23), cat, cam, noise, capacity=48, boresight_ids=np.asarray(db.guide_rows))
+    """The pool pass (extension) runs only where every triple failed: pairs of correctly classified
+    detections from different triples identify more scenes (21 → 48 of 176 when written)."""
+    _, _, cfg, db, _ = tiny
+    s = _guide_scenes(tiny, 23, position_sigma_px=0.5, n_false=4, false_radius_px=120.0)
     off = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=2, n_pool_pairs=0))
     on = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=2, n_pool_pairs=8))
-    ok0, ok1 = np.asarray(off.ok), np.asarray(on.ok)
-    assert np.all(ok1[ok0])
-    np.testing.assert_array_equal(np.asarray(on.ids)[ok0], np.asarray(off.ids)[ok0])
-    assert ok1.sum() >= ok0.sum() + 10, (ok0.sum(), ok1.sum())  # 21 → 48 of 176 when written
-    ids, truth = np.asarray(on.ids), np.asarray(s.truth)
-    assert np.all((ids == truth) | (ids == -1))
+    _assert_only_adds(s, off, on, 10)
     with pytest.raises(ValueError, match="n_pool_pairs"):
         dataclasses.replace(cfg, n_pool_pairs=-1)
