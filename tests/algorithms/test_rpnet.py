@@ -147,6 +147,10 @@ def test_initial_input_ignores_padding_and_few_neighbours():
 # ---------------------------------------------------------------- tiny trained setup
 
 
+# identify from S1–S3 alone (no fallback triples, no pool pass): what the pair-level tests measure
+S1_S3_ONLY = {"n_guide_triples": 1, "n_pool_pairs": 0}
+
+
 @pytest.fixture(scope="module")
 def tiny():
     cat = js.load_catalog(3.0)
@@ -419,8 +423,8 @@ def test_identify_more_pair_trials_never_worse(tiny, clean_scenes):
     """Trying the next pairs (extension) keeps every scene the single pair confirmed, and its ids."""
     _, _, cfg, db, _ = tiny
     s = clean_scenes[:64]
-    one = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=1))
-    three = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=3, n_guide_triples=1))
+    one = rpnet.identify(db, s, dataclasses.replace(cfg, **S1_S3_ONLY))
+    three = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=3, **S1_S3_ONLY))
     ok1, ok3 = np.asarray(one.ok), np.asarray(three.ok)
     assert np.all(ok3[ok1])
     np.testing.assert_array_equal(np.asarray(three.ids)[ok1], np.asarray(one.ids)[ok1])
@@ -570,7 +574,7 @@ def test_pair_tables_tiny(tiny, clean_scenes):
     assert 0.5 < grid["correct"][0, 0] <= bound + 1e-9
     # the scenes identify confirms from S1–S3 with Table 5 weights are (almost all) scenes whose
     # chosen pair is right (the fallback triples would confirm more: not what the table measures)
-    res = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=1))
+    res = rpnet.identify(db, s, dataclasses.replace(cfg, **S1_S3_ONLY))
     assert np.mean(np.asarray(res.ok)) <= grid["correct"][0, 0] + 0.05
 
 
@@ -643,8 +647,8 @@ def test_more_pair_trials_only_add_scenes(tiny):
     """The next-best pairs run only where the best pair was not confirmed (σ 1 px, 2 missing stars)."""
     _, _, cfg, db, _ = tiny
     s = _guide_scenes(tiny, 21, position_sigma_px=1.0, n_missing=2)
-    one = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=1, n_guide_triples=1))
-    three = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=3, n_guide_triples=1))
+    one = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=1, **S1_S3_ONLY))
+    three = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=3, **S1_S3_ONLY))
     _assert_only_adds(s, one, three, 1)
 
 
@@ -653,8 +657,8 @@ def test_fallback_triples_only_add_scenes(tiny):
     centre no longer fail the scene."""
     _, _, cfg, db, _ = tiny
     s = _guide_scenes(tiny, 22, position_sigma_px=0.5, n_false=3, false_radius_px=80.0)
-    one = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=1))
-    more = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=4))
+    one = rpnet.identify(db, s, dataclasses.replace(cfg, **S1_S3_ONLY))
+    more = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=4, n_pool_pairs=0))
     _assert_only_adds(s, one, more, 11)
     with pytest.raises(ValueError, match="n_guide_triples"):
         dataclasses.replace(cfg, n_guide_triples=0)
