@@ -366,7 +366,7 @@ def _name_pool(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, came
     if config.pair_tol_px is not None:
         ok &= jnp.abs(d_cat - d_obs) <= config.pair_tol_px / camera.f_px
     score = jnp.where(ok, weight[:, None] + weight[None, :], -jnp.inf).reshape(-1)
-    top_score, flat = jax.lax.top_k(score, config.n_pool_pairs)
+    top_score, flat = jax.lax.top_k(score, min(config.n_pool_pairs, score.shape[0]))
     u, v = flat // (3 * t), flat % (3 * t)
     return _first_confirmed(top_score, det[u], det[v], rows[u], rows[v], body, valid, star_vectors, cells,
                             camera=camera, config=config, grid=grid)
