@@ -175,10 +175,11 @@ class Config:
             detections by distance from the centre (ranks 4–6, then 7–9, …) go through steps 2–5
             in turn, up to this many triples (1 = the paper's S1–S3 only). Run only on the scenes
             still unconfirmed, so the cost grows with the failure rate. With the ``paper`` network
-            on 2,000 scenes per level (``reproduce_rpnet.py --sweeps fig9,fig10``), 1 / 3 / 6 / 12 / 20
-            triples identified 72.0 / 91.3 / 96.85 / 97.6 / 97.7 % at σ_m = 0.969 mag and 36.0 /
-            50.3 / 66.1 / 81.8 / 88.0 % at 50 % false stars, with the same mis-identified scenes
-            (1 and 2) throughout; 12 covers the ≈ 30–38 detections of a typical ``rpnet2019`` scene.
+            on 2,000 scenes per level (``reproduce_rpnet.py --sweeps fig9,fig10 --n-guide-triples T
+            --n-pool-pairs 0``), T = 1 / 3 / 6 / 12 / 20 triples identified 72.0 / 91.3 / 96.85 /
+            97.6 / 97.7 % at σ_m = 0.969 mag and 36.0 / 50.3 / 66.1 / 81.8 / 88.0 % at 50 % false
+            stars, with the same mis-identified scenes (1 and 2) throughout; 12 covers the ≈ 30–38
+            detections of a typical ``rpnet2019`` scene.
         n_pool_pairs: extension: after the triples, on the scenes still unconfirmed, the pairs of
             candidates of any two of the 3 · ``n_guide_triples`` nearest detections are scored
             (eq. 11 without the position weights) and this many of the best are verified in score

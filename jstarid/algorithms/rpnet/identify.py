@@ -111,13 +111,20 @@ def pair_checks(body, valid, near, cand_rows, star_vectors, *, camera, config: C
     near_ok = valid[near]
     cand_vec = star_vectors[cand_rows]  # (3, 3, 3)
     i, j, k, m = (jnp.asarray(PAIRS[:, c]) for c in range(4))  # S_ij ↔ S_km
-    d_cat = angle_between(cand_vec[i, j], cand_vec[k, m])  # eq. 10
-    d_obs = angle_between(body[near[i]], body[near[k]])
-    pair_ok = near_ok[i] & near_ok[k] & (cand_rows[i, j] != cand_rows[k, m])
-    pair_ok &= d_cat <= 2.0 * camera.half_diagonal_rad  # eq. 10: within the field's largest angle
+    return near_ok[i] & near_ok[k] & _admissible(
+        cand_rows[i, j], cand_rows[k, m], cand_vec[i, j], cand_vec[k, m], body[near[i]], body[near[k]],
+        camera=camera, config=config)
+
+
+def _admissible(row_a, row_b, ref_a, ref_b, obs_a, obs_b, *, camera, config: Config):
+    """The candidate-pair tests (broadcast over leading axes): two different stars whose catalog angle
+    (eq. 10) is within the field's largest angle and (``config.pair_tol_px``) agrees with the angle
+    between the observed directions ``obs_a``, ``obs_b`` (…, 3)."""
+    d_cat = angle_between(ref_a, ref_b)  # eq. 10
+    ok = (row_a != row_b) & (d_cat <= 2.0 * camera.half_diagonal_rad)
     if config.pair_tol_px is not None:
-        pair_ok &= jnp.abs(d_cat - d_obs) <= config.pair_tol_px / camera.f_px
-    return pair_ok
+        ok &= jnp.abs(d_cat - angle_between(obs_a, obs_b)) <= config.pair_tol_px / camera.f_px
+    return ok
 
 
 def _first_argmax(x):
@@ -356,15 +363,11 @@ def _name_pool(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, came
     rows = guide_rows[cls].reshape(-1)  # (3T,) candidate j of detection slot s at 3 s + j
     slot = jnp.repeat(jnp.arange(t), 3)
     det = near[slot]
-    vec = star_vectors[rows]
-    d_cat = angle_between(vec[:, None, :], vec[None, :, :])  # eq. 10
-    obs = body[det]
-    d_obs = angle_between(obs[:, None, :], obs[None, :, :])
+    vec, obs = star_vectors[rows], body[det]
     weight = jnp.asarray(config.probability_weights, jnp.float32)[jnp.tile(jnp.arange(3), t)] * p.reshape(-1)
     ok = ((slot[:, None] < slot[None, :]) & valid[det][:, None] & valid[det][None, :]
-          & (rows[:, None] != rows[None, :]) & (d_cat <= 2.0 * camera.half_diagonal_rad))
-    if config.pair_tol_px is not None:
-        ok &= jnp.abs(d_cat - d_obs) <= config.pair_tol_px / camera.f_px
+          & _admissible(rows[:, None], rows[None, :], vec[:, None], vec[None, :], obs[:, None], obs[None, :],
+                        camera=camera, config=config))
     score = jnp.where(ok, weight[:, None] + weight[None, :], -jnp.inf).reshape(-1)
     top_score, flat = jax.lax.top_k(score, min(config.n_pool_pairs, score.shape[0]))
     u, v = flat // (3 * t), flat % (3 * t)
