@@ -123,11 +123,16 @@ class Camera:
         inside = (x >= 0) & (x <= self.width - 1) & (y >= 0) & (y <= self.height - 1)
         return x, y, front & inside
 
-    def contains(self, xy):
-        """(...,) bool: pixel coordinates ``xy`` (..., 2) lie inside the frame."""
+    def contains(self, xy, inset_px=0.0):
+        """(...,) bool: pixel coordinates ``xy`` (..., 2) lie inside the frame.
+
+        ``inset_px`` shrinks the frame by that margin on every side (e.g. a match tolerance, so that a
+        star predicted just inside the edge is not expected when its detection may fall outside).
+        """
         xy = jnp.asarray(xy)
         x, y = xy[..., 0], xy[..., 1]
-        return (x >= 0) & (x <= self.width - 1) & (y >= 0) & (y <= self.height - 1)
+        return ((x >= inset_px) & (x <= self.width - 1 - inset_px)
+                & (y >= inset_px) & (y <= self.height - 1 - inset_px))
 
     def unproject(self, xy):
         """Pixels (..., 2) → unit vectors (..., 3) in the camera frame (inverse of :meth:`project`)."""

@@ -73,3 +73,11 @@ def test_camera_is_hashable_static():
     b = js.camera_preset("sgm2022")
     assert hash(a) == hash(b) and a == b
     assert js.camera_preset("sgm2022", mag_limit=6.5) != a
+
+
+def test_contains_with_inset():
+    cam = js.camera_preset("sgm2022")
+    xy = jnp.array([[0.0, 0.0], [4.9, 500.0], [5.0, 500.0], [cam.width - 6.0, 5.0],
+                    [cam.width - 5.9, 500.0], [500.0, cam.height]])
+    np.testing.assert_array_equal(cam.contains(xy), [True, True, True, True, True, False])
+    np.testing.assert_array_equal(cam.contains(xy, 5.0), [False, False, True, True, False, False])

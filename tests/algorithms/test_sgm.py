@@ -230,10 +230,7 @@ def _verify(db, cfg, scenes, ids, ok):
 def test_verification_catches_a_swapped_close_pair(setup):
     """Post-match verification (our addition): swapping the ids of a close pair is never accepted."""
     cat, cam, cfg, db = setup
-    v = np.asarray(cat.unit_vectors, np.float64)
-    sep = np.degrees(np.arccos(np.clip(v @ v.T, -1, 1)))
-    np.fill_diagonal(sep, np.inf)
-    p, q = np.nonzero((sep > 0.05) & (sep < 0.2))
+    p, q, sep = _close_pairs(cat, 0.05, 0.2)
     # boresight 1: on the pair (its main star is swapped); boresight 2: a star 3° from the pair
     far = np.nonzero((sep[p[0]] > 2.5) & (sep[p[0]] < 3.5))[0][0]
     scenes = js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(), capacity=CAPACITY,
@@ -270,6 +267,77 @@ def test_verification_at_three_pixels_names_nothing_wrong(setup):
     # verification only unnames: every kept id is the match's
     assert np.all((ids == -1) | (ids == np.asarray(raw.ids)))
     assert ok.sum() >= 2
+
+
+def _close_pairs(cat, lo_deg, hi_deg):
+    """(p, q) catalog rows of the pairs separated by lo–hi degrees."""
+    v = np.asarray(cat.unit_vectors, np.float64)
+    sep = np.degrees(np.arccos(np.clip(v @ v.T, -1, 1)))
+    np.fill_diagonal(sep, np.inf)
+    p, q = np.nonzero((sep > lo_deg) & (sep < hi_deg) & (np.arange(len(v))[:, None] < np.arange(len(v))))
+    return p, q, sep
+
+
+def test_verification_joint_test_catches_two_detections_on_one_star_of_a_pair(setup):
+    """Both detections of a close pair (A, B) sit on A, and the one named A is truly B's: the single
+    likelihood test passes (that detection is far closer to A than to B), the joint test does not."""
+    cat, cam, cfg, db = setup
+    p, q, sep = _close_pairs(cat, 0.15, 0.19)
+    rng = np.random.default_rng(3)
+    for pick in rng.permutation(p.size):
+        a, b = p[pick], q[pick]
+        far = np.nonzero((sep[a] > 2.5) & (sep[a] < 3.5))[0]
+        if far.size:
+            break
+    scenes = js.simulate(jax.random.key(21), cat, cam, js.NoiseConfig(position_sigma_px=1.5),
+                         capacity=CAPACITY, boresight_ids=far[:1])
+    truth = np.asarray(scenes.truth)
+    det_a, det_b = np.nonzero(truth[0] == a)[0], np.nonzero(truth[0] == b)[0]
+    assert det_a.size == 1 and det_b.size == 1
+    att = np.asarray(scenes.attitude[0], np.float64)
+    xy_a, _ = cam.project(jnp.asarray(att @ np.asarray(cat.unit_vectors, np.float64)[a]))
+    xy = np.array(scenes.xy)
+    xy[0, det_b[0]] = np.asarray(xy_a)  # B's detection drifted onto A …
+    xy[0, det_a[0]] = np.asarray(xy_a) + 0.2  # … and so did A's (0.2 px away)
+    moved = dataclasses.replace(scenes, xy=jnp.asarray(xy, jnp.float32))
+    ids = np.where(np.asarray(scenes.valid), truth, -1)
+    ids[0, det_b[0]], ids[0, det_a[0]] = a, -1  # the match named B's detection A
+    out, ok = _verify(db, cfg, moved, ids, np.ones(1, bool))
+    assert ok[0]  # the rest of the scene is fine
+    assert out[0, det_b[0]] == -1 and not np.any((out >= 0) & (out != truth))
+    assert np.sum(out[0] >= 0) >= np.sum(ids[0] >= 0) - 3
+
+
+def test_verification_frame_coverage_rejects_a_consistent_but_wrong_attitude(setup):
+    """A few stars named consistently near the main star, but the rest of the frame belongs to another
+    sky region (what a small graph matched to the wrong database graph looks like): the scene fails."""
+    cat, cam, cfg, db = setup
+    rows = np.random.default_rng(4).choice(len(cat), 2, replace=False)
+    scenes = js.simulate(jax.random.key(22), cat, cam, js.NoiseConfig(position_sigma_px=1.0),
+                         capacity=CAPACITY, boresight_ids=rows)
+    xy, valid, truth = (np.asarray(x) for x in (scenes.xy, scenes.valid, scenes.truth))
+    ids = np.where(valid, truth, -1)
+    out, ok = _verify(db, cfg, scenes, ids, np.ones(2, bool))
+    assert np.all(ok)  # the true names pass
+    centre = np.array([cam.cx, cam.cy])
+    inner = valid[0] & (np.linalg.norm(xy[0] - centre, axis=1) < 4.0 / 20.0 * cam.width)
+    outer = valid[1] & (np.linalg.norm(xy[1] - centre, axis=1) >= 4.0 / 20.0 * cam.width)
+    assert inner.sum() >= cfg.min_matched
+    n_mix = inner.sum() + outer.sum()
+    mix_xy = np.zeros((1, CAPACITY, 2), np.float32)
+    mix_xy[0, :n_mix] = np.concatenate([xy[0][inner], xy[1][outer]])
+    mix_valid = np.arange(CAPACITY)[None] < n_mix
+    mix_ids = np.full((1, CAPACITY), -1, np.int32)
+    mix_ids[0, :inner.sum()] = truth[0][inner]
+    mixed = js.Scene(xy=jnp.asarray(mix_xy), mag=jnp.where(mix_valid, 5.0, jnp.inf),
+                     truth=jnp.asarray(mix_ids), valid=jnp.asarray(mix_valid),
+                     attitude=scenes.attitude[:1], overflow=jnp.zeros(1, bool))
+    out, ok = _verify(db, cfg, mixed, mix_ids, np.ones(1, bool))
+    assert not ok[0] and np.all(out == -1)
+    # the residual, ambiguity and count tests alone accept it: only the coverage test fails it
+    out, ok = _verify(db, dataclasses.replace(cfg, verify_min_coverage=0.0), mixed, mix_ids,
+                      np.ones(1, bool))
+    assert ok[0]
 
 
 def test_grid_replay_equals_separate_searches(setup5):

@@ -318,10 +318,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, *, camera
     c2 = jnp.where(jnp.sum(named1) >= 2, c2, c1)
     # coverage: catalog stars the final attitude puts inside the frame (inset by the tolerance)
     xy_pred, in_field = camera.project(loc_vec @ c2.T)
-    inset = config.match_tol_px
-    inside = ((loc < star_vectors.shape[0]) & in_field
-              & (xy_pred[:, 0] >= inset) & (xy_pred[:, 0] <= camera.width - 1 - inset)
-              & (xy_pred[:, 1] >= inset) & (xy_pred[:, 1] <= camera.height - 1 - inset))
+    inside = (loc < star_vectors.shape[0]) & in_field & camera.contains(xy_pred, config.match_tol_px)
     return loc[rows1], named1, c2, jnp.sum(inside)
 
 

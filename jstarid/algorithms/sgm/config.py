@@ -78,12 +78,23 @@ class Config:
             paper's largest noise), so a wrong attitude cannot widen the tolerance further.
         verify_ambiguity_k: margin of the ambiguity guard in robust-RMS units: the kept name is at
             least exp(``verify_ambiguity_k²``) times likelier than the rival under isotropic Gaussian
-            noise (2: ≈ 55×). A clean swap fails for any value ≥ 0 (its own residual ≈ the pair's
+            noise (2.5: ≈ 500×). A clean swap fails for any value ≥ 0 (its own residual ≈ the pair's
             separation, the rival's ≈ the noise); the margin also catches swaps the noise blurs, at
             the cost of unnaming true stars of nearly indistinguishable pairs (incomplete scenes).
-            Measured (reproduce_sgm --quick, σ = 3 px): 1 left 1 of 20 scenes mis-identified, 2 left
-            none; on 24 other σ = 3 px scenes 2 turned 4 correct scenes incomplete.
+            Measured by replaying the verification on the raw matches of 1,400 scenes (7 noisy
+            levels of the session-4 200-star Table 2 run, σ 1–3 px, with the joint test and the
+            frame coverage): 2.0 left 3 scenes mis-identified (a detection of a close pair that
+            drifted 2.7–3.1 σ towards the other star, likelihood ratio ≈ 30–300) and 1,133 correct;
+            2.5 left none and 1,079 correct (the other 54 incomplete: one star of a close pair
+            unnamed); 3.0 none and 1,011 correct. A mis-identification is worse than an unnamed
+            star, so 2.5.
         verify_ambiguity_deg: smallest window of the ambiguity guard (deg).
+        verify_min_coverage: the frame-coverage test of the verification (0 = off): at least this
+            fraction of the catalog stars that the verified attitude projects inside the frame (inset
+            by the tolerance) must have a detection within the tolerance. 0.4 as in RpNet
+            (``rpnet.Config.min_coverage``). Measured on the 8 mis-identified scenes of the session-4
+            200-star Table 2 run: the 2 wrong small-graph matches covered 11–12 % of the frame, the
+            6 close-pair swaps and the correct scenes 97–100 %.
     """
 
     radius_deg: float = 6.0
@@ -108,8 +119,9 @@ class Config:
     verify_k: float = 3.5
     verify_floor_deg: float = 0.02
     verify_cap_deg: float = 0.3
-    verify_ambiguity_k: float = 2.0
+    verify_ambiguity_k: float = 2.5
     verify_ambiguity_deg: float = 0.2
+    verify_min_coverage: float = 0.4
 
     def __post_init__(self):
         if not 0 < self.radius_deg < 90:
@@ -127,9 +139,10 @@ class Config:
         if self.min_stars < 1 or self.min_matched < 1:
             raise ValueError("min_stars and min_matched must be ≥ 1")
         if (self.verify_k <= 0 or not 0 < self.verify_floor_deg <= self.verify_cap_deg
-                or self.verify_ambiguity_k < 0 or self.verify_ambiguity_deg < 0):
-            raise ValueError("need verify_k > 0, 0 < verify_floor_deg ≤ verify_cap_deg and "
-                             "non-negative ambiguity settings")
+                or self.verify_ambiguity_k < 0 or self.verify_ambiguity_deg < 0
+                or not 0 <= self.verify_min_coverage <= 1):
+            raise ValueError("need verify_k > 0, 0 < verify_floor_deg ≤ verify_cap_deg, "
+                             "non-negative ambiguity settings and verify_min_coverage in [0, 1]")
 
     @property
     def n_levels(self) -> int:

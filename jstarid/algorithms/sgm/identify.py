@@ -15,8 +15,9 @@ circle boundary under position noise) by the attitude of the matched stars.
 Post-match verification (our addition, not the paper's; on by default, ``Config.verify``): the
 attitude is fitted from the named stars, stars whose residual exceeds a noise-tied tolerance or that
 have a close rival catalog star they do not clearly beat are unnamed, and the scene fails when its
-main star is unnamed or too few stars remain (:mod:`.verify`) — a failure rather than a
-mis-identification.
+main star is unnamed, too few stars remain, or the attitude does not explain the rest of the frame
+(too few of the catalog stars it puts in the frame have a detection there; :mod:`.verify`) — a
+failure rather than a mis-identification.
 
 The search and the bookkeeping run as a host loop over jit-compiled, vmapped kernels (graphs,
 candidate ordering, chunked spectral matching); see :mod:`.search` for why it equals Algorithm 1.
@@ -38,6 +39,7 @@ from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
 from jstarid.metrics import nearest_to_principal_point
 from jstarid.scene import Identification, Scene
+from jstarid.sky_index import build_sky_index
 
 __all__ = ["identify", "scene_graphs"]
 
@@ -123,15 +125,21 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
 
 def _verify(db, scenes: Scene, result: Identification, main, config: Config) -> Identification:
     """Run :func:`~jstarid.algorithms.sgm.verify.verify_ids` with the settings of ``config``."""
-    cat = jnp.asarray(db.catalog.unit_vectors, jnp.float32)
+    cat_np = np.asarray(db.catalog.unit_vectors, np.float64)
+    cat = jnp.asarray(cat_np, jnp.float32)
     n_near = int(min(2 * db.capacity, cat.shape[0]))
-    ids, ok = verify_ids(cat, scenes.xy, scenes.valid, result.ids, result.ok, jnp.asarray(main),
-                         camera=db.camera, k=float(config.verify_k),
-                         floor_deg=float(config.verify_floor_deg),
+    # every catalog star within the field's half diagonal of any boresight in a cell (frame coverage)
+    index = build_sky_index(cat_np, db.camera.half_diagonal_rad,
+                            key=f"sgm-frame-{db.catalog.fingerprint}")
+    cells, _ = index.device_arrays()
+    ids, ok = verify_ids(cat, cells, scenes.xy, scenes.valid, result.ids, result.ok,
+                         jnp.asarray(main), camera=db.camera, grid=index.grid,
+                         k=float(config.verify_k), floor_deg=float(config.verify_floor_deg),
                          cap_deg=float(config.verify_cap_deg),
                          amb_k=float(config.verify_ambiguity_k),
                          amb_deg=float(config.verify_ambiguity_deg),
-                         min_matched=int(config.min_matched), n_near=n_near)
+                         min_matched=int(config.min_matched),
+                         min_coverage=float(config.verify_min_coverage), n_near=n_near)
     return Identification(ids=ids, ok=ok, attitude=None)
 
 
