@@ -117,6 +117,7 @@ def _parser():
 
 
 if __name__ == "__main__":
+    js.use_cpu_cores()  # SGM's pair kernels split over every core (one JAX device each)
     a = _parser().parse_args()
     rows = run(a)
     if a.json:

@@ -199,4 +199,5 @@ def main(argv=None):
 
 if __name__ == "__main__":
     js.enable_compilation_cache()  # later runs skip XLA compilation (a command-line run only)
+    js.use_cpu_cores()  # SGM's pair kernels split over every core (one JAX device each)
     main()

@@ -18,6 +18,7 @@ from jstarid.compilation_cache import enable_compilation_cache
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.scene import Identification, Scene, scenes_from_centroids
 from jstarid.simulator import NoiseConfig, noise_grid, simulate
+from jstarid.sweep import use_cpu_cores
 
 __version__ = "0.1.0"
 
@@ -27,5 +28,6 @@ __all__ = [
     "evaluate", "load_catalog", "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation",
     "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",
     "rotation_to_radec_roll", "scene_outcomes", "scenes_from_centroids", "simulate", "solve_wahba",
+    "use_cpu_cores",
     "v_from_hp",
 ]

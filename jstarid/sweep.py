@@ -10,14 +10,46 @@ the single-device call exactly. On one device it simply calls ``fn``.
 from __future__ import annotations
 
 import functools
+import os
 
 import jax
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
-__all__ = ["batch_mesh", "shard_batch", "map_batch"]
+__all__ = ["batch_mesh", "shard_batch", "replicate", "map_batch", "use_cpu_cores"]
 
 BATCH_AXIS = "batch"
+
+
+def use_cpu_cores(n: int | None = None) -> int:
+    """Expose ``n`` CPU cores (default: all) as n JAX host devices, so :func:`map_batch` runs on each.
+
+    JAX gives a CPU one device by default, and a computation made of many small matrix products
+    (SGM's per-pair spectral matching) then leaves the other cores mostly idle. This sets
+    ``--xla_force_host_platform_device_count`` in ``XLA_FLAGS``, which JAX reads when its backend
+    starts: call it before the first JAX computation (scripts call it first thing; importing
+    ``jstarid`` does not start the backend). An explicit count already in ``XLA_FLAGS`` (e.g. the
+    test suite's) is left alone.
+
+    Returns:
+        The device count requested (or the one already set).
+
+    Raises:
+        RuntimeError: the JAX backend has already started with another device count.
+    """
+    flag = "--xla_force_host_platform_device_count"
+    flags = os.environ.get("XLA_FLAGS", "")
+    if flag in flags:
+        return int(flags.split(flag + "=")[1].split()[0])
+    n = int(n or os.cpu_count() or 1)
+    from jax._src import xla_bridge  # no public test for "backend started" (jax 0.10)
+
+    if xla_bridge.backends_are_initialized():
+        if jax.device_count() != n and jax.default_backend() == "cpu":
+            raise RuntimeError("use_cpu_cores must run before the first JAX computation")
+        return jax.device_count()
+    os.environ["XLA_FLAGS"] = f"{flags} {flag}={n}".strip()
+    return n
 
 
 def batch_mesh(devices=None) -> jax.sharding.Mesh:
@@ -30,6 +62,13 @@ def shard_batch(tree, mesh=None):
     """Place every leaf's leading axis across the mesh (its length must divide evenly)."""
     mesh = batch_mesh() if mesh is None else mesh
     sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
+    return jax.tree.map(lambda a: jax.device_put(a, sharding), tree)
+
+
+def replicate(tree, mesh=None):
+    """Copy every leaf to every device of the mesh (arrays that each device reads whole)."""
+    mesh = batch_mesh() if mesh is None else mesh
+    sharding = NamedSharding(mesh, PartitionSpec())
     return jax.tree.map(lambda a: jax.device_put(a, sharding), tree)
 
 

@@ -32,9 +32,10 @@ from jstarid.algorithms.sgm.bound import error_lower_bound, sorted_rows
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.geometry import range_search
+from jstarid.sweep import map_batch, replicate
 
-__all__ = ["candidate_windows", "order_candidates", "prune_mask", "dynamic_search", "run_pairs", "bucket_up",
-           "next_pow2"]
+__all__ = ["candidate_windows", "order_candidates", "prune_mask", "dynamic_search", "run_pairs",
+           "database_tables", "bucket_up", "next_pow2"]
 
 
 def _bucket(x: int, m: int) -> int:
@@ -86,24 +87,57 @@ def _match_pairs(a_i, n_i, cand, db_adj, db_n, *, p, q, c, n_iter, tol, min_matc
     The pairs run one after the other (``lax.map``), not side by side (``vmap``): each power step
     reads the pair's whole (p·q)² affinity matrix, which stays in cache for all its steps when only
     one pair is live, while a vmapped batch streams every matrix from memory at every step (measured
-    ≈ 2× faster for p = q = 16–48). It also lets ``Config.power_tol`` stop each pair on its own.
+    ≈ 2× faster for p = q = 16–48). It also lets ``Config.power_tol`` stop each pair on its own, and
+    padding pairs (``cand`` = −1, which fill a call up to its compiled size) are skipped by
+    ``lax.cond`` (match −1, δ = inf) instead of being matched.
     """
+    live = cand >= 0
+    cand = jnp.maximum(cand, 0)
     a_j = db_adj[cand][:, :q, :q]
     mask_i = jnp.arange(p)[None, :] < n_i[:, None]
     mask_j = jnp.arange(q)[None, :] < db_n[cand][:, None]
     match_one = functools.partial(spectral_match, c=c, n_iter=n_iter, min_matched=min_matched, tol=tol)
-    return jax.lax.map(lambda args: match_one(*args), (a_i, mask_i, a_j, mask_j))
+    return skip_padding(match_one, live, (a_i, mask_i, a_j, mask_j),
+                        (jnp.full((p,), -1, jnp.int32), jnp.asarray(jnp.inf, jnp.float32)))
+
+
+def skip_padding(fn, live, args, dead):
+    """``lax.map`` of ``fn(*args_n)`` over pairs n, returning ``dead`` for pairs where ``live`` is False.
+
+    On CPU ``lax.cond`` inside a sequential map runs one branch only, so padding costs nothing.
+    """
+    def one(xs):
+        return jax.lax.cond(xs[0], lambda a: fn(*a), lambda a: dead, xs[1:])
+
+    return jax.lax.map(one, (live, *args))
 
 
 @functools.partial(jax.jit, static_argnames=("r", "max_skip"))
 def _bound_pairs(a_i, n_i, cand, db_adj, db_n, *, r, max_skip):
-    """:func:`~.bound.error_lower_bound` of N (image graph, database graph) pairs → (N,) (deg)."""
-    a_j = db_adj[cand][:, :r, :r]
-    n_j = db_n[cand]
-    rows_i = sorted_rows(a_i, jnp.arange(r)[None, :] < n_i[:, None])
-    rows_j = sorted_rows(a_j, jnp.arange(r)[None, :] < n_j[:, None])
+    """:func:`~.bound.error_lower_bound` of N (image graph, database graph) pairs → (N,) (deg).
+
+    Vectorized over groups of 16 pairs (``vmap``); groups made only of padding pairs (``cand`` = −1)
+    are skipped (bound 0).
+    """
+    live = cand >= 0
+    cand = jnp.maximum(cand, 0)
+    n = cand.shape[0]
+    group = math.gcd(n, 16)
     bound = functools.partial(error_lower_bound, max_skip=max_skip)
-    return jax.vmap(bound)(rows_i, n_i, rows_j, n_j)
+
+    def one_group(a_g, ni_g, cand_g):
+        a_j = db_adj[cand_g][:, :r, :r]
+        n_j = db_n[cand_g]
+        rows_i = sorted_rows(a_g, jnp.arange(r)[None, :] < ni_g[:, None])
+        rows_j = sorted_rows(a_j, jnp.arange(r)[None, :] < n_j[:, None])
+        return jax.vmap(bound)(rows_i, ni_g, rows_j, n_j)
+
+    def split(x):
+        return x.reshape((n // group, group) + x.shape[1:])
+
+    out = skip_padding(one_group, jnp.any(split(live), axis=1), (split(a_i), split(n_i), split(cand)),
+                       jnp.zeros((group,), jnp.float32))
+    return out.reshape(n)
 
 
 def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
@@ -115,12 +149,19 @@ def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
 
 
 def run_pairs(kernel, key_sizes, adj_i, n_i, scene, cand, per_pair_bytes, budget, size_names, out_tails,
-               **kw):
+              tables, **static):
     """Run a pair kernel over flat (scene, candidate) pairs grouped by padded graph size.
 
+    Each call's pairs are split over every device (:func:`jstarid.sweep.map_batch`): on a CPU with
+    ``--xla_force_host_platform_device_count=n`` the n slices run on n cores at once, where one device
+    leaves the second core of a 2-core machine mostly idle (a pair's small matrix products do not
+    spread over threads: one core measured only 12 % slower than two).
+
     Args:
-        kernel: :func:`_match_pairs` or :func:`_bound_pairs`; called with the image adjacency sliced to
-            the group's size and ``**kw`` plus the group's static sizes.
+        kernel: :func:`_match_pairs` or :func:`_bound_pairs`; called as
+            ``kernel(a_i, n_i, cand, *tables, **static, **sizes)`` with the image adjacency sliced to
+            the group's size; calls are filled up to a power of two with padding pairs whose
+            ``cand`` is −1 (the kernel must skip them or give them a harmless value).
         key_sizes: (N, k) int static sizes of each pair (e.g. (p, q) or (r,)); pairs are grouped by row.
         adj_i: (B, K, K) image adjacencies (NumPy). n_i: (B,) image vertex counts.
         scene, cand: (N,) int scene row and database row of each pair.
@@ -129,11 +170,15 @@ def run_pairs(kernel, key_sizes, adj_i, n_i, scene, cand, per_pair_bytes, budget
             ``key_sizes``.
         out_tails: trailing shape of each kernel output in the result (a per-vertex axis, which the
             kernel returns at its group's size, is given as K and padded with −1).
+        tables: tuple of arrays every pair reads (database tables), ideally already on every device
+            (:func:`database_tables`).
+        **static: the kernel's other (hashable) keyword arguments.
 
     Returns:
         List of the kernel outputs in pair order (NumPy arrays of shape (N,) + tail).
     """
     outs = None
+    n_dev = jax.device_count()
     groups = {}
     for idx, key in enumerate(map(tuple, key_sizes)):
         groups.setdefault(key, []).append(idx)
@@ -141,18 +186,42 @@ def run_pairs(kernel, key_sizes, adj_i, n_i, scene, cand, per_pair_bytes, budget
         members = np.asarray(members)
         for lo, hi, padded in _batches(members.size, per_pair_bytes(*sizes), budget):
             sel = members[lo:hi]
-            fill = np.concatenate([sel, np.repeat(sel[:1], padded - sel.size)])
-            res = kernel(jnp.asarray(adj_i[scene[fill], :sizes[0], :sizes[0]]),
-                         jnp.asarray(n_i[scene[fill]]), jnp.asarray(cand[fill]), **kw,
-                         **dict(zip(size_names, sizes, strict=True)))
+            # padding pairs repeat the first pair's scene with candidate −1 (kernels skip them); the
+            # real pairs are dealt round-robin to the devices' equal slices so each gets its share
+            slot = _spread(sel.size, padded, n_dev)
+            fill = np.full(padded, sel[0])
+            fill[slot] = sel
+            cand_fill = np.full(padded, -1, np.int64)
+            cand_fill[slot] = cand[sel]
+            batched = (jnp.asarray(adj_i[scene[fill], :sizes[0], :sizes[0]]),
+                       jnp.asarray(n_i[scene[fill]]), jnp.asarray(cand_fill))
+            res = map_batch(kernel, batched, tuple(tables),
+                            static={**static, **dict(zip(size_names, sizes, strict=True))})
             res = res if isinstance(res, tuple) else (res,)
             if outs is None:
                 outs = [np.full((scene.size,) + tuple(t), -1, np.asarray(r).dtype)
                         for r, t in zip(res, out_tails, strict=True)]
             for o, r in zip(outs, res, strict=True):
-                r = np.asarray(r)[:sel.size]
+                r = np.asarray(r)[slot]
                 o[(sel,) + tuple(slice(0, d) for d in r.shape[1:])] = r
     return outs
+
+
+def _spread(n: int, padded: int, n_dev: int) -> np.ndarray:
+    """Slots (n,) in a call of ``padded`` pairs for n real pairs: k-th pair → device k mod n_dev."""
+    if n_dev <= 1 or padded % n_dev:
+        return np.arange(n)
+    k = np.arange(n)
+    return (k % n_dev) * (padded // n_dev) + k // n_dev
+
+
+def database_tables(db):
+    """``(adj, n)`` of the database as device arrays on every device (placed once per database)."""
+    cached = db.__dict__.get("_tables")
+    if cached is None:
+        cached = replicate((db.device_adj, jnp.asarray(db.n)))
+        object.__setattr__(db, "_tables", cached)
+    return cached
 
 
 def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float) -> np.ndarray:
@@ -182,7 +251,7 @@ def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float
         (lb[bounded],) = run_pairs(
             _bound_pairs, np.stack([r, sk], axis=1), adj_i, n_i, scene[bounded], rows[bounded],
             lambda r_, s_: r_ * r_ * (r_ - 1 + 3 * (s_ + 1)) * 4, config.memory_budget_mb * 2**20,
-            ("r", "max_skip"), [()], db_adj=db.device_adj, db_n=jnp.asarray(db.n))
+            ("r", "max_skip"), [()], database_tables(db))
     return ~(lb > max_error_deg * (1 + 1e-4) + 1e-5)
 
 
@@ -229,7 +298,6 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
     n_pruned = np.zeros(b, np.int32)
     done = ~usable | (count == 0)
     adj_i, n_i = graphs["adj"], graphs["n"].astype(np.int32)
-    db_adj, db_n = db.device_adj, jnp.asarray(db.n)
     budget = config.memory_budget_mb * 2**20
     prune_at = config.max_error_deg
     r0 = 0
@@ -253,7 +321,7 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
                            bucket_up(n_j, config.size_bucket)], axis=1)
             match_flat, err_flat = run_pairs(
                 _match_pairs, pq, adj_i, n_i, scene, rows, lambda p, q: (p * q) ** 2 * 4 * 3, budget,
-                ("p", "q"), [(k,), ()], db_adj=db_adj, db_n=db_n, c=float(config.c),
+                ("p", "q"), [(k,), ()], database_tables(db), c=float(config.c),
                 n_iter=int(config.power_iterations), tol=float(config.power_tol),
                 min_matched=int(config.min_matched))
             err[s_idx, c_idx] = err_flat

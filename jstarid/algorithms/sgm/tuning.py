@@ -26,11 +26,14 @@ from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.algorithms.sgm.search import (
     bucket_up,
     candidate_windows,
+    database_tables,
     next_pow2,
     order_candidates,
     prune_mask,
     run_pairs,
+    skip_padding,
 )
+from jstarid.sweep import replicate
 
 __all__ = ["candidate_errors", "replay_algorithm1", "grid_identifications"]
 
@@ -38,6 +41,8 @@ __all__ = ["candidate_errors", "replay_algorithm1", "grid_identifications"]
 @functools.partial(jax.jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
 def _match_pairs_grid(a_i, n_i, cand, db_adj, db_n, cs, *, p, q, n_iter, tol, min_matched):
     """Spectral matching of N pairs for every c of ``cs`` (C,) → (N, C, p) match, (N, C) δ (deg)."""
+    live = cand >= 0
+    cand = jnp.maximum(cand, 0)
     a_j = db_adj[cand][:, :q, :q]
     mask_i = jnp.arange(p)[None, :] < n_i[:, None]
     mask_j = jnp.arange(q)[None, :] < db_n[cand][:, None]
@@ -47,7 +52,8 @@ def _match_pairs_grid(a_i, n_i, cand, db_adj, db_n, cs, *, p, q, n_iter, tol, mi
 
     over_c = jax.vmap(one, in_axes=(None, None, None, None, 0))
     # pairs one after the other, the c values of a pair side by side (see search._match_pairs)
-    return jax.lax.map(lambda args: over_c(*args, cs), (a_i, mask_i, a_j, mask_j))
+    dead = (jnp.full((cs.shape[0], p), -1, jnp.int32), jnp.full((cs.shape[0],), jnp.inf, jnp.float32))
+    return skip_padding(lambda *args: over_c(*args, cs), live, (a_i, mask_i, a_j, mask_j), dead)
 
 
 def candidate_errors(db, graphs: dict, usable: np.ndarray, config: Config, cs, max_error_deg: float,
@@ -85,7 +91,7 @@ def candidate_errors(db, graphs: dict, usable: np.ndarray, config: Config, cs, m
     error = np.full((b, width, cs.size), np.inf, np.float32)
     matches = {}
     adj_i, n_i = graphs["adj"], graphs["n"].astype(np.int32)
-    db_adj, db_n = db.device_adj, jnp.asarray(db.n)
+    cs_dev = replicate(jnp.asarray(cs))
     budget = config.memory_budget_mb * 2**20
     for r0 in range(0, width, block):
         s_idx, r_idx = np.nonzero(cand_all[:, r0:r0 + block] >= 0)
@@ -101,7 +107,7 @@ def candidate_errors(db, graphs: dict, usable: np.ndarray, config: Config, cs, m
                        bucket_up(n_j, config.size_bucket)], axis=1)
         m, e = run_pairs(_match_pairs_grid, pq, adj_i, n_i, s_idx, rows,
                           lambda p, q: (p * q) ** 2 * 4 * 3 * cs.size, budget, ("p", "q"),
-                          [(cs.size, k), (cs.size,)], db_adj=db_adj, db_n=db_n, cs=jnp.asarray(cs),
+                          [(cs.size, k), (cs.size,)], (*database_tables(db), cs_dev),
                           n_iter=int(config.power_iterations), tol=float(config.power_tol),
                           min_matched=int(config.min_matched))
         error[s_idx, r_idx] = e

@@ -1,0 +1,43 @@
+"""Device helpers of jstarid.sweep: host device count, replication, sharded pair kernels."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jstarid as js
+from jstarid.algorithms.sgm.search import _spread, skip_padding
+
+
+def test_use_cpu_cores_reads_an_explicit_count_and_refuses_a_late_change(monkeypatch):
+    assert js.use_cpu_cores() == jax.device_count()  # conftest set the count in XLA_FLAGS
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=7 --foo")
+    assert js.use_cpu_cores() == 7
+    monkeypatch.setenv("XLA_FLAGS", "")
+    jax.devices()  # the backend is running
+    assert js.use_cpu_cores(jax.device_count()) == jax.device_count()
+    with pytest.raises(RuntimeError, match="before the first JAX computation"):
+        js.use_cpu_cores(jax.device_count() + 1)
+
+
+def test_replicate_puts_a_copy_on_every_device():
+    x = js.sweep.replicate(jnp.arange(5))
+    assert len(x.sharding.device_set) == jax.device_count()
+    np.testing.assert_array_equal(np.asarray(x), np.arange(5))
+
+
+@pytest.mark.parametrize("n, padded, n_dev", [(5, 16, 4), (16, 16, 4), (1, 16, 2), (9, 32, 1), (3, 16, 3)])
+def test_spread_deals_pairs_evenly_into_distinct_slots(n, padded, n_dev):
+    slot = _spread(n, padded, n_dev)
+    assert slot.size == n and np.unique(slot).size == n and slot.max() < padded
+    if n_dev > 1 and padded % n_dev == 0:
+        per_device = np.bincount(slot // (padded // n_dev), minlength=n_dev)
+        assert per_device.max() - per_device.min() <= 1
+
+
+def test_skip_padding_runs_live_entries_only():
+    calls = jnp.arange(6.0)
+    live = jnp.array([True, False, True, True, False, False])
+    out = skip_padding(lambda x: (x * 2.0, x + 1.0), live, (calls,), (jnp.float32(-1), jnp.float32(-2)))
+    np.testing.assert_array_equal(np.asarray(out[0]), [0, -1, 4, 6, -1, -1])
+    np.testing.assert_array_equal(np.asarray(out[1]), [1, -2, 3, 4, -2, -2])
