@@ -109,7 +109,7 @@ def map_batch(fn, batched, replicated=(), *, static=None, mesh=None):
     return jax.tree.map(lambda a: a[:b], out) if total != b else out
 
 
-@functools.lru_cache(maxsize=64)
+@functools.cache  # one entry per (kernel, static sizes): SGM uses hundreds
 def _compiled(fn, static_items, mesh):
     static = dict(static_items)
 
