@@ -57,6 +57,7 @@ from jstarid.algorithms.mlv.voting import (
     observed_sides,
 )
 from jstarid.scene import Identification, Scene
+from jstarid.sweep import map_batch
 
 __all__ = ["Diagnostics", "Tuning", "default_pool", "identify", "identify_with_diagnostics",
            "identify_scene"]
@@ -360,7 +361,9 @@ def identify_with_diagnostics(database: Database, scenes: Scene, config: Config 
         k = config.candidate_capacity
         while True:
             pool = default_pool(config, th1_max, th2_max, k, database.n_triangles)
-            out = _identify_batch(*args, database, kernel_config, k, pool, th1_max)
+            # the chunk's scenes split over every device (one per CPU core after js.use_cpu_cores())
+            out = map_batch(_identify_batch, args, (database,),
+                            static=dict(config=kernel_config, capacity=k, pool=pool, th1_max=th1_max))
             if not bool(jnp.any(out["overflow"])) or k >= config.max_candidate_capacity:
                 break
             k = min(2 * k, config.max_candidate_capacity)

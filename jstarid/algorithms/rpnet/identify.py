@@ -39,7 +39,8 @@ the network on all 3 × chunk inputs at once (:func:`network_candidates`), then 
 stars of the sky-index cell of the pair's boresight (≈ 200 instead of the whole catalog; every star
 that could be named is in it), the refinement passes are unrolled, argmax/argmin are two plain
 reductions (:func:`_first_argmax`), and scenes are sorted by their number of detection columns so that
-each chunk is cut to the width it needs (:data:`WIDTH_STEP`).
+each chunk is cut to the width it needs (:data:`WIDTH_STEP`); each chunk's scenes are split over
+every JAX device (:func:`jstarid.sweep.map_batch`; the results equal the one-device call).
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ from jstarid.attitude import solve_wahba
 from jstarid.geometry.angles import angle_between
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, cell_of
+from jstarid.sweep import map_batch
 
 __all__ = ["PAIRS", "anchor_names", "identify", "name_stars", "network_candidates", "pair_checks",
            "top3_blocked", "weight_search"]
@@ -482,6 +484,8 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
     ok_out = np.zeros((b,), bool)
     att_out = np.full((b, 3, 3), np.nan, np.float32)
 
+    replicated = (database.variables, guide_rows, database.star_vectors, cells)
+
     def run(subset, trials, chunk, triple=0, pool=False):
         order = subset[np.argsort(last[subset], kind="stable")]
         for start in range(0, order.size, chunk):
@@ -494,13 +498,12 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
                 valid = np.pad(valid, ((0, pad), (0, 0)))
             common = dict(camera=database.camera, config=config, n_classes=database.n_classes,
                           grid=index.grid)
+            # each chunk split over every device (one per CPU core after js.use_cpu_cores())
             if pool:
-                ids, ok, att = _identify_pool_chunk(jnp.asarray(xy), jnp.asarray(valid), database.variables,
-                                                    guide_rows, database.star_vectors, cells, **common)
+                ids, ok, att = map_batch(_identify_pool_chunk, (xy, valid), replicated, static=common)
             else:
-                ids, ok, att = _identify_chunk(jnp.asarray(xy), jnp.asarray(valid), database.variables,
-                                               guide_rows, database.star_vectors, cells, jnp.int32(triple),
-                                               trials=trials, **common)
+                ids, ok, att = map_batch(_identify_chunk, (xy, valid), (*replicated, jnp.int32(triple)),
+                                         static=dict(common, trials=trials))
             keep = len(sel)
             ids_out[sel, :width] = np.asarray(ids)[:keep]
             ok_out[sel] = np.asarray(ok)[:keep]
