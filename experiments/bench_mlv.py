@@ -32,6 +32,8 @@ def parse_args(argv=None):
     p.add_argument("--position-sigma", type=float, default=1.0, help="px")
     p.add_argument("--magnitude-sigma", type=float, default=0.3, help="mag")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--devices", type=int, default=None,
+                   help="JAX CPU devices (default: one per core; 1 keeps each chunk on one device)")
     p.add_argument("--paper-voting", action="store_true")
     p.add_argument("--json", default=None, help="write the result dict here")
     return p.parse_args(argv)
@@ -95,6 +97,7 @@ def run(args) -> list[dict]:
 
 if __name__ == "__main__":
     a = parse_args()
+    js.use_cpu_cores(a.devices)  # each chunk's scenes split over every core (one JAX device each)
     out = run(a)
     print(json.dumps(out, indent=1))
     if a.json:

@@ -51,6 +51,8 @@ def parse_args(argv=None):
     p.add_argument("--position-sigma", type=float, default=0.5, help="px")
     p.add_argument("--train-steps", type=int, default=5, help="timed train steps per stage (0: skip)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--devices", type=int, default=None,
+                   help="JAX CPU devices (default: one per core; 1 keeps each chunk on one device)")
     p.add_argument("--json", default=None, help="write the rows here")
     return p.parse_args(argv)
 
@@ -216,6 +218,7 @@ def run(args) -> list[dict]:
 
 if __name__ == "__main__":
     a = parse_args()
+    js.use_cpu_cores(a.devices)  # each chunk's scenes split over every core (one JAX device each)
     out = run(a)
     print(json.dumps(out, indent=1))
     if a.json:

@@ -298,5 +298,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
+    js.use_cpu_cores()  # each chunk's scenes split over every core (one JAX device each)
     js.enable_compilation_cache()  # later runs skip XLA compilation (a command-line run only)
     main()

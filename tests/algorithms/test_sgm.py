@@ -366,3 +366,71 @@ def test_grid_replay_equals_separate_searches(setup5):
             np.testing.assert_array_equal(best, info["best"])
             np.testing.assert_array_equal(ids[:, ci, ei], np.asarray(res.ids))
     assert ok.any() and not ok.all()  # the grid has successes and failures
+
+
+def _pair_case(j_name, mags=None, contender_deg=None, third_star_deg=None, s=0.08):
+    """Hand-built ambiguity case (camera frame = ICRS): stars A (boresight) and B 0.2° from A along
+    +x, C 2° away along +y. Detection i is 0.05° from A towards B (named A), j is 0.21° from A on
+    the far side of B (named ``j_name``), k sits on C (named C); optionally an unnamed detection
+    ``contender_deg`` from A on the −x side, and a third catalog star D ``third_star_deg`` from A on
+    the −x side with no detection."""
+    from jstarid.algorithms.sgm.verify import _ambiguity_clear
+
+    def unit(x_deg, y_deg):
+        v = np.array([np.tan(np.radians(x_deg)), np.tan(np.radians(y_deg)), 1.0])
+        return v / np.linalg.norm(v)
+
+    stars = [unit(0, 0), unit(0.2, 0), unit(0, 2.0)]  # rows 0 = A, 1 = B, 2 = C
+    if third_star_deg is not None:
+        stars.append(unit(-third_star_deg, 0))  # row 3 = D
+    stars = np.stack(stars)
+    body = [unit(0.05, 0), unit(0.21, 0), unit(0, 2.0)]
+    ids = [0, j_name, 2]
+    if contender_deg is not None:
+        body.append(unit(-contender_deg, 0))
+        ids.append(-1)
+    body, ids = jnp.asarray(np.stack(body), jnp.float32), jnp.asarray(ids, jnp.int32)
+    n = body.shape[0]
+    cat = jnp.asarray(stars, jnp.float32)
+    ref = cat[jnp.clip(ids, 0)]
+    resid = jnp.degrees(jnp.arccos(jnp.clip(jnp.sum(body * ref, -1), -1, 1)))
+    kept = (ids >= 0) & (resid <= 3.5 * s)  # the residual test (tol = 3.5 s)
+    mag = jnp.full(n, 5.0) if mags is None else jnp.asarray(mags, jnp.float32)
+    cat_mag = jnp.asarray(([5.0, 5.0, 3.0] if mags is None else [mags[0], mags[1], 3.0])
+                          + [5.0] * (len(stars) - 3), jnp.float32)
+
+    def run(partner_joint, mag_sigma=0.0):
+        return np.asarray(_ambiguity_clear(
+            body, mag, ids, jnp.ones(n, bool), ref, jnp.eye(3), jnp.arange(len(stars)), cat, cat_mag,
+            cat_mag[jnp.clip(ids, 0)], resid, 3.5 * s, s, kept, amb_k=2.5, amb_deg=0.2,
+            partner_joint=partner_joint, mag_sigma=mag_sigma))
+    return run
+
+
+def test_ambiguity_guard_partner_joint_rule_by_hand():
+    """i sits 0.05° from A and 0.15° from B with s = 0.08°: alone, A is only e^3.1 likelier than B
+    (the single test asks e^6.25); with B's own detection j 0.01° from B, the exchange costs
+    ((0.15² + 0.21²) − (0.05² + 0.01²)) / 0.08² = 9.6 nats, so the joint test keeps A."""
+    run = _pair_case(j_name=1)
+    np.testing.assert_array_equal(run(partner_joint=True), [True, True, True])
+    np.testing.assert_array_equal(run(partner_joint=False), [False, True, True])
+    # j unnamed (e.g. outside the neighbor circle) still accounts for B
+    np.testing.assert_array_equal(_pair_case(j_name=-1)(partner_joint=True)[[0, 2]], [True, True])
+    # j named after another star: B is not accounted for, the single test applies
+    np.testing.assert_array_equal(_pair_case(j_name=2)(partner_joint=True)[0], False)
+    # B is accounted for, but a second rival D 0.13° from A (0.18° from i, no detection) is not:
+    # every rival in the window is tested (seen at σ = 2.5 px: a swap named after the pair's third
+    # star's neighbour)
+    assert not _pair_case(j_name=1, third_star_deg=0.13)(partner_joint=True)[0]
+    assert _pair_case(j_name=1, third_star_deg=0.5)(partner_joint=True)[0]
+
+
+def test_ambiguity_guard_rival_detection_and_magnitudes_by_hand():
+    # an unnamed detection 0.02° from A (closer than i) contends for A's name: i is unnamed
+    assert not _pair_case(j_name=1, contender_deg=0.02)(partner_joint=True)[0]
+    # … one 0.5° away (nearest catalog star still A) does not
+    assert _pair_case(j_name=1, contender_deg=0.5)(partner_joint=True)[0]
+    # magnitudes (off by default) separate a pair of 4.0 and 6.0 mag stars that positions cannot
+    run = _pair_case(j_name=2, mags=[4.0, 6.0, 3.0])  # j named C: the single test decides
+    assert not run(partner_joint=True)[0]
+    assert run(partner_joint=True, mag_sigma=0.3)[0]

@@ -132,12 +132,16 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config) -> 
     index = build_sky_index(cat_np, db.camera.half_diagonal_rad,
                             key=f"sgm-frame-{db.catalog.fingerprint}")
     cells, _ = index.device_arrays()
-    ids, ok = verify_ids(cat, cells, scenes.xy, scenes.valid, result.ids, result.ok,
+    cat_mag = jnp.asarray(db.catalog.mag, jnp.float32)
+    ids, ok = verify_ids(cat, cat_mag, cells, scenes.xy, scenes.mag, scenes.valid, result.ids,
+                         result.ok,
                          jnp.asarray(main), camera=db.camera, grid=index.grid,
                          k=float(config.verify_k), floor_deg=float(config.verify_floor_deg),
                          cap_deg=float(config.verify_cap_deg),
                          amb_k=float(config.verify_ambiguity_k),
                          amb_deg=float(config.verify_ambiguity_deg),
+                         partner_joint=bool(config.verify_partner_joint),
+                         mag_sigma=float(config.verify_magnitude_sigma or 0.0),
                          min_matched=int(config.min_matched),
                          min_coverage=float(config.verify_min_coverage), n_near=n_near)
     return Identification(ids=ids, ok=ok, attitude=None)

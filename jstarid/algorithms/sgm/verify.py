@@ -14,15 +14,24 @@ fixed shapes, masks), checks every named detection against the attitude of the o
    unnamed, the attitude is refitted from the rest and the test repeated once (a detection unnamed
    in the first pass may come back). For a Rayleigh residual P(d > k·RMS) = exp(−k²): k = 3.5 unnames
    a true star with probability 5·10⁻⁶.
-3. **Ambiguity guard.** A named star with another catalog star within ``max(3·tol, ambiguity_deg)``
+3. **Ambiguity guard.** A named star with other catalog stars within ``max(3·tol, ambiguity_deg)``
    of it (a close pair the match may have swapped) keeps its name only when its own residual clearly
-   beats the alternative's: ``d_alt² − d_own² ≥ (ambiguity_k · s)²`` — a log likelihood ratio of
+   beats every such rival's: ``d_alt² − d_own² ≥ (ambiguity_k · s)²`` — a log likelihood ratio of
    ``ambiguity_k²`` for isotropic Gaussian noise (RMS s = √2 σ_axis). When another detection lies
-   within the window of that rival star, the pair of names is tested jointly as well: keeping
-   (this → own star, other → rival) must beat the exchange (this → rival, other → own star) by the
-   same margin in summed squared residuals. The joint test catches a close pair whose two detections
+   within the window of a rival star, the pair of names is tested jointly as well: the present names
+   (this → own star; the other → its kept name, or the rival when it is unnamed) must beat the
+   exchange (this → rival, other → own star) by the same margin in summed squared residuals. The joint test catches a close pair whose two detections
    both drifted towards one star (seen at σ = 1.5 px: the detection named after the wrong star of the
-   pair sat 0.015° from it, so the single test alone passed).
+   pair sat 0.015° from it, so the single test alone passed). When the rival star has a detection of
+   its own within the tolerance — named after the rival, or unnamed (e.g. just outside the neighbor
+   circle) — the rival is accounted for and the exchange is the only alternative left, so the joint
+   test alone decides (``partner_joint``): for a pair 4 σ apart the single test keeps a name ≈ 67 %
+   of the time, the joint test ≈ 96 %. Optionally (``mag_sigma`` > 0, off by default: SGM is a
+   magnitude-free method) both tests add the magnitude term ``(m_obs − V)² / (2 σ_m²)`` to each
+   hypothesis' cost. A last test looks for a rival *detection*: an unnamed detection whose nearest
+   catalog star is this detection's own star (a false star next to a true one, seen once at
+   σ = 3 px with one fake star: the fake, 0.063° from the star, took its name) must lose to it by
+   the same margin.
 4. **Scene decision.** The scene fails (``ok`` False, every id −1) when the main star was named and
    is unnamed by the check, when fewer than ``min_matched`` stars stay named, or when fewer than half
    of the named stars stay named (the attitude itself is then not trustworthy).
@@ -73,28 +82,70 @@ def _fit(body, ref, named, k, floor_deg, cap_deg):
     return c, resid, s, k * s
 
 
-def _ambiguity_clear(body, ids, valid, ref, c, near, cand, resid, tol, s, amb_k, amb_deg):
-    """Step 3: (N,) bool, the named stars whose name clearly beats every close rival catalog star."""
+def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_mag, resid, tol, s,
+                     kept, *, amb_k, amb_deg, partner_joint, mag_sigma):
+    """Step 3: (N,) bool, the named stars whose name clearly beats every close rival catalog star.
+
+    Costs are negative log likelihoods (nats, up to a constant): ``d² / s²`` for an angular residual
+    d (s² = 2 σ_axis²) plus, with ``mag_sigma`` > 0, ``(m_obs − V)² / (2 σ_m²)``. A name is clear
+    when the rival hypothesis costs at least ``amb_k²`` more.
+
+    Args:
+        body: (N, 3) detections (camera frame). mag: (N,) observed magnitudes. ids: (N,) names.
+        valid: (N,) bool. ref: (N, 3) ICRS vectors of the names. c: (3, 3) attitude.
+        near: (R,) catalog rows searched for rivals; cand (R, 3) their vectors, cand_mag (R,) their V.
+        own_mag: (N,) V of each detection's name. resid: (N,) residuals (deg). tol, s: () deg.
+        kept: (N,) bool, the names that passed the residual test.
+    """
     sep = _angle_deg(ref[:, None, :], cand[None, :, :])  # catalog separation id ↔ candidate
-    pred = cand @ c.T  # (n_near, 3) candidates in the camera frame
-    d_alt_all = _angle_deg(body[:, None, :], pred[None, :, :])  # (N, n_near)
+    pred = cand @ c.T  # (R, 3) candidates in the camera frame
+    d_all = _angle_deg(body[:, None, :], pred[None, :, :])  # (N, R)
     window = jnp.maximum(3.0 * tol, amb_deg)
-    rival = (near[None, :] != ids[:, None]) & (sep < window)
-    d_alt_all = jnp.where(rival, d_alt_all, jnp.inf)
-    r = jnp.argmin(d_alt_all, axis=1)  # nearest rival of each detection
-    d_alt = jnp.take_along_axis(d_alt_all, r[:, None], axis=1)[:, 0]
-    margin = (amb_k * s) ** 2
-    single = d_alt ** 2 - resid ** 2 >= margin
-    # joint test with the other detection nearest the rival (within the window)
+    rival = (near[None, :] != ids[:, None]) & (sep < window)  # (N, R)
+
+    def mag_cost(m, v):
+        if mag_sigma <= 0:
+            return jnp.zeros(jnp.broadcast_shapes(m.shape, v.shape))
+        return jnp.where(jnp.isfinite(m), (m - v) ** 2 / (2.0 * mag_sigma ** 2), 0.0)
+
+    s2 = s ** 2
+    margin = amb_k ** 2
+    cost_own = resid ** 2 / s2 + mag_cost(mag, own_mag)  # (N,)
+    cost_alt = d_all ** 2 / s2 + mag_cost(mag[:, None], cand_mag[None, :])  # (N, R)
+    single = cost_alt - cost_own[:, None] >= margin
+    # joint test with the detection j nearest each rival (other than i itself): the exchange
+    # (i → rival, j → i's star) against the present names (i → i's star; j → its kept name, or the
+    # rival when j is unnamed)
     n = body.shape[0]
-    d_other = _angle_deg(pred[r][:, None, :], body[None, :, :])  # (N, N): rival of i ↔ detection j
-    d_other = jnp.where(valid[None, :] & ~jnp.eye(n, dtype=bool), d_other, jnp.inf)
-    j = jnp.argmin(d_other, axis=1)
-    d_j_rival = jnp.take_along_axis(d_other, j[:, None], axis=1)[:, 0]
-    d_j_own = _angle_deg(body[j], ref @ c.T)  # detection j against i's own star
-    joint = (d_alt ** 2 + d_j_own ** 2) - (resid ** 2 + d_j_rival ** 2) >= margin
-    has_rival = jnp.isfinite(d_alt)
-    return ~has_rival | (single & (joint | ~(d_j_rival <= window)))
+    d_rival_det = jnp.where(valid[:, None], d_all, jnp.inf).T  # (R, N) rival ↔ detection
+    neg, two = jax.lax.top_k(-d_rival_det, 2)  # the two detections nearest each rival
+    first_is_i = two[None, :, 0] == jnp.arange(n)[:, None]  # (N, R)
+    j = jnp.where(first_is_i, two[None, :, 1], two[None, :, 0])
+    d_j_rival = -jnp.where(first_is_i, neg[None, :, 1], neg[None, :, 0])
+    d_j_own = _angle_deg(body[j], (ref @ c.T)[:, None, :])  # (N, R): j against i's own star
+    # j's cost now: its own kept name, or (unnamed) the rival it sits next to
+    cost_j = jnp.where(kept[j], cost_own[j],
+                       d_j_rival ** 2 / s2 + mag_cost(mag[j], cand_mag[None, :]))
+    joint = ((cost_alt + d_j_own ** 2 / s2 + mag_cost(mag[j], own_mag[:, None]))
+             - (cost_own[:, None] + cost_j) >= margin)
+    clear = single & (joint | ~(d_j_rival <= window))
+    if partner_joint:
+        # the rival has a detection of its own within the tolerance (named after it, or unnamed,
+        # e.g. just outside the neighbor circle): the only alternative left is the exchange
+        partner = (d_j_rival <= tol) & ((ids[j] < 0) | ((ids[j] == near[None, :]) & kept[j]))
+        clear = jnp.where(partner, joint, clear)
+    clear = jnp.all(~rival | clear, axis=1)  # every rival within the window
+    # rival detection: an unnamed detection whose nearest catalog star is i's own star (a false
+    # star, or a star the match left out, next to a named one) could be that star instead of i
+    nearest_row = near[jnp.argmin(d_all, axis=1)]  # (N,)
+    contender = (valid[None, :] & ~kept[None, :] & ~jnp.eye(n, dtype=bool)
+                 & (nearest_row[None, :] == ids[:, None]))  # (N, N): j contends for i's star
+    d_own_det = _angle_deg((ref @ c.T)[:, None, :], body[None, :, :])  # i's star ↔ detection j
+    d_own_det = jnp.where(contender, d_own_det, jnp.inf)
+    jc = jnp.argmin(d_own_det, axis=1)
+    d_c = jnp.take_along_axis(d_own_det, jc[:, None], axis=1)[:, 0]
+    cost_c = d_c ** 2 / s2 + mag_cost(mag[jc], own_mag)
+    return clear & (cost_c - cost_own >= margin)
 
 
 def _frame_coverage(c, body, valid, cat, cells, tol, *, camera, grid):
@@ -115,11 +166,14 @@ def _frame_coverage(c, body, valid, cat, cells, tol, *, camera, grid):
     return jnp.sum(hit), jnp.sum(expected)
 
 
-def _verify_one(cat, cells, body, valid, ids, ok, main, *, camera, grid, k, floor_deg, cap_deg,
-                amb_k, amb_deg, min_matched, min_coverage, n_near):
-    """One scene. cat (M, 3), cells (C, K), body (N, 3), valid/ids (N,), ok, main () → (ids, ok)."""
+def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera, grid, k, floor_deg,
+                cap_deg, amb_k, amb_deg, partner_joint, mag_sigma, min_matched, min_coverage,
+                n_near):
+    """One scene. cat (M, 3), cat_mag (M,), cells (C, K), body (N, 3), mag/valid/ids (N,), ok,
+    main () → (ids, ok)."""
     named0 = (ids >= 0) & ok
-    ref = cat[jnp.clip(ids, 0, cat.shape[0] - 1)]
+    rows = jnp.clip(ids, 0, cat.shape[0] - 1)
+    ref = cat[rows]
     _, resid, _, tol = _fit(body, ref, named0, k, floor_deg, cap_deg)
     inl = named0 & (resid <= tol)
     c, resid, s, tol = _fit(body, ref, inl, k, floor_deg, cap_deg)
@@ -127,8 +181,9 @@ def _verify_one(cat, cells, body, valid, ids, ok, main, *, camera, grid, k, floo
     # ambiguity guard: catalog stars near the main star's sky direction (fixed count)
     sky_main = body[main] @ c  # Cᵀ b, ICRS
     _, near = jax.lax.top_k(cat @ sky_main, n_near)
-    keep &= _ambiguity_clear(body, ids, valid, ref, c, near, cat[near], resid, tol, s, amb_k,
-                             amb_deg)
+    keep &= _ambiguity_clear(body, mag, ids, valid, ref, c, near, cat[near], cat_mag[near],
+                             cat_mag[rows], resid, tol, s, keep, amb_k=amb_k, amb_deg=amb_deg,
+                             partner_joint=partner_joint, mag_sigma=mag_sigma)
     # the widest tolerance: the fitted one can be tight (a 3-star fit leaves tiny residuals) while
     # a wrong attitude meets a detection within 0.3° by chance for only ≈ 3 % of catalog stars
     hits, expected = _frame_coverage(c, body, valid, cat, cells, cap_deg, camera=camera,
@@ -140,21 +195,27 @@ def _verify_one(cat, cells, body, valid, ids, ok, main, *, camera, grid, k, floo
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "grid", "k", "floor_deg", "cap_deg", "amb_k",
-                                             "amb_deg", "min_matched", "min_coverage", "n_near"))
-def verify_ids(cat, cells, xy, valid, ids, ok, main, *, camera, grid: int, k: float,
-               floor_deg: float, cap_deg: float, amb_k: float, amb_deg: float, min_matched: int,
-               min_coverage: float, n_near: int):
+                                             "amb_deg", "partner_joint", "mag_sigma",
+                                             "min_matched", "min_coverage", "n_near"))
+def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, grid: int, k: float,
+               floor_deg: float, cap_deg: float, amb_k: float, amb_deg: float,
+               partner_joint: bool, mag_sigma: float, min_matched: int, min_coverage: float,
+               n_near: int):
     """Verify a batch of SGM identifications against the attitude of the named stars (module doc).
 
     Args:
-        cat: (M, 3) catalog ICRS unit vectors (rows as in ``ids``).
+        cat: (M, 3) catalog ICRS unit vectors (rows as in ``ids``). cat_mag: (M,) their V (mag).
         cells: (6·G·G, K) int32 sky-index lists of catalog rows (padding ``M``) covering the frame
             of any boresight in the cell (:func:`~jstarid.sky_index.build_sky_index`).
-        xy: (B, N, 2) centroids (px). valid: (B, N) bool.
+        xy: (B, N, 2) centroids (px). mag: (B, N) observed magnitudes. valid: (B, N) bool.
         ids: (B, N) int32 catalog rows, −1 unnamed. ok: (B,) bool. main: (B,) int32 main detection.
         camera: static :class:`~jstarid.camera.Camera`. grid: G of the sky index.
         k: tolerance in robust RMS units. floor_deg, cap_deg: bounds on the tolerance (deg).
         amb_k: ambiguity margin in robust RMS units. amb_deg: smallest ambiguity window (deg).
+        partner_joint: a name whose rival star has a detection of its own within the tolerance
+            (named after the rival, or unnamed) is decided by the joint exchange test alone.
+        mag_sigma: assumed σ of observed magnitudes (mag) in the ambiguity tests; 0 = positions
+            only.
         min_matched: fewest stars a verified scene keeps.
         min_coverage: fewest of the catalog stars projected inside the frame that must have a
             detection within the tolerance (fraction; 0 = off).
@@ -167,6 +228,8 @@ def verify_ids(cat, cells, xy, valid, ids, ok, main, *, camera, grid: int, k: fl
     body = camera.unproject(xy)
     ids = jnp.where(valid, ids, -1)
     fn = functools.partial(_verify_one, camera=camera, grid=grid, k=k, floor_deg=floor_deg,
-                           cap_deg=cap_deg, amb_k=amb_k, amb_deg=amb_deg, min_matched=min_matched,
-                           min_coverage=min_coverage, n_near=n_near)
-    return jax.vmap(fn, in_axes=(None, None, 0, 0, 0, 0, 0))(cat, cells, body, valid, ids, ok, main)
+                           cap_deg=cap_deg, amb_k=amb_k, amb_deg=amb_deg,
+                           partner_joint=partner_joint, mag_sigma=mag_sigma,
+                           min_matched=min_matched, min_coverage=min_coverage, n_near=n_near)
+    return jax.vmap(fn, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0))(
+        cat, cat_mag, cells, body, mag, valid, ids, ok, main)
