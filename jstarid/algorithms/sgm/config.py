@@ -92,14 +92,16 @@ class Config:
         verify_partner_joint: opt-in (``False`` by default: the single test must pass as well).
             When a rival star of a named detection has a detection of its own within the tolerance
             (named after the rival, or unnamed), only the joint exchange test decides for that
-            rival. Replayed on the raw matches of 200 main stars × σ 1 / 2 / 3 px × position /
+            rival. Replayed (a one-off script: raw matches from ``verify=False``, then the
+            verification alone) on the raw matches of 200 main stars × σ 1 / 2 / 3 px × position /
             lost / fake (1,800 scenes; together with the rival-detection test and the test of every
             rival in the window, :mod:`.verify`): correct scenes at σ = 3 px 147 → 170 (position),
             145 → 163 (lost), 139 → 164 (fake), mis-identified scenes 1 → 0 over the nine levels;
             on 300 other main stars × σ 0.5 / 1.5 / 2.5 / 3 px (3,600 scenes) none mis-identified.
-            But the sampled Table 2 run (``reproduce_sgm.py --n-stars 200``, 4,200 scenes) had 2
-            mis-identified scenes with it (σ 1 and 2.5 px, not yet diagnosed) against none with
-            the default rule, so it stays off until they are understood.
+            But the sampled Table 2 run (``reproduce_sgm.py --n-stars 200 --set
+            verify_partner_joint=true``, 4,200 scenes) had 2
+            mis-identified scenes with it (σ 1 and 2.5 px, not yet diagnosed) against none in
+            session 5's run of the same scenes, so it stays off until they are understood.
         verify_magnitude_sigma: not used by default (``None``; SGM is magnitude-free). When set, the
             ambiguity tests add each hypothesis' magnitude cost ``(m_obs − V)² / (2σ²)`` with this
             σ (mag). On the same replay with σ = 0.3 and ``verify_partner_joint`` (the scenes had no

@@ -20,20 +20,21 @@ fixed shapes, masks), checks every named detection against the attitude of the o
    ``ambiguity_k²`` for isotropic Gaussian noise (RMS s = √2 σ_axis). When another detection lies
    within the window of a rival star, the pair of names is tested jointly as well: the present names
    (this → own star, the other → rival) must beat the exchange (this → rival, other → own star) by
-   the same margin in summed squared residuals. The joint test catches a close pair whose two detections
-   both drifted towards one star (seen at σ = 1.5 px: the detection named after the wrong star of the
-   pair sat 0.015° from it, so the single test alone passed). When the rival star has a detection of
-   its own within the tolerance — named after the rival, or unnamed (e.g. just outside the neighbor
-   circle) — the rival is accounted for and the exchange is the only alternative left, so the joint
-   test alone decides (``partner_joint``, opt-in; the other detection's present cost is then its own
-   kept name's): for a pair 4 σ apart the single test keeps a name ≈ 67 % of the time, the joint
-   test ≈ 96 %. It left 2 of 4,200 scenes of a sampled Table 2 run mis-identified (the default
-   rule: none), so it is off by default. Optionally (``mag_sigma`` > 0, off by default: SGM is a
-   magnitude-free method) both tests add the magnitude term ``(m_obs − V)² / (2 σ_m²)`` to each
-   hypothesis' cost. A last test looks for a rival *detection*: an unnamed detection whose nearest
-   catalog star is this detection's own star (a false star next to a true one, seen once at
-   σ = 3 px with one fake star: the fake, 0.063° from the star, took its name) must lose to it by
-   the same margin.
+   the same margin in summed squared residuals. The joint test catches a close pair whose two
+   detections both drifted towards one star (seen at σ = 1.5 px: the detection named after the wrong
+   star of the pair sat 0.015° from it, so the single test alone passed). When the rival star has a
+   detection of its own within the tolerance — named after the rival, or unnamed (e.g. just outside
+   the neighbor circle) — the rival is accounted for and the exchange is the only alternative left,
+   so the joint test alone decides (``partner_joint``, opt-in; the other detection's present cost is
+   then its own kept name's): for a pair 4 σ apart the single test keeps a name ≈ 67 % of the time,
+   the joint test ≈ 96 %. It left 2 of 4,200 scenes of a sampled Table 2 run mis-identified (session
+   5's rule: none on the same scenes), so it is off by default. Optionally (``mag_sigma`` > 0, off
+   by default: SGM is a magnitude-free method) both tests add the magnitude term
+   ``(m_obs − V)² / (2 σ_m²)`` to each hypothesis' cost. A last test looks for a rival
+   *detection*: an unnamed detection
+   whose nearest catalog star is this detection's own star (a false star next to a true one, seen
+   once at σ = 3 px with one fake star: the fake, 0.063° from the star, took its name) must lose to
+   it by the same margin.
 4. **Scene decision.** The scene fails (``ok`` False, every id −1) when the main star was named and
    is unnamed by the check, when fewer than ``min_matched`` stars stay named, or when fewer than half
    of the named stars stay named (the attitude itself is then not trustworthy).
