@@ -9,6 +9,12 @@ import pytest  # noqa: E402
 
 import jstarid as js  # noqa: E402
 
+# One persistent XLA cache for the whole run: the pytest-xdist workers (and the scripts the tests
+# start) compile many of the same kernels (SGM's per-size pair kernels, the tiny RpNet network), and
+# each compiles a kernel only when no other process has stored it yet. Compilation dominates the
+# suite's time on a 2-core machine; results do not depend on the cache (it is keyed by the program).
+js.enable_compilation_cache(js.catalog.cache_dir() / "xla-tests", min_compile_time_s=0.2)
+
 
 @pytest.fixture(scope="session")
 def catalog6():

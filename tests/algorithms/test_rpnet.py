@@ -78,6 +78,14 @@ def test_config_sizes():
     assert rpnet.Config.quick().fingerprint() != cfg.fingerprint()
     # identification-time settings do not change the network's fingerprint
     assert dataclasses.replace(cfg, match_tol_px=9.0).fingerprint() == cfg.fingerprint()
+    # thresholds are traced: configs differing only there share the compiled identification
+    loose = dataclasses.replace(cfg, match_tol_px=9.0, min_coverage=0.1, pair_tol_px=None, n_pair_trials=1,
+                                position_weights=(0.5, 0.3, 0.2))
+    assert loose.compiled() == cfg.compiled() and hash(loose.compiled()) == hash(cfg.compiled())
+    assert dataclasses.replace(cfg, n_refine=2).compiled() != cfg.compiled()
+    th = loose.thresholds()
+    assert float(th.match_tol_px) == 9.0 and np.isinf(th.pair_tol_px) and th.min_verified.dtype == jnp.int32
+    np.testing.assert_allclose(th.position_weights, [0.5, 0.3, 0.2])
 
 
 def test_initial_input_hand_made():
@@ -524,11 +532,15 @@ def test_coverage_check_fails_scenes_that_name_few_of_the_expected_stars(tiny, c
     longer be named. Clean scenes name all the expected stars, so a threshold of 0.9 changes nothing
     there; the pushed scenes name too few of them and fail, while without the check they are confirmed.
     """
+    from jstarid import sweep
     _, cam, cfg, db, _ = tiny
     s = clean_scenes[:96]
     strict = dataclasses.replace(cfg, min_coverage=0.9)
-    full = rpnet.identify(db, s, strict)
     base = rpnet.identify(db, s, dataclasses.replace(cfg, min_coverage=0.0))
+    compiled = sweep._compiled.cache_info().currsize
+    full = rpnet.identify(db, s, strict)
+    # the threshold is a traced value (Config.thresholds): the second setting compiled nothing new
+    assert jax.device_count() == 1 or sweep._compiled.cache_info().currsize == compiled
     # the expected-star count matches the named stars: the check changes nothing on clean scenes
     np.testing.assert_array_equal(np.asarray(full.ok), np.asarray(base.ok))
     np.testing.assert_array_equal(np.asarray(full.ids), np.asarray(base.ids))

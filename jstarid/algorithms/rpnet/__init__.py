@@ -16,10 +16,10 @@ Usage::
     result = rpnet.identify(db, scenes)
 """
 
-from jstarid.algorithms.rpnet.config import Config, Training
+from jstarid.algorithms.rpnet.config import Config, Thresholds, Training
 from jstarid.algorithms.rpnet.database import Database, build_database, load_database
 from jstarid.algorithms.rpnet.guide_catalog import guide_rows, load_guide_catalog
 from jstarid.algorithms.rpnet.identify import identify
 
-__all__ = ["Config", "Database", "Training", "build_database", "guide_rows", "identify", "load_database",
-           "load_guide_catalog"]
+__all__ = ["Config", "Database", "Thresholds", "Training", "build_database", "guide_rows", "identify",
+           "load_database", "load_guide_catalog"]

@@ -41,6 +41,9 @@ that could be named is in it), the refinement passes are unrolled, argmax/argmin
 reductions (:func:`_first_argmax`), and scenes are sorted by their number of detection columns so that
 each chunk is cut to the width it needs (:data:`WIDTH_STEP`); each chunk's scenes are split over
 every JAX device (:func:`jstarid.sweep.map_batch`; the results equal the one-device call).
+The kernels compile for :meth:`Config.compiled` (the config with its thresholds and host-loop
+settings reset) and read the tolerances, counts and weights as traced values
+(:class:`~jstarid.algorithms.rpnet.config.Thresholds`): a sweep over them compiles once.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.algorithms.rpnet.config import Config
+from jstarid.algorithms.rpnet.config import Config, Thresholds
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.algorithms.rpnet.train import predict_logits
 from jstarid.attitude import solve_wahba
@@ -93,19 +96,20 @@ def weight_search(probs, pair_ok, position_weights, probability_weights):
     return jnp.argmax(score), score, jnp.any(pair_ok)
 
 
-def pair_checks(body, valid, near, cand_rows, star_vectors, *, camera, config: Config):
+def pair_checks(body, valid, near, cand_rows, star_vectors, pair_tol_px, *, camera):
     """Admissibility of the 27 candidate pairs of one scene (eq. 10 and the extensions).
 
     A pair S_ij ↔ S_kl is admissible when both detections exist, the candidates are two different
     stars, their catalog angle (eq. 10) is within the field's largest angle, and (extension,
-    ``config.pair_tol_px``) it agrees with the observed angle between S_i and S_k.
+    ``Config.pair_tol_px``) it agrees with the observed angle between S_i and S_k.
 
     Args:
         body: (N, 3) camera-frame unit vectors of the detections; valid: (N,) bool.
         near: (3,) int32 detection index of S1, S2, S3.
         cand_rows: (3, 3) int32 catalog row of detection i's j-th candidate.
         star_vectors: (M, 3) ICRS catalog unit vectors.
-        camera, config: static.
+        pair_tol_px: () tolerance on the angle difference (px; ``inf`` = off), a float or traced.
+        camera: static.
 
     Returns:
         (27,) bool, in :data:`PAIRS` order.
@@ -115,18 +119,17 @@ def pair_checks(body, valid, near, cand_rows, star_vectors, *, camera, config: C
     i, j, k, m = (jnp.asarray(PAIRS[:, c]) for c in range(4))  # S_ij ↔ S_km
     return near_ok[i] & near_ok[k] & _admissible(
         cand_rows[i, j], cand_rows[k, m], cand_vec[i, j], cand_vec[k, m], body[near[i]], body[near[k]],
-        camera=camera, config=config)
+        pair_tol_px, camera=camera)
 
 
-def _admissible(row_a, row_b, ref_a, ref_b, obs_a, obs_b, *, camera, config: Config):
+def _admissible(row_a, row_b, ref_a, ref_b, obs_a, obs_b, pair_tol_px, *, camera):
     """The candidate-pair tests (broadcast over leading axes): two different stars whose catalog angle
-    (eq. 10) is within the field's largest angle and (``config.pair_tol_px``) agrees with the angle
-    between the observed directions ``obs_a``, ``obs_b`` (…, 3)."""
+    (eq. 10) is within the field's largest angle and agrees within ``pair_tol_px`` (``inf``: not
+    tested) with the angle between the observed directions ``obs_a``, ``obs_b`` (…, 3)."""
     d_cat = angle_between(ref_a, ref_b)  # eq. 10
     ok = (row_a != row_b) & (d_cat <= 2.0 * camera.half_diagonal_rad)
-    if config.pair_tol_px is not None:
-        ok &= jnp.abs(d_cat - angle_between(obs_a, obs_b)) <= config.pair_tol_px / camera.f_px
-    return ok
+    # inf tolerance: always true (both directions are finite unit vectors of valid detections)
+    return ok & (jnp.abs(d_cat - angle_between(obs_a, obs_b)) <= pair_tol_px / camera.f_px)
 
 
 def _first_argmax(x):
@@ -270,14 +273,15 @@ def top3_blocked(x):
     return values, index.astype(jnp.int32)
 
 
-def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, *, camera, config: Config, grid):
+def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thresholds, *, camera,
+                 config: Config, grid):
     """Steps 4–5 from one pair: detection ``a`` named catalog row ``row_a``, ``b`` named ``row_b``.
 
     Returns:
         ``(rows, named, attitude, expected)``: (N,) catalog row of each detection, (N,) bool named,
         (3, 3) refined attitude, () number of catalog stars the attitude puts inside the frame.
     """
-    tol = config.match_tol_px / camera.f_px
+    tol = th.match_tol_px / camera.f_px
     pair_ref = star_vectors[jnp.stack([row_a, row_b])]
     # attitude from the pair (two-vector Wahba ≡ TRIAD)
     c0 = solve_wahba(jnp.stack([body[a], body[b]]), pair_ref, jnp.ones((2,), jnp.float32))
@@ -290,7 +294,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, *, camera
     # anchor pass: a close pair fixes the roll poorly, so distances to the pair (roll-free) name
     # the stars first; the pair attitude only picks the side of the pair axis
     rows_a, named_a = anchor_names(c0, body, valid, body[a], body[b], pair_ref[0], pair_ref[1],
-                                   loc_vec, tol, config.anchor_radius_px / camera.f_px)
+                                   loc_vec, tol, th.anchor_radius_px / camera.f_px)
     c_a = solve_wahba(body, loc_vec[rows_a], named_a.astype(jnp.float32))
     c0 = jnp.where(jnp.sum(named_a) >= 2, c_a, c0)
 
@@ -307,7 +311,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, *, camera
     # last pass: tolerance from the residuals' RMS (per axis, px) of the refined fit
     resid = angle_between(body, loc_vec[rows0] @ c1.T) * camera.f_px
     sigma = jnp.sqrt(jnp.sum(w0 * resid**2) / jnp.maximum(2.0 * jnp.sum(w0) - 3.0, 1.0))
-    tol2 = jnp.clip(config.match_sigmas * sigma, config.match_tol_min_px, config.match_tol_px)
+    tol2 = jnp.clip(th.match_sigmas * sigma, th.match_tol_min_px, th.match_tol_px)
     rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / camera.f_px)
     # the pair's two detections were named by the network and the pair check, not by proximity:
     # they keep their name at the fixed tolerance (a 3.5 σ̂ radius drops 0.2 % of true stars)
@@ -320,12 +324,12 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, *, camera
     c2 = jnp.where(jnp.sum(named1) >= 2, c2, c1)
     # coverage: catalog stars the final attitude puts inside the frame (inset by the tolerance)
     xy_pred, in_field = camera.project(loc_vec @ c2.T)
-    inside = (loc < star_vectors.shape[0]) & in_field & camera.contains(xy_pred, config.match_tol_px)
+    inside = (loc < star_vectors.shape[0]) & in_field & camera.contains(xy_pred, th.match_tol_px)
     return loc[rows1], named1, c2, jnp.sum(inside)
 
 
-def _first_confirmed(score, a, b, row_a, row_b, body, valid, star_vectors, cells, *, camera,
-                     config: Config, grid):
+def _first_confirmed(score, a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thresholds, *,
+                     camera, config: Config, grid):
     """Verify the pairs in the given (score) order and keep the first confirmed one (step 5).
 
     Args:
@@ -336,11 +340,11 @@ def _first_confirmed(score, a, b, row_a, row_b, body, valid, star_vectors, cells
         (3, 3) float32 (NaN unless ok).
     """
     verify = functools.partial(_verify_pair, body=body, valid=valid, star_vectors=star_vectors,
-                               cells=cells, camera=camera, config=config, grid=grid)
+                               cells=cells, th=th, camera=camera, config=config, grid=grid)
     rows_t, named_t, att_t, expected_t = jax.vmap(verify)(a, b, row_a, row_b)
     n_named = jnp.sum(named_t, axis=1)
-    confirmed = (jnp.isfinite(score) & (n_named >= config.min_verified)
-                 & (n_named >= config.min_coverage * expected_t))
+    confirmed = (jnp.isfinite(score) & (n_named >= th.min_verified)
+                 & (n_named >= th.min_coverage * expected_t))
     pick = jnp.argmax(confirmed)  # the first confirmed pair in score order
     ok = confirmed[pick]
     ids = jnp.where(ok & named_t[pick], rows_t[pick], -1)
@@ -348,7 +352,8 @@ def _first_confirmed(score, a, b, row_a, row_b, body, valid, star_vectors, cells
     return ids.astype(jnp.int32), ok, att.astype(jnp.float32)
 
 
-def _name_pool(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camera, config: Config, grid):
+def _name_pool(xy, valid, near, p, cls, guide_rows, star_vectors, cells, th: Thresholds, *, camera,
+               config: Config, grid):
     """Pool pass for one scene (extension, ``Config.n_pool_pairs``): pairs across all triples.
 
     Every pair of candidates of two different detections among ``near`` (the 3 · n_guide_triples
@@ -363,19 +368,19 @@ def _name_pool(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, came
     slot = jnp.repeat(jnp.arange(t), 3)
     det = near[slot]
     vec, obs = star_vectors[rows], body[det]
-    weight = jnp.asarray(config.probability_weights, jnp.float32)[jnp.tile(jnp.arange(3), t)] * p.reshape(-1)
+    weight = th.probability_weights[jnp.tile(jnp.arange(3), t)] * p.reshape(-1)
     ok = ((slot[:, None] < slot[None, :]) & valid[det][:, None] & valid[det][None, :]
           & _admissible(rows[:, None], rows[None, :], vec[:, None], vec[None, :], obs[:, None], obs[None, :],
-                        camera=camera, config=config))
+                        th.pair_tol_px, camera=camera))
     score = jnp.where(ok, weight[:, None] + weight[None, :], -jnp.inf).reshape(-1)
     top_score, flat = jax.lax.top_k(score, min(config.n_pool_pairs, score.shape[0]))
     u, v = flat // (3 * t), flat % (3 * t)
     return _first_confirmed(top_score, det[u], det[v], rows[u], rows[v], body, valid, star_vectors, cells,
-                            camera=camera, config=config, grid=grid)
+                            th, camera=camera, config=config, grid=grid)
 
 
-def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camera, config: Config, grid,
-              trials=(0, 1)):
+def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, th: Thresholds, *, camera,
+              config: Config, grid, trials=(0, 1)):
     """Steps 3–5 for one scene, from the network's candidates (module docstring).
 
     ``trials = (first, count)``: verify the admissible pairs of score rank first … first + count − 1
@@ -385,16 +390,15 @@ def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, *, camer
     body = camera.unproject(xy)  # (N, 3) camera frame
     cand_rows = guide_rows[cls]  # (3, 3) catalog rows
     i, j, k, m = (jnp.asarray(PAIRS[:, c]) for c in range(4))  # S_ij ↔ S_km
-    pair_ok = pair_checks(body, valid, near, cand_rows, star_vectors, camera=camera, config=config)
-    _, score, _ = weight_search(p, pair_ok, config.position_weights, config.probability_weights)
+    pair_ok = pair_checks(body, valid, near, cand_rows, star_vectors, th.pair_tol_px, camera=camera)
+    _, score, _ = weight_search(p, pair_ok, th.position_weights, th.probability_weights)
     # the best admissible pair (eq. 11) first; the next ones only when it is not confirmed
     top_score, q = jax.lax.top_k(score, trials[0] + trials[1])
     top_score, q = top_score[trials[0]:], q[trials[0]:]
     return _first_confirmed(top_score, near[i[q]], near[k[q]], cand_rows[i[q], j[q]], cand_rows[k[q], m[q]],
-                            body, valid, star_vectors, cells, camera=camera, config=config, grid=grid)
+                            body, valid, star_vectors, cells, th, camera=camera, config=config, grid=grid)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes"))
 def network_candidates(xy, valid, variables, triple=0, *, camera, config: Config, n_classes: int):
     """The network part of identification alone (benchmarks, the weight-grid search).
 
@@ -408,28 +412,31 @@ def network_candidates(xy, valid, variables, triple=0, *, camera, config: Config
         ``(near, probs, classes)``: (B, 3) int32 detection index of S1, S2, S3 (eq. 7), (B, 3, 3)
         float32 top-3 softmax probabilities p_ij (eq. 8) and (B, 3, 3) int32 their classes.
     """
-    return _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
-                       triple=triple)
+    return _network_candidates(xy, valid, variables, triple=triple, camera=camera,
+                               config=config.compiled(), n_classes=n_classes)
+
+
+_network_candidates = jax.jit(_candidates, static_argnames=("camera", "config", "n_classes", "count"))
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid", "trials"))
-def _identify_chunk(xy, valid, variables, guide_rows, star_vectors, cells, triple, *, camera, config,
+def _identify_chunk(xy, valid, variables, guide_rows, star_vectors, cells, th, triple, *, camera, config,
                     n_classes, grid, trials):
     near, p, cls = _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
                                triple=triple)
     fn = functools.partial(_name_one, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
-                           camera=camera, config=config, grid=grid, trials=trials)
+                           th=th, camera=camera, config=config, grid=grid, trials=trials)
     # naming in small vmapped groups: its (N × local stars) intermediates stay in cache
     return jax.lax.map(lambda a: fn(*a), (xy, valid, near, p, cls), batch_size=config.name_chunk)
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid"))
-def _identify_pool_chunk(xy, valid, variables, guide_rows, star_vectors, cells, *, camera, config, n_classes,
-                         grid):
+def _identify_pool_chunk(xy, valid, variables, guide_rows, star_vectors, cells, th, *, camera, config,
+                         n_classes, grid):
     near, p, cls = _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
                                count=3 * config.n_guide_triples)
     fn = functools.partial(_name_pool, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
-                           camera=camera, config=config, grid=grid)
+                           th=th, camera=camera, config=config, grid=grid)
     return jax.lax.map(lambda a: fn(*a), (xy, valid, near, p, cls), batch_size=config.name_chunk)
 
 
@@ -484,7 +491,10 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
     ok_out = np.zeros((b,), bool)
     att_out = np.full((b, 3, 3), np.nan, np.float32)
 
-    replicated = (database.variables, guide_rows, database.star_vectors, cells)
+    # the kernels compile for config.compiled(); its thresholds travel as traced values, so configs
+    # that differ only there (a tolerance or coverage sweep) share every compilation
+    replicated = (database.variables, guide_rows, database.star_vectors, cells, config.thresholds())
+    kernel_config = config.compiled()
 
     def run(subset, trials, chunk, triple=0, pool=False):
         order = subset[np.argsort(last[subset], kind="stable")]
@@ -496,7 +506,7 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
             if pad:  # pad the last chunk to the compiled size with empty scenes
                 xy = np.pad(xy, ((0, pad), (0, 0), (0, 0)))
                 valid = np.pad(valid, ((0, pad), (0, 0)))
-            common = dict(camera=database.camera, config=config, n_classes=database.n_classes,
+            common = dict(camera=database.camera, config=kernel_config, n_classes=database.n_classes,
                           grid=index.grid)
             # each chunk split over every device (one per CPU core after js.use_cpu_cores())
             if pool:

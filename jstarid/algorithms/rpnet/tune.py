@@ -70,19 +70,20 @@ def pair_tables(database, scenes, config: Config | None = None) -> dict[str, np.
         near, probs, cls = network_candidates(part.xy, part.valid, database.variables, camera=camera,
                                               config=config, n_classes=database.n_classes)
         ok, correct, top = _tables_chunk(part.xy, part.valid, part.truth, near, cls, guide_rows,
-                                         database.star_vectors, camera=camera, config=config)
+                                         database.star_vectors, config.thresholds().pair_tol_px,
+                                         camera=camera)
         for name, value in (("probs", probs), ("pair_ok", ok), ("pair_correct", correct),
                             ("guide_correct", top)):
             out[name].append(np.asarray(value))
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "config"))
-def _tables_chunk(xy, valid, truth, near, cls, guide_rows, star_vectors, *, camera, config):
+@functools.partial(jax.jit, static_argnames=("camera",))
+def _tables_chunk(xy, valid, truth, near, cls, guide_rows, star_vectors, pair_tol_px, *, camera):
     def one(xy_s, valid_s, truth_s, near_s, cls_s):
         body = camera.unproject(xy_s)
         cand_rows = guide_rows[cls_s]  # (3, 3)
-        ok = pair_checks(body, valid_s, near_s, cand_rows, star_vectors, camera=camera, config=config)
+        ok = pair_checks(body, valid_s, near_s, cand_rows, star_vectors, pair_tol_px, camera=camera)
         hit = (cand_rows == truth_s[near_s][:, None]) & valid_s[near_s][:, None]  # (3, 3)
         i, j, k, m = (jnp.asarray(PAIRS[:, c]) for c in range(4))
         return ok, hit[i, j] & hit[k, m], hit[:, 0]
