@@ -368,12 +368,13 @@ def test_grid_replay_equals_separate_searches(setup5):
     assert ok.any() and not ok.all()  # the grid has successes and failures
 
 
-def _pair_case(j_name, mags=None, contender_deg=None, third_star_deg=None, s=0.08):
+def _pair_case(j_name, mags=None, contender_deg=None, third_star_deg=None, star_at_j=False, s=0.08):
     """Hand-built ambiguity case (camera frame = ICRS): stars A (boresight) and B 0.2° from A along
     +x, C 2° away along +y. Detection i is 0.05° from A towards B (named A), j is 0.21° from A on
     the far side of B (named ``j_name``), k sits on C (named C); optionally an unnamed detection
-    ``contender_deg`` from A on the −x side, and a third catalog star D ``third_star_deg`` from A on
-    the −x side with no detection."""
+    ``contender_deg`` from A on the −x side, a third catalog star D ``third_star_deg`` from A on
+    the −x side with no detection, and (``star_at_j``) a catalog star E 0.005° from j (nearer to j
+    than B)."""
     from jstarid.algorithms.sgm.verify import _ambiguity_clear
 
     def unit(x_deg, y_deg):
@@ -383,6 +384,8 @@ def _pair_case(j_name, mags=None, contender_deg=None, third_star_deg=None, s=0.0
     stars = [unit(0, 0), unit(0.2, 0), unit(0, 2.0)]  # rows 0 = A, 1 = B, 2 = C
     if third_star_deg is not None:
         stars.append(unit(-third_star_deg, 0))  # row 3 = D
+    if star_at_j:
+        stars.append(unit(0.21, 0.005))  # E
     stars = np.stack(stars)
     body = [unit(0.05, 0), unit(0.21, 0), unit(0, 2.0)]
     ids = [0, j_name, 2]
@@ -399,21 +402,26 @@ def _pair_case(j_name, mags=None, contender_deg=None, third_star_deg=None, s=0.0
     cat_mag = jnp.asarray(([5.0, 5.0, 3.0] if mags is None else [mags[0], mags[1], 3.0])
                           + [5.0] * (len(stars) - 3), jnp.float32)
 
-    def run(partner_joint, mag_sigma=0.0):
+    def run(partner_joint, mag_sigma=0.0, partner_k=2.5):
         return np.asarray(_ambiguity_clear(
             body, mag, ids, jnp.ones(n, bool), ref, jnp.eye(3), jnp.arange(len(stars)), cat, cat_mag,
             cat_mag[jnp.clip(ids, 0)], resid, 3.5 * s, s, kept, amb_k=2.5, amb_deg=0.2,
-            partner_joint=partner_joint, mag_sigma=mag_sigma))
+            partner_joint=partner_joint, partner_k=partner_k, mag_sigma=mag_sigma))
     return run
 
 
 def test_ambiguity_guard_partner_joint_rule_by_hand():
     """i sits 0.05° from A and 0.15° from B with s = 0.08°: alone, A is only e^3.1 likelier than B
     (the single test asks e^6.25); with B's own detection j 0.01° from B, the exchange costs
-    ((0.15² + 0.21²) − (0.05² + 0.01²)) / 0.08² = 9.6 nats, so the joint test keeps A."""
+    ((0.15² + 0.21²) − (0.05² + 0.01²)) / 0.08² = 9.6 nats, so the joint test keeps A with a
+    partner margin of 2.5² = 6.25 nats, not with 3.5² = 12.25 (the default)."""
     run = _pair_case(j_name=1)
     np.testing.assert_array_equal(run(partner_joint=True), [True, True, True])
+    np.testing.assert_array_equal(run(partner_joint=True, partner_k=3.5), [False, True, True])
     np.testing.assert_array_equal(run(partner_joint=False), [False, True, True])
+    # j unnamed, but its nearest catalog star is E, not B: j is not B's detection, the single test
+    # decides (seen at σ = 2.5 px: an unnamed detection 0.21° from the rival, 0.09° from its own star)
+    assert not _pair_case(j_name=-1, star_at_j=True)(partner_joint=True)[0]
     # j unnamed (e.g. outside the neighbor circle) still accounts for B
     np.testing.assert_array_equal(_pair_case(j_name=-1)(partner_joint=True)[[0, 2]], [True, True])
     # j named after another star: B is not accounted for, the single test applies

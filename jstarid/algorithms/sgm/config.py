@@ -89,22 +89,24 @@ class Config:
             unnamed); 3.0 none and 1,011 correct. A mis-identification is worse than an unnamed
             star, so 2.5.
         verify_ambiguity_deg: smallest window of the ambiguity guard (deg).
-        verify_partner_joint: opt-in (``False`` by default: the single test must pass as well).
-            When a rival star of a named detection has a detection of its own within the tolerance
-            (named after the rival, or unnamed), only the joint exchange test decides for that
-            rival. Replayed (a one-off script: raw matches from ``verify=False``, then the
-            verification alone) on the raw matches of 200 main stars × σ 1 / 2 / 3 px × position /
-            lost / fake (1,800 scenes; together with the rival-detection test and the test of every
-            rival in the window, :mod:`.verify`): correct scenes at σ = 3 px 147 → 170 (position),
-            145 → 163 (lost), 139 → 164 (fake), mis-identified scenes 1 → 0 over the nine levels;
-            on 300 other main stars × σ 0.5 / 1.5 / 2.5 / 3 px (3,600 scenes) none mis-identified.
-            But the sampled Table 2 run (``reproduce_sgm.py --n-stars 200 --set
-            verify_partner_joint=true``, 4,200 scenes) had 2
-            mis-identified scenes with it (σ 1 and 2.5 px, not yet diagnosed) against none in
-            session 5's run of the same scenes, so it stays off until they are understood.
+        verify_partner_joint: when a rival star of a named detection has a detection of its own
+            (within the tolerance, nearer to the rival than to any other catalog star, named after
+            the rival or unnamed), passing the joint exchange test alone with the margin
+            ``verify_partner_k`` also keeps the name (:mod:`.verify` step 3); ``False`` = the
+            single and joint tests must both pass. Session 7, ``reproduce_sgm.py --n-stars 200``
+            (4,200 scenes, the README's Table 2): MA 88.68 / 89.21 / 88.13 → 91.14 / 90.99 /
+            90.28 %, ALN 73.22 / 74.73 / 68.16 → 78.92 / 78.14 / 73.48 % (position / lost / fake),
+            no mis-identified scene either way. The first version of the rule (session 6: margin
+            ``verify_ambiguity_k``, no nearest-star condition) reached ALN 86.10 / 87.57 / 80.77 %
+            but mis-identified 2 of those scenes.
+        verify_partner_k: margin of the partner rule's exchange test in robust-RMS units (3.5:
+            the names are ≥ e^12.25 times likelier than the exchange). It replaces two tests of
+            margin ``verify_ambiguity_k`` by one, so it asks for more; with 2.5 a pair 0.067°
+            apart at σ = 1 px whose detections had drifted past each other passed it by 6.28 nats
+            for the wrong names. The rule only adds names to those the two tests keep.
         verify_magnitude_sigma: not used by default (``None``; SGM is magnitude-free). When set, the
             ambiguity tests add each hypothesis' magnitude cost ``(m_obs − V)² / (2σ²)`` with this
-            σ (mag). On the same replay with σ = 0.3 and ``verify_partner_joint`` (the scenes had no
+            σ (mag). On the session-6 replay with σ = 0.3 and the first partner rule (the scenes had no
             magnitude noise, so this is an upper bound): correct scenes at σ = 3 px 170 → 178
             (position), 163 → 168 (lost), 164 → 174 (fake), none mis-identified.
         verify_min_coverage: the frame-coverage test of the verification (0 = off): at least this
@@ -139,7 +141,8 @@ class Config:
     verify_cap_deg: float = 0.3
     verify_ambiguity_k: float = 2.5
     verify_ambiguity_deg: float = 0.2
-    verify_partner_joint: bool = False
+    verify_partner_joint: bool = True
+    verify_partner_k: float = 3.5
     verify_magnitude_sigma: float | None = None
     verify_min_coverage: float = 0.4
 
@@ -160,6 +163,7 @@ class Config:
             raise ValueError("min_stars and min_matched must be ≥ 1")
         if (self.verify_k <= 0 or not 0 < self.verify_floor_deg <= self.verify_cap_deg
                 or self.verify_ambiguity_k < 0 or self.verify_ambiguity_deg < 0
+                or self.verify_partner_k < 0
                 or not 0 <= self.verify_min_coverage <= 1
                 or (self.verify_magnitude_sigma is not None and self.verify_magnitude_sigma <= 0)):
             raise ValueError("need verify_k > 0, 0 < verify_floor_deg ≤ verify_cap_deg, "

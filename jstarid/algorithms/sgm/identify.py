@@ -141,6 +141,7 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config) -> 
                          amb_k=float(config.verify_ambiguity_k),
                          amb_deg=float(config.verify_ambiguity_deg),
                          partner_joint=bool(config.verify_partner_joint),
+                         partner_k=float(config.verify_partner_k),
                          mag_sigma=float(config.verify_magnitude_sigma or 0.0),
                          min_matched=int(config.min_matched),
                          min_coverage=float(config.verify_min_coverage), n_near=n_near)

@@ -23,12 +23,17 @@ fixed shapes, masks), checks every named detection against the attitude of the o
    the same margin in summed squared residuals. The joint test catches a close pair whose two
    detections both drifted towards one star (seen at σ = 1.5 px: the detection named after the wrong
    star of the pair sat 0.015° from it, so the single test alone passed). When the rival star has a
-   detection of its own within the tolerance — named after the rival, or unnamed (e.g. just outside
-   the neighbor circle) — the rival is accounted for and the exchange is the only alternative left,
-   so the joint test alone decides (``partner_joint``, opt-in; the other detection's present cost is
-   then its own kept name's): for a pair 4 σ apart the single test keeps a name ≈ 67 % of the time,
-   the joint test ≈ 96 %. It left 2 of 4,200 scenes of a sampled Table 2 run mis-identified (session
-   5's rule: none on the same scenes), so it is off by default. Optionally (``mag_sigma`` > 0, off
+   detection of its own — within the tolerance, nearer to the rival than to any other catalog star,
+   and named after the rival or unnamed (e.g. just outside the neighbor circle) — the rival is
+   accounted for and the exchange is the only alternative left, so passing the joint test alone
+   with the wider margin ``partner_k²`` also clears the name (``partner_joint``, on by default; the other
+   detection's present cost is then its own kept name's): for a pair 4 σ apart the single test
+   keeps a name ≈ 67 % of the time, the joint test ≈ 96 %. Why both conditions: without the
+   nearest-star condition an unnamed detection 0.21° from the rival but 0.09° from its own star
+   was taken for the rival's (σ = 2.5 px), and with the ``amb_k²`` margin a pair 0.067° apart at
+   σ = 1 px whose two detections had both drifted past each other passed the exchange test by
+   6.28 nats, for the wrong names — the two mis-identified scenes of a 4,200-scene run with the
+   first version of the rule. Optionally (``mag_sigma`` > 0, off
    by default: SGM is a magnitude-free method) both tests add the magnitude term
    ``(m_obs − V)² / (2 σ_m²)`` to each hypothesis' cost. A last test looks for a rival
    *detection*: an unnamed detection
@@ -86,12 +91,13 @@ def _fit(body, ref, named, k, floor_deg, cap_deg):
 
 
 def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_mag, resid, tol, s,
-                     kept, *, amb_k, amb_deg, partner_joint, mag_sigma):
+                     kept, *, amb_k, amb_deg, partner_joint, partner_k, mag_sigma):
     """Step 3: (N,) bool, the named stars whose name clearly beats every close rival catalog star.
 
     Costs are negative log likelihoods (nats, up to a constant): ``d² / s²`` for an angular residual
     d (s² = 2 σ_axis²) plus, with ``mag_sigma`` > 0, ``(m_obs − V)² / (2 σ_m²)``. A name is clear
-    when the rival hypothesis costs at least ``amb_k²`` more.
+    when the rival hypothesis costs at least ``amb_k²`` more (``partner_k²`` when the joint test
+    alone decides, ``partner_joint``).
 
     Args:
         body: (N, 3) detections (camera frame). mag: (N,) observed magnitudes. ids: (N,) names.
@@ -133,15 +139,20 @@ def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_ma
     joint = ((cost_alt + d_j_own ** 2 / s2 + mag_cost(mag[j], own_mag[:, None]))
              - (cost_own[:, None] + cost_j) >= margin)
     clear = single & (joint | ~(d_j_rival <= window))
+    nearest_row = near[jnp.argmin(d_all, axis=1)]  # (N,) each detection's nearest catalog star
     if partner_joint:
-        # the rival has a detection of its own within the tolerance (named after it, or unnamed,
-        # e.g. just outside the neighbor circle): the only alternative left is the exchange
-        partner = (d_j_rival <= tol) & ((ids[j] < 0) | ((ids[j] == near[None, :]) & kept[j]))
-        clear = jnp.where(partner, joint, clear)
+        # the rival has a detection of its own: within the tolerance, nearest to the rival of all
+        # catalog stars, and named after it or unnamed (e.g. just outside the neighbor circle).
+        # Then i → rival leaves only the exchange as an alternative: passing the exchange test
+        # alone, with the wider margin partner_k² (one test instead of two), also clears the name
+        partner = ((d_j_rival <= tol) & (nearest_row[j] == near[None, :])
+                   & ((ids[j] < 0) | ((ids[j] == near[None, :]) & kept[j])))
+        exchange = (cost_alt + d_j_own ** 2 / s2 + mag_cost(mag[j], own_mag[:, None])
+                    - (cost_own[:, None] + cost_j))
+        clear |= partner & (exchange >= partner_k ** 2)
     clear = jnp.all(~rival | clear, axis=1)  # every rival within the window
     # rival detection: an unnamed detection whose nearest catalog star is i's own star (a false
     # star, or a star the match left out, next to a named one) could be that star instead of i
-    nearest_row = near[jnp.argmin(d_all, axis=1)]  # (N,)
     contender = (valid[None, :] & ~kept[None, :] & ~jnp.eye(n, dtype=bool)
                  & (nearest_row[None, :] == ids[:, None]))  # (N, N): j contends for i's star
     d_own_det = _angle_deg((ref @ c.T)[:, None, :], body[None, :, :])  # i's star ↔ detection j
@@ -171,8 +182,8 @@ def _frame_coverage(c, body, valid, cat, cells, tol, *, camera, grid):
 
 
 def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera, grid, k, floor_deg,
-                cap_deg, amb_k, amb_deg, partner_joint, mag_sigma, min_matched, min_coverage,
-                n_near):
+                cap_deg, amb_k, amb_deg, partner_joint, partner_k, mag_sigma, min_matched,
+                min_coverage, n_near):
     """One scene. cat (M, 3), cat_mag (M,), cells (C, K), body (N, 3), mag/valid/ids (N,), ok,
     main () → (ids, ok)."""
     named0 = (ids >= 0) & ok
@@ -187,7 +198,8 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
     _, near = jax.lax.top_k(cat @ sky_main, n_near)
     keep &= _ambiguity_clear(body, mag, ids, valid, ref, c, near, cat[near], cat_mag[near],
                              cat_mag[rows], resid, tol, s, keep, amb_k=amb_k, amb_deg=amb_deg,
-                             partner_joint=partner_joint, mag_sigma=mag_sigma)
+                             partner_joint=partner_joint, partner_k=partner_k,
+                             mag_sigma=mag_sigma)
     # the widest tolerance: the fitted one can be tight (a 3-star fit leaves tiny residuals) while
     # a wrong attitude meets a detection within 0.3° by chance for only ≈ 3 % of catalog stars
     hits, expected = _frame_coverage(c, body, valid, cat, cells, cap_deg, camera=camera,
@@ -199,12 +211,12 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "grid", "k", "floor_deg", "cap_deg", "amb_k",
-                                             "amb_deg", "partner_joint", "mag_sigma",
+                                             "amb_deg", "partner_joint", "partner_k", "mag_sigma",
                                              "min_matched", "min_coverage", "n_near"))
 def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, grid: int, k: float,
                floor_deg: float, cap_deg: float, amb_k: float, amb_deg: float,
-               partner_joint: bool, mag_sigma: float, min_matched: int, min_coverage: float,
-               n_near: int):
+               partner_joint: bool, partner_k: float, mag_sigma: float, min_matched: int,
+               min_coverage: float, n_near: int):
     """Verify a batch of SGM identifications against the attitude of the named stars (module doc).
 
     Args:
@@ -216,8 +228,9 @@ def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, gr
         camera: static :class:`~jstarid.camera.Camera`. grid: G of the sky index.
         k: tolerance in robust RMS units. floor_deg, cap_deg: bounds on the tolerance (deg).
         amb_k: ambiguity margin in robust RMS units. amb_deg: smallest ambiguity window (deg).
-        partner_joint: a name whose rival star has a detection of its own within the tolerance
-            (named after the rival, or unnamed) is decided by the joint exchange test alone.
+        partner_joint: a name whose rival star has a detection of its own (within the tolerance,
+            nearest to the rival, named after it or unnamed) is decided by the joint exchange test
+            alone, with the margin ``partner_k`` (robust RMS units) instead of ``amb_k``.
         mag_sigma: assumed σ of observed magnitudes (mag) in the ambiguity tests; 0 = positions
             only.
         min_matched: fewest stars a verified scene keeps.
@@ -233,7 +246,7 @@ def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, gr
     ids = jnp.where(valid, ids, -1)
     fn = functools.partial(_verify_one, camera=camera, grid=grid, k=k, floor_deg=floor_deg,
                            cap_deg=cap_deg, amb_k=amb_k, amb_deg=amb_deg,
-                           partner_joint=partner_joint, mag_sigma=mag_sigma,
+                           partner_joint=partner_joint, partner_k=partner_k, mag_sigma=mag_sigma,
                            min_matched=min_matched, min_coverage=min_coverage, n_near=n_near)
     return jax.vmap(fn, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0))(
         cat, cat_mag, cells, body, mag, valid, ids, ok, main)
