@@ -346,6 +346,38 @@ def test_weight_search_matches_brute_force(seed):
         assert np.all(np.isneginf(np.asarray(score)[~ok]))
 
 
+@pytest.mark.parametrize("pair_tol_px", [5.0, None])
+def test_pair_checks_match_numpy(pair_tol_px):
+    """The 27 admissibility flags (eq. 10, distinct stars, observed-angle tolerance; ``None`` → the
+    traced tolerance is inf: eq. 10 only) against a plain NumPy loop over :data:`PAIRS`."""
+    from jstarid.algorithms.rpnet.identify import pair_checks
+    cam = js.camera_preset("rpnet2019")
+    rng = np.random.default_rng(5)
+    stars = _random_stars(rng, 12, 12.0)  # some pairs beyond the 20° diagonal
+    body = _random_stars(rng, 6, 8.0)
+    near = np.array([0, 2, 4])
+    cand_rows = rng.permutation(12)[:9].reshape(3, 3)
+    cand_rows[1, 1] = cand_rows[0, 1]  # one star for S1 and S2: that pair fails
+    # make a few candidate pairs agree with the observed angle, so that the tolerance matters
+    stars[cand_rows[0, 0]] = body[0]
+    stars[cand_rows[1, 0]] = body[2]
+    valid = np.array([True, True, True, True, False, True])  # S3 invalid: its pairs fail
+    th = rpnet.Config(pair_tol_px=pair_tol_px).thresholds()
+    got = np.asarray(pair_checks(jnp.asarray(body, jnp.float32), jnp.asarray(valid), jnp.asarray(near),
+                                 jnp.asarray(cand_rows), jnp.asarray(stars, jnp.float32), th.pair_tol_px,
+                                 camera=cam))
+    tol = np.inf if pair_tol_px is None else pair_tol_px / cam.f_px
+    want = []
+    for i, j, k, m in PAIRS:
+        a, b = cand_rows[i, j], cand_rows[k, m]
+        d_cat = _np_angle(stars[a], stars[b])
+        d_obs = _np_angle(body[near[i]], body[near[k]])
+        want.append(bool(valid[near[i]] and valid[near[k]] and a != b
+                         and d_cat <= 2 * cam.half_diagonal_rad and abs(d_cat - d_obs) <= tol))
+    np.testing.assert_array_equal(got, want)
+    assert 0 < sum(want) < 27
+
+
 def test_weight_search_prefers_confident_central_pair():
     po, pr = (0.45, 0.30, 0.25), (0.60, 0.25, 0.15)
     p = np.array([[0.9, 0.05, 0.01], [0.5, 0.1, 0.05], [0.95, 0.01, 0.01]], np.float32)
