@@ -80,8 +80,8 @@ def order_candidates(w_db, start, stop, w_i, *, width: int, dw0: float, step: fl
     return cand.astype(jnp.int32), level.astype(jnp.int32)
 
 
-@functools.partial(jax.jit, static_argnames=("p", "q", "c", "n_iter", "tol", "min_matched"))
-def _match_pairs(a_i, n_i, cand, db_adj, db_n, *, p, q, c, n_iter, tol, min_matched):
+@functools.partial(jax.jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
+def _match_pairs(a_i, n_i, cand, db_adj, db_n, c, *, p, q, n_iter, tol, min_matched):
     """Spectral matching of N (image graph, database graph) pairs → (N, p) match, (N,) δ (deg).
 
     The pairs run one after the other (``lax.map``), not side by side (``vmap``): each power step
@@ -89,7 +89,8 @@ def _match_pairs(a_i, n_i, cand, db_adj, db_n, *, p, q, c, n_iter, tol, min_matc
     one pair is live, while a vmapped batch streams every matrix from memory at every step (measured
     ≈ 2× faster for p = q = 16–48). It also lets ``Config.power_tol`` stop each pair on its own, and
     padding pairs (``cand`` = −1, which fill a call up to its compiled size) are skipped by
-    ``lax.cond`` (match −1, δ = inf) instead of being matched.
+    ``lax.cond`` (match −1, δ = inf) instead of being matched. ``c`` (eq. 2) is a traced scalar: a
+    sweep over c reuses the compiled kernels.
     """
     live = cand >= 0
     cand = jnp.maximum(cand, 0)
@@ -337,7 +338,7 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
                            bucket_up(n_j, config.size_bucket)], axis=1)
             match_flat, err_flat = run_pairs(
                 _match_pairs, pq, adj_i, n_i, scene, rows, lambda p, q: (p * q) ** 2 * 4 * 3, budget,
-                ("p", "q"), [(k,), ()], database_tables(db), c=float(config.c),
+                ("p", "q"), [(k,), ()], (*database_tables(db), jnp.float32(config.c)),
                 n_iter=int(config.power_iterations), tol=float(config.power_tol),
                 min_matched=int(config.min_matched))
             err[s_idx, c_idx] = err_flat
