@@ -103,7 +103,8 @@ class Config:
             the names are ≥ e^12.25 times likelier than the exchange). It replaces two tests of
             margin ``verify_ambiguity_k`` by one, so it asks for more; with 2.5 a pair 0.067°
             apart at σ = 1 px whose detections had drifted past each other passed it by 6.28 nats
-            for the wrong names. The rule only adds names to those the two tests keep. 3.0 on the
+            for the wrong names. The partner path only adds names; the rule also counts a kept
+            other detection at its own name's cost in the joint test (module :mod:`.verify`). 3.0 on the
             README's 4,200 Table 2 scenes: ALN 83.33 / 83.15 / 78.02 % (3.5: 78.92 / 78.14 /
             73.48 %), no mis-identification either; 3.5 because e^−9 ≈ 10⁻⁴ bounds each near-tie
             decision's error, too loose for ≈ 100 k scenes.

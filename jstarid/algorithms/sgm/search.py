@@ -155,7 +155,7 @@ def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
     Power-of-two sizes bound the number of compilations per kernel. The floor of 64 (not 16) merges
     the small sizes that most blocks of a small batch need into one compilation (≈ 1.5 s each on 2
     cores): ``bench_sgm.py --batch 128`` at σ = 0 / 1 / 3 px took 29 / 21 / 47 s for its first call
-    instead of 61 / 30 / 66 s, at the same steady rate within the ±10 % noise of the machine. The
+    instead of 61 / 30 / 66 s, at the same steady rate within the machine's run-to-run spread. The
     padding pairs cost next to nothing: the kernels skip them (:func:`skip_padding`), gathers included.
     """
     cap = max(MIN_CALL_PAIRS,

@@ -136,9 +136,9 @@ def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_ma
     cost_j = d_j_rival ** 2 / s2 + mag_cost(mag[j], cand_mag[None, :])
     if partner_joint:
         cost_j = jnp.where(kept[j], cost_own[j], cost_j)
-    joint = ((cost_alt + d_j_own ** 2 / s2 + mag_cost(mag[j], own_mag[:, None]))
-             - (cost_own[:, None] + cost_j) >= margin)
-    clear = single & (joint | ~(d_j_rival <= window))
+    exchange = (cost_alt + d_j_own ** 2 / s2 + mag_cost(mag[j], own_mag[:, None])
+                - (cost_own[:, None] + cost_j))  # (N, R) nats the exchange costs more
+    clear = single & ((exchange >= margin) | ~(d_j_rival <= window))
     nearest_row = near[jnp.argmin(d_all, axis=1)]  # (N,) each detection's nearest catalog star
     if partner_joint:
         # the rival has a detection of its own: within the tolerance, nearest to the rival of all
@@ -147,8 +147,6 @@ def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_ma
         # alone, with the wider margin partner_k² (one test instead of two), also clears the name
         partner = ((d_j_rival <= tol) & (nearest_row[j] == near[None, :])
                    & ((ids[j] < 0) | ((ids[j] == near[None, :]) & kept[j])))
-        exchange = (cost_alt + d_j_own ** 2 / s2 + mag_cost(mag[j], own_mag[:, None])
-                    - (cost_own[:, None] + cost_j))
         clear |= partner & (exchange >= partner_k ** 2)
     clear = jnp.all(~rival | clear, axis=1)  # every rival within the window
     # rival detection: an unnamed detection whose nearest catalog star is i's own star (a false
