@@ -34,7 +34,7 @@ from jstarid.attitude import attitude_errors_arcsec
 from jstarid.scene import Identification, Scene
 
 __all__ = ["CORRECT", "WRONG", "FAIL", "INCOMPLETE", "CRITERIA", "scene_outcomes", "evaluate",
-           "main_star_index", "nearest_to_principal_point"]
+           "main_star_index", "nearest_to_principal_point", "sgm_required"]
 
 CORRECT, WRONG, FAIL, INCOMPLETE = 0, 1, 2, 3
 CRITERIA = ("strict", "mlv", "sgm", "rpnet")
@@ -54,6 +54,20 @@ def nearest_to_principal_point(xy, valid, camera):
 def main_star_index(scenes: Scene, camera):
     """(B,) index of the valid detection nearest the principal point (0 for an empty scene)."""
     return nearest_to_principal_point(scenes.xy, scenes.valid, camera)
+
+
+def sgm_required(scenes: Scene, camera, radius_deg: float = 6.0):
+    """(B, N) bool: the true stars the SGM criterion asks for.
+
+    Valid detections with a catalog truth whose (noisy) centroid lies within ``radius_deg`` of the main
+    star's centroid (the neighbor circle, seed 000), the main star included.
+    """
+    rows = jnp.arange(scenes.truth.shape[0])
+    main = main_star_index(scenes, camera)
+    v = camera.unproject(scenes.xy)  # (B, N, 3)
+    cosang = jnp.sum(v * v[rows, main][:, None, :], -1)
+    inside = scenes.valid & (cosang >= math.cos(math.radians(radius_deg)))
+    return inside & (scenes.truth >= 0)
 
 
 def scene_outcomes(scenes: Scene, result: Identification, criterion: str = "strict", *,
@@ -100,10 +114,7 @@ def _outcomes(scenes, ids, ok, criterion, camera, radius_deg):
         main_true = scenes.valid[rows, main] & (scenes.truth[rows, main] >= 0)
         main_ok = ~main_true | correct[rows, main]
         if criterion == "sgm":
-            v = camera.unproject(scenes.xy)  # (B, N, 3)
-            cosang = jnp.sum(v * v[rows, main][:, None, :], -1)
-            inside = scenes.valid & (cosang >= math.cos(math.radians(radius_deg)))
-            required = inside & (scenes.truth >= 0)
+            required = sgm_required(scenes, camera, radius_deg)
             met = jnp.all(~required | correct, -1) & main_ok & (n_correct >= 1)
         else:  # rpnet
             met = main_ok & (n_correct >= 1)
