@@ -449,3 +449,19 @@ def test_ambiguity_guard_rival_detection_and_magnitudes_by_hand():
     run = _pair_case(j_name=2, mags=[4.0, 6.0, 3.0])  # j named C: the single test decides
     assert not run(partner_joint=True)[0]
     assert run(partner_joint=True, mag_sigma=0.3)[0]
+
+
+def test_upper_rms_is_the_chi_square_lower_quantile():
+    """The ambiguity margins' s: Σd² over the lower 16 % quantile of χ²_ν (ν = 2n − 3), against
+    scipy's χ² quantile (Wilson–Hilferty is within a few % even at ν = 3)."""
+    from scipy.stats import chi2, norm
+
+    from jstarid.algorithms.sgm.verify import _upper_rms
+
+    rng = np.random.default_rng(0)
+    resid = rng.rayleigh(0.05, 64)
+    for n in (3, 8, 22, 60):
+        mask = np.arange(64) < n
+        got = float(_upper_rms(jnp.asarray(resid, jnp.float32), jnp.asarray(mask)))
+        want = np.sqrt(2.0 * np.sum(resid[:n] ** 2) / chi2.ppf(norm.cdf(-1.0), 2 * n - 3))
+        assert abs(got / want - 1.0) < 0.03, (n, got, want)

@@ -35,7 +35,10 @@ fixed shapes, masks), checks every named detection against the attitude of the o
    6.28 nats, for the wrong names — the two mis-identified scenes of a 4,200-scene run with the
    first version of the rule. Optionally (``mag_sigma`` > 0, off
    by default: SGM is a magnitude-free method) both tests add the magnitude term
-   ``(m_obs − V)² / (2 σ_m²)`` to each hypothesis' cost. A last test looks for a rival
+   ``(m_obs − V)² / (2 σ_m²)`` to each hypothesis' cost. Every margin of this step is measured
+   with a high-side s (:func:`_upper_rms`: the kept residuals' χ² with 2n − 3 degrees of freedom,
+   too small with probability 16 %), not the fitted tolerance's median-based s, whose chance
+   shortfalls inflate every likelihood ratio. A last test looks for a rival
    *detection*: an unnamed detection
    whose nearest catalog star is this detection's own star (a false star next to a true one, seen
    once at σ = 3 px with one fake star: the fake, 0.063° from the star, took its name) must lose to
@@ -88,6 +91,23 @@ def _fit(body, ref, named, k, floor_deg, cap_deg):
     resid = _angle_deg(body, ref @ c.T)
     s = jnp.clip(_RMS_PER_MEDIAN * _masked_median(resid, named), floor_deg / k, cap_deg / k)
     return c, resid, s, k * s
+
+
+def _upper_rms(resid, mask, z: float = 1.0):
+    """A high-side estimate of the residual RMS s (deg) for the ambiguity margins (step 3).
+
+    The residuals of n stars fitted by a 3-parameter attitude have ν = 2n − 3 degrees of freedom:
+    Σ d² ~ (s²/2) χ²_ν. Dividing by the lower z-quantile of χ²_ν (Wilson–Hilferty) instead of its mean
+    gives an s that is too small only with probability Φ(−z) (16 % at z = 1). Why: an s that came out
+    low by chance inflates every log likelihood ratio by 1/s²; the median-based s of 22 stars once
+    came out 13 % low at σ = 3 px and let a 5.3-nat name pass a 6.25-nat margin (a mis-identification
+    in 4,200 scenes).
+    """
+    n = jnp.sum(mask)
+    nu = jnp.maximum(2.0 * n - 3.0, 1.0)
+    c = 2.0 / (9.0 * nu)
+    q = nu * jnp.maximum(1.0 - c - z * jnp.sqrt(c), 0.05) ** 3
+    return jnp.sqrt(2.0 * jnp.sum(jnp.where(mask, resid ** 2, 0.0)) / q)
 
 
 def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_mag, resid, tol, s,
@@ -191,11 +211,12 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
     inl = named0 & (resid <= tol)
     c, resid, s, tol = _fit(body, ref, inl, k, floor_deg, cap_deg)
     keep = named0 & (resid <= tol)
+    s_amb = jnp.maximum(s, _upper_rms(resid, keep))  # never looser than the fitted tolerance's s
     # ambiguity guard: catalog stars near the main star's sky direction (fixed count)
     sky_main = body[main] @ c  # Cᵀ b, ICRS
     _, near = jax.lax.top_k(cat @ sky_main, n_near)
     keep &= _ambiguity_clear(body, mag, ids, valid, ref, c, near, cat[near], cat_mag[near],
-                             cat_mag[rows], resid, tol, s, keep, amb_k=amb_k, amb_deg=amb_deg,
+                             cat_mag[rows], resid, tol, s_amb, keep, amb_k=amb_k, amb_deg=amb_deg,
                              partner_joint=partner_joint, partner_k=partner_k,
                              mag_sigma=mag_sigma)
     # the widest tolerance: the fitted one can be tight (a 3-star fit leaves tiny residuals) while
