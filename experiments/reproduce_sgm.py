@@ -25,7 +25,6 @@ import argparse
 import dataclasses
 import hashlib
 import json
-import math
 import time
 from pathlib import Path
 
@@ -61,14 +60,8 @@ class ExpConfig:
 
 def _fake_inside(scenes, cam, radius_deg):
     """(B,) bool: a false star lies inside the main star's neighbor circle."""
-    main = np.asarray(js.metrics.main_star_index(scenes, cam))
-    xy = np.asarray(scenes.xy, np.float64)
-    u = np.stack([(xy[..., 0] - cam.cx) / cam.f_px, (xy[..., 1] - cam.cy) / cam.f_px,
-                  np.ones(xy.shape[:2])], -1)
-    u /= np.linalg.norm(u, axis=-1, keepdims=True)
-    cos = np.sum(u * u[np.arange(u.shape[0]), main][:, None], -1)
-    false = np.asarray(scenes.valid) & (np.asarray(scenes.truth) < 0)
-    return np.any(false & (cos >= math.cos(math.radians(radius_deg))), axis=1)
+    inside = np.asarray(js.metrics.in_neighbor_circle(scenes, cam, radius_deg))
+    return np.any(inside & (np.asarray(scenes.truth) < 0), axis=1)
 
 
 def _code_fingerprint() -> str:
@@ -79,9 +72,9 @@ def _code_fingerprint() -> str:
     return digest.hexdigest()[:16]
 
 
-def _level_settings(cfg, scfg, cat, rows, exp, sigma) -> dict:
+def _level_settings(cfg, scfg, cat, rows, exp, sigma, code) -> dict:
     """Everything a level's numbers depend on; a stored level is reused only when this matches."""
-    return {"code": _code_fingerprint(), "experiment": exp, "sigma_px": float(sigma),
+    return {"code": code, "experiment": exp, "sigma_px": float(sigma),
             "seed": cfg.seed, "batch": cfg.batch, "capacity": cfg.capacity, "camera": cfg.camera,
             "catalog": cat.fingerprint,
             "sgm_config": dataclasses.asdict(scfg), "rows": rows.tolist()}
@@ -139,11 +132,12 @@ def run(cfg: ExpConfig) -> dict:
     rng = np.random.default_rng(cfg.seed)
     rows = (np.arange(len(cat)) if cfg.n_stars is None
             else np.sort(rng.choice(len(cat), cfg.n_stars, replace=False)))
+    code = _code_fingerprint()
     results = {"levels": [], "database": {"stars": len(db), "capacity": db.capacity,
                                           "bytes": db.nbytes, "seconds": db.build_seconds}}
     for exp in cfg.experiments:
         for sigma in cfg.sigmas:
-            settings = _level_settings(cfg, scfg, cat, rows, exp, sigma)
+            settings = _level_settings(cfg, scfg, cat, rows, exp, sigma, code)
             path = out / "levels" / f"{exp}_{sigma:.2f}.json"
             stored = json.loads(path.read_text()) if path.exists() else None
             if stored is not None and stored["settings"] == settings:

@@ -34,7 +34,7 @@ from jstarid.attitude import attitude_errors_arcsec
 from jstarid.scene import Identification, Scene
 
 __all__ = ["CORRECT", "WRONG", "FAIL", "INCOMPLETE", "CRITERIA", "scene_outcomes", "evaluate",
-           "main_star_index", "nearest_to_principal_point", "sgm_required"]
+           "main_star_index", "nearest_to_principal_point", "in_neighbor_circle", "sgm_required"]
 
 CORRECT, WRONG, FAIL, INCOMPLETE = 0, 1, 2, 3
 CRITERIA = ("strict", "mlv", "sgm", "rpnet")
@@ -56,18 +56,19 @@ def main_star_index(scenes: Scene, camera):
     return nearest_to_principal_point(scenes.xy, scenes.valid, camera)
 
 
-def sgm_required(scenes: Scene, camera, radius_deg: float = 6.0):
-    """(B, N) bool: the true stars the SGM criterion asks for.
-
-    Valid detections with a catalog truth whose (noisy) centroid lies within ``radius_deg`` of the main
-    star's centroid (the neighbor circle, seed 000), the main star included.
-    """
+def in_neighbor_circle(scenes: Scene, camera, radius_deg: float = 6.0):
+    """(B, N) bool: valid detections whose (noisy) centroid lies within ``radius_deg`` of the main
+    star's centroid — the SGM neighbor circle (seed 000), the main star included."""
     rows = jnp.arange(scenes.truth.shape[0])
     main = main_star_index(scenes, camera)
     v = camera.unproject(scenes.xy)  # (B, N, 3)
     cosang = jnp.sum(v * v[rows, main][:, None, :], -1)
-    inside = scenes.valid & (cosang >= math.cos(math.radians(radius_deg)))
-    return inside & (scenes.truth >= 0)
+    return scenes.valid & (cosang >= math.cos(math.radians(radius_deg)))
+
+
+def sgm_required(scenes: Scene, camera, radius_deg: float = 6.0):
+    """(B, N) bool: the true stars the SGM criterion asks for (catalog stars in the neighbor circle)."""
+    return in_neighbor_circle(scenes, camera, radius_deg) & (scenes.truth >= 0)
 
 
 def scene_outcomes(scenes: Scene, result: Identification, criterion: str = "strict", *,
