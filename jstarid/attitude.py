@@ -18,6 +18,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from jstarid.geometry import precise
+
 __all__ = [
     "random_rotation", "rotation_from_boresight", "rotation_to_radec_roll",
     "rotation_from_radec_roll", "quaternion_from_rotation", "rotation_from_quaternion",
@@ -137,11 +139,11 @@ def solve_wahba(body, ref, weights):
         (..., 3, 3) proper rotation ``C`` (det +1). With fewer than two independent pairs the answer
         is not unique; callers check the count.
     """
-    b_mat = jnp.einsum("...n,...ni,...nj->...ij", weights, body, ref)
+    b_mat = precise.einsum("...n,...ni,...nj->...ij", weights, body, ref)
     u, _, vt = jnp.linalg.svd(b_mat)
     d = jnp.linalg.det(u) * jnp.linalg.det(vt)
     fix = jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d], -1)
-    return jnp.einsum("...ij,...j,...jk->...ik", u, fix, vt)
+    return precise.einsum("...ij,...j,...jk->...ik", u, fix, vt)
 
 
 def attitude_errors_arcsec(c_est, c_true):
@@ -157,7 +159,7 @@ def attitude_errors_arcsec(c_est, c_true):
     cross = jnp.linalg.norm(jnp.cross(z_est, z_true), axis=-1)
     dot = jnp.sum(z_est * z_true, axis=-1)
     bore = jnp.arctan2(cross, dot)
-    delta = jnp.einsum("...ij,...kj->...ik", c_est, c_true)
+    delta = precise.einsum("...ij,...kj->...ik", c_est, c_true)
     roll = jnp.abs(jnp.arctan2(delta[..., 0, 1] - delta[..., 1, 0], delta[..., 0, 0] + delta[..., 1, 1]))
     return bore * _RAD_TO_ARCSEC, roll * _RAD_TO_ARCSEC
 
@@ -187,7 +189,7 @@ def _estimate(ref_table, xy, valid, ids, camera, min_stars):
     ref = ref_table[jnp.clip(ids, 0, ref_table.shape[0] - 1)]
     w = use.astype(jnp.float32)
     c = solve_wahba(body, ref, w)
-    pred = jnp.einsum("bij,bnj->bni", c, ref)
+    pred = precise.einsum("bij,bnj->bni", c, ref)
     ang = jnp.arctan2(jnp.linalg.norm(jnp.cross(pred, body), axis=-1), jnp.sum(pred * body, -1))
     n = jnp.sum(w, -1)
     rms = jnp.sqrt(jnp.sum(w * ang**2, -1) / jnp.maximum(n, 1.0)) * _RAD_TO_ARCSEC

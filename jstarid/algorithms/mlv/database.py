@@ -34,6 +34,7 @@ from jstarid.algorithms.mlv.features import discretize, singular_values, triangl
 from jstarid.attitude import rotation_from_boresight
 from jstarid.camera import Camera
 from jstarid.catalog import cache_dir
+from jstarid.geometry import precise
 from jstarid.sky_index import build_sky_index, cell_of
 
 __all__ = ["Database", "build_database", "fibonacci_sphere", "database_from_triangles"]
@@ -144,7 +145,7 @@ def _brightest_in_field(bore, roll, rows, vec, real, *, camera: Camera, n: int):
         (c, n) int32 catalog rows (ascending; −1 where fewer than n stars are in the field).
     """
     att = rotation_from_boresight(bore, roll)  # (c, 3, 3): v_cam = C r
-    v_cam = jnp.einsum("cij,ckj->cki", att, vec)
+    v_cam = precise.einsum("cij,ckj->cki", att, vec)
     _, in_field = camera.project(v_cam)
     in_field &= real
     m = jnp.max(rows) + 1  # anything > every row

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.attitude import solve_wahba
+from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between, pairwise_angles
 
 __all__ = ["pair_angles", "agreement", "largest_cluster", "subset_masks", "attitude_check",
@@ -153,23 +154,23 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
     r = catalog_vectors[jnp.maximum(cand_rows, 0)]
     w = members.astype(det_vectors.dtype)
     full = _wahba(det_vectors, r, w)
-    resid = angle_between(det_vectors @ full, r)  # (n,)
+    resid = angle_between(precise.matmul(det_vectors, full), r)  # (n,)
     big = jnp.asarray(jnp.inf, det_vectors.dtype)
     med = jnp.nanmedian(jnp.where(members, resid, jnp.nan))
     sigma = jnp.where(jnp.isfinite(med), med, big) / 1.1774
     tol = jnp.clip(sigmas * sigma, min_tol_rad, max_tol_rad)
     loo_w = w[None, :] * (1.0 - jnp.eye(n, dtype=w.dtype))  # (n, n): fit without member i
     loo = jax.vmap(_wahba, in_axes=(None, None, 0))(det_vectors, r, loo_w)  # (n, 3, 3)
-    pred = jnp.einsum("ni,nij->nj", det_vectors, loo)  # rows: C_iᵀ v_i in ICRS
-    cos = pred @ catalog_vectors.T  # (n, M)
+    pred = precise.einsum("ni,nij->nj", det_vectors, loo)  # rows: C_iᵀ v_i in ICRS
+    cos = precise.matmul(pred, catalog_vectors.T)  # (n, M)
     near = jnp.argmax(cos, axis=1)  # two argmax passes: cheaper than top_k on CPU
     cos2 = jnp.max(jnp.where(jnp.arange(cos.shape[1]) == near[:, None], -2.0, cos), axis=1)
     ang1 = angle_between(pred, catalog_vectors[near])
     # cos2 only decides "within ambiguity_rad": compare cosines (no precision needed here)
     if scene_vectors is None:
         scene_vectors, scene_valid = det_vectors, members
-    star_cam = jnp.einsum("nij,nj->ni", loo, r)  # C_i r_i: where star i should appear (camera)
-    to_det = jnp.where(scene_valid[None, :], star_cam @ scene_vectors.T, -2.0)  # (n, m)
+    star_cam = precise.einsum("nij,nj->ni", loo, r)  # C_i r_i: where star i should appear (camera)
+    to_det = jnp.where(scene_valid[None, :], precise.matmul(star_cam, scene_vectors.T), -2.0)  # (n, m)
     own = jnp.argmax(to_det, axis=1) == jnp.arange(n)
     # …and the only detection within ambiguity_rad of it: two spots on one star's position (a
     # false star on top of it) leave the pairing to chance
@@ -177,7 +178,7 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
     own &= others == 0
     if outlier_sigmas is not None:
         # residual of every member k under each leave-one-out fit i: (i, k)
-        res_loo = angle_between(jnp.einsum("nij,kj->nki", loo, r), det_vectors[None, :, :])
+        res_loo = angle_between(precise.einsum("nij,kj->nki", loo, r), det_vectors[None, :, :])
         other = members[None, :] & ~jnp.eye(n, dtype=bool)
         n_other = jnp.sum(other, axis=1)
         med_i = jnp.nanmedian(jnp.where(other, res_loo, jnp.nan), axis=1)
@@ -215,7 +216,7 @@ def field_check(att, scene_vectors, scene_valid, catalog_vectors, camera, n: int
     Returns:
         ``(n_predicted, n_confirmed)``: scalar int32 counts.
     """
-    v = catalog_vectors @ att.T  # (M, 3) camera frame
+    v = precise.matmul(catalog_vectors, att.T)  # (M, 3) camera frame
     _, in_field = camera.project(v)
     # the n brightest in the frame: the rows where the running in-field count reaches 1, …, n (n
     # binary searches: much cheaper on CPU than jnp.nonzero's scatter over the whole catalog)
@@ -223,6 +224,6 @@ def field_check(att, scene_vectors, scene_valid, catalog_vectors, camera, n: int
     rows = jnp.searchsorted(running, jnp.arange(1, n + 1, dtype=jnp.int32), side="left")
     predicted = rows < in_field.shape[0]
     rows = jnp.where(predicted, rows, -1)
-    cos = v[jnp.maximum(rows, 0)] @ scene_vectors.T  # (n, m)
+    cos = precise.matmul(v[jnp.maximum(rows, 0)], scene_vectors.T)  # (n, m)
     seen = jnp.any(scene_valid[None, :] & (cos >= math.cos(tol_rad)), axis=1)
     return jnp.sum(predicted, dtype=jnp.int32), jnp.sum(predicted & seen, dtype=jnp.int32)

@@ -60,6 +60,7 @@ from jstarid.algorithms.rpnet.config import Config, Thresholds
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.algorithms.rpnet.train import predict_logits
 from jstarid.attitude import solve_wahba
+from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, cell_of
@@ -158,8 +159,8 @@ def name_stars(c, body, valid, star_vectors, tol_rad: float):
         ``tol_rad``, the second-nearest catalog star is not, and no other named detection has the
         same row.
     """
-    ref = body @ c  # (N, 3) ICRS directions: r = Cᵀ v
-    cos = ref @ star_vectors.T  # (N, M)
+    ref = precise.matmul(body, c)  # (N, 3) ICRS directions: r = Cᵀ v
+    cos = precise.matmul(ref, star_vectors.T)  # (N, M)
     best = _first_argmax(cos)  # two reductions instead of a top-2 (a sort on CPU)
     second = _first_argmax(jnp.where(jnp.arange(cos.shape[1])[None, :] == best[:, None], -2.0, cos))
     # float32 cosines near 1 resolve only ≈ 3.5e-4 rad (1.4 px here): the cosines pick the two nearest
@@ -194,7 +195,8 @@ def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_r
     d_obs_a, d_obs_b = angle_between(body, obs_a[None]), angle_between(body, obs_b[None])  # (N,)
     d_cat_a, d_cat_b = angle_between(star_vectors, ref_a[None]), angle_between(star_vectors, ref_b[None])
     err = jnp.maximum(jnp.abs(d_obs_a[:, None] - d_cat_a[None]), jnp.abs(d_obs_b[:, None] - d_cat_b[None]))
-    near = (body @ c) @ star_vectors.T >= jnp.cos(radius_rad)  # (N, M), a loose radius: cos is enough
+    # (N, M), a loose radius: cos is enough
+    near = precise.matmul(precise.matmul(body, c), star_vectors.T) >= jnp.cos(radius_rad)
     err = jnp.where(near, err, jnp.inf)
     best = _first_argmax(-err)
     e1 = jnp.take_along_axis(err, best[:, None], axis=1)[:, 0]
@@ -309,7 +311,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thres
     rows0, named0 = name_stars(c1, body, valid, loc_vec, tol)
     w0 = named0.astype(jnp.float32)
     # last pass: tolerance from the residuals' RMS (per axis, px) of the refined fit
-    resid = angle_between(body, loc_vec[rows0] @ c1.T) * camera.f_px
+    resid = angle_between(body, precise.matmul(loc_vec[rows0], c1.T)) * camera.f_px
     sigma = jnp.sqrt(jnp.sum(w0 * resid**2) / jnp.maximum(2.0 * jnp.sum(w0) - 3.0, 1.0))
     tol2 = jnp.clip(th.match_sigmas * sigma, th.match_tol_min_px, th.match_tol_px)
     rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / camera.f_px)
@@ -323,7 +325,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thres
     c2 = solve_wahba(body, loc_vec[rows1], named1.astype(jnp.float32))
     c2 = jnp.where(jnp.sum(named1) >= 2, c2, c1)
     # coverage: catalog stars the final attitude puts inside the frame (inset by the tolerance)
-    xy_pred, in_field = camera.project(loc_vec @ c2.T)
+    xy_pred, in_field = camera.project(precise.matmul(loc_vec, c2.T))
     inside = (loc < star_vectors.shape[0]) & in_field & camera.contains(xy_pred, th.match_tol_px)
     return loc[rows1], named1, c2, jnp.sum(inside)
 

@@ -111,7 +111,7 @@ def _build_arrays(catalog, config: Config, progress: bool):
         members[j, :rows.size] = rows
         v = vec[rows]
         cross = np.linalg.norm(np.cross(v[:, None, :], v[None, :, :]), axis=-1)
-        adj[j, :rows.size, :rows.size] = np.degrees(np.arctan2(cross, v @ v.T))
+        adj[j, :rows.size, :rows.size] = np.degrees(np.arctan2(cross, np.matmul(v, v.T)))
     mask = np.arange(cap)[None, :] < counts[:, None]
     # MST weights with the same jnp Prim routine the scenes use (identical arithmetic for w_I, w_J)
     mst = jax.jit(jax.vmap(mst_weight))

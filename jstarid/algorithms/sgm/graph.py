@@ -103,6 +103,6 @@ def image_graph(vecs, valid, main, radius_deg: float, capacity: int):
 
 def catalog_neighbors(unit_vectors: np.ndarray, row: int, radius_deg: float) -> np.ndarray:
     """Host helper: catalog rows of the neighbor graph of ``row`` (itself first, then by row)."""
-    dots = unit_vectors @ unit_vectors[row]
+    dots = np.matmul(unit_vectors, unit_vectors[row])
     near = np.nonzero(dots >= np.cos(np.radians(radius_deg)))[0]
     return np.concatenate([[row], near[near != row]]).astype(np.int32)

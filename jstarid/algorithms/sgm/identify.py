@@ -202,8 +202,8 @@ def _name_leftovers(db, scenes: Scene, result: Identification, g: dict, config: 
         todo = mem[ids[s, mem] < 0]
         if todo.size == 0:
             continue
-        sky = vec[s, todo] @ att[s]  # rows: Cᵀ v, ICRS
-        dots = sky @ cat.T  # (n_todo, catalog)
+        sky = np.matmul(vec[s, todo], att[s])  # rows: Cᵀ v, ICRS
+        dots = np.matmul(sky, cat.T)  # (n_todo, catalog)
         best = np.argmax(dots, axis=1)
         used = set(ids[s][ids[s] >= 0].tolist())
         for det, row, dot in zip(todo, best, dots[np.arange(todo.size), best], strict=True):

@@ -19,6 +19,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jstarid.geometry import precise
+
 __all__ = ["affinity", "principal_eigenvector", "greedy_binarize", "matching_error",
            "spectral_match"]
 
@@ -76,7 +78,7 @@ def principal_eigenvector(k, n_iter: int, tol: float = 0.0):
     x0 = jnp.full((k.shape[0],), 1.0 / jnp.sqrt(k.shape[0]), k.dtype)
 
     def step(x):
-        y = k @ x
+        y = precise.matmul(k, x)
         norm = jnp.linalg.norm(y)
         return jnp.where(norm > 0, y / jnp.where(norm > 0, norm, 1.0), 0.0)
 

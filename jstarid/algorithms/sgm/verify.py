@@ -65,6 +65,7 @@ import jax
 import jax.numpy as jnp
 
 from jstarid.attitude import solve_wahba
+from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.sky_index import cell_of
 
@@ -88,7 +89,7 @@ def _masked_median(x, mask):
 def _fit(body, ref, named, k, floor_deg, cap_deg):
     """Attitude, residuals (deg), robust RMS s (deg) and tolerance (deg) from the named pairs."""
     c = solve_wahba(body, ref, named.astype(body.dtype))
-    resid = _angle_deg(body, ref @ c.T)
+    resid = _angle_deg(body, precise.matmul(ref, c.T))
     s = jnp.clip(_RMS_PER_MEDIAN * _masked_median(resid, named), floor_deg / k, cap_deg / k)
     return c, resid, s, k * s
 
@@ -127,7 +128,7 @@ def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_ma
         kept: (N,) bool, the names that passed the residual test.
     """
     sep = _angle_deg(ref[:, None, :], cand[None, :, :])  # catalog separation id ↔ candidate
-    pred = cand @ c.T  # (R, 3) candidates in the camera frame
+    pred = precise.matmul(cand, c.T)  # (R, 3) candidates in the camera frame
     d_all = _angle_deg(body[:, None, :], pred[None, :, :])  # (N, R)
     window = jnp.maximum(3.0 * tol, amb_deg)
     rival = (near[None, :] != ids[:, None]) & (sep < window)  # (N, R)
@@ -151,7 +152,7 @@ def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_ma
     first_is_i = two[None, :, 0] == jnp.arange(n)[:, None]  # (N, R)
     j = jnp.where(first_is_i, two[None, :, 1], two[None, :, 0])
     d_j_rival = -jnp.where(first_is_i, neg[None, :, 1], neg[None, :, 0])
-    d_j_own = _angle_deg(body[j], (ref @ c.T)[:, None, :])  # (N, R): j against i's own star
+    d_j_own = _angle_deg(body[j], precise.matmul(ref, c.T)[:, None, :])  # (N, R): j against i's own star
     # j's cost now: the rival it sits next to; with partner_joint, its own kept name if it has one
     cost_j = d_j_rival ** 2 / s2 + mag_cost(mag[j], cand_mag[None, :])
     if partner_joint:
@@ -173,7 +174,7 @@ def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_ma
     # star, or a star the match left out, next to a named one) could be that star instead of i
     contender = (valid[None, :] & ~kept[None, :] & ~jnp.eye(n, dtype=bool)
                  & (nearest_row[None, :] == ids[:, None]))  # (N, N): j contends for i's star
-    d_own_det = _angle_deg((ref @ c.T)[:, None, :], body[None, :, :])  # i's star ↔ detection j
+    d_own_det = _angle_deg(precise.matmul(ref, c.T)[:, None, :], body[None, :, :])  # i's star ↔ detection j
     d_own_det = jnp.where(contender, d_own_det, jnp.inf)
     jc = jnp.argmin(d_own_det, axis=1)
     d_c = jnp.take_along_axis(d_own_det, jc[:, None], axis=1)[:, 0]
@@ -190,7 +191,7 @@ def _frame_coverage(c, body, valid, cat, cells, tol, *, camera, grid):
     loc = cells[cell_of(c[2], grid)]  # c[2] = Cᵀ ẑ: the boresight (ICRS)
     real = loc < cat.shape[0]
     vec = jnp.where(real[:, None], cat[jnp.minimum(loc, cat.shape[0] - 1)], -c[2][None, :])
-    pred = vec @ c.T  # (K, 3) camera frame
+    pred = precise.matmul(vec, c.T)  # (K, 3) camera frame
     xy, in_field = camera.project(pred)
     tol_px = jnp.tan(jnp.radians(tol)) * camera.f_px
     expected = real & in_field & camera.contains(xy, tol_px)
@@ -213,8 +214,8 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
     keep = named0 & (resid <= tol)
     s_amb = jnp.maximum(s, _upper_rms(resid, keep))  # never looser than the fitted tolerance's s
     # ambiguity guard: catalog stars near the main star's sky direction (fixed count)
-    sky_main = body[main] @ c  # Cᵀ b, ICRS
-    _, near = jax.lax.top_k(cat @ sky_main, n_near)
+    sky_main = precise.matmul(body[main], c)  # Cᵀ b, ICRS
+    _, near = jax.lax.top_k(precise.matmul(cat, sky_main), n_near)
     keep &= _ambiguity_clear(body, mag, ids, valid, ref, c, near, cat[near], cat_mag[near],
                              cat_mag[rows], resid, tol, s_amb, keep, amb_k=amb_k, amb_deg=amb_deg,
                              partner_joint=partner_joint, partner_k=partner_k,
