@@ -259,6 +259,43 @@ def test_verification_catches_a_swapped_close_pair(setup):
     assert vok[1] and np.sum(ids[1] >= 0) >= np.sum(truth[1] >= 0) - 2
 
 
+def test_rename_after_verification_names_a_detection_the_match_paired_wrongly(setup):
+    """``verify_rename``: a detection the match named after the wrong star (seen noise-free in the
+    full-size run) is unnamed by the verification, then named correctly from the verified attitude."""
+    from jstarid.algorithms.sgm.identify import _rename_and_reverify, scene_graphs
+    cat, cam, cfg, db = setup
+    rows = np.random.default_rng(5).choice(len(cat), 6, replace=False)
+    scenes = js.simulate(jax.random.key(12), cat, cam, js.NoiseConfig(), capacity=CAPACITY,
+                         boresight_ids=rows)
+    g = scene_graphs(scenes.xy, scenes.valid, camera=cam, radius_deg=cfg.radius_deg,
+                     capacity=db.capacity)
+    g = {k: np.asarray(v) for k, v in g.items()}
+    truth = np.asarray(scenes.truth)
+    circle = np.zeros_like(truth, dtype=bool)
+    for s in range(len(rows)):
+        circle[s, g["members"][s][g["mask"][s]]] = True
+    named = np.where(circle, truth, -1)  # what a correct match names: the circle's detections
+    # each scene: a detection of the circle named after the star of a detection outside it (as the
+    # match does when one of its database vertices is a star whose detection left the circle)
+    wrong, victim = named.copy(), []
+    for s in range(len(rows)):
+        outside = truth[s][(truth[s] >= 0) & ~circle[s]]
+        inside = np.array([d for d in np.nonzero(named[s] >= 0)[0] if d != g["main"][s]])
+        cos = cat.unit_vectors[truth[s, inside]] @ cat.unit_vectors[outside].T  # the closest pair
+        i, o = np.unravel_index(np.argmax(cos), cos.shape)
+        wrong[s, inside[i]] = outside[o]
+        victim.append(inside[i])
+    ok = np.ones(len(rows), bool)
+    ids, vok = _verify(db, cfg, scenes, wrong, ok)
+    assert np.all(vok)
+    assert all(ids[s, d] == -1 for s, d in enumerate(victim))  # the verification unnames it
+    assert not np.any((ids >= 0) & (ids != truth))
+    verified = js.Identification(ids=jnp.asarray(ids), ok=jnp.asarray(vok), attitude=None)
+    renamed = _rename_and_reverify(db, scenes, verified, g, cfg)
+    np.testing.assert_array_equal(np.asarray(renamed.ids), named)  # named again, correctly
+    np.testing.assert_array_equal(np.asarray(renamed.ok), vok)
+
+
 def test_verification_at_three_pixels_names_nothing_wrong(setup):
     """σ = 3 px (the paper's largest noise): after verification no scene is mis-identified."""
     import dataclasses

@@ -113,6 +113,15 @@ class Config:
             σ (mag). On the session-6 replay with σ = 0.3 and the first partner rule (the scenes had no
             magnitude noise, so this is an upper bound): correct scenes at σ = 3 px 170 → 178
             (position), 163 → 168 (lost), 164 → 174 (fake), none mis-identified.
+        verify_rename: not in the paper; on by default (needs ``verify`` and ``leftover_tol_deg``).
+            After the verification, the detections of the image graph it left unnamed are named again
+            from the verified attitude (the ``leftover_tol_deg`` rule) and the scene is verified again,
+            so every new name passes the same tests; a scene the second verification rejects keeps
+            the first one's result. Why: the match can pair a detection with the wrong database
+            vertex (seen noise-free in the full-size run: a 39-vertex graph whose δ = 0.34° passed
+            ε_δ with one detection paired with a star 0.4° from its own); the verification unnames
+            it, but the leftover naming ran before, when it was still named, so the scene stayed
+            incomplete.
         verify_min_coverage: the frame-coverage test of the verification (0 = off): at least this
             fraction of the catalog stars that the verified attitude projects inside the frame (inset
             by the tolerance) must have a detection within the tolerance. 0.4 as in RpNet
@@ -148,6 +157,7 @@ class Config:
     verify_partner_joint: bool = True
     verify_partner_k: float = 3.5
     verify_magnitude_sigma: float | None = None
+    verify_rename: bool = True
     verify_min_coverage: float = 0.4
 
     def __post_init__(self):

@@ -17,7 +17,9 @@ attitude is fitted from the named stars, stars whose residual exceeds a noise-ti
 have a close rival catalog star they do not clearly beat are unnamed, and the scene fails when its
 main star is unnamed, too few stars remain, or the attitude does not explain the rest of the frame
 (too few of the catalog stars it puts in the frame have a detection there; :mod:`.verify`) — a
-failure rather than a mis-identification.
+failure rather than a mis-identification. What the verification left unnamed (e.g. a detection the
+match paired with the wrong database vertex) is then named from the verified attitude and the scene
+verified again (``Config.verify_rename``).
 
 The search and the bookkeeping run as a host loop over jit-compiled, vmapped kernels (graphs,
 candidate ordering, chunked spectral matching); see :mod:`.search` for why it equals Algorithm 1.
@@ -109,6 +111,8 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         result = Identification(ids=jnp.asarray(ids), ok=result.ok, attitude=None)
     if config.verify and np.any(ok):
         result = _verify(db, scenes, result, g["main"], config)
+        if config.verify_rename and config.leftover_tol_deg is not None and np.any(result.ok):
+            result = _rename_and_reverify(db, scenes, result, g, config)
     if with_attitude:
         att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
         att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
@@ -146,6 +150,29 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config) -> 
                          min_matched=int(config.min_matched),
                          min_coverage=float(config.verify_min_coverage), n_near=n_near)
     return Identification(ids=ids, ok=ok, attitude=None)
+
+
+def _rename_and_reverify(db, scenes: Scene, verified: Identification, g, config: Config):
+    """Name what the verification left unnamed from the verified attitude, then verify again.
+
+    ``Config.verify_rename``: the leftover rule (:func:`_name_leftovers`) runs on the verified names,
+    and the scenes it changes go through :func:`_verify` once more, so a new name faces the same
+    residual, ambiguity and coverage tests as every other. Where the second verification rejects a
+    scene, the first verification's result stands (it passed every test on its own).
+
+    Returns:
+        :class:`~jstarid.scene.Identification` with the same ``ok`` as ``verified``.
+    """
+    before = np.asarray(verified.ids)
+    ids = _name_leftovers(db, scenes, verified, g, config)
+    changed = np.any(ids != before, axis=1)
+    if not np.any(changed):
+        return verified
+    proposal = Identification(ids=jnp.asarray(ids), ok=verified.ok, attitude=None)
+    again = _verify(db, scenes, proposal, g["main"], config)
+    take = changed & np.asarray(again.ok)
+    ids = np.where(take[:, None], np.asarray(again.ids), before)
+    return Identification(ids=jnp.asarray(ids), ok=verified.ok, attitude=None)
 
 
 def _check_vertices(adj_i, db_adj, res, config: Config):

@@ -55,6 +55,10 @@ fixed shapes, masks), checks every named detection against the attitude of the o
    scenes 11–12 % did; on correct scenes 97–100 % (one missing star, one false star, σ ≤ 3 px).
    Catalog stars are taken from a sky index (:mod:`jstarid.sky_index`) cell of the boresight, which
    holds every star that can be in the frame.
+
+The caller (:func:`~jstarid.algorithms.sgm.identify.identify`, ``Config.verify_rename``) names the
+detections this step left unnamed from the verified attitude and runs the step once more, so a
+detection the match paired wrongly can still get its right name — through the same tests.
 """
 
 from __future__ import annotations
