@@ -275,8 +275,8 @@ def test_rename_after_verification_names_a_detection_the_match_paired_wrongly(se
     for s in range(len(rows)):
         circle[s, g["members"][s][g["mask"][s]]] = True
     named = np.where(circle, truth, -1)  # what a correct match names: the circle's detections
-    # each scene: a detection of the circle named after the star of a detection outside it (as the
-    # match does when one of its database vertices is a star whose detection left the circle)
+    # each scene: the circle detection closest to a detection outside the circle is named after
+    # that outside star — a wrong name of a present star, which the residual test must catch
     wrong, victim = named.copy(), []
     for s in range(len(rows)):
         outside = truth[s][(truth[s] >= 0) & ~circle[s]]

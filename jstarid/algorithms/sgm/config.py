@@ -119,7 +119,7 @@ class Config:
             so every new name passes the same tests; a scene the second verification rejects keeps
             the first one's result. Why: the match can pair a detection with the wrong database
             vertex (seen noise-free in the full-size run: a 39-vertex graph whose δ = 0.34° passed
-            ε_δ with one detection paired with a star 0.4° from its own); the verification unnames
+            ε_δ with one detection named after a star 2.2° from its own); the verification unnames
             it, but the leftover naming ran before, when it was still named, so the scene stayed
             incomplete.
         verify_min_coverage: the frame-coverage test of the verification (0 = off): at least this
