@@ -10,8 +10,9 @@ the share of scenes in which an oracle that knows the attitude and the stars pre
 star of the neighbor circle correctly from positions alone — no position-only identifier does better,
 so with at most 2 % failures no accuracy can exceed ceiling / 0.98.
 
-Each finished level is written to ``<out>/levels/`` and a rerun with the same settings picks it up
-instead of recomputing it, so a full-size run (hours on a CPU) can be stopped and resumed.
+Each finished level is written to ``<out>/levels/`` and a rerun with the same settings and the same
+jstarid code picks it up instead of recomputing it, so a full-size run (hours on a CPU) can be stopped
+and resumed.
 
     python experiments/reproduce_sgm.py --quick          # a few stars per level, minutes on a CPU
     python experiments/reproduce_sgm.py                  # every database star (≈5,070 per level)
@@ -22,6 +23,7 @@ Writes results/reproduce_sgm/{config.json, results.json, table.md, accuracy.png}
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import hashlib
 import json
@@ -64,11 +66,27 @@ def _fake_inside(scenes, cam, radius_deg):
     return np.any(inside & (np.asarray(scenes.truth) < 0), axis=1)
 
 
-def _code_fingerprint() -> str:
-    """Hash of the jstarid sources: a stored level made by other code is recomputed, not reused."""
+def _code_fingerprint(package: Path | None = None) -> str:
+    """Hash of what the jstarid sources compute: a stored level made by other code is recomputed,
+    not reused.
+
+    Each module is hashed as its syntax tree without docstrings (comments never reach the tree), so
+    an edit to the documentation alone keeps an hour of stored levels valid, while any change to
+    the code itself, a constant included, invalidates them.
+    """
     digest = hashlib.sha256()
-    for path in sorted(Path(js.__file__).parent.rglob("*.py")):
-        digest.update(path.read_bytes())
+    root = Path(js.__file__).parent if package is None else package
+    for path in sorted(root.rglob("*.py")):
+        tree = ast.parse(path.read_bytes())
+        for node in ast.walk(tree):
+            body = getattr(node, "body", None)
+            if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                    and body and isinstance(body[0], ast.Expr)
+                    and isinstance(body[0].value, ast.Constant)
+                    and isinstance(body[0].value.value, str)):
+                node.body = body[1:] or [ast.Pass()]
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(ast.dump(tree).encode())
     return digest.hexdigest()[:16]
 
 

@@ -45,3 +45,21 @@ def test_reproduce_sgm_tiny_resumes(tmp_path):
     level = first["levels"][0]
     assert level["ceiling_rate"] == 1.0 and level["accuracy"] == 1.0  # noise-free
     assert "ceiling (%)" in (tmp_path / "table.md").read_text()
+
+
+def test_code_fingerprint_ignores_documentation_not_code(tmp_path):
+    """A docstring or comment edit keeps stored levels valid; a changed constant does not."""
+    fingerprint = _load("reproduce_sgm")._code_fingerprint
+    package = tmp_path / "pkg"
+    package.mkdir()
+    source = package / "mod.py"
+    source.write_text('"""Module."""\n\n\ndef f(x):\n    """Doc."""\n    return x * 2  # why\n')
+    base = fingerprint(package)
+    source.write_text('"""Module, reworded."""\n\n\ndef f(x):\n    """Other doc."""\n'
+                      '    return x * 2  # another why\n')
+    assert fingerprint(package) == base
+    source.write_text('"""Module."""\n\n\ndef f(x):\n    """Doc."""\n    return x * 3\n')
+    assert fingerprint(package) != base
+    source.write_text('"""Module."""\n\n\ndef f(x):\n    """Doc."""\n    return x * 2\n')
+    (package / "other.py").write_text("Y = 1\n")
+    assert fingerprint(package) != base  # a new module counts
