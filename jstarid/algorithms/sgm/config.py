@@ -106,8 +106,11 @@ class Config:
             for the wrong names. The partner path only adds names; the rule also counts a kept
             other detection at its own name's cost in the joint test (module :mod:`.verify`). 3.0 on the
             README's 4,200 Table 2 scenes: ALN 83.33 / 83.15 / 78.02 % (3.5: 78.92 / 78.14 /
-            73.48 %), no mis-identification either; 3.5 because e^−9 ≈ 10⁻⁴ bounds each near-tie
-            decision's error, too loose for ≈ 100 k scenes.
+            73.48 %), no mis-identification either. 3.5 because, with the true σ, the wrong names
+            of a pair d RMS units apart beat the right ones by 2d² + 2d·Z nats (Z standard normal),
+            so they pass a margin m with probability at most Φ(−√(2m)), reached at d = √(m/2): 1.1·10⁻⁵
+            at m = 9, 3.7·10⁻⁷ at 12.25 (a Monte-Carlo check agreed), and a full-size run makes tens
+            of thousands of such decisions.
         verify_magnitude_sigma: not used by default (``None``; SGM is magnitude-free). When set, the
             ambiguity tests add each hypothesis' magnitude cost ``(m_obs − V)² / (2σ²)`` with this
             σ (mag). On the session-6 replay with σ = 0.3 and the first partner rule (the scenes had no
