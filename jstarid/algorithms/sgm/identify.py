@@ -19,7 +19,9 @@ main star is unnamed, too few stars remain, or the attitude does not explain the
 (too few of the catalog stars it puts in the frame have a detection there; :mod:`.verify`) — a
 failure rather than a mis-identification. What the verification left unnamed (e.g. a detection the
 match paired with the wrong database vertex) is then named from the verified attitude and the scene
-verified again (``Config.verify_rename``).
+verified again (``Config.verify_rename``). A match the verification rejects is struck out and the
+dynamic search goes on to the next candidate that passes ε_δ, up to ``Config.verify_retries`` times
+(the verification joins Algorithm 1's acceptance test; :mod:`.search`, "Resumption").
 
 The search and the bookkeeping run as a host loop over jit-compiled, vmapped kernels (graphs,
 candidate ordering, chunked spectral matching); see :mod:`.search` for why it equals Algorithm 1.
@@ -36,7 +38,13 @@ import numpy as np
 
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import image_graph
-from jstarid.algorithms.sgm.search import dynamic_search
+from jstarid.algorithms.sgm.search import (
+    advance_search,
+    next_pow2,
+    reject_best,
+    search_outcome,
+    start_search,
+)
 from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
 from jstarid.metrics import nearest_to_principal_point
@@ -75,7 +83,8 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         config: :class:`Config` (search parameters; its database fields must match ``db``);
             ``None`` → the paper defaults (plus the post-match verification, ``Config.verify``).
         with_attitude: also solve Wahba from the identified stars (``Identification.attitude``).
-        details: also return a dict of per-scene diagnostics (graph sizes, w_I, δ, level, …).
+        details: also return a dict of per-scene diagnostics (graph sizes, w_I, δ, level, the
+            number of matches the verification rejected ``n_rejected``, …).
 
     Returns:
         :class:`~jstarid.scene.Identification` — ``ids`` (B, N) int32 catalog rows for the matched
@@ -95,7 +104,51 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
                      capacity=int(db.capacity))
     g = {k: np.asarray(v) for k, v in g.items()}
     usable = g["any"] & ~g["overflow"] & (g["n"] >= config.min_stars)
-    res = dynamic_search(db, g, usable, config)
+    state = start_search(db, g, usable, config)
+    advance_search(db, g, state, config)
+    res = search_outcome(state, config, g["mask"].shape[1])
+    result = _names_from_match(db, scenes, g, res, config)
+    if config.verify:
+        for _ in range(config.verify_retries):
+            # matches the verification rejected: strike them out and let Algorithm 1 go on
+            redo = np.nonzero(res["ok"] & ~np.asarray(result.ok))[0]
+            if redo.size == 0:
+                break
+            reject_best(state, res, redo)
+            advance_search(db, g, state, config, np.isin(np.arange(res["ok"].size), redo))
+            res = search_outcome(state, config, g["mask"].shape[1])
+            result = _merge(result, _names_from_match(db, scenes, g, res, config, rows=redo), redo)
+    if with_attitude:
+        att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
+        att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
+        result = Identification(ids=result.ids, ok=result.ok, attitude=att)
+    if details:
+        ok = res["ok"]
+        info = {"n_i": g["n"], "w_i": g["w"], "main": g["main"], "overflow": g["overflow"],
+                "usable": usable, "best_main": np.where(ok, db.main[np.clip(res["best"], 0, None)],
+                                                         -1),
+                "match_ok": ok,
+                **{k: res[k] for k in ("error", "level", "n_matched_graphs", "n_pruned",
+                                       "n_rejected", "best")}}
+        return result, info
+    return result
+
+
+def _names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
+                      rows: np.ndarray | None = None) -> Identification:
+    """Every step after the search: names from the correspondence, the optional vertex check and
+    leftover naming, the verification and the renaming (``Config``).
+
+    Args:
+        rows: optional (R,) scene rows to process (the others are not looked at); the result then
+            has R rows. The rows are padded to a power of two (repeating the first) so that the
+            compiled verification serves every retry of a batch with a few shapes.
+    """
+    if rows is not None:
+        padded = np.concatenate([rows, np.full(next_pow2(rows.size) - rows.size, rows[0])])
+        sub = _names_from_match(db, scenes[padded], {k: v[padded] for k, v in g.items()},
+                                {k: v[padded] for k, v in res.items()}, config)
+        return sub[:rows.size]
     if config.vertex_check_deg is not None:
         res = dict(res)
         res["match"], res["ok"] = _check_vertices(g["adj"], db.adj, res, config)
@@ -113,18 +166,13 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         result = _verify(db, scenes, result, g["main"], config)
         if config.verify_rename and config.leftover_tol_deg is not None and np.any(result.ok):
             result = _rename_and_reverify(db, scenes, result, g, config)
-    if with_attitude:
-        att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
-        att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
-        result = Identification(ids=result.ids, ok=result.ok, attitude=att)
-    if details:
-        info = {"n_i": g["n"], "w_i": g["w"], "main": g["main"], "overflow": g["overflow"],
-                "usable": usable, "best_main": np.where(ok, db.main[np.clip(res["best"], 0, None)],
-                                                         -1),
-                "match_ok": ok,
-                **{k: res[k] for k in ("error", "level", "n_matched_graphs", "n_pruned", "best")}}
-        return result, info
     return result
+
+
+def _merge(result: Identification, sub: Identification, rows: np.ndarray) -> Identification:
+    """``result`` with the scenes ``rows`` replaced by ``sub``'s (R rows, in that order)."""
+    return Identification(ids=jnp.asarray(result.ids).at[rows].set(sub.ids),
+                          ok=jnp.asarray(result.ok).at[rows].set(sub.ok), attitude=None)
 
 
 def _verify(db, scenes: Scene, result: Identification, main, config: Config) -> Identification:

@@ -17,10 +17,18 @@ before t all have δ > ε_δ, so every earlier level fails in both. With no succ
 ``d_J ≤ Δw_last`` is covered and the scene fails in both. Hence the outcome equals the sequential
 loop (up to ties in δ); only the order of work differs. Scenes that are done leave the batch, so a
 batch costs about as much as its hardest scenes.
+
+Resumption. The search keeps δ of every candidate it has examined (:class:`SearchState`). When the
+post-match verification rejects the answer J* (``Config.verify_retries``), :func:`reject_best` sets
+its δ to ∞ and :func:`advance_search` goes on: l* becomes the level of the first rank whose δ ≤ ε_δ
+among the rest, J* the argmin over the new prefix, and ranks not examined yet are matched only
+when the new prefix reaches them. By the argument above this is Algorithm 1 run on the database
+without the struck-out graphs (tested against the sequential loop with those graphs removed).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -35,7 +43,8 @@ from jstarid.geometry import range_search
 from jstarid.sweep import map_batch, replicate
 
 __all__ = ["candidate_windows", "order_candidates", "prune_mask", "dynamic_search", "run_pairs",
-           "database_tables", "bucket_up", "next_pow2"]
+           "database_tables", "bucket_up", "next_pow2", "SearchState", "start_search",
+           "advance_search", "search_outcome", "reject_best"]
 
 
 def _bucket(x: int, m: int) -> int:
@@ -272,14 +281,184 @@ def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float
     return ~(lb > max_error_deg * (1 + 1e-4) + 1e-5)
 
 
-def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict:
-    """Algorithm 1 for a batch of image graphs (host loop over blocks of candidate ranks).
+@dataclasses.dataclass
+class SearchState:
+    """Host-side bookkeeping of Algorithm 1 for a batch: what each scene has matched so far.
 
-    Each step takes the next block of ranks of every unfinished scene (16 ranks, then twice as many
-    at every step up to 512: most scenes finish within their first few dozen candidates), drops the
-    candidates whose :mod:`.bound` proves δ > ε_δ (``Config.prune``; exact, see that module), and
-    runs the spectral matching on the rest as flat (scene, candidate) pairs grouped by padded graph
-    sizes.
+    Ranks order each scene's candidates by |w_J − w_I| (:func:`order_candidates`); the ranks
+    examined so far (matched, or pruned by the bound) are a prefix of that order, ``covered`` long.
+    Keeping δ of every examined rank lets a search go on after its answer was struck out
+    (:func:`reject_best`, the post-match verification's rejection) without matching anything twice.
+
+    Attributes:
+        cand: (B, W) int32 database rows by rank (−1 past the window). level: (B, W) int32 Δw level
+            l(J) of each rank (``n_levels`` past the window). count: (B,) ranks in the window.
+        usable: (B,) bool, scenes searched at all.
+        err: (B, W) float32 δ of each examined rank (deg; inf: pruned, struck out or not examined).
+        covered: (B,) int32 ranks examined (a prefix).
+        matches: ``{(scene, rank): (K,) int32}`` correspondences of the examined pairs with δ ≤ ε_δ
+            (the only ones that can be J*).
+        n_matched, n_pruned: (B,) int32 spectral matchings run and candidates the bound removed.
+        n_rejected: (B,) int32 answers struck out.
+    """
+
+    cand: np.ndarray
+    level: np.ndarray
+    count: np.ndarray
+    usable: np.ndarray
+    err: np.ndarray
+    covered: np.ndarray
+    matches: dict
+    n_matched: np.ndarray
+    n_pruned: np.ndarray
+    n_rejected: np.ndarray
+
+
+def start_search(db, graphs: dict, usable: np.ndarray, config: Config) -> SearchState:
+    """Rough search at the widest Δw and the candidate order of every scene; nothing matched yet."""
+    b = graphs["mask"].shape[0]
+    w_i = jnp.asarray(graphs["w"], jnp.float32)
+    start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
+    count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
+    width = next_pow2(max(int(count.max(initial=0)), int(config.chunk_size)))
+    cand, level = order_candidates(
+        jnp.asarray(db.w), start, stop, w_i, width=width, dw0=float(config.dw0_deg),
+        step=float(config.dw_step_deg), n_levels=config.n_levels)
+    zeros = np.zeros(b, np.int32)
+    return SearchState(cand=np.asarray(cand), level=np.asarray(level), count=count,
+                       usable=np.asarray(usable, bool), err=np.full(cand.shape, np.inf, np.float32),
+                       covered=zeros.copy(), matches={}, n_matched=zeros.copy(),
+                       n_pruned=zeros.copy(), n_rejected=zeros.copy())
+
+
+def _first_success_level(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarray:
+    """(R,) l* of each scene: the level of its first rank with δ ≤ ε_δ (``n_levels``: none yet)."""
+    succ = state.err[rows] <= config.max_error_deg
+    t = np.argmax(succ, axis=1)
+    return np.where(succ.any(axis=1), state.level[rows, t], config.n_levels)
+
+
+def _finished(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarray:
+    """(R,) bool: Algorithm 1 has stopped — every rank of the l* prefix, or the window, examined."""
+    width = state.cand.shape[1]
+    cov = state.covered[rows]
+    nxt = np.where(cov < width, state.level[rows, np.minimum(cov, width - 1)], config.n_levels)
+    return (~state.usable[rows] | (cov >= state.count[rows])
+            | (nxt > _first_success_level(state, config, rows)))
+
+
+def advance_search(db, graphs: dict, state: SearchState, config: Config,
+                   active: np.ndarray | None = None) -> None:
+    """Run Algorithm 1 on the ``active`` scenes (default: all) until each has stopped (in place).
+
+    Each step takes the next block of ranks of every unfinished scene (``chunk_size`` ranks, then
+    twice as many at every step up to 512: most scenes finish within their first few dozen
+    candidates), drops the candidates whose :mod:`.bound` proves δ > ε_δ (``Config.prune``; exact,
+    see that module), and runs the spectral matching on the rest as flat (scene, candidate) pairs
+    grouped by padded graph sizes. Ranks of a block beyond the scene's current l* prefix are left
+    unexamined (they are not part of Algorithm 1's search).
+
+    Args:
+        db: :class:`~jstarid.algorithms.sgm.database.Database`.
+        graphs: per-scene image graphs as NumPy arrays: ``adj`` (B, K, K) deg, ``n`` (B,).
+        state: :class:`SearchState` from :func:`start_search` (updated in place).
+        config: :class:`Config`.
+        active: (B,) bool scenes to advance.
+    """
+    b, width = state.cand.shape
+    k = graphs["adj"].shape[1]
+    todo = np.ones(b, bool) if active is None else np.asarray(active, bool).copy()
+    rows_all = np.nonzero(todo)[0]
+    todo[rows_all] = ~_finished(state, config, rows_all)
+    adj_i, n_i = graphs["adj"], graphs["n"].astype(np.int32)
+    budget = config.memory_budget_mb * 2**20
+    block = int(config.chunk_size)
+    while np.any(todo):
+        act = np.nonzero(todo)[0]
+        ranks = state.covered[act, None] + np.arange(block)[None, :]  # (A, block)
+        inwin = ranks < state.count[act, None]
+        rk = np.minimum(ranks, width - 1)
+        lev = np.where(inwin, np.take_along_axis(state.level[act], rk, axis=1), config.n_levels)
+        lstar = _first_success_level(state, config, act)
+        # levels are non-decreasing in rank: the ranks within the l* prefix are a prefix of the block
+        take = inwin & (lev <= lstar[:, None])
+        cand = np.where(take, np.take_along_axis(state.cand[act], rk, axis=1), -1)
+        s_idx, c_idx = np.nonzero(cand >= 0)
+        scene, rows = act[s_idx], cand[s_idx, c_idx]
+        n_j = db.n[rows]
+        if config.prune and rows.size:
+            keep = prune_mask(db, adj_i, n_i, scene, rows, config, config.max_error_deg)
+            np.add.at(state.n_pruned, scene[~keep], 1)
+            s_idx, c_idx, scene, rows, n_j = (x[keep] for x in (s_idx, c_idx, scene, rows, n_j))
+        np.add.at(state.n_matched, scene, 1)
+        if rows.size:
+            pq = np.stack([bucket_up(n_i[scene], config.size_bucket),
+                           bucket_up(n_j, config.size_bucket)], axis=1)
+            match_flat, err_flat = run_pairs(
+                _match_pairs, pq, adj_i, n_i, scene, rows, lambda p, q: (p * q) ** 2 * 4 * 3, budget,
+                ("p", "q"), [(k,), ()], (*database_tables(db), jnp.float32(config.c)),
+                n_iter=int(config.power_iterations), tol=float(config.power_tol),
+                min_matched=int(config.min_matched))
+            rank_flat = ranks[s_idx, c_idx]
+            state.err[scene, rank_flat] = err_flat
+            for i in np.nonzero(err_flat <= config.max_error_deg)[0]:
+                state.matches[(int(scene[i]), int(rank_flat[i]))] = match_flat[i]
+        state.covered[act] += np.sum(take, axis=1).astype(np.int32)
+        # a scene whose block held no rank within its prefix has stopped (its next level > l*)
+        todo[act] = ~_finished(state, config, act)
+        block = min(2 * block, 512)
+
+
+def search_outcome(state: SearchState, config: Config, k: int) -> dict:
+    """Algorithm 1's answer from what has been examined: J* = argmin δ over the l* prefix.
+
+    Args:
+        state: :class:`SearchState` after :func:`advance_search`. config: :class:`Config`.
+        k: K, the image graphs' vertex capacity.
+
+    Returns:
+        dict of NumPy arrays: ``ok`` (B,) bool, ``best`` (B,) int32 database row of J* (−1),
+        ``rank`` (B,) its rank (−1), ``match`` (B, K) int32 database vertex of each image vertex
+        (−1), ``error`` (B,) δ_{I,J*} (deg; for a failed scene the least δ examined, inf when
+        nothing was matched — with pruning, also when every candidate was pruned),
+        ``n_matched_graphs`` (B,) candidates whose spectral matching ran, ``n_pruned`` (B,)
+        candidates the bound removed, ``n_rejected`` (B,) answers struck out, ``level`` (B,)
+        index of the Δw level that succeeded (−1).
+    """
+    b = state.cand.shape[0]
+    everyone = np.arange(b)
+    lstar = _first_success_level(state, config, everyone)
+    err = np.where(state.level <= lstar[:, None], state.err, np.inf)
+    j = np.argmin(err, axis=1)
+    best_err = err[everyone, j]
+    ok = state.usable & (lstar < config.n_levels)
+    match = np.full((b, k), -1, np.int32)
+    for s in np.nonzero(ok)[0]:
+        match[s] = state.matches[(int(s), int(j[s]))]
+    return {"ok": ok, "best": np.where(ok, state.cand[everyone, j], -1).astype(np.int32),
+            "rank": np.where(ok, j, -1).astype(np.int32), "match": match, "error": best_err,
+            "n_matched_graphs": state.n_matched.copy(), "n_pruned": state.n_pruned.copy(),
+            "n_rejected": state.n_rejected.copy(),
+            "level": np.where(ok, lstar, -1).astype(np.int32)}
+
+
+def reject_best(state: SearchState, outcome: dict, rows: np.ndarray) -> None:
+    """Strike out the answer J* of the scenes ``rows`` (in place), as if its δ exceeded ε_δ.
+
+    A later :func:`advance_search` then goes on as Algorithm 1 would have without that candidate:
+    the next best of the same l* prefix when another one has δ ≤ ε_δ, else further levels.
+    """
+    rows = np.asarray(rows)
+    rows = rows[outcome["ok"][rows]]
+    state.err[rows, outcome["rank"][rows]] = np.inf
+    for s in rows:
+        state.matches.pop((int(s), int(outcome["rank"][s])), None)
+    state.n_rejected[rows] += 1
+
+
+def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict:
+    """Algorithm 1 for a batch of image graphs: :func:`start_search`, :func:`advance_search` and
+    :func:`search_outcome` in one call.
 
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database`.
@@ -289,82 +468,11 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
         config: :class:`Config`.
 
     Returns:
-        dict of NumPy arrays: ``ok`` (B,) bool, ``best`` (B,) int32 database row of J* (−1),
-        ``match`` (B, K) int32 database vertex of each image vertex (−1), ``error`` (B,) δ_{I,J*}
-        (deg; inf when nothing was matched — with pruning, also when every candidate was pruned),
-        ``n_matched_graphs`` (B,) candidates whose spectral matching ran, ``n_pruned`` (B,)
-        candidates the bound removed, ``level`` (B,) index of the Δw level that succeeded (−1).
+        :func:`search_outcome`'s dict.
     """
-    b, k = graphs["mask"].shape
-    n_levels = config.n_levels
-    w_i = jnp.asarray(graphs["w"], jnp.float32)
-    start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
-    count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
-    block = int(config.chunk_size)
-    width = next_pow2(max(int(count.max(initial=0)), block))
-    cand_all, level_all = order_candidates(
-        jnp.asarray(db.w), start, stop, w_i, width=width, dw0=float(config.dw0_deg),
-        step=float(config.dw_step_deg), n_levels=n_levels)
-    cand_all, level_all = np.asarray(cand_all), np.asarray(level_all)
-
-    best_err = np.full(b, np.inf, np.float32)
-    best = np.full(b, -1, np.int32)
-    best_match = np.full((b, k), -1, np.int32)
-    lstar = np.full(b, n_levels, np.int32)  # level of the first success; n_levels = none yet
-    n_done = np.zeros(b, np.int32)
-    n_pruned = np.zeros(b, np.int32)
-    done = ~usable | (count == 0)
-    adj_i, n_i = graphs["adj"], graphs["n"].astype(np.int32)
-    budget = config.memory_budget_mb * 2**20
-    prune_at = config.max_error_deg
-    r0 = 0
-    while not np.all(done) and r0 < width:
-        act = np.nonzero(~done)[0]
-        cand = cand_all[act, r0:r0 + block]
-        lev = level_all[act, r0:r0 + block]
-        cand = np.where(lev <= lstar[act, None], cand, -1)
-        s_idx, c_idx = np.nonzero(cand >= 0)
-        scene, rows = act[s_idx], cand[s_idx, c_idx]
-        n_j = db.n[rows]
-        if config.prune and rows.size:
-            keep = prune_mask(db, adj_i, n_i, scene, rows, config, prune_at)
-            np.add.at(n_pruned, scene[~keep], 1)
-            s_idx, c_idx, scene, rows, n_j = (x[keep] for x in (s_idx, c_idx, scene, rows, n_j))
-        np.add.at(n_done, scene, 1)
-        err = np.full(cand.shape, np.inf, np.float32)
-        pair_of = np.full(cand.shape, -1, np.int64)
-        if rows.size:
-            pq = np.stack([bucket_up(n_i[scene], config.size_bucket),
-                           bucket_up(n_j, config.size_bucket)], axis=1)
-            match_flat, err_flat = run_pairs(
-                _match_pairs, pq, adj_i, n_i, scene, rows, lambda p, q: (p * q) ** 2 * 4 * 3, budget,
-                ("p", "q"), [(k,), ()], (*database_tables(db), jnp.float32(config.c)),
-                n_iter=int(config.power_iterations), tol=float(config.power_tol),
-                min_matched=int(config.min_matched))
-            err[s_idx, c_idx] = err_flat
-            pair_of[s_idx, c_idx] = np.arange(rows.size)
-        # first success fixes l*; ranks beyond the l* prefix do not take part (Algorithm 1, line 10)
-        succ = err <= config.max_error_deg
-        first = np.where(succ.any(axis=1), lev[np.arange(act.size), np.argmax(succ, axis=1)],
-                         n_levels)
-        lstar[act] = np.minimum(lstar[act], first)
-        err = np.where(lev <= lstar[act, None], err, np.inf)
-        j = np.argmin(err, axis=1)
-        e_best = err[np.arange(act.size), j]
-        better = e_best < best_err[act]
-        upd = act[better]
-        best_err[upd] = e_best[better]
-        best[upd] = cand[better, j[better]]
-        if upd.size:
-            best_match[upd] = match_flat[pair_of[better, j[better]]]
-        r0 += block
-        block = min(2 * block, 512)
-        nxt = level_all[act, r0] if r0 < width else np.full(act.size, n_levels)
-        done[act] = (r0 >= count[act]) | (nxt > lstar[act])
-    ok = usable & (best_err <= config.max_error_deg)
-    return {"ok": ok, "best": np.where(ok, best, -1), "match": np.where(ok[:, None], best_match, -1),
-            "error": best_err, "n_matched_graphs": n_done, "n_pruned": n_pruned,
-            "level": np.where(ok, lstar, -1).astype(np.int32)}
+    state = start_search(db, graphs, usable, config)
+    advance_search(db, graphs, state, config)
+    return search_outcome(state, config, graphs["mask"].shape[1])
 
 
 def bucket_up(x: np.ndarray, m: int) -> np.ndarray:
