@@ -7,13 +7,15 @@ the row says so), or from the command line::
 
     python experiments/bench_rpnet.py                       # quick checkpoint, batch 4096
     python experiments/bench_rpnet.py --config paper --batch 8192
+    python experiments/bench_rpnet.py --precision both      # bfloat16 and float32 network, same scenes
 
 Rows:
 
 * ``rpnet``: ``rpnet.identify`` on mode-(b) ``rpnet2019`` scenes (guide star at the boresight, position
   σ 0.5 px), median of ``repeats`` timed calls after a first (compiling) call; compile time is the
   first call minus the steady call. ``network_scenes_per_s`` times the network part alone (three
-  inputs → logits → top-3) for reference.
+  inputs → logits → top-3) for reference. With ``--precision both`` the row is measured twice, as
+  ``rpnet_bf16`` and ``rpnet_f32`` (``Config.network_bf16`` on and off), on the same scenes.
 * ``rpnet_train_dae`` / ``rpnet_train_clf``: jit-compiled train steps of stage 1 (denoising
   autoencoder) and stage 2 (classifier on frozen codes) at the config's batch size, on a pre-drawn
   batch (``samples_per_s``) and with a fresh on-the-fly batch per step (``samples_per_s_with_data``,
@@ -26,6 +28,7 @@ one is trained first (minutes for ``quick``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import resource
 import time
@@ -50,6 +53,9 @@ def parse_args(argv=None):
     p.add_argument("--repeats", type=int, default=3, help="timed calls after the compile call")
     p.add_argument("--position-sigma", type=float, default=0.5, help="px")
     p.add_argument("--train-steps", type=int, default=5, help="timed train steps per stage (0: skip)")
+    p.add_argument("--precision", choices=("config", "both"), default="config",
+                   help="network matmuls: the config's (Config.network_bf16), or both bfloat16 and "
+                        "float32 side by side on the same scenes (rows rpnet_bf16 and rpnet_f32)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--devices", type=int, default=None,
                    help="JAX CPU devices (default: one per core; 1 keeps each chunk on one device)")
@@ -74,8 +80,8 @@ def _timed(fn, repeats):
     return first, float(np.median(times))
 
 
-def bench_identify(db, catalog, camera, cfg, opt) -> dict:
-    """One row: identify scenes/s at batch ``opt['batch']``."""
+def bench_identify(db, catalog, camera, cfg, opt, name: str = "rpnet") -> dict:
+    """One row named ``name``: identify scenes/s at batch ``opt['batch']``."""
     batch = opt["batch"]
     rng = np.random.default_rng(opt["seed"])
     noise = js.NoiseConfig(position_sigma_px=opt["position_sigma"])
@@ -104,7 +110,8 @@ def bench_identify(db, catalog, camera, cfg, opt) -> dict:
 
     net_first, net_steady = _timed(net, opt["repeats"])
     return {
-        "benchmark": "rpnet", "camera": camera.name, "config": opt["config"], "batch": batch,
+        "benchmark": name, "camera": camera.name, "network_bf16": cfg.network_bf16,
+        "config": opt["config"], "batch": batch,
         "batch_note": opt.get("batch_note", ""),
         "noise": f"pos {opt['position_sigma']} px, guide at boresight",
         "scenes_per_s": round(batch / steady), "compile_s": round(max(first - steady, 0.0), 2),
@@ -207,12 +214,21 @@ def run(args) -> list[dict]:
     catalog = rpnet.load_guide_catalog(cfg)
     camera = js.camera_preset("rpnet2019")
     db = rpnet.build_database(catalog, camera, cfg, progress=False)
-    rows = [bench_identify(db, catalog, camera, cfg, opt)]
-    print(rows[-1], flush=True)
+    if opt["precision"] == "both":
+        rows = []
+        for bf16 in (True, False):
+            rows.append(bench_identify(db, catalog, camera,
+                                       dataclasses.replace(cfg, network_bf16=bf16), opt,
+                                       name="rpnet_bf16" if bf16 else "rpnet_f32"))
+            print(rows[-1], flush=True)
+    else:
+        rows = [bench_identify(db, catalog, camera, cfg, opt)]
+        print(rows[-1], flush=True)
     if opt["train_steps"]:
-        rows += bench_train(db, catalog, camera, cfg, opt)
-        for r in rows[1:]:
+        train_rows = bench_train(db, catalog, camera, cfg, opt)
+        for r in train_rows:
             print(r, flush=True)
+        rows += train_rows
     return rows
 
 
