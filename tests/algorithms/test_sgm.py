@@ -263,6 +263,26 @@ def test_verification_retries_recover_scenes_whose_first_match_was_wrong(setup):
     assert np.max(info["n_rejected"]) == 3  # one scene needed every retry
 
 
+def test_verification_tells_a_contested_main_star_from_a_wrong_match(setup):
+    """σ = 2 px, the truth as the match: a main star with a close rival loses its name to the
+    ambiguity guard, so the scene fails, but ``main_ambiguous`` says the match itself passed every
+    test (``verify_retries`` does not search on for such scenes)."""
+    cat, cam, cfg, db = setup
+    rows = np.sort(np.random.default_rng(5).choice(len(cat), 300, replace=False))
+    scenes = js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
+                         capacity=CAPACITY, boresight_ids=rows)[np.array([146, 165])]
+    truth = np.where(np.asarray(js.metrics.sgm_required(scenes, cam, cfg.radius_deg)),
+                     np.asarray(scenes.truth), -1)
+    ids, ok, main_ambiguous = _verify(db, cfg, scenes, truth, np.ones(2, bool),
+                                      with_main_ambiguous=True)
+    assert not np.any(ok) and np.all(main_ambiguous)
+    main = np.asarray(js.metrics.main_star_index(scenes, cam))
+    sep = np.degrees(np.arccos(np.clip(cat.unit_vectors[truth[[0, 1], main]]
+                                       @ cat.unit_vectors.T, -1, 1)))
+    sep[np.arange(2), truth[[0, 1], main]] = np.inf
+    assert np.all(sep.min(axis=1) < 0.3)  # each main star has a close rival
+
+
 def test_capacity_and_padding_do_not_change_ids(setup):
     cat, cam, cfg, db = setup
     rows = np.random.default_rng(6).choice(len(cat), 3, replace=False)
@@ -292,11 +312,13 @@ def test_capacity_and_padding_do_not_change_ids(setup):
     np.testing.assert_array_equal(a[named], b[named])
 
 
-def _verify(db, cfg, scenes, ids, ok):
+def _verify(db, cfg, scenes, ids, ok, with_main_ambiguous=False):
     from jstarid.algorithms.sgm.identify import _verify
     main = js.metrics.main_star_index(scenes, db.camera)
     res = js.Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=None)
-    out = _verify(db, scenes, res, main, cfg)
+    out, main_ambiguous = _verify(db, scenes, res, main, cfg)
+    if with_main_ambiguous:
+        return np.asarray(out.ids), np.asarray(out.ok), main_ambiguous
     return np.asarray(out.ids), np.asarray(out.ok)
 
 
@@ -318,8 +340,9 @@ def test_verification_catches_a_swapped_close_pair(setup):
         a, b = np.nonzero(truth[s] == p[0])[0], np.nonzero(truth[s] == q[0])[0]
         assert a.size == 1 and b.size == 1  # both stars of the pair are detected
         swapped[s, a[0]], swapped[s, b[0]] = q[0], p[0]
-    ids, vok = _verify(db, cfg, scenes, swapped, ok)
+    ids, vok, main_ambiguous = _verify(db, cfg, scenes, swapped, ok, with_main_ambiguous=True)
     assert not vok[0] and np.all(ids[0] == -1)  # the main star was swapped: the scene fails
+    assert not main_ambiguous[0]  # a wrong name, not a contested one: worth another graph
     wrong = (ids >= 0) & (ids != truth)
     assert not np.any(wrong)
     assert vok[1] and np.sum(ids[1] >= 0) >= np.sum(truth[1] >= 0) - 2

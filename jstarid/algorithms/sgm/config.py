@@ -129,7 +129,9 @@ class Config:
             rejects a scene's match, that candidate J* is struck out, as if its δ exceeded ε_δ, and
             Algorithm 1 goes on where it stopped — the next best candidate of the same Δw prefix
             with δ ≤ ε_δ, else the next levels — and the new answer is verified in turn; at most
-            this many times per scene (0 = the scene fails at the first rejection). The
+            this many times per scene (0 = the scene fails at the first rejection). A scene
+            failed only because a close rival star contests its main star's name (the match passed
+            every other test) is not searched on: another graph cannot settle that. The
             verification thus becomes part of Algorithm 1's acceptance test (δ ≤ ε_δ and
             verified), and nothing is matched twice (:class:`.search.SearchState`). Why: ε_δ = 0.4°
             admits wrong graphs at small Δw before the right one, whose w_J a lost star or noise

@@ -107,17 +107,21 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
     state = start_search(db, g, usable, config)
     advance_search(db, g, state, config)
     res = search_outcome(state, config, g["mask"].shape[1])
-    result = _names_from_match(db, scenes, g, res, config)
+    result, settled = _names_from_match(db, scenes, g, res, config)
+    settled = settled.copy()  # a view of a device array is read-only
     if config.verify:
         for _ in range(config.verify_retries):
-            # matches the verification rejected: strike them out and let Algorithm 1 go on
-            redo = np.nonzero(res["ok"] & ~np.asarray(result.ok))[0]
+            # matches the verification rejected: strike them out and let Algorithm 1 go on —
+            # unless only the main star's name was contested (another graph cannot settle that)
+            redo = np.nonzero(res["ok"] & ~np.asarray(result.ok) & ~settled)[0]
             if redo.size == 0:
                 break
             reject_best(state, res, redo)
             advance_search(db, g, state, config, np.isin(np.arange(res["ok"].size), redo))
             res = search_outcome(state, config, g["mask"].shape[1])
-            result = _merge(result, _names_from_match(db, scenes, g, res, config, rows=redo), redo)
+            sub, sub_settled = _names_from_match(db, scenes, g, res, config, rows=redo)
+            result = _merge(result, sub, redo)
+            settled[redo] = sub_settled
     if with_attitude:
         att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
         att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
@@ -143,12 +147,17 @@ def _names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
         rows: optional (R,) scene rows to process (the others are not looked at); the result then
             has R rows. The rows are padded to a power of two (repeating the first) so that the
             compiled verification serves every retry of a batch with a few shapes.
+
+    Returns:
+        ``(result, main_ambiguous)``: :class:`~jstarid.scene.Identification` and (B,) bool, the
+        scenes the verification failed only because their main star's name is contested
+        (:func:`~jstarid.algorithms.sgm.verify.verify_ids`).
     """
     if rows is not None:
         padded = np.concatenate([rows, np.full(next_pow2(rows.size) - rows.size, rows[0])])
-        sub = _names_from_match(db, scenes[padded], {k: v[padded] for k, v in g.items()},
-                                {k: v[padded] for k, v in res.items()}, config)
-        return sub[:rows.size]
+        sub, amb = _names_from_match(db, scenes[padded], {k: v[padded] for k, v in g.items()},
+                                     {k: v[padded] for k, v in res.items()}, config)
+        return sub[:rows.size], amb[:rows.size]
     if config.vertex_check_deg is not None:
         res = dict(res)
         res["match"], res["ok"] = _check_vertices(g["adj"], db.adj, res, config)
@@ -162,11 +171,12 @@ def _names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
     if config.leftover_tol_deg is not None and np.any(ok):
         ids = _name_leftovers(db, scenes, result, g, config)
         result = Identification(ids=jnp.asarray(ids), ok=result.ok, attitude=None)
+    main_ambiguous = np.zeros(b, bool)
     if config.verify and np.any(ok):
-        result = _verify(db, scenes, result, g["main"], config)
+        result, main_ambiguous = _verify(db, scenes, result, g["main"], config)
         if config.verify_rename and config.leftover_tol_deg is not None and np.any(result.ok):
             result = _rename_and_reverify(db, scenes, result, g, config)
-    return result
+    return result, main_ambiguous
 
 
 def _merge(result: Identification, sub: Identification, rows: np.ndarray) -> Identification:
@@ -175,8 +185,13 @@ def _merge(result: Identification, sub: Identification, rows: np.ndarray) -> Ide
                           ok=jnp.asarray(result.ok).at[rows].set(sub.ok), attitude=None)
 
 
-def _verify(db, scenes: Scene, result: Identification, main, config: Config) -> Identification:
-    """Run :func:`~jstarid.algorithms.sgm.verify.verify_ids` with the settings of ``config``."""
+def _verify(db, scenes: Scene, result: Identification, main, config: Config):
+    """Run :func:`~jstarid.algorithms.sgm.verify.verify_ids` with the settings of ``config``.
+
+    Returns:
+        ``(Identification, main_ambiguous)``: the verified ids and ok, and (B,) NumPy bool for
+        the scenes failed only because their main star's name is contested.
+    """
     cat_np = np.asarray(db.catalog.unit_vectors, np.float64)
     cat = jnp.asarray(cat_np, jnp.float32)
     n_near = int(min(2 * db.capacity, cat.shape[0]))
@@ -185,9 +200,9 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config) -> 
                             key=f"sgm-frame-{db.catalog.fingerprint}")
     cells, _ = index.device_arrays()
     cat_mag = jnp.asarray(db.catalog.mag, jnp.float32)
-    ids, ok = verify_ids(cat, cat_mag, cells, scenes.xy, scenes.mag, scenes.valid, result.ids,
-                         result.ok,
-                         jnp.asarray(main), camera=db.camera, grid=index.grid,
+    ids, ok, main_ambiguous = verify_ids(
+                         cat, cat_mag, cells, scenes.xy, scenes.mag, scenes.valid, result.ids,
+                         result.ok, jnp.asarray(main), camera=db.camera, grid=index.grid,
                          k=float(config.verify_k), floor_deg=float(config.verify_floor_deg),
                          cap_deg=float(config.verify_cap_deg),
                          amb_k=float(config.verify_ambiguity_k),
@@ -197,7 +212,7 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config) -> 
                          mag_sigma=float(config.verify_magnitude_sigma or 0.0),
                          min_matched=int(config.min_matched),
                          min_coverage=float(config.verify_min_coverage), n_near=n_near)
-    return Identification(ids=ids, ok=ok, attitude=None)
+    return Identification(ids=ids, ok=ok, attitude=None), np.asarray(main_ambiguous)
 
 
 def _rename_and_reverify(db, scenes: Scene, verified: Identification, g, config: Config):
@@ -217,7 +232,7 @@ def _rename_and_reverify(db, scenes: Scene, verified: Identification, g, config:
     if not np.any(changed):
         return verified
     proposal = Identification(ids=jnp.asarray(ids), ok=verified.ok, attitude=None)
-    again = _verify(db, scenes, proposal, g["main"], config)
+    again, _ = _verify(db, scenes, proposal, g["main"], config)
     take = changed & np.asarray(again.ok)
     ids = np.where(take[:, None], np.asarray(again.ids), before)
     return Identification(ids=jnp.asarray(ids), ok=verified.ok, attitude=None)

@@ -208,7 +208,7 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
                 cap_deg, amb_k, amb_deg, partner_joint, partner_k, mag_sigma, min_matched,
                 min_coverage, n_near):
     """One scene. cat (M, 3), cat_mag (M,), cells (C, K), body (N, 3), mag/valid/ids (N,), ok,
-    main () → (ids, ok)."""
+    main () → (ids, ok, main_ambiguous)."""
     named0 = (ids >= 0) & ok
     rows = jnp.clip(ids, 0, cat.shape[0] - 1)
     ref = cat[rows]
@@ -216,6 +216,7 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
     inl = named0 & (resid <= tol)
     c, resid, s, tol = _fit(body, ref, inl, k, floor_deg, cap_deg)
     keep = named0 & (resid <= tol)
+    fits = keep
     s_amb = jnp.maximum(s, _upper_rms(resid, keep))  # never looser than the fitted tolerance's s
     # ambiguity guard: catalog stars near the main star's sky direction (fixed count)
     sky_main = precise.matmul(body[main], c)  # Cᵀ b, ICRS
@@ -229,9 +230,12 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
     hits, expected = _frame_coverage(c, body, valid, cat, cells, cap_deg, camera=camera,
                                      grid=grid)
     n0, n1 = jnp.sum(named0), jnp.sum(keep)
-    ok_new = (ok & (n1 >= min_matched) & (2 * n1 >= n0) & (keep[main] | ~named0[main])
-              & (hits >= min_coverage * expected))
-    return jnp.where(keep & ok_new, ids, -1), ok_new
+    sound = ok & (n1 >= min_matched) & (2 * n1 >= n0) & (hits >= min_coverage * expected)
+    ok_new = sound & (keep[main] | ~named0[main])
+    # the attitude passed every test and the main star fits it, but a close rival star contests
+    # its name: the match is not in doubt, only the main star's name
+    main_ambiguous = sound & fits[main] & ~keep[main]
+    return jnp.where(keep & ok_new, ids, -1), ok_new, main_ambiguous
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "grid", "k", "floor_deg", "cap_deg", "amb_k",
@@ -264,7 +268,10 @@ def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, gr
             cover the neighbor circle plus the window.
 
     Returns:
-        ``(ids, ok)``: (B, N) int32 verified ids (−1 for unnamed, whole row −1 where not ok), (B,) bool.
+        ``(ids, ok, main_ambiguous)``: (B, N) int32 verified ids (−1 for unnamed, whole row −1
+        where not ok), (B,) bool, and (B,) bool for the scenes that failed only because a close
+        rival star contests their main star's name (every other test passed, the main star's
+        residual included): another database graph would not settle it.
     """
     body = camera.unproject(xy)
     ids = jnp.where(valid, ids, -1)
