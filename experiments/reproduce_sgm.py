@@ -66,17 +66,24 @@ def _fake_inside(scenes, cam, radius_deg):
     return np.any(inside & (np.asarray(scenes.truth) < 0), axis=1)
 
 
+OTHER_ALGORITHMS = ("mlv", "rpnet")  # packages under jstarid/algorithms/ that SGM never imports
+
+
 def _code_fingerprint(package: Path | None = None) -> str:
     """Hash of what the jstarid sources compute: a stored level made by other code is recomputed,
     not reused.
 
     Each module is hashed as its syntax tree without docstrings (comments never reach the tree), so
     an edit to the documentation alone keeps an hour of stored levels valid, while any change to
-    the code itself, a constant included, invalidates them.
+    the code itself, a constant included, invalidates them. The other algorithms' packages
+    (:data:`OTHER_ALGORITHMS`) are left out: the SGM pipeline does not run them.
     """
     digest = hashlib.sha256()
     root = Path(js.__file__).parent if package is None else package
+    skip = tuple(root / "algorithms" / name for name in OTHER_ALGORITHMS)
     for path in sorted(root.rglob("*.py")):
+        if any(path.is_relative_to(d) for d in skip):
+            continue
         tree = ast.parse(path.read_bytes())
         for node in ast.walk(tree):
             body = getattr(node, "body", None)

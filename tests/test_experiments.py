@@ -61,5 +61,30 @@ def test_code_fingerprint_ignores_documentation_not_code(tmp_path):
     source.write_text('"""Module."""\n\n\ndef f(x):\n    """Doc."""\n    return x * 3\n')
     assert fingerprint(package) != base
     source.write_text('"""Module."""\n\n\ndef f(x):\n    """Doc."""\n    return x * 2\n')
+    (package / "algorithms" / "rpnet").mkdir(parents=True)
+    (package / "algorithms" / "rpnet" / "model.py").write_text("Z = 1\n")
+    assert fingerprint(package) == base  # another algorithm's code does not count
     (package / "other.py").write_text("Y = 1\n")
     assert fingerprint(package) != base  # a new module counts
+
+
+def test_sgm_code_never_imports_the_fingerprint_s_left_out_algorithms():
+    """The fingerprint leaves MLV and RpNet out because nothing else in jstarid imports them."""
+    import ast
+
+    import jstarid
+
+    module = _load("reproduce_sgm")
+    root = Path(jstarid.__file__).parent
+    left_out = [f"jstarid.algorithms.{name}" for name in module.OTHER_ALGORITHMS]
+    for path in root.rglob("*.py"):
+        if any(path.is_relative_to(root / "algorithms" / n) for n in module.OTHER_ALGORITHMS):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):  # `from jstarid.algorithms import rpnet` too
+                names = [f"{node.module or ''}.{a.name}" for a in node.names]
+            else:
+                continue
+            assert not any(n.startswith(m) for n in names for m in left_out), (path, names)

@@ -90,8 +90,7 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         :class:`~jstarid.scene.Identification` — ``ids`` (B, N) int32 catalog rows for the matched
         detections in the neighbor circle that survive the post-match verification (−1 elsewhere;
         a scene the verification rejects has ``ok`` False and every id −1), ``ok`` (B,) — and, with
-        ``details``, a
-        ``(result, info)`` tuple.
+        ``details``, a ``(result, info)`` tuple.
 
     Raises:
         ValueError: ``config.radius_deg`` differs from the database's.
@@ -107,21 +106,21 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
     state = start_search(db, g, usable, config)
     advance_search(db, g, state, config)
     res = search_outcome(state, config, g["mask"].shape[1])
-    result, settled = _names_from_match(db, scenes, g, res, config)
-    settled = settled.copy()  # a view of a device array is read-only
+    result, contested_main = _names_from_match(db, scenes, g, res, config)
+    contested_main = contested_main.copy()  # a view of a device array is read-only
     if config.verify:
         for _ in range(config.verify_retries):
             # matches the verification rejected: strike them out and let Algorithm 1 go on —
             # unless only the main star's name was contested (another graph cannot settle that)
-            redo = np.nonzero(res["ok"] & ~np.asarray(result.ok) & ~settled)[0]
+            redo = np.nonzero(res["ok"] & ~np.asarray(result.ok) & ~contested_main)[0]
             if redo.size == 0:
                 break
             reject_best(state, res, redo)
             advance_search(db, g, state, config, np.isin(np.arange(res["ok"].size), redo))
             res = search_outcome(state, config, g["mask"].shape[1])
-            sub, sub_settled = _names_from_match(db, scenes, g, res, config, rows=redo)
+            sub, sub_contested = _names_from_match(db, scenes, g, res, config, rows=redo)
             result = _merge(result, sub, redo)
-            settled[redo] = sub_settled
+            contested_main[redo] = sub_contested
     if with_attitude:
         att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
         att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
