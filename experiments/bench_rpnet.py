@@ -42,6 +42,7 @@ import jstarid as js
 from jstarid.algorithms import rpnet
 from jstarid.algorithms.rpnet import data as rp_data
 from jstarid.algorithms.rpnet import train as rp_train
+from jstarid.algorithms.rpnet.model import use_bf16
 
 MIN_BATCH = 4096
 
@@ -110,7 +111,8 @@ def bench_identify(db, catalog, camera, cfg, opt, name: str = "rpnet") -> dict:
 
     net_first, net_steady = _timed(net, opt["repeats"])
     return {
-        "benchmark": name, "camera": camera.name, "network_bf16": cfg.network_bf16,
+        "benchmark": name, "camera": camera.name,
+        "network_bf16": use_bf16(cfg.network_bf16),
         "config": opt["config"], "batch": batch,
         "batch_note": opt.get("batch_note", ""),
         "noise": f"pos {opt['position_sigma']} px, guide at boresight",

@@ -718,3 +718,22 @@ def test_pool_pairs_only_add_scenes(tiny):
     _assert_only_adds(s, off, on, 10)
     with pytest.raises(ValueError, match="n_pool_pairs"):
         dataclasses.replace(cfg, n_pool_pairs=-1)
+
+
+def test_network_precision_follows_the_hardware_unless_forced(tmp_path, monkeypatch):
+    """``network_bf16=None`` (default) picks bfloat16 only where the CPU flags (or a GPU/TPU backend)
+    say it is native; True / False force it."""
+    from jstarid.algorithms.rpnet import model
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2 fma\n\nprocessor\t: 1\n")
+    assert model.cpu_flags(info) == {"fpu", "sse2", "avx2", "fma"}
+    assert model.cpu_flags(tmp_path / "missing") == frozenset()
+    assert not (model.cpu_flags(info) & model._BF16_CPU_FLAGS)
+    info.write_text("flags\t\t: avx2 avx512f avx512_bf16\n")
+    assert model.cpu_flags(info) & model._BF16_CPU_FLAGS
+    assert rpnet.Config().network_bf16 is None
+    assert model.use_bf16(True) is True and model.use_bf16(False) is False
+    for native in (True, False):
+        monkeypatch.setattr(model, "native_bf16", lambda native=native: native)
+        assert model.use_bf16(None) is native

@@ -223,8 +223,12 @@ class Config:
             8 pool pairs took 97.60 → 99.60 % at σ_m = 0.969 mag and 81.75 → 99.10 % at 50 % false
             stars, with the same mis-identified scenes.
         network_bf16: run the network's matmuls on bfloat16 operands with float32 accumulation
-            (parameters stay float32): ≈ 2× the matmul rate on CPUs with AVX512-BF16 and on GPUs.
-            Measured against float32 in the README (RpNet section); ``False`` = float32 throughout.
+            (parameters stay float32): ≈ 2× the matmul rate on CPUs with AVX512-BF16 and on GPUs,
+            but slower than float32 on CPUs without native bfloat16 (an AVX2-only AMD EPYC: 2,252
+            against 2,709 scenes/s, ``experiments/bench_rpnet.py --precision both``). ``None``
+            (default): bfloat16 where the hardware has it (:func:`.model.native_bf16`: a GPU or TPU
+            backend, or AVX512-BF16 / AMX-BF16 in the CPU flags), float32 elsewhere; ``True`` /
+            ``False`` force one. The two give the same ids in 99.93–99.98 % of scenes (README).
         batch_chunk: scenes per compiled identification call; the network runs on all of them at
             once (3 × chunk inputs per matmul: large matrices run near the CPU's matmul peak).
         name_chunk: scenes vmapped together in the naming steps inside a call (``lax.map`` groups;
@@ -254,7 +258,7 @@ class Config:
     n_pair_trials: int = 3
     n_guide_triples: int = 12
     n_pool_pairs: int = 8
-    network_bf16: bool = True
+    network_bf16: bool | None = None
     batch_chunk: int = 512
     name_chunk: int = 64
 

@@ -57,6 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms.rpnet.config import Config, Thresholds
+from jstarid.algorithms.rpnet.model import use_bf16
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.algorithms.rpnet.train import predict_logits
 from jstarid.attitude import solve_wahba
@@ -236,7 +237,7 @@ def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int,
 
     near, inputs = jax.vmap(one)(xy, valid)
     logits = predict_logits(variables, inputs, config=config, n_classes=n_classes,
-                            bf16=config.network_bf16)  # (B, C, K)
+                            bf16=use_bf16(config.network_bf16))  # (B, C, K)
     top, cls = top3_blocked(logits)  # eq. 8: softmax is monotonic
     p = jnp.exp(top - top[..., :1]) / jnp.sum(jnp.exp(logits - top[..., :1]), -1, keepdims=True)  # eq. 4
     return near, p, cls.astype(jnp.int32)

@@ -12,19 +12,54 @@ is then just "pass the generator's parameters as a constant". That matches the p
 
 Every dense layer takes an optional ``dot_general``: inference may run its matmuls on bfloat16 operands
 with float32 accumulation (:func:`bf16_dot_general`), which doubles the CPU matmul rate on machines
-with AVX512-BF16; the parameters themselves stay float32.
+with AVX512-BF16 but is slower than float32 on CPUs without native bfloat16 (AVX2 only), so by
+default it is used only where the hardware has it (:func:`native_bf16`); the parameters themselves
+stay float32.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
+from pathlib import Path
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import optax
 
-__all__ = ["Classifier", "Decoder", "Generator", "bf16_dot_general", "ce_loss", "l2_penalty", "mse_loss"]
+__all__ = ["Classifier", "Decoder", "Generator", "bf16_dot_general", "ce_loss", "l2_penalty", "mse_loss",
+           "cpu_flags", "native_bf16", "use_bf16"]
+
+# CPU feature flags (Linux /proc/cpuinfo names) of native bfloat16 matrix products
+_BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
+
+
+def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> frozenset[str]:
+    """The CPU feature flags listed in ``cpuinfo`` (Linux); empty where the file is unreadable."""
+    try:
+        text = Path(cpuinfo).read_text()
+    except OSError:
+        return frozenset()
+    for line in text.splitlines():
+        if line.startswith("flags") and ":" in line:
+            return frozenset(line.split(":", 1)[1].split())
+    return frozenset()
+
+
+@functools.cache
+def native_bf16() -> bool:
+    """Whether the default JAX backend multiplies bfloat16 natively: any GPU or TPU backend, or a
+    CPU with AVX512-BF16 or AMX-BF16. Elsewhere bfloat16 operands are converted in software and
+    the network runs slower than in float32 (measured in the README)."""
+    if jax.default_backend() != "cpu":
+        return True
+    return bool(cpu_flags() & _BF16_CPU_FLAGS)
+
+
+def use_bf16(setting: bool | None) -> bool:
+    """``Config.network_bf16`` resolved: an explicit True / False, or :func:`native_bf16` for None."""
+    return native_bf16() if setting is None else bool(setting)
 
 
 def bf16_dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):
