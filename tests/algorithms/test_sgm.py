@@ -202,20 +202,26 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     assert np.all(info_full["n_pruned"] == 0) and np.sum(info["n_pruned"]) > 0
 
 
-def test_search_resumed_after_a_rejection_equals_algorithm1_without_that_candidate(setup5):
-    """``reject_best`` + ``advance_search`` (``Config.verify_retries``) give what the sequential
-    Algorithm 1 gives with the struck-out candidates removed, and match nothing twice."""
-    from jstarid.algorithms.sgm import search
+def _noisy_graphs(setup5, cfg, *, n, seed, key):
+    """n random main stars at σ = 2 px: (rows, scenes, image graphs as NumPy, usable)."""
     from jstarid.algorithms.sgm.identify import scene_graphs
     cat, cam, db = setup5
-    cfg = sgm.Config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5)
-    rows = np.random.default_rng(2).choice(len(cat), 4, replace=False)
-    scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
+    rows = np.random.default_rng(seed).choice(len(cat), n, replace=False)
+    scenes = js.simulate(jax.random.key(key), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)
     g = {k: np.asarray(v) for k, v in scene_graphs(scenes.xy, scenes.valid, camera=cam,
                                                     radius_deg=cfg.radius_deg,
                                                     capacity=db.capacity).items()}
-    usable = g["any"] & ~g["overflow"] & (g["n"] >= cfg.min_stars)
+    return rows, scenes, g, g["any"] & ~g["overflow"] & (g["n"] >= cfg.min_stars)
+
+
+def test_search_resumed_after_a_rejection_equals_algorithm1_without_that_candidate(setup5):
+    """``reject_best`` + ``advance_search`` (``Config.verify_retries``) give what the sequential
+    Algorithm 1 gives with the struck-out candidates removed, and match nothing twice."""
+    from jstarid.algorithms.sgm import search
+    cat, cam, db = setup5
+    cfg = sgm.Config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5)
+    rows, _, g, usable = _noisy_graphs(setup5, cfg, n=4, seed=2, key=6)
     state = search.start_search(db, g, usable, cfg)
     search.advance_search(db, g, state, cfg)
     out = search.search_outcome(state, cfg, g["mask"].shape[1])
@@ -476,16 +482,9 @@ def test_verification_frame_coverage_rejects_a_consistent_but_wrong_attitude(set
 def test_grid_replay_equals_separate_searches(setup5):
     """One c × ε_δ grid evaluation (tuning module) gives each grid point's own Algorithm 1 result."""
     from jstarid.algorithms.sgm import tuning
-    from jstarid.algorithms.sgm.identify import scene_graphs
     cat, cam, db = setup5
     base = sgm.Config(dw_max_deg=0.5, verify=False, leftover_tol_deg=None)
-    rows = np.random.default_rng(3).choice(len(cat), 6, replace=False)
-    scenes = js.simulate(jax.random.key(9), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
-                         capacity=CAPACITY, boresight_ids=rows)
-    g = {k: np.asarray(v) for k, v in scene_graphs(scenes.xy, scenes.valid, camera=cam,
-                                                    radius_deg=base.radius_deg,
-                                                    capacity=db.capacity).items()}
-    usable = g["any"] & ~g["overflow"] & (g["n"] >= base.min_stars)
+    rows, scenes, g, usable = _noisy_graphs(setup5, base, n=6, seed=3, key=9)
     cs, eps = [1.0, 1.74], [0.05, 0.1, 0.4]
     errors = tuning.candidate_errors(db, g, usable, base, cs, max(eps))
     ok, rank = tuning.replay_algorithm1(errors["level"], errors["error"], eps)
