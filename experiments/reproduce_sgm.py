@@ -112,16 +112,35 @@ def _level_key(seed: int, exp: str, sigma: float):
     return jax.random.fold_in(key, round(sigma * 100))
 
 
-def _run_level(cfg, scfg, cat, cam, db, rows, exp, sigma, key) -> dict:
-    """One (experiment, σ) level: simulate, identify, score; the per-level row of the tables."""
+def main_star_rows(cfg, cat) -> np.ndarray:
+    """(R,) catalog rows used as main stars: every star, or ``cfg.n_stars`` drawn with ``cfg.seed``."""
+    rng = np.random.default_rng(cfg.seed)
+    return (np.arange(len(cat)) if cfg.n_stars is None
+            else np.sort(rng.choice(len(cat), cfg.n_stars, replace=False)))
+
+
+def level_scenes(cfg, cat, cam, rows, exp, sigma, batches=None):
+    """Yield ``(start, scenes)`` for the batches of a level: the scenes of main stars
+    ``rows[start:start + cfg.batch]``, drawn as every run of this script draws them.
+
+    ``batches``: optional set of batch indices to simulate (the others are skipped, their keys
+    still drawn), so a diagnosis can look at one batch of a full-size level.
+    """
     noise = js.NoiseConfig(position_sigma_px=float(sigma), n_missing=int(exp == "lost"),
                            n_false=int(exp == "fake"))
+    key = _level_key(cfg.seed, exp, sigma)
+    for i, s in enumerate(range(0, rows.size, cfg.batch)):
+        key, k2 = jax.random.split(key)
+        if batches is None or i in batches:
+            yield s, js.simulate(k2, cat, cam, noise, capacity=cfg.capacity,
+                                 boresight_ids=rows[s:s + cfg.batch])
+
+
+def _run_level(cfg, scfg, cat, cam, db, rows, exp, sigma) -> dict:
+    """One (experiment, σ) level: simulate, identify, score; the per-level row of the tables."""
     outcomes, fake_in, ceiling, confident, n_graphs = [], [], [], [], []
     t0 = time.perf_counter()
-    for s in range(0, rows.size, cfg.batch):
-        key, k2 = jax.random.split(key)
-        scenes = js.simulate(k2, cat, cam, noise, capacity=cfg.capacity,
-                             boresight_ids=rows[s:s + cfg.batch])
+    for _, scenes in level_scenes(cfg, cat, cam, rows, exp, sigma):
         res, info = sgm.identify(db, scenes, scfg, details=True)
         out_s = js.scene_outcomes(scenes, res, "sgm", camera=cam, radius_deg=scfg.radius_deg)
         outcomes.append(np.asarray(out_s["outcome"]))
@@ -154,9 +173,7 @@ def run(cfg: ExpConfig) -> dict:
     cam = js.camera_preset(cfg.camera)
     scfg = sgm.Config(**cfg.sgm)
     db = sgm.build_database(cat, cam, scfg)
-    rng = np.random.default_rng(cfg.seed)
-    rows = (np.arange(len(cat)) if cfg.n_stars is None
-            else np.sort(rng.choice(len(cat), cfg.n_stars, replace=False)))
+    rows = main_star_rows(cfg, cat)
     code = _code_fingerprint()
     results = {"levels": [], "database": {"stars": len(db), "capacity": db.capacity,
                                           "bytes": db.nbytes, "seconds": db.build_seconds}}
@@ -169,8 +186,7 @@ def run(cfg: ExpConfig) -> dict:
                 level = stored["level"]
                 note = "stored"
             else:
-                level = _run_level(cfg, scfg, cat, cam, db, rows, exp, sigma,
-                                   _level_key(cfg.seed, exp, sigma))
+                level = _run_level(cfg, scfg, cat, cam, db, rows, exp, sigma)
                 path.write_text(json.dumps({"settings": settings, "level": level}))
                 note = f"{level['seconds']:.1f}s"
             results["levels"].append(level)
@@ -241,6 +257,18 @@ def _plot(results, path):
     plt.close(fig)
 
 
+def config_overrides(items) -> dict:
+    """``["field=json", …]`` → SGM :class:`Config` overrides (``SystemExit`` on an unknown field)."""
+    fields = {f.name for f in dataclasses.fields(sgm.Config)}
+    out = {}
+    for item in items:
+        name, value = item.split("=", 1)
+        if name not in fields:
+            raise SystemExit(f"unknown SGM config field {name!r}")
+        out[name] = json.loads(value)
+    return out
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="20 main stars per level, σ ∈ {0, 1.5, 3}")
@@ -262,12 +290,7 @@ def main(argv=None):
         cfg.sigmas = tuple(a.sigmas)
     if a.experiments is not None:
         cfg.experiments = tuple(a.experiments)
-    fields = {f.name: f.type for f in dataclasses.fields(sgm.Config)}
-    for item in a.set:
-        name, value = item.split("=", 1)
-        if name not in fields:
-            raise SystemExit(f"unknown SGM config field {name!r}")
-        cfg.sgm[name] = json.loads(value)
+    cfg.sgm.update(config_overrides(a.set))
     results = run(cfg)
     print(Path(cfg.out, "table.md").read_text())
     return results

@@ -88,3 +88,13 @@ def test_sgm_code_never_imports_the_fingerprint_s_left_out_algorithms():
             else:
                 continue
             assert not any(n.startswith(m) for n in names for m in left_out), (path, names)
+
+
+@pytest.mark.slow
+def test_diagnose_sgm_tiny():
+    """The diagnosis sees the reproduction's scenes and accounts for every one of them."""
+    _load("reproduce_sgm")  # diagnose_sgm imports it by name, as when run from experiments/
+    out = _load("diagnose_sgm").main(["--experiment", "lost", "--sigma", "3", "--n-stars", "6"])
+    assert sum(out["outcomes"].values()) == 6
+    assert sum(out["failure_causes"].values()) == out["outcomes"].get("fail", 0)
+    assert len(out["mis_identified"]) == out["outcomes"].get("wrong", 0)

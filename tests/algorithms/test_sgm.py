@@ -262,6 +262,7 @@ def test_verification_retries_recover_scenes_whose_first_match_was_wrong(setup):
                          capacity=CAPACITY, boresight_ids=rows)[np.array([105, 760, 791])]
     once, info0 = sgm.identify(db, scenes, dataclasses.replace(cfg, verify_retries=0), details=True)
     assert not np.any(np.asarray(once.ok)) and np.all(info0["match_ok"])  # rejected, so failed
+    assert not np.any(info0["main_contested"])  # the match was wrong, not the main star contested
     again, info = sgm.identify(db, scenes, cfg, details=True)
     out = js.scene_outcomes(scenes, again, "sgm", camera=cam, radius_deg=cfg.radius_deg)
     assert np.all(np.asarray(out["outcome"]) == js.metrics.CORRECT)

@@ -84,7 +84,8 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
             ``None`` → the paper defaults (plus the post-match verification, ``Config.verify``).
         with_attitude: also solve Wahba from the identified stars (``Identification.attitude``).
         details: also return a dict of per-scene diagnostics (graph sizes, w_I, δ, level, the
-            number of matches the verification rejected ``n_rejected``, …).
+            number of matches the verification rejected ``n_rejected``, ``main_contested``: failed
+            only because a close rival contests the main star's name, …).
 
     Returns:
         :class:`~jstarid.scene.Identification` — ``ids`` (B, N) int32 catalog rows for the matched
@@ -112,11 +113,12 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         for _ in range(config.verify_retries):
             # matches the verification rejected: strike them out and let Algorithm 1 go on —
             # unless only the main star's name was contested (another graph cannot settle that)
-            redo = np.nonzero(res["ok"] & ~np.asarray(result.ok) & ~contested_main)[0]
-            if redo.size == 0:
+            retry = res["ok"] & ~np.asarray(result.ok) & ~contested_main
+            if not np.any(retry):
                 break
+            redo = np.nonzero(retry)[0]
             reject_best(state, res, redo)
-            advance_search(db, g, state, config, np.isin(np.arange(res["ok"].size), redo))
+            advance_search(db, g, state, config, retry)
             res = search_outcome(state, config, g["mask"].shape[1])
             sub, sub_contested = _names_from_match(db, scenes, g, res, config, rows=redo)
             result = _merge(result, sub, redo)
@@ -130,7 +132,7 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         info = {"n_i": g["n"], "w_i": g["w"], "main": g["main"], "overflow": g["overflow"],
                 "usable": usable, "best_main": np.where(ok, db.main[np.clip(res["best"], 0, None)],
                                                          -1),
-                "match_ok": ok,
+                "match_ok": ok, "main_contested": contested_main,
                 **{k: res[k] for k in ("error", "level", "n_matched_graphs", "n_pruned",
                                        "n_rejected", "best")}}
         return result, info
