@@ -78,7 +78,7 @@ class Config:
             paper's largest noise), so a wrong attitude cannot widen the tolerance further.
         verify_ambiguity_k: margin of the ambiguity guard in robust-RMS units: the kept name is at
             least exp(``verify_ambiguity_k²``) times likelier than the rival under isotropic Gaussian
-            noise (2.5: ≈ 500×). A clean swap fails for any value ≥ 0 (its own residual ≈ the pair's
+            noise (3.0: ≈ 8,100×). A clean swap fails for any value ≥ 0 (its own residual ≈ the pair's
             separation, the rival's ≈ the noise); the margin also catches swaps the noise blurs, at
             the cost of unnaming true stars of nearly indistinguishable pairs (incomplete scenes).
             Measured by replaying the verification on the raw matches of 1,400 scenes (7 noisy
@@ -87,7 +87,15 @@ class Config:
             drifted 2.7–3.1 σ towards the other star, likelihood ratio ≈ 30–300) and 1,133 correct;
             2.5 left none and 1,079 correct (the other 54 incomplete: one star of a close pair
             unnamed); 3.0 none and 1,011 correct. A mis-identification is worse than an unnamed
-            star, so 2.5.
+            star, so 2.5 until session 11. Then 3.0 (e^9; worst-case error of a near-tie decision
+            with the true σ Φ(−√(2·9)) = 1.1·10⁻⁵, against 2·10⁻⁴ at 2.5): with the partner rule and
+            the high-side s most close-pair names are decided by other tests, and the full-size lost
+            run's one mis-identification (σ = 2.5 px, main star row 1001: a detection 3.4 σ from its
+            own star, 1.3 px from the absent lost star, 5.6 nats with the true σ) passed the single
+            test's 6.25-nat margin. ``diagnose_sgm.py --experiment lost --sigma 2.5 --batches 3``:
+            194 correct + 1 mis-identified → 193 correct, 0; the README's sampled Table 2 (4,200
+            scenes) moved by at most one scene per level (3 at lost 3 px), MA 88.85 / 88.02 / 88.75
+            → 88.91 / 87.94 / 88.87 %, none mis-identified either way.
         verify_ambiguity_deg: smallest window of the ambiguity guard (deg).
         verify_partner_joint: when a rival star of a named detection has a detection of its own
             (within the tolerance, nearer to the rival than to any other catalog star, named after
@@ -111,6 +119,12 @@ class Config:
             so they pass a margin m with probability at most Φ(−√(2m)), reached at d = √(m/2): 1.1·10⁻⁵
             at m = 9, 3.7·10⁻⁷ at 12.25 (a Monte-Carlo check agreed), and a full-size run makes tens
             of thousands of such decisions.
+        verify_rms_z: the ambiguity margins' s (:func:`.verify._upper_rms`) is the kept residuals'
+            RMS over the lower Φ(−z) quantile of their χ² (2n − 3 degrees of freedom), so it comes
+            out below the true RMS with probability Φ(−z): 16 % at 1.0. 2.0 (2.3 %) also removes
+            the mis-identification above, but on the sampled Table 2 it cost 3 MA points (85.71 /
+            85.61 / 86.14 %) and 4.5–6.6 ALN points: a larger ``verify_ambiguity_k`` buys the same
+            safety far more cheaply.
         verify_magnitude_sigma: not used by default (``None``; SGM is magnitude-free). When set, the
             ambiguity tests add each hypothesis' magnitude cost ``(m_obs − V)² / (2σ²)`` with this
             σ (mag). On the session-6 replay with σ = 0.3 and the first partner rule (the scenes had no
@@ -169,11 +183,12 @@ class Config:
     verify_k: float = 3.5
     verify_floor_deg: float = 0.02
     verify_cap_deg: float = 0.3
-    verify_ambiguity_k: float = 2.5
+    verify_ambiguity_k: float = 3.0
     verify_ambiguity_deg: float = 0.2
     verify_partner_joint: bool = True
     verify_partner_k: float = 3.5
     verify_magnitude_sigma: float | None = None
+    verify_rms_z: float = 1.0
     verify_rename: bool = True
     verify_retries: int = 3
     verify_min_coverage: float = 0.4
@@ -197,7 +212,7 @@ class Config:
             raise ValueError(f"verify_retries must be ≥ 0, got {self.verify_retries}")
         if (self.verify_k <= 0 or not 0 < self.verify_floor_deg <= self.verify_cap_deg
                 or self.verify_ambiguity_k < 0 or self.verify_ambiguity_deg < 0
-                or self.verify_partner_k < 0
+                or self.verify_partner_k < 0 or self.verify_rms_z < 0
                 or not 0 <= self.verify_min_coverage <= 1
                 or (self.verify_magnitude_sigma is not None and self.verify_magnitude_sigma <= 0)):
             raise ValueError("need verify_k > 0, 0 < verify_floor_deg ≤ verify_cap_deg, "

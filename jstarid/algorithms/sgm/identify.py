@@ -211,6 +211,7 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config):
                          partner_joint=bool(config.verify_partner_joint),
                          partner_k=float(config.verify_partner_k),
                          mag_sigma=float(config.verify_magnitude_sigma or 0.0),
+                         rms_z=float(config.verify_rms_z),
                          min_matched=int(config.min_matched),
                          min_coverage=float(config.verify_min_coverage), n_near=n_near)
     return Identification(ids=ids, ok=ok, attitude=None), np.asarray(main_ambiguous)

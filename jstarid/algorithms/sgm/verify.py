@@ -37,12 +37,11 @@ fixed shapes, masks), checks every named detection against the attitude of the o
    by default: SGM is a magnitude-free method) both tests add the magnitude term
    ``(m_obs − V)² / (2 σ_m²)`` to each hypothesis' cost. Every margin of this step is measured
    with a high-side s (:func:`_upper_rms`: the kept residuals' χ² with 2n − 3 degrees of freedom,
-   too small with probability 16 %), not the fitted tolerance's median-based s, whose chance
-   shortfalls inflate every likelihood ratio. A last test looks for a rival
-   *detection*: an unnamed detection
-   whose nearest catalog star is this detection's own star (a false star next to a true one, seen
-   once at σ = 3 px with one fake star: the fake, 0.063° from the star, took its name) must lose to
-   it by the same margin.
+   too small with probability Φ(−z), 16 % at ``Config.verify_rms_z`` = 1), not the fitted
+   tolerance's median-based s, whose chance shortfalls inflate every likelihood ratio. A last
+   test looks for a rival *detection*: an unnamed detection whose nearest catalog star is this
+   detection's own star (a false star next to a true one, seen once at σ = 3 px with one fake
+   star: the fake, 0.063° from the star, took its name) must lose to it by the same margin.
 4. **Scene decision.** The scene fails (``ok`` False, every id −1) when the main star was named and
    is unnamed by the check, when fewer than ``min_matched`` stars stay named, or when fewer than half
    of the named stars stay named (the attitude itself is then not trustworthy).
@@ -98,7 +97,7 @@ def _fit(body, ref, named, k, floor_deg, cap_deg):
     return c, resid, s, k * s
 
 
-def _upper_rms(resid, mask, z: float = 1.0):
+def _upper_rms(resid, mask, z: float):
     """A high-side estimate of the residual RMS s (deg) for the ambiguity margins (step 3).
 
     The residuals of n stars fitted by a 3-parameter attitude have ν = 2n − 3 degrees of freedom:
@@ -205,7 +204,7 @@ def _frame_coverage(c, body, valid, cat, cells, tol, *, camera, grid):
 
 
 def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera, grid, k, floor_deg,
-                cap_deg, amb_k, amb_deg, partner_joint, partner_k, mag_sigma, min_matched,
+                cap_deg, amb_k, amb_deg, partner_joint, partner_k, mag_sigma, rms_z, min_matched,
                 min_coverage, n_near):
     """One scene. cat (M, 3), cat_mag (M,), cells (C, K), body (N, 3), mag/valid/ids (N,), ok,
     main () → (ids, ok, main_ambiguous)."""
@@ -217,7 +216,7 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
     c, resid, s, tol = _fit(body, ref, inl, k, floor_deg, cap_deg)
     keep = named0 & (resid <= tol)
     fits = keep
-    s_amb = jnp.maximum(s, _upper_rms(resid, keep))  # never looser than the fitted tolerance's s
+    s_amb = jnp.maximum(s, _upper_rms(resid, keep, rms_z))  # never looser than the fitted tolerance's s
     # ambiguity guard: catalog stars near the main star's sky direction (fixed count)
     sky_main = precise.matmul(body[main], c)  # Cᵀ b, ICRS
     _, near = jax.lax.top_k(precise.matmul(cat, sky_main), n_near)
@@ -240,11 +239,11 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
 
 @functools.partial(jax.jit, static_argnames=("camera", "grid", "k", "floor_deg", "cap_deg", "amb_k",
                                              "amb_deg", "partner_joint", "partner_k", "mag_sigma",
-                                             "min_matched", "min_coverage", "n_near"))
+                                             "rms_z", "min_matched", "min_coverage", "n_near"))
 def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, grid: int, k: float,
                floor_deg: float, cap_deg: float, amb_k: float, amb_deg: float,
-               partner_joint: bool, partner_k: float, mag_sigma: float, min_matched: int,
-               min_coverage: float, n_near: int):
+               partner_joint: bool, partner_k: float, mag_sigma: float, rms_z: float,
+               min_matched: int, min_coverage: float, n_near: int):
     """Verify a batch of SGM identifications against the attitude of the named stars (module doc).
 
     Args:
@@ -261,6 +260,8 @@ def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, gr
             alone, with the margin ``partner_k`` (robust RMS units) instead of ``amb_k``.
         mag_sigma: assumed σ of observed magnitudes (mag) in the ambiguity tests; 0 = positions
             only.
+        rms_z: the margins' s is the residual RMS over the lower ``rms_z`` quantile of its χ²
+            (:func:`_upper_rms`), too small with probability Φ(−rms_z).
         min_matched: fewest stars a verified scene keeps.
         min_coverage: fewest of the catalog stars projected inside the frame that must have a
             detection within the tolerance (fraction; 0 = off).
@@ -278,6 +279,6 @@ def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, gr
     fn = functools.partial(_verify_one, camera=camera, grid=grid, k=k, floor_deg=floor_deg,
                            cap_deg=cap_deg, amb_k=amb_k, amb_deg=amb_deg,
                            partner_joint=partner_joint, partner_k=partner_k, mag_sigma=mag_sigma,
-                           min_matched=min_matched, min_coverage=min_coverage, n_near=n_near)
+                           rms_z=rms_z, min_matched=min_matched, min_coverage=min_coverage, n_near=n_near)
     return jax.vmap(fn, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0))(
         cat, cat_mag, cells, body, mag, valid, ids, ok, main)
