@@ -593,3 +593,16 @@ def test_upper_rms_is_the_chi_square_lower_quantile():
         got = float(_upper_rms(jnp.asarray(resid, jnp.float32), jnp.asarray(mask), z))
         want = np.sqrt(2.0 * np.sum(resid[:n] ** 2) / chi2.ppf(norm.cdf(-z), 2 * n - 3))
         assert abs(got / want - 1.0) < 0.01, (n, z, got, want)
+
+
+@pytest.mark.parametrize("bad", [
+    {"radius_deg": 0.0}, {"dw_step_deg": 0.0}, {"dw_max_deg": 0.05}, {"c": 0.0},
+    {"max_error_deg": -0.1}, {"neighbor_capacity": 1}, {"chunk_size": 0}, {"min_matched": 0},
+    {"verify_retries": -1}, {"verify_k": 0.0}, {"verify_floor_deg": 0.5},
+    {"verify_ambiguity_k": -1.0}, {"verify_partner_k": -1.0}, {"verify_rms_z": -1.0},
+    {"verify_min_coverage": 1.5}, {"verify_magnitude_sigma": 0.0},
+])
+def test_config_rejects_bad_settings(bad):
+    """Every out-of-range setting is a ValueError when the Config is made, not a failure in jit."""
+    with pytest.raises(ValueError):
+        sgm.Config(**bad)
