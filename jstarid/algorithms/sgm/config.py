@@ -121,10 +121,10 @@ class Config:
             of thousands of such decisions.
         verify_rms_z: the ambiguity margins' s (:func:`.verify._upper_rms`) is the kept residuals'
             RMS over the lower Φ(−z) quantile of their χ² (2n − 3 degrees of freedom), so it comes
-            out below the true RMS with probability Φ(−z): 16 % at 1.0. 2.0 (2.3 %) also removes
-            the mis-identification above, but on the sampled Table 2 it cost 3 MA points (85.71 /
-            85.61 / 86.14 %) and 4.5–6.6 ALN points: a larger ``verify_ambiguity_k`` buys the same
-            safety far more cheaply.
+            out below the true RMS with probability Φ(−z): 16 % at 1.0. 2.0 (2.3 %) with the margin
+            2.5 also removes the mis-identification above, but on the sampled Table 2 it cost 3 MA
+            points (85.71 / 85.61 / 86.14 %) and 4.5–6.6 ALN points: a larger
+            ``verify_ambiguity_k`` buys the same safety far more cheaply.
         verify_magnitude_sigma: not used by default (``None``; SGM is magnitude-free). When set, the
             ambiguity tests add each hypothesis' magnitude cost ``(m_obs − V)² / (2σ²)`` with this
             σ (mag). On the session-6 replay with σ = 0.3 and the first partner rule (the scenes had no
