@@ -2,6 +2,7 @@
 
     python experiments/benchmark.py                       # all available benchmarks
     python experiments/benchmark.py --only simulate --batch 10000
+    python experiments/benchmark.py --only centroid --images 32
 
 Each benchmark reports compile time (first call) apart from steady-state throughput (best of
 ``--repeats`` timed calls after compilation) and the process's peak resident memory. Results are also
@@ -73,6 +74,35 @@ def bench_simulate(args) -> list[dict]:
     return rows
 
 
+def bench_centroid(args) -> list[dict]:
+    """``js.extract_centroids`` images/s on ``--images`` 1024×768 frames (``tetra3_test`` size).
+
+    The frames are rendered from simulated scenes (Gaussian PSFs, sky 1000, read noise 10 counts), so
+    the benchmark needs no image files; the real test images are of the same size.
+    """
+    cam = js.camera_preset("tetra3_test")
+    cat = js.load_catalog(7.0)
+    scenes = js.simulate(jax.random.key(0), cat, cam, batch_size=args.images, capacity=64)
+    rng = np.random.default_rng(0)
+    images = np.empty((args.images, cam.height, cam.width), np.float32)
+    yy, xx = np.mgrid[0:15, 0:15]
+    for i in range(args.images):
+        img = 1000.0 + rng.normal(0.0, 10.0, (cam.height + 14, cam.width + 14))
+        for (x, y), m, v in zip(np.asarray(scenes.xy[i]), np.asarray(scenes.mag[i]),
+                                np.asarray(scenes.valid[i]), strict=True):
+            if v:
+                x0, y0 = int(x), int(y)
+                psf = np.exp(-((xx - 7 - (x - x0)) ** 2 + (yy - 7 - (y - y0)) ** 2) / (2 * 0.8 ** 2))
+                img[y0:y0 + 15, x0:x0 + 15] += 10 ** (-0.4 * (m - 16.7)) * psf / psf.sum()
+        images[i] = img[7:-7, 7:-7]
+    first, best = time_call(lambda i: js.extract_centroids(images, capacity=64).xy, args.repeats)
+    row = {"benchmark": "centroid", "camera": "tetra3_test", "batch": args.images,
+           "compile_s": round(first - best, 2), "scenes_per_s": round(args.images / best, 1),
+           "peak_rss_mb": round(peak_rss_mb())}
+    print(row, flush=True)
+    return [row]
+
+
 def _external(name):
     """Benchmarks contributed by algorithm modules: experiments/bench_<name>.py with ``run(args)``."""
     path = HERE / f"bench_{name}.py"
@@ -86,7 +116,9 @@ def _external(name):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--only", default="simulate,sgm,mlv,rpnet", help="comma-separated benchmarks")
+    p.add_argument("--only", default="simulate,centroid,sgm,mlv,rpnet",
+                   help="comma-separated benchmarks")
+    p.add_argument("--images", type=int, default=32, help="frames per centroid-extraction call")
     p.add_argument("--batch", type=int, default=10_000)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--cameras", default="sgm2022,mlv2021,rpnet2019")
@@ -103,6 +135,8 @@ def main(argv=None) -> int:
     for name in args.only.split(","):
         if name == "simulate":
             rows += bench_simulate(args)
+        elif name == "centroid":
+            rows += bench_centroid(args)
         else:
             fn = _external(name)
             if fn is None:

@@ -106,6 +106,51 @@ def _compare(args) -> int:
     return 0
 
 
+def _solve(args) -> int:
+    """Raw images → centroids → identification → attitude, one line per image plus a JSON file."""
+    import jstarid as js
+
+    cat = js.load_catalog(args.mag_limit, epoch=args.epoch)
+    cam = js.camera_preset(args.camera)
+    for path in args.images:
+        if not Path(path).is_file():
+            raise ValueError(f"no such image: {path}")
+    images = [js.read_image(p) for p in args.images]
+    if len({im.shape for im in images}) != 1 or images[0].shape != (cam.height, cam.width):
+        raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "
+                         f"got {sorted({im.shape for im in images})}")
+    scenes = js.extract_centroids(np.stack(images), capacity=args.capacity)
+    algo = js.algorithms.get(args.algorithm)
+    cfg = algo.Config()
+    result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)
+    att, rms_arcsec, have = (np.asarray(a) for a in js.estimate_attitude(cat, cam, scenes, result))
+    ra, dec, roll = (np.degrees(np.asarray(a)) for a in js.rotation_to_radec_roll(att))
+    ids, xy, ok = np.asarray(result.ids), np.asarray(scenes.xy), np.asarray(result.ok)
+    n_det = np.asarray(scenes.valid).sum(axis=1)
+    solutions = []
+    for i, path in enumerate(args.images):
+        named = np.nonzero(ids[i] >= 0)[0]
+        solved = bool(ok[i] and have[i])
+        entry = {"image": str(path), "detections": int(n_det[i]), "solved": solved,
+                 "stars": [{"hip": int(cat.hip[ids[i, j]]), "x": float(xy[i, j, 0]),
+                            "y": float(xy[i, j, 1]), "v": float(cat.mag[ids[i, j]])} for j in named]}
+        if solved:
+            entry.update(ra_deg=float(ra[i]), dec_deg=float(dec[i]), roll_deg=float(roll[i]),
+                         residual_arcsec=float(rms_arcsec[i]), attitude=att[i].tolist())
+            print(f"{path}: {len(named)} of {n_det[i]} detections identified; boresight RA "
+                  f"{ra[i]:.4f}°, Dec {dec[i]:+.4f}°, roll {roll[i]:+.3f}°, residual "
+                  f"{rms_arcsec[i]:.1f}″")
+        else:
+            print(f"{path}: not solved ({n_det[i]} detections)")
+        solutions.append(entry)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "solutions.json").write_text(json.dumps({"args": vars(args), "solutions": solutions},
+                                                   indent=1, default=str))
+    print(f"wrote {out / 'solutions.json'}")
+    return 0 if all(s["solved"] for s in solutions) else 1
+
+
 def _catalog(args) -> int:
     import jstarid as js
 
@@ -155,6 +200,17 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--out", default="results/compare")
     m.set_defaults(func=_compare)
+    s = sub.add_parser("solve", help="identify the stars of raw images (TIFF/PNG) and print the "
+                                     "attitude; exit 1 when an image is not solved")
+    s.add_argument("images", nargs="+", help="grayscale image files, all from one camera")
+    s.add_argument("--camera", default="tetra3_test", help="camera preset (see `jstarid list`)")
+    s.add_argument("--algorithm", default="mlv")
+    s.add_argument("--mag-limit", type=float, default=7.0, help="catalog depth (V)")
+    s.add_argument("--epoch", type=float, default=None,
+                   help="Julian year of the images (proper motion), e.g. 2019.57")
+    s.add_argument("--capacity", type=int, default=24, help="brightest detections used per image")
+    s.add_argument("--out", default="results/solve")
+    s.set_defaults(func=_solve)
     ls = sub.add_parser("list", help="registered algorithms and camera presets")
     ls.set_defaults(func=_list)
     c = sub.add_parser("catalog", help="catalog statistics")

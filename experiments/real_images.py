@@ -1,0 +1,186 @@
+"""Identify the stars of real night-sky images, from the raw pixels to the attitude.
+
+The four test images of ``shared/data/real`` (FLIR Blackfly S + 35 mm lens, 1024×768 px, ≈ 11.4°
+horizontal field; the ``tetra3_test`` camera preset) go through the whole pipeline:
+:func:`jstarid.centroid.extract_centroids` on the raw 16-bit TIFFs, the chosen algorithms with a
+database built for this camera and a catalog to ``--mag-limit`` (positions at the images' epoch),
+and :func:`jstarid.estimate_attitude`. The results are checked against an independent solve
+(``reference.json``, cedar-solve 0.5.1):
+
+- **ground truth for every detection**: the attitude fitted to the reference's matched list (its
+  centroids shifted by −0.5 px: cedar-solve puts the pixel origin at a corner, ours at the first
+  pixel's centre; the median offset of our centroids from its is measured and printed) projects the
+  catalog into the image; a detection within ``--truth-px`` of a projected star (and of no other) is
+  that star, every other detection is unlabelled (a star fainter than the catalog, a hot pixel, a
+  ghost of a bright star);
+- a named detection is **correct** when its name is its truth label and **wrong** otherwise (also when
+  it is unlabelled: a failure is better than a guess);
+- **boresight error**: the angle between our boresight and the reference's RA/Dec (arcsec).
+
+Writes ``results/real_images/{config.json, results.json, table.md}``.
+
+Usage::
+
+    python experiments/real_images.py                       # MLV and SGM
+    python experiments/real_images.py --algorithms mlv --mag-limit 6.5
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+import jstarid as js
+from jstarid.centroid import CentroidConfig, extract_centroids, read_image
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+IMAGE_EPOCH = 2019.57  # 2019-07-29, the date in the file names (Julian years)
+TRUTH_MAG_LIMIT = 9.0  # truth labels from Hipparcos to V 9 (the images reach V ≈ 7.5–8)
+REFERENCE_ORIGIN_PX = -0.5  # cedar-solve's pixel origin (a corner) → ours (a pixel centre)
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder of images + reference.json")
+    p.add_argument("--algorithms", nargs="+", default=["mlv", "sgm"])
+    p.add_argument("--mag-limit", type=float, default=7.0, help="catalog depth (V)")
+    p.add_argument("--capacity", type=int, default=24, help="brightest detections kept per image")
+    p.add_argument("--sgm-radius", type=float, default=4.0,
+                   help="SGM neighbor-circle radius r (deg): the paper's 6° is wider than this "
+                        "8.6°-high frame allows")
+    p.add_argument("--truth-px", type=float, default=2.0, help="ground-truth matching radius (px)")
+    p.add_argument("--out", type=Path, default=Path("results/real_images"))
+    return p.parse_args(argv)
+
+
+def algorithm_config(name: str, args):
+    algo = js.algorithms.get(name)
+    if name == "sgm":
+        return algo.Config(radius_deg=args.sgm_radius)
+    return algo.Config()
+
+
+def reference_truth(ref, catalog, camera, xy, valid, truth_px):
+    """Truth labels (N,) Hipparcos numbers (−1 unlabelled) and the reference attitude (3, 3).
+
+    ``catalog`` is the deep truth catalog (:data:`TRUTH_MAG_LIMIT`), so a detection of a star fainter
+    than the identification catalog is labelled too (any name given to it is wrong).
+    """
+    hips = [m["hip"] for m in ref["matches"]]
+    ref_xy = np.array([[m["x"], m["y"]] for m in ref["matches"]]) + REFERENCE_ORIGIN_PX
+    rows = catalog.row_of_hip(hips)
+    keep = rows >= 0
+    body = np.asarray(camera.unproject(ref_xy[keep]))
+    c = np.asarray(js.solve_wahba(body, catalog.unit_vectors[rows[keep]], np.ones(int(keep.sum()))))
+    proj, in_front = (np.asarray(a) for a in camera.project(catalog.unit_vectors @ c.T))
+    cand = np.nonzero(in_front & np.asarray(camera.contains(proj, -truth_px)))[0]
+    d = np.linalg.norm(xy[:, None, :] - proj[None, cand, :], axis=-1)
+    close = d <= truth_px
+    truth = np.where(valid & (close.sum(1) == 1), catalog.hip[cand[np.argmax(close, axis=1)]], -1)
+    return truth, c, ref_xy
+
+
+def boresight_error_arcsec(c, ra_deg, dec_deg):
+    ra, dec = math.radians(ra_deg), math.radians(dec_deg)
+    ref = np.array([math.cos(ra) * math.cos(dec), math.sin(ra) * math.cos(dec), math.sin(dec)])
+    return math.degrees(math.atan2(np.linalg.norm(np.cross(c[2], ref)), float(c[2] @ ref))) * 3600.0
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    reference = json.loads((args.data / "reference.json").read_text())
+    names = sorted(reference)
+    images = np.stack([read_image(args.data / n) for n in names])
+    camera = js.camera_preset("tetra3_test")
+    catalog = js.load_catalog(mag_limit=args.mag_limit, epoch=IMAGE_EPOCH)
+    truth_catalog = js.load_catalog(mag_limit=TRUTH_MAG_LIMIT, epoch=IMAGE_EPOCH)
+    centroid_cfg = CentroidConfig()
+    t0 = time.perf_counter()
+    scenes = extract_centroids(images, centroid_cfg, capacity=args.capacity)
+    # every detection, for the statistics
+    deep = extract_centroids(images, centroid_cfg, capacity=centroid_cfg.max_peaks)
+    t_centroid = time.perf_counter() - t0
+    xy, valid = np.asarray(scenes.xy), np.asarray(scenes.valid)
+
+    per_image = []
+    for i, name in enumerate(names):
+        truth, c_ref, ref_xy = reference_truth(reference[name], truth_catalog, camera, xy[i], valid[i],
+                                               args.truth_px)
+        dxy = np.asarray(deep.xy[i])[np.asarray(deep.valid[i])]
+        d = np.linalg.norm(ref_xy[:, None] - dxy[None], axis=-1)
+        found = d.min(axis=1) <= 1.0
+        offset = np.median(dxy[d.argmin(axis=1)][found] - ref_xy[found], axis=0)
+        per_image.append(dict(
+            image=name, detections=int(np.asarray(deep.valid[i]).sum()),
+            detections_overflow=bool(np.asarray(deep.overflow[i])),
+            kept=int(valid[i].sum()), labelled=int((truth >= 0).sum()),
+            reference_matches=len(ref_xy), reference_found=int(found.sum()),
+            offset_from_reference_px=[round(float(v), 3) for v in offset],
+            reference_boresight_check_arcsec=round(boresight_error_arcsec(
+                c_ref, reference[name]["boresight_ra_deg"], reference[name]["boresight_dec_deg"]), 1),
+            truth=truth.tolist(), algorithms={}))
+
+    timings = {}
+    for algo_name in args.algorithms:
+        algo = js.algorithms.get(algo_name)
+        cfg = algorithm_config(algo_name, args)
+        db = algo.build_database(catalog, camera, cfg)
+        t0 = time.perf_counter()
+        result = algo.identify(db, scenes, cfg)
+        ids = np.asarray(result.ids)
+        timings[algo_name] = time.perf_counter() - t0
+        att, rms_arcsec, have = (np.asarray(a) for a in js.estimate_attitude(catalog, camera, scenes, result))
+        for i, name in enumerate(names):
+            truth = np.asarray(per_image[i]["truth"])
+            named = valid[i] & (ids[i] >= 0)
+            hip = np.where(named, catalog.hip[np.maximum(ids[i], 0)], -1)
+            correct = int(np.sum(named & (hip == truth)))
+            entry = dict(ok=bool(np.asarray(result.ok)[i]), named=int(named.sum()), correct=correct,
+                         wrong=int(named.sum()) - correct,
+                         residual_arcsec=round(float(rms_arcsec[i]), 1) if have[i] else None,
+                         boresight_error_arcsec=(round(boresight_error_arcsec(
+                             att[i], reference[name]["boresight_ra_deg"],
+                             reference[name]["boresight_dec_deg"]), 1) if have[i] else None))
+            per_image[i]["algorithms"][algo_name] = entry
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    config = dict(vars(args), data=str(args.data), out=str(args.out), epoch=IMAGE_EPOCH,
+                  centroid=dataclasses.asdict(centroid_cfg),
+                  algorithm_configs={a: dataclasses.asdict(algorithm_config(a, args))
+                                     for a in args.algorithms})
+    (args.out / "config.json").write_text(json.dumps(config, indent=2, default=str))
+    results = dict(images=per_image, centroid_seconds=t_centroid, identify_seconds=timings)
+    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+    table = format_table(results, args)
+    (args.out / "table.md").write_text(table)
+    print(table)
+
+
+def format_table(results, args) -> str:
+    lines = [f"Catalog V ≤ {args.mag_limit}, brightest {args.capacity} detections per image.", "",
+             "| image | detections | kept (labelled) | reference found | "
+             + " | ".join(f"{a}: named / wrong / boresight″" for a in args.algorithms) + " |",
+             "|---|---|---|---|" + "---|" * len(args.algorithms)]
+    for im in results["images"]:
+        cells = []
+        for a in args.algorithms:
+            e = im["algorithms"][a]
+            bore = "–" if e["boresight_error_arcsec"] is None else f"{e['boresight_error_arcsec']:.0f}"
+            cells.append(f"{e['named']} / {e['wrong']} / {bore}" if e["ok"] else "failed")
+        short = im["image"].split("_")[2]
+        more = "> " if im["detections_overflow"] else ""
+        lines.append(f"| {short} | {more}{im['detections']} | {im['kept']} ({im['labelled']}) | "
+                     f"{im['reference_found']} of {im['reference_matches']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    js.use_cpu_cores()
+    js.enable_compilation_cache()
+    main()
