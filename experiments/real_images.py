@@ -165,14 +165,18 @@ def main(argv=None):
 def format_table(results, args) -> str:
     lines = [f"Catalog V ≤ {args.mag_limit}, brightest {args.capacity} detections per image.", "",
              "| image | detections | kept (labelled) | reference found | "
-             + " | ".join(f"{a}: named / wrong / boresight″" for a in args.algorithms) + " |",
+             + " | ".join(f"{a}: named / wrong / boresight error ″ / residual ″" for a in args.algorithms)
+             + " |",
              "|---|---|---|---|" + "---|" * len(args.algorithms)]
     for im in results["images"]:
         cells = []
         for a in args.algorithms:
             e = im["algorithms"][a]
-            bore = "–" if e["boresight_error_arcsec"] is None else f"{e['boresight_error_arcsec']:.0f}"
-            cells.append(f"{e['named']} / {e['wrong']} / {bore}" if e["ok"] else "failed")
+            if not e["ok"] or e["boresight_error_arcsec"] is None:
+                cells.append("failed")
+                continue
+            cells.append(f"{e['named']} / {e['wrong']} / {e['boresight_error_arcsec']:.1f} / "
+                         f"{e['residual_arcsec']:.1f}")
         short = im["image"].split("_")[2]
         more = "> " if im["detections_overflow"] else ""
         lines.append(f"| {short} | {more}{im['detections']} | {im['kept']} ({im['labelled']}) | "

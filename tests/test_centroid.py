@@ -181,7 +181,8 @@ def test_bad_input_raises():
     with pytest.raises(ValueError, match="capacity"):
         extract_centroids(img, capacity=0)
     for field, value in [("tile_px", 2), ("threshold_sigma", 0.0), ("window_px", 0),
-                         ("min_pixels", 0), ("max_peaks", 0), ("max_sharpness", 0.0), ("sample_stride", 0), ("zero_point", np.nan)]:
+                         ("min_pixels", 0), ("max_peaks", 0), ("max_sharpness", 0.0),
+                         ("sample_stride", 0), ("zero_point", np.nan)]:
         with pytest.raises(ValueError, match=field):
             CentroidConfig(**{field: value})
 

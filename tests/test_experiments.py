@@ -98,3 +98,18 @@ def test_diagnose_sgm_tiny():
     assert sum(out["outcomes"].values()) == 6
     assert sum(out["failure_causes"].values()) == out["outcomes"].get("fail", 0)
     assert len(out["mis_identified"]) == out["outcomes"].get("wrong", 0)
+
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (REAL / "reference.json").exists(), reason="shared/data/real not present")
+def test_real_images_mlv(tmp_path):
+    _load("real_images").main(["--algorithms", "mlv", "--out", str(tmp_path)])
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert len(res["images"]) == 4
+    for im in res["images"]:
+        e = im["algorithms"]["mlv"]
+        assert e["ok"] and e["wrong"] == 0 and e["boresight_error_arcsec"] < 60
+    assert "| Azi45 |" in (tmp_path / "table.md").read_text()
