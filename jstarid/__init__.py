@@ -16,6 +16,7 @@ from jstarid.camera import Camera, camera_preset, preset_names
 from jstarid.catalog import Catalog, load_catalog, v_from_hp
 from jstarid.centroid import CentroidConfig, extract_centroids, read_image
 from jstarid.compilation_cache import enable_compilation_cache
+from jstarid.completion import name_from_attitude
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.scene import Identification, Scene, scenes_from_centroids
 from jstarid.simulator import NoiseConfig, noise_grid, simulate
@@ -26,8 +27,9 @@ __version__ = "0.1.0"
 __all__ = [
     "Camera", "Catalog", "CentroidConfig", "Identification", "NoiseConfig", "Scene", "algorithms",
     "plotting", "sweep", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
-    "estimate_attitude", "evaluate", "extract_centroids", "load_catalog", "noise_grid", "preset_names",
-    "quaternion_from_rotation", "random_rotation", "read_image", "rotation_from_boresight",
-    "rotation_from_quaternion", "rotation_from_radec_roll", "rotation_to_radec_roll", "scene_outcomes",
-    "scenes_from_centroids", "simulate", "solve_wahba", "use_cpu_cores", "v_from_hp",
+    "estimate_attitude", "evaluate", "extract_centroids", "load_catalog", "name_from_attitude",
+    "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation", "read_image",
+    "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",
+    "rotation_to_radec_roll", "scene_outcomes", "scenes_from_centroids", "simulate", "solve_wahba",
+    "use_cpu_cores", "v_from_hp",
 ]

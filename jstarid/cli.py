@@ -123,6 +123,8 @@ def _solve(args) -> int:
     algo = js.algorithms.get(args.algorithm)
     cfg = algo.Config()
     result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)
+    if args.name_all:
+        result = js.name_from_attitude(cat, cam, scenes, result, tol_px=args.tol_px)
     att, rms_arcsec, have = (np.asarray(a) for a in js.estimate_attitude(cat, cam, scenes, result))
     ra, dec, roll = (np.degrees(np.asarray(a)) for a in js.rotation_to_radec_roll(att))
     ids, xy, ok = np.asarray(result.ids), np.asarray(scenes.xy), np.asarray(result.ok)
@@ -209,6 +211,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--epoch", type=float, default=None,
                    help="Julian year of the images (proper motion), e.g. 2019.57")
     s.add_argument("--capacity", type=int, default=24, help="brightest detections used per image")
+    s.add_argument("--name-all", action=argparse.BooleanOptionalAction, default=True,
+                   help="name every detection the solved attitude explains (js.name_from_attitude); "
+                        "--no-name-all keeps the algorithm's own names")
+    s.add_argument("--tol-px", type=float, default=2.0, help="tolerance of --name-all (px)")
     s.add_argument("--out", default="results/solve")
     s.set_defaults(func=_solve)
     ls = sub.add_parser("list", help="registered algorithms and camera presets")

@@ -111,5 +111,6 @@ def test_real_images_mlv(tmp_path):
     assert len(res["images"]) == 4
     for im in res["images"]:
         e = im["algorithms"]["mlv"]
-        assert e["ok"] and e["wrong"] == 0 and e["boresight_error_arcsec"] < 60
+        assert e["ok"] and e["own"]["wrong"] == 0 and e["all"]["wrong"] == 0
+        assert e["all"]["named"] > e["own"]["named"] and e["all"]["boresight_error_arcsec"] < 60
     assert "| Azi45 |" in (tmp_path / "table.md").read_text()
