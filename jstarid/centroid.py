@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.scene import Scene
+from jstarid.sweep import map_batch
 
 __all__ = ["CentroidConfig", "extract_centroids", "read_image"]
 
@@ -106,13 +107,15 @@ def read_image(path) -> np.ndarray:
 
 
 def extract_centroids(images, config: CentroidConfig = CentroidConfig(), *,
-                      capacity: int = 64) -> Scene:
+                      capacity: int = 64, shard: bool = False) -> Scene:
     """Centroids of the stars in a batch of images (module doc), brightest first.
 
     Args:
         images: (B, H, W) or (H, W) pixel values (any real dtype; converted to float32).
         config: :class:`CentroidConfig`.
         capacity: static N, detections kept per image.
+        shard: split the batch over every device (:func:`jstarid.sweep.map_batch`); the result is
+            the same as the single-device call's.
 
     Returns:
         A :class:`~jstarid.scene.Scene` of B scenes: ``xy`` (B, N, 2) px, ``mag`` (B, N) from the
@@ -138,7 +141,10 @@ def extract_centroids(images, config: CentroidConfig = CentroidConfig(), *,
                          f"({config.tile_px} px) or the centroid window")
     if not isinstance(capacity, int | np.integer) or capacity < 1:
         raise ValueError(f"capacity must be a positive integer, got {capacity!r}")
-    return _extract_batch(jnp.asarray(arr, jnp.float32), config=config, capacity=int(capacity))
+    batch = jnp.asarray(arr, jnp.float32)
+    if shard:
+        return map_batch(_extract_batch, (batch,), static=dict(config=config, capacity=int(capacity)))
+    return _extract_batch(batch, config=config, capacity=int(capacity))
 
 
 @functools.partial(jax.jit, static_argnames=("config", "capacity"))

@@ -119,7 +119,7 @@ def _solve(args) -> int:
     if len({im.shape for im in images}) != 1 or images[0].shape != (cam.height, cam.width):
         raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "
                          f"got {sorted({im.shape for im in images})}")
-    scenes = js.extract_centroids(np.stack(images), capacity=args.capacity)
+    scenes = js.extract_centroids(np.stack(images), capacity=args.capacity, shard=True)
     algo = js.algorithms.get(args.algorithm)
     cfg = algo.Config()
     result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)
