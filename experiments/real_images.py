@@ -21,7 +21,7 @@ Writes ``results/real_images/{config.json, results.json, table.md}``.
 
 Usage::
 
-    python experiments/real_images.py                       # MLV and SGM
+    python experiments/real_images.py                       # MLV, RpNet (quick) and SGM
     python experiments/real_images.py --algorithms mlv --mag-limit 6.5
 """
 
@@ -48,7 +48,7 @@ REFERENCE_ORIGIN_PX = -0.5  # cedar-solve's pixel origin (a corner) → ours (a 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder of images + reference.json")
-    p.add_argument("--algorithms", nargs="+", default=["mlv", "sgm"])
+    p.add_argument("--algorithms", nargs="+", default=["mlv", "rpnet", "sgm"])
     p.add_argument("--mag-limit", type=float, default=7.0, help="catalog depth (V)")
     p.add_argument("--capacity", type=int, default=24, help="brightest detections kept per image")
     p.add_argument("--sgm-radius", type=float, default=4.0,
@@ -65,6 +65,8 @@ def algorithm_config(name: str, args):
     algo = js.algorithms.get(name)
     if name == "sgm":
         return algo.Config(radius_deg=args.sgm_radius)
+    if name == "rpnet":  # trained for this camera on first use (≈ 4 min on 2 cores), then cached
+        return algo.Config.quick()
     return algo.Config()
 
 

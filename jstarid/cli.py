@@ -121,7 +121,8 @@ def _solve(args) -> int:
                          f"got {sorted({im.shape for im in images})}")
     scenes = js.extract_centroids(np.stack(images), capacity=args.capacity, shard=True)
     algo = js.algorithms.get(args.algorithm)
-    cfg = algo.Config()
+    # RpNet trains a network per camera on first use: the quick preset takes minutes, the paper's hours
+    cfg = getattr(algo.Config, args.rpnet_preset)() if args.algorithm == "rpnet" else algo.Config()
     result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)
     if args.name_all:
         result = js.name_from_attitude(cat, cam, scenes, result, tol_px=args.tol_px)
@@ -215,6 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="name every detection the solved attitude explains (js.name_from_attitude); "
                         "--no-name-all keeps the algorithm's own names")
     s.add_argument("--tol-px", type=float, default=2.0, help="tolerance of --name-all (px)")
+    s.add_argument("--rpnet-preset", choices=("quick", "paper"), default="quick",
+                   help="RpNet network (trained for the camera on first use, then cached)")
     s.add_argument("--out", default="results/solve")
     s.set_defaults(func=_solve)
     ls = sub.add_parser("list", help="registered algorithms and camera presets")

@@ -459,6 +459,30 @@ def test_identify_chunking_consistent(tiny, clean_scenes):
         rpnet.identify(db, clean_scenes[:4], dataclasses.replace(cfg, m=9))
 
 
+def test_coverage_of_an_overflowed_scene_counts_only_what_it_kept(tiny, clean_scenes):
+    """A scene cut to its brightest detections (``overflow``, as a dense real frame) is judged by
+    the stars it kept: the same detections without the flag fail the coverage test."""
+    _, _, cfg, db, _ = tiny
+    keep = 8
+    valid, xy, mag = (np.asarray(a) for a in (clean_scenes.valid, clean_scenes.xy, clean_scenes.mag))
+    rich = np.nonzero(valid.sum(1) > 2.5 * keep)[0]  # 8 kept < 0.4 of the stars in the frame
+    assert len(rich) >= 40
+    cut = js.scenes_from_centroids([xy[i][valid[i]] for i in rich], [mag[i][valid[i]] for i in rich],
+                                   capacity=keep)
+    assert np.all(np.asarray(cut.overflow))
+    flagged = rpnet.identify(db, cut, cfg)
+    unflagged = rpnet.identify(db, dataclasses.replace(cut, overflow=jnp.zeros(len(rich), bool)), cfg)
+    assert not np.any(np.asarray(unflagged.ok))
+    # the tiny network often misreads patterns cut to 8 stars; where it does not, the scene passes
+    assert np.sum(np.asarray(flagged.ok)) >= 5
+    truth = np.asarray(clean_scenes.truth)
+    ids = np.asarray(flagged.ids)
+    for r, i in enumerate(rich):  # every name is the star's own (the kept 8 are the brightest)
+        order = np.argsort(mag[i][valid[i]], kind="stable")[:keep]
+        named = ids[r] >= 0
+        np.testing.assert_array_equal(ids[r][named], truth[i][valid[i]][order][named])
+
+
 def test_identify_more_pair_trials_never_worse(tiny, clean_scenes):
     """Trying the next pairs (extension) keeps every scene the single pair confirmed, and its ids."""
     _, _, cfg, db, _ = tiny

@@ -201,7 +201,10 @@ class Config:
             (σ 1.6 px, 0.969 mag, 5 missing, 50 % false): correct scenes name ≥ 0.5 of them (0.1st
             percentile; 0.9 at 1.6 px), the 12 mis-identified ones ≤ 0.31 (a correct pair whose
             roll stayed wrong, or a swapped close pair, confirmed by 5–11 coincidences); 0.4 turned
-            all 12 into failures and one correct scene into a failure. 0 = off.
+            all 12 into failures and one correct scene into a failure. 0 = off. A scene flagged
+            ``overflow`` (more detections than its capacity, the brightest kept) counts at most as
+            many catalog stars as it kept detections: a dense real frame (``tetra3_test``, 24 of
+            its 67 V ≤ 7 stars kept) otherwise failed although all 24 were named.
         n_pair_trials: extension: the admissible pairs tried, by decreasing score, until one is
             confirmed (1 = the paper's single confident pair). The next pairs are only tried on the
             scenes the best one did not confirm (a second pass), so the cost grows with the failure

@@ -20,7 +20,8 @@ Per scene (written once, batched with ``vmap``):
    [``match_tol_min_px``, ``match_tol_px``]) and a last refit;
 5. the scene is identified (``ok``) when at least ``min_verified`` detections are named and they are
    at least ``min_coverage`` of the catalog stars that the final attitude puts inside the frame (a
-   wrong or badly rolled attitude names a few stars by coincidence, a right one nearly all); otherwise
+   wrong or badly rolled attitude names a few stars by coincidence, a right one nearly all; in a
+   scene flagged ``overflow``, of at most as many stars as it kept detections); otherwise
    (extension, ``n_pair_trials`` > 1) the next-best admissible pairs are tried in score order, then
    (extension, ``n_guide_triples`` > 1) steps 2–5 run again on the next three detections by distance
    from the centre (ranks 4–6, 7–9, …), then (extension, ``n_pool_pairs`` > 0) the best pairs of
@@ -331,12 +332,13 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thres
     return loc[rows1], named1, c2, jnp.sum(inside)
 
 
-def _first_confirmed(score, a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thresholds, *,
-                     camera, config: Config, grid):
+def _first_confirmed(score, a, b, row_a, row_b, body, valid, overflow, star_vectors, cells, th: Thresholds,
+                     *, camera, config: Config, grid):
     """Verify the pairs in the given (score) order and keep the first confirmed one (step 5).
 
     Args:
         score: (T,) score of each pair (−inf: not admissible); a, b, row_a, row_b: (T,) the pairs.
+        overflow: () bool, the scene kept only its brightest ``capacity`` detections.
 
     Returns:
         ``(ids, ok, attitude)``: (N,) int32 catalog rows (−1 unnamed, all −1 unless ok), () bool,
@@ -345,6 +347,9 @@ def _first_confirmed(score, a, b, row_a, row_b, body, valid, star_vectors, cells
     verify = functools.partial(_verify_pair, body=body, valid=valid, star_vectors=star_vectors,
                                cells=cells, th=th, camera=camera, config=config, grid=grid)
     rows_t, named_t, att_t, expected_t = jax.vmap(verify)(a, b, row_a, row_b)
+    # a scene cut to its brightest `capacity` detections (overflow) cannot name more stars than it
+    # kept: the coverage counts at most that many (a dense real frame kept 24 of its 67 V ≤ 7 stars)
+    expected_t = jnp.where(overflow, jnp.minimum(expected_t, jnp.sum(valid)), expected_t)
     n_named = jnp.sum(named_t, axis=1)
     confirmed = (jnp.isfinite(score) & (n_named >= th.min_verified)
                  & (n_named >= th.min_coverage * expected_t))
@@ -355,7 +360,7 @@ def _first_confirmed(score, a, b, row_a, row_b, body, valid, star_vectors, cells
     return ids.astype(jnp.int32), ok, att.astype(jnp.float32)
 
 
-def _name_pool(xy, valid, near, p, cls, guide_rows, star_vectors, cells, th: Thresholds, *, camera,
+def _name_pool(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells, th: Thresholds, *, camera,
                config: Config, grid):
     """Pool pass for one scene (extension, ``Config.n_pool_pairs``): pairs across all triples.
 
@@ -378,11 +383,11 @@ def _name_pool(xy, valid, near, p, cls, guide_rows, star_vectors, cells, th: Thr
     score = jnp.where(ok, weight[:, None] + weight[None, :], -jnp.inf).reshape(-1)
     top_score, flat = jax.lax.top_k(score, min(config.n_pool_pairs, score.shape[0]))
     u, v = flat // (3 * t), flat % (3 * t)
-    return _first_confirmed(top_score, det[u], det[v], rows[u], rows[v], body, valid, star_vectors, cells,
-                            th, camera=camera, config=config, grid=grid)
+    return _first_confirmed(top_score, det[u], det[v], rows[u], rows[v], body, valid, overflow,
+                            star_vectors, cells, th, camera=camera, config=config, grid=grid)
 
 
-def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, th: Thresholds, *, camera,
+def _name_one(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells, th: Thresholds, *, camera,
               config: Config, grid, trials=(0, 1)):
     """Steps 3–5 for one scene, from the network's candidates (module docstring).
 
@@ -399,7 +404,8 @@ def _name_one(xy, valid, near, p, cls, guide_rows, star_vectors, cells, th: Thre
     top_score, q = jax.lax.top_k(score, trials[0] + trials[1])
     top_score, q = top_score[trials[0]:], q[trials[0]:]
     return _first_confirmed(top_score, near[i[q]], near[k[q]], cand_rows[i[q], j[q]], cand_rows[k[q], m[q]],
-                            body, valid, star_vectors, cells, th, camera=camera, config=config, grid=grid)
+                            body, valid, overflow, star_vectors, cells, th, camera=camera, config=config,
+                            grid=grid)
 
 
 def network_candidates(xy, valid, variables, triple=0, *, camera, config: Config, n_classes: int):
@@ -423,24 +429,26 @@ _network_candidates = jax.jit(_candidates, static_argnames=("camera", "config", 
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid", "trials"))
-def _identify_chunk(xy, valid, variables, guide_rows, star_vectors, cells, th, triple, *, camera, config,
-                    n_classes, grid, trials):
+def _identify_chunk(xy, valid, overflow, variables, guide_rows, star_vectors, cells, th, triple, *, camera,
+                    config, n_classes, grid, trials):
     near, p, cls = _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
                                triple=triple)
     fn = functools.partial(_name_one, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
                            th=th, camera=camera, config=config, grid=grid, trials=trials)
     # naming in small vmapped groups: its (N × local stars) intermediates stay in cache
-    return jax.lax.map(lambda a: fn(*a), (xy, valid, near, p, cls), batch_size=config.name_chunk)
+    return jax.lax.map(lambda a: fn(*a), (xy, valid, overflow, near, p, cls),
+                       batch_size=config.name_chunk)
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid"))
-def _identify_pool_chunk(xy, valid, variables, guide_rows, star_vectors, cells, th, *, camera, config,
-                         n_classes, grid):
+def _identify_pool_chunk(xy, valid, overflow, variables, guide_rows, star_vectors, cells, th, *, camera,
+                         config, n_classes, grid):
     near, p, cls = _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
                                count=3 * config.n_guide_triples)
     fn = functools.partial(_name_pool, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
                            th=th, camera=camera, config=config, grid=grid)
-    return jax.lax.map(lambda a: fn(*a), (xy, valid, near, p, cls), batch_size=config.name_chunk)
+    return jax.lax.map(lambda a: fn(*a), (xy, valid, overflow, near, p, cls),
+                       batch_size=config.name_chunk)
 
 
 def _local_index(database, config: Config):
@@ -489,6 +497,7 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
     # WIDTH_STEP): trailing padding columns only cost time, and most scenes hold far fewer
     # detections than the capacity. Results are put back in the input order.
     valid_all, xy_all = np.asarray(scenes.valid), np.asarray(scenes.xy)
+    overflow_all = np.asarray(scenes.overflow)
     last = np.where(valid_all.any(1), n - np.argmax(valid_all[:, ::-1], axis=1), 0)
     ids_out = np.full((b, n), -1, np.int32)
     ok_out = np.zeros((b,), bool)
@@ -504,18 +513,21 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
         for start in range(0, order.size, chunk):
             sel = order[start:start + chunk]
             width = int(min(n, max(WIDTH_STEP, -(-int(last[sel].max()) // WIDTH_STEP) * WIDTH_STEP)))
-            xy, valid = xy_all[sel, :width], valid_all[sel, :width]
+            xy, valid, overflow = xy_all[sel, :width], valid_all[sel, :width], overflow_all[sel]
             pad = chunk - len(sel)
             if pad:  # pad the last chunk to the compiled size with empty scenes
                 xy = np.pad(xy, ((0, pad), (0, 0), (0, 0)))
                 valid = np.pad(valid, ((0, pad), (0, 0)))
+                overflow = np.pad(overflow, (0, pad))
             common = dict(camera=database.camera, config=kernel_config, n_classes=database.n_classes,
                           grid=index.grid)
             # each chunk split over every device (one per CPU core after js.use_cpu_cores())
             if pool:
-                ids, ok, att = map_batch(_identify_pool_chunk, (xy, valid), replicated, static=common)
+                ids, ok, att = map_batch(_identify_pool_chunk, (xy, valid, overflow), replicated,
+                                         static=common)
             else:
-                ids, ok, att = map_batch(_identify_chunk, (xy, valid), (*replicated, jnp.int32(triple)),
+                ids, ok, att = map_batch(_identify_chunk, (xy, valid, overflow),
+                                         (*replicated, jnp.int32(triple)),
                                          static=dict(common, trials=trials))
             keep = len(sel)
             ids_out[sel, :width] = np.asarray(ids)[:keep]
