@@ -98,7 +98,7 @@ class CentroidConfig:
 
 def read_image(path) -> np.ndarray:
     """A grayscale image file (8/16-bit TIFF, PNG, …) as a (H, W) float32 array (host, Pillow)."""
-    from PIL import Image  # matplotlib's own image dependency
+    from PIL import Image
 
     with Image.open(path) as im:
         if im.mode not in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
