@@ -17,7 +17,8 @@ and :func:`jstarid.estimate_attitude`. The results are checked against an indepe
   it is unlabelled: a failure is better than a guess);
 - **boresight error**: the angle between our boresight and the reference's RA/Dec (arcsec).
 
-Writes ``results/real_images/{config.json, results.json, table.md}``.
+Writes ``results/real_images/{config.json, results.json, table.md}`` and one figure per image
+(``<image>.png``: the frame, the kept detections, the names and whether each is right).
 
 Usage::
 
@@ -121,7 +122,8 @@ def main(argv=None):
         found = d.min(axis=1) <= 1.0
         offset = np.median(dxy[d.argmin(axis=1)][found] - ref_xy[found], axis=0)
         per_image.append(dict(
-            image=name, detections=int(np.asarray(deep.valid[i]).sum()),
+            image=name, xy=np.round(xy[i][valid[i]], 3).tolist(),
+            detections=int(np.asarray(deep.valid[i]).sum()),
             detections_overflow=bool(np.asarray(deep.overflow[i])),
             kept=int(valid[i].sum()), labelled=int((truth >= 0).sum()),
             reference_matches=len(ref_xy), reference_found=int(found.sum()),
@@ -150,7 +152,7 @@ def main(argv=None):
                 hip = np.where(named, catalog.hip[np.maximum(ids_k, 0)], -1)
                 att, rms, have = (a[i] for a in fits[key])
                 correct = int(np.sum(named & (hip == truth)))
-                entry[key] = dict(named=int(named.sum()), correct=correct,
+                entry[key] = dict(named=int(named.sum()), correct=correct, hip=hip[valid[i]].tolist(),
                                   wrong=int(named.sum()) - correct,
                                   residual_arcsec=round(float(rms), 1) if have else None,
                                   boresight_error_arcsec=(round(boresight_error_arcsec(
@@ -168,7 +170,35 @@ def main(argv=None):
     (args.out / "results.json").write_text(json.dumps(results, indent=2))
     table = format_table(results, args)
     (args.out / "table.md").write_text(table)
+    plot(args.out / "results.json", args.out, args.data)
     print(table)
+
+
+def plot(results_path: Path, out: Path, data: Path):
+    """One figure per image from the saved results: the frame, every kept detection, and the names
+    of the first algorithm that solved it after ``name_from_attitude`` (green: the ground truth's,
+    red: not). Reads results.json and the image files; never recomputes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results = json.loads(Path(results_path).read_text())
+    for im in results["images"]:
+        solved = [(a, e) for a, e in im["algorithms"].items() if e["ok"]]
+        labels, correct, title = None, None, "not solved"
+        if solved:
+            algo, e = solved[0]
+            hip, truth = e["all"]["hip"], im["truth"]
+            labels = [f"HIP {h}" if h >= 0 else "" for h in hip]
+            correct = [h == t if h >= 0 else None for h, t in zip(hip, truth, strict=False)]
+            title = f"{algo} + name_from_attitude: {e['all']['named']} named, {e['all']['wrong']} wrong"
+        ax = js.plotting.plot_image(read_image(data / im["image"]), im["xy"], labels=labels,
+                                    correct=correct)
+        ax.set_title(f"{im['image']}\n{title}", fontsize=8)
+        ax.figure.tight_layout()
+        ax.figure.savefig(out / (Path(im["image"]).stem + ".png"), dpi=110)
+        plt.close(ax.figure)
 
 
 def format_table(results, args) -> str:

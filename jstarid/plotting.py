@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_scene"]
+__all__ = ["plot_image", "plot_scene"]
 
 
 def plot_scene(scenes, index: int, catalog, camera, *, ids=None, ax=None, label_limit: int = 40):
@@ -54,4 +54,44 @@ def plot_scene(scenes, index: int, catalog, camera, *, ids=None, ax=None, label_
     ax.set_xlabel("x (column, px)")
     ax.set_ylabel("y (row, px)")
     ax.legend(loc="lower right", fontsize=7)
+    return ax
+
+
+def plot_image(image, xy, *, labels=None, correct=None, ax=None):
+    """Draw a raw frame (asinh stretch between its 1st and 99.9th percentiles) with its detections.
+
+    Args:
+        image: (H, W) pixel values.
+        xy: (n, 2) detections (px, column/row, origin at the centre of pixel (0, 0)).
+        labels: optional n strings drawn next to the detections ("" for none).
+        correct: optional (n,) bool or None per detection: labelled detections are ringed green when
+            True, red when False, white when None / not given.
+        ax: matplotlib axes (a new figure when ``None``).
+
+    Returns:
+        The axes.
+    """
+    import matplotlib.pyplot as plt
+
+    image = np.asarray(image, np.float64)
+    h, w = image.shape
+    if ax is None:
+        _, ax = plt.subplots(figsize=(9, 9 * h / w))
+    lo, hi = np.percentile(image, [1.0, 99.9])
+    scaled = np.arcsinh(np.clip((image - lo) / max(hi - lo, 1e-12), 0.0, None) * 10.0) / np.arcsinh(10.0)
+    ax.imshow(scaled, cmap="gray", vmin=0.0, vmax=1.0, origin="upper",
+              extent=(-0.5, w - 0.5, h - 0.5, -0.5))
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    n = len(xy)
+    labels = [""] * n if labels is None else list(labels)
+    correct = [None] * n if correct is None else list(correct)
+    for (x, y), text, good in zip(xy, labels, correct, strict=True):
+        color = "white" if good is None or not text else ("lime" if good else "red")
+        ax.add_patch(plt.Circle((x, y), 9.0, fill=False, color=color, linewidth=0.8))
+        if text:
+            ax.annotate(text, (x, y), xytext=(7, 7), textcoords="offset points", color=color, fontsize=6)
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    ax.set_xlabel("x (column, px)")
+    ax.set_ylabel("y (row, px)")
     return ax

@@ -259,3 +259,18 @@ def test_real_images_identified_by_mlv(real_images):
             hip = int(cat.hip[ids[j]])
             at_ref = [h for h, p in ref_hip.items() if np.linalg.norm(p - xy[j]) < 1.5]
             assert not at_ref or at_ref == [hip], (name, j)
+
+
+def test_plot_image_draws_detections_and_labels(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    img, _, _ = synthetic_image(0)
+    xy, _ = detections(extract_centroids(img, capacity=8))
+    labels = [f"HIP {k}" for k in range(len(xy) - 1)] + [""]
+    correct = [True] * (len(xy) - 2) + [False, None]
+    ax = js.plotting.plot_image(img, xy, labels=labels, correct=correct)
+    assert len(ax.patches) == len(xy) and len(ax.texts) == len(xy) - 1
+    assert [p.get_edgecolor()[:3] for p in ax.patches[-2:]] == [(1.0, 0.0, 0.0), (1.0, 1.0, 1.0)]
+    ax.figure.savefig(tmp_path / "frame.png")
+    assert (tmp_path / "frame.png").stat().st_size > 5_000

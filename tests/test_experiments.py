@@ -114,3 +114,4 @@ def test_real_images_mlv(tmp_path):
         assert e["ok"] and e["own"]["wrong"] == 0 and e["all"]["wrong"] == 0
         assert e["all"]["named"] > e["own"]["named"] and e["all"]["boresight_error_arcsec"] < 60
     assert "| Azi45 |" in (tmp_path / "table.md").read_text()
+    assert len(list(tmp_path.glob("*.png"))) == 4
