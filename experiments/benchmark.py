@@ -96,11 +96,12 @@ def bench_centroid(args) -> list[dict]:
                 img[y0:y0 + 15, x0:x0 + 15] += 10 ** (-0.4 * (m - 16.7)) * psf / psf.sum()
         images[i] = img[7:-7, 7:-7]
     rows = []
+    cfg = js.CentroidConfig(sample_stride=args.sample_stride)
     for shard in [False, True] if jax.device_count() > 1 else [False]:
         first, best = time_call(lambda i, shard=shard: js.extract_centroids(
-            images, capacity=64, shard=shard).xy, args.repeats)
+            images, cfg, capacity=64, shard=shard).xy, args.repeats)
         rows.append({"benchmark": "centroid", "camera": "tetra3_test", "batch": args.images,
-                     "devices": jax.device_count() if shard else 1,
+                     "sample_stride": args.sample_stride, "devices": jax.device_count() if shard else 1,
                      "compile_s": round(first - best, 2), "scenes_per_s": round(args.images / best, 1),
                      "peak_rss_mb": round(peak_rss_mb())})
         print(rows[-1], flush=True)
@@ -123,6 +124,8 @@ def main(argv=None) -> int:
     p.add_argument("--only", default="simulate,centroid,sgm,mlv,rpnet",
                    help="comma-separated benchmarks")
     p.add_argument("--images", type=int, default=32, help="frames per centroid-extraction call")
+    p.add_argument("--sample-stride", type=int, default=2,
+                   help="CentroidConfig.sample_stride of the centroid benchmark (1: full medians)")
     p.add_argument("--batch", type=int, default=10_000)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--cameras", default="sgm2022,mlv2021,rpnet2019")

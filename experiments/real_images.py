@@ -108,19 +108,27 @@ def main(argv=None):
     centroid_cfg = CentroidConfig()
     t0 = time.perf_counter()
     scenes = extract_centroids(images, centroid_cfg, capacity=args.capacity)
+    xy, valid = np.asarray(scenes.xy), np.asarray(scenes.valid)
+    t_centroid = time.perf_counter() - t0
     # every detection, for the statistics
     deep = extract_centroids(images, centroid_cfg, capacity=centroid_cfg.max_peaks)
-    t_centroid = time.perf_counter() - t0
-    xy, valid = np.asarray(scenes.xy), np.asarray(scenes.valid)
+
+    def v_of(hips):  # V (truth catalog) of Hipparcos numbers
+        return truth_catalog.mag[truth_catalog.row_of_hip(np.asarray(hips))]
 
     per_image = []
     for i, name in enumerate(names):
         truth, c_ref, ref_xy = reference_truth(reference[name], truth_catalog, camera, xy[i], valid[i],
                                                args.truth_px)
-        dxy = np.asarray(deep.xy[i])[np.asarray(deep.valid[i])]
+        dvalid = np.asarray(deep.valid[i])
+        dxy, dmag = np.asarray(deep.xy[i])[dvalid], np.asarray(deep.mag[i])[dvalid]
         d = np.linalg.norm(ref_xy[:, None] - dxy[None], axis=-1)
         found = d.min(axis=1) <= 1.0
         offset = np.median(dxy[d.argmin(axis=1)][found] - ref_xy[found], axis=0)
+        # photometry: instrumental magnitude against V over every labelled detection
+        deep_truth, _, _ = reference_truth(reference[name], truth_catalog, camera, dxy,
+                                           np.ones(len(dxy), bool), args.truth_px)
+        zp = v_of(deep_truth[deep_truth > 0]) - dmag[deep_truth > 0]
         per_image.append(dict(
             image=name, xy=np.round(xy[i][valid[i]], 3).tolist(),
             detections=int(np.asarray(deep.valid[i]).sum()),
@@ -128,6 +136,12 @@ def main(argv=None):
             kept=int(valid[i].sum()), labelled=int((truth >= 0).sum()),
             reference_matches=len(ref_xy), reference_found=int(found.sum()),
             offset_from_reference_px=[round(float(v), 3) for v in offset],
+            distance_to_reference_px={"median": round(float(np.median(d.min(axis=1)[found])), 3),
+                                      "max": round(float(d.min(axis=1)[found].max()), 3)},
+            zero_point={"median": round(float(np.median(zp)), 3),
+                        "mad": round(float(np.median(np.abs(zp - np.median(zp)))), 3),
+                        "stars": int(zp.size)},
+            kept_labelled_v=np.round(v_of(truth[truth > 0]), 2).tolist(),
             reference_boresight_check_arcsec=round(boresight_error_arcsec(
                 c_ref, reference[name]["boresight_ra_deg"], reference[name]["boresight_dec_deg"]), 1),
             truth=truth.tolist(), algorithms={}))
@@ -138,7 +152,10 @@ def main(argv=None):
         cfg = algorithm_config(algo_name, args)
         db = algo.build_database(catalog, camera, cfg)
         t0 = time.perf_counter()
-        result = algo.identify(db, scenes, cfg)
+        if algo_name == "sgm":  # with the diagnostics of why a scene failed
+            result, info = algo.identify(db, scenes, cfg, details=True)
+        else:
+            result, info = algo.identify(db, scenes, cfg), None
         timings[algo_name] = time.perf_counter() - t0
         full = js.name_from_attitude(catalog, camera, scenes, result, tol_px=args.tol_px)
         fits = {key: [np.asarray(a) for a in js.estimate_attitude(catalog, camera, scenes, res)]
@@ -152,12 +169,22 @@ def main(argv=None):
                 hip = np.where(named, catalog.hip[np.maximum(ids_k, 0)], -1)
                 att, rms, have = (a[i] for a in fits[key])
                 correct = int(np.sum(named & (hip == truth)))
+                unnamed = valid[i] & ~named & (truth > 0)
                 entry[key] = dict(named=int(named.sum()), correct=correct, hip=hip[valid[i]].tolist(),
+                                  unnamed_labelled_v=np.round(v_of(truth[unnamed]), 2).tolist(),
                                   wrong=int(named.sum()) - correct,
                                   residual_arcsec=round(float(rms), 1) if have else None,
                                   boresight_error_arcsec=(round(boresight_error_arcsec(
                                       att, reference[name]["boresight_ra_deg"],
                                       reference[name]["boresight_dec_deg"]), 1) if have else None))
+            if info is not None:
+                main_hip = int(truth[info["main"][i]])
+                row = catalog.row_of_hip([main_hip])[0] if main_hip > 0 else -1
+                graphs = np.nonzero(db.main == row)[0] if row >= 0 else []
+                entry["sgm_details"] = dict(
+                    image_graph_vertices=int(info["n_i"][i]), best_error_deg=float(info["error"][i]),
+                    main_star_hip=main_hip, main_star_in_catalog=bool(row >= 0),
+                    main_star_database_graph_vertices=[int(db.n[g]) for g in graphs])
             per_image[i]["algorithms"][algo_name] = entry
 
     args.out.mkdir(parents=True, exist_ok=True)

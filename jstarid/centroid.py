@@ -97,13 +97,20 @@ class CentroidConfig:
 
 
 def read_image(path) -> np.ndarray:
-    """A grayscale image file (8/16-bit TIFF, PNG, …) as a (H, W) float32 array (host, Pillow)."""
-    from PIL import Image
+    """A grayscale image file (8/16-bit TIFF, PNG, …) as a (H, W) float32 array (host, Pillow).
 
-    with Image.open(path) as im:
-        if im.mode not in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
-            im = im.convert("L")
-        return np.asarray(im).astype(np.float32)
+    Raises:
+        ValueError: a missing file or one Pillow cannot read as an image.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            if im.mode not in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
+                im = im.convert("L")
+            return np.asarray(im).astype(np.float32)
+    except (FileNotFoundError, UnidentifiedImageError) as err:
+        raise ValueError(f"cannot read an image from {path}: {err}") from err
 
 
 def extract_centroids(images, config: CentroidConfig = CentroidConfig(), *,

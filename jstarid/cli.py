@@ -112,9 +112,6 @@ def _solve(args) -> int:
 
     cat = js.load_catalog(args.mag_limit, epoch=args.epoch)
     cam = js.camera_preset(args.camera)
-    for path in args.images:
-        if not Path(path).is_file():
-            raise ValueError(f"no such image: {path}")
     images = [js.read_image(p) for p in args.images]
     if len({im.shape for im in images}) != 1 or images[0].shape != (cam.height, cam.width):
         raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "

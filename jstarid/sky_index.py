@@ -16,7 +16,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["SkyIndex", "build_sky_index", "cell_of"]
+__all__ = ["SkyIndex", "build_sky_index", "cell_of", "local_stars"]
 
 _MEMO: dict = {}
 
@@ -71,6 +71,27 @@ def cell_of(direction, grid: int):
     iu = jnp.clip(jnp.floor((u + 1.0) * 0.5 * grid), 0, grid - 1).astype(jnp.int32)
     iv = jnp.clip(jnp.floor((v + 1.0) * 0.5 * grid), 0, grid - 1).astype(jnp.int32)
     return (face * grid * grid + iu * grid + iv).astype(jnp.int32)
+
+
+def local_stars(cells, star_vectors, boresight, grid: int):
+    """The indexed stars that can be in the field of a boresight (jit-able, fixed size).
+
+    Args:
+        cells: (6·G·G, K) int32 lists of :class:`SkyIndex` (``device_arrays()[0]``); padding M.
+        star_vectors: (M, 3) the vectors the index was built from (ICRS unit vectors).
+        boresight: (3,) ICRS unit vector (``C[2]`` of an attitude ``v_cam = C r``).
+        grid: G of the index.
+
+    Returns:
+        ``(rows, vectors, real)``: (K,) int32 star indices (M for padding), (K, 3) their vectors and
+        (K,) bool, False for padding. A padding entry's vector is the antipode of the boresight, so
+        no detection in the field is ever near it.
+    """
+    rows = cells[cell_of(boresight, grid)]
+    real = rows < star_vectors.shape[0]
+    vectors = jnp.where(real[:, None], star_vectors[jnp.minimum(rows, star_vectors.shape[0] - 1)],
+                        -boresight[None, :])
+    return rows, vectors, real
 
 
 def _cell_geometry(grid: int):

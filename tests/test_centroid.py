@@ -251,7 +251,7 @@ def test_real_images_identified_by_mlv(real_images):
         assert np.degrees(sep) * 3600 < 60, name
         # every name the reference also gives agrees with it
         ids = np.asarray(result.ids[i])
-        xy, _ = np.asarray(scenes.xy[i]), None
+        xy = np.asarray(scenes.xy[i])
         ref_hip = {m["hip"]: np.array([m["x"], m["y"]]) - 0.5 for m in ref[name]["matches"]}
         named = np.nonzero(ids >= 0)[0]
         assert len(named) >= 5, name

@@ -80,7 +80,10 @@ def test_solve_identifies_a_rendered_image(tmp_path, capsys):
 
 def test_solve_bad_input(tmp_path, capsys):
     assert cli.main(["solve", str(tmp_path / "missing.tiff")]) == 2
-    assert "no such image" in capsys.readouterr().err
+    assert "cannot read an image" in capsys.readouterr().err
+    (tmp_path / "notes.tiff").write_text("not an image")
+    assert cli.main(["solve", str(tmp_path / "notes.tiff")]) == 2
+    assert "cannot read an image" in capsys.readouterr().err
     from PIL import Image
 
     Image.fromarray(np.zeros((40, 50), np.uint16)).save(tmp_path / "small.tiff")

@@ -1,37 +1,39 @@
 """name_from_attitude (jstarid.completion) against a NumPy/SciPy reference and the truth."""
 
+import functools
+import math
+
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 import jstarid as js
-from jstarid.completion import name_from_attitude
+from jstarid.completion import first_argmax, name_from_attitude, name_stars
 
 
-def reference(cat, cam, xy, valid, ids, ok, tol, iso, min_named):
-    """The module's three conditions over the whole catalog, attitude by SciPy's align_vectors."""
+def reference(cat, cam, xy, valid, ids, ok, tol_px, iso, min_named):
+    """The module's rule over the whole catalog, attitude by SciPy's align_vectors, float64."""
     out = ids.copy()
+    tol = tol_px / cam.f_px
     for b in range(len(ids)):
         named = valid[b] & (ids[b] >= 0)
         if not ok[b] or named.sum() < min_named:
             continue
-        body = np.asarray(cam.unproject(xy[b][named]), np.float64)
-        rot, _ = Rotation.align_vectors(body, cat.unit_vectors[ids[b][named]])
-        v = rot.apply(cat.unit_vectors)
-        front = np.nonzero(v[:, 2] > 0)[0]
-        px = np.stack([cam.cx + cam.f_px * v[front, 0] / v[front, 2],
-                       cam.cy + cam.f_px * v[front, 1] / v[front, 2]], -1)
-        d = np.linalg.norm(xy[b][:, None] - px[None], axis=-1)
-        d[~valid[b]] = np.inf
-        for j in np.nonzero(valid[b] & (ids[b] < 0))[0]:
-            order = np.argsort(d[j])
-            k = order[0]
-            if d[j, k] > tol or d[j, order[1]] <= iso * tol:
-                continue
-            if np.argmin(d[:, k]) != j or front[k] in ids[b]:
-                continue
-            out[b, j] = front[k]
+        body = np.asarray(cam.unproject(xy[b]), np.float64)
+        rot, _ = Rotation.align_vectors(body[named], cat.unit_vectors[ids[b][named]])
+        sky = rot.inv().apply(body)  # each detection's ICRS direction
+        cross = np.linalg.norm(np.cross(sky[:, None], cat.unit_vectors[None]), axis=-1)
+        ang = np.arctan2(cross, sky @ cat.unit_vectors.T)  # (N, M) rad
+        order = np.argsort(ang, axis=1)[:, :2]
+        d1 = np.take_along_axis(ang, order[:, :1], 1)[:, 0]
+        d2 = np.take_along_axis(ang, order[:, 1:], 1)[:, 0]
+        cand = valid[b] & (d1 <= tol) & (d2 > iso * tol)
+        best = order[:, 0]
+        clash = np.array([cand[j] and np.sum(cand & (best == best[j])) > 1 for j in range(len(best))])
+        new = cand & ~clash & (ids[b] < 0) & ~np.isin(best, ids[b][named])
+        out[b, new] = best[new]
     return out
 
 
@@ -92,3 +94,35 @@ def test_bad_arguments(setup):
     for kwargs in ({"tol_px": 0.0}, {"tol_px": np.nan}, {"isolation": 0.5}, {"min_named": 1}):
         with pytest.raises(ValueError):
             name_from_attitude(cat, cam, scenes, result, **kwargs)
+
+
+def test_first_argmax_matches_argmax():
+    rng = np.random.default_rng(3)
+    x = rng.integers(0, 4, size=(50, 17)).astype(np.float32)  # many ties
+    np.testing.assert_array_equal(np.asarray(first_argmax(jnp.asarray(x))), np.argmax(x, -1))
+    inf = np.full((2, 5), np.inf, np.float32)
+    np.testing.assert_array_equal(np.asarray(first_argmax(-jnp.asarray(inf))), [0, 0])
+
+
+def test_name_stars():
+    rng = np.random.default_rng(0)
+    cos_t = rng.uniform(math.cos(math.radians(10.0)), 1.0, 50)  # 50 stars within 10° of +z
+    phi = rng.uniform(0, 2 * np.pi, 50)
+    stars = np.stack([np.sqrt(1 - cos_t**2) * np.cos(phi), np.sqrt(1 - cos_t**2) * np.sin(phi), cos_t], -1)
+    c = np.asarray(js.random_rotation(jax.random.key(2)), np.float64)
+    rows = np.array([3, 10, 20, 30, 3])  # the last detection duplicates row 3: both must be dropped
+    body = (stars[rows] @ c.T).astype(np.float32)
+    body[1] = body[1] + np.array([1e-3, 0, 0], np.float32)  # ≈ 0.06°: outside a 0.01° tolerance
+    valid = np.array([True, True, True, False, True])
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
+    got, named = name_stars(f32(c), f32(body), jnp.asarray(valid), f32(stars), math.radians(0.01))
+    np.testing.assert_array_equal(np.asarray(named), [False, False, True, False, False])
+    assert int(got[2]) == 20
+    # isolation: the second-nearest star of detection 2, at angle a, blocks the name once
+    # isolation · tol reaches it
+    sep = np.degrees(np.arccos(np.clip(stars @ stars[20], -1, 1)))
+    a = np.sort(sep)[1]
+    for iso, expect in ((0.9 * a / 0.01, True), (1.1 * a / 0.01, False)):
+        _, named = name_stars(f32(c), f32(body), jnp.asarray(valid), f32(stars), math.radians(0.01),
+                              max(iso, 1.0))
+        assert bool(named[2]) == expect

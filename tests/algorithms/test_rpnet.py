@@ -21,14 +21,13 @@ from jstarid.algorithms import rpnet
 from jstarid.algorithms.rpnet import data, pattern, train
 from jstarid.algorithms.rpnet.identify import (
     PAIRS,
-    _first_argmax,
     anchor_names,
-    name_stars,
     network_candidates,
     top3_blocked,
     weight_search,
 )
 from jstarid.algorithms.rpnet.tune import pair_tables, simplex_grid, weight_grid_search
+from jstarid.completion import name_stars
 
 # ---------------------------------------------------------------- NumPy reference of eq. 3
 
@@ -391,20 +390,6 @@ def test_weight_search_prefers_confident_central_pair():
     assert not bool(found)
 
 
-def test_name_stars():
-    rng = np.random.default_rng(0)
-    stars = _random_stars(rng, 50, 10.0)
-    c = np.asarray(js.random_rotation(jax.random.key(2)), np.float64)
-    rows = np.array([3, 10, 20, 30, 3])  # the last detection duplicates row 3: both must be dropped
-    body = (stars[rows] @ c.T).astype(np.float32)
-    body[1] = body[1] + np.array([1e-3, 0, 0], np.float32)  # ≈ 0.06°: outside a 0.01° tolerance
-    valid = np.array([True, True, True, False, True])
-    got, named = name_stars(jnp.asarray(c, jnp.float32), jnp.asarray(body), jnp.asarray(valid),
-                            jnp.asarray(stars, jnp.float32), math.radians(0.01))
-    np.testing.assert_array_equal(np.asarray(named), [False, False, True, False, False])
-    assert int(got[2]) == 20
-
-
 def test_anchor_names_survive_roll_error():
     """Distances to the pair name the stars even when the pair's attitude is off by 2° in roll."""
     rng = np.random.default_rng(4)
@@ -539,14 +524,6 @@ def test_weight_grid_matches_per_weight_calls():
     assert best["correct"] == pytest.approx(float(grid["correct"].max()))
     np.testing.assert_allclose(best["position_weights"], po[a])
     np.testing.assert_allclose(best["probability_weights"], pr[c])
-
-
-def test_first_argmax_matches_argmax():
-    rng = np.random.default_rng(3)
-    x = rng.integers(0, 4, size=(50, 17)).astype(np.float32)  # many ties
-    np.testing.assert_array_equal(np.asarray(_first_argmax(jnp.asarray(x))), np.argmax(x, -1))
-    inf = np.full((2, 5), np.inf, np.float32)
-    np.testing.assert_array_equal(np.asarray(_first_argmax(-jnp.asarray(inf))), [0, 0])
 
 
 @pytest.mark.parametrize("bf16,triple", [(False, 0), (True, 0), (False, 1)])

@@ -39,9 +39,10 @@ the network on all 3 × chunk inputs at once (:func:`network_candidates`), then 
 ``lax.map`` groups of ``Config.name_chunk`` scenes; naming compares detections only with the catalog
 stars of the sky-index cell of the pair's boresight (≈ 200 instead of the whole catalog; every star
 that could be named is in it), the refinement passes are unrolled, argmax/argmin are two plain
-reductions (:func:`_first_argmax`), and scenes are sorted by their number of detection columns so that
-each chunk is cut to the width it needs (:data:`WIDTH_STEP`); each chunk's scenes are split over
-every JAX device (:func:`jstarid.sweep.map_batch`; the results equal the one-device call).
+reductions (:func:`jstarid.completion.first_argmax`), and scenes are sorted by their number of
+detection columns so that each chunk is cut to the width it needs (:data:`WIDTH_STEP`); each chunk's
+scenes are split over every JAX device (:func:`jstarid.sweep.map_batch`; the results equal the
+one-device call).
 The kernels compile for :meth:`Config.compiled` (the config with its thresholds and host-loop
 settings reset) and read the tolerances, counts and weights as traced values
 (:class:`~jstarid.algorithms.rpnet.config.Thresholds`): a sweep over them compiles once.
@@ -62,10 +63,11 @@ from jstarid.algorithms.rpnet.model import use_bf16
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.algorithms.rpnet.train import predict_logits
 from jstarid.attitude import solve_wahba
+from jstarid.completion import first_argmax, name_stars
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.scene import Identification, Scene
-from jstarid.sky_index import build_sky_index, cell_of
+from jstarid.sky_index import build_sky_index, local_stars
 from jstarid.sweep import map_batch
 
 __all__ = ["PAIRS", "anchor_names", "identify", "name_stars", "network_candidates", "pair_checks",
@@ -135,46 +137,6 @@ def _admissible(row_a, row_b, ref_a, ref_b, obs_a, obs_b, pair_tol_px, *, camera
     return ok & (jnp.abs(d_cat - angle_between(obs_a, obs_b)) <= pair_tol_px / camera.f_px)
 
 
-def _first_argmax(x):
-    """``jnp.argmax(x, axis=-1)`` for NaN-free x: a max, then the first index reaching it.
-
-    Two plain reductions vectorize on CPU where argmax's (value, index) reduction does not (≈ 4×
-    faster in the naming passes); same result, ties resolved to the first index.
-    """
-    top = jnp.max(x, axis=-1, keepdims=True)
-    idx = jnp.min(jnp.where(x == top, jnp.arange(x.shape[-1], dtype=jnp.int32), x.shape[-1]), axis=-1)
-    return jnp.minimum(idx, x.shape[-1] - 1)
-
-
-def name_stars(c, body, valid, star_vectors, tol_rad: float):
-    """Name detections from an attitude: nearest catalog star within ``tol_rad``, unambiguous.
-
-    Args:
-        c: (3, 3) attitude, ``v_cam = C r``.
-        body: (N, 3) camera-frame unit vectors of the detections.
-        valid: (N,) bool.
-        star_vectors: (M, 3) ICRS catalog unit vectors.
-        tol_rad: match radius (rad), a float or a traced scalar.
-
-    Returns:
-        ``(rows, named)``: (N,) int32 nearest catalog row and (N,) bool, True when that star is within
-        ``tol_rad``, the second-nearest catalog star is not, and no other named detection has the
-        same row.
-    """
-    ref = precise.matmul(body, c)  # (N, 3) ICRS directions: r = Cᵀ v
-    cos = precise.matmul(ref, star_vectors.T)  # (N, M)
-    best = _first_argmax(cos)  # two reductions instead of a top-2 (a sort on CPU)
-    second = _first_argmax(jnp.where(jnp.arange(cos.shape[1])[None, :] == best[:, None], -2.0, cos))
-    # float32 cosines near 1 resolve only ≈ 3.5e-4 rad (1.4 px here): the cosines pick the two nearest
-    # stars, the distances are measured with atan2 (accurate at small angles)
-    d1 = angle_between(ref, star_vectors[best])
-    d2 = angle_between(ref, star_vectors[second])
-    named = valid & (d1 <= tol_rad) & (d2 > tol_rad)
-    same = (best[:, None] == best[None, :]) & named[:, None] & named[None, :]
-    clash = jnp.sum(same, axis=1) > 1
-    return best.astype(jnp.int32), named & ~clash
-
-
 def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_rad, radius_rad):
     """Name detections by their angular distances to an identified pair (independent of the roll).
 
@@ -200,7 +162,7 @@ def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_r
     # (N, M), a loose radius: cos is enough
     near = precise.matmul(precise.matmul(body, c), star_vectors.T) >= jnp.cos(radius_rad)
     err = jnp.where(near, err, jnp.inf)
-    best = _first_argmax(-err)
+    best = first_argmax(-err)
     e1 = jnp.take_along_axis(err, best[:, None], axis=1)[:, 0]
     e2 = jnp.min(jnp.where(jnp.arange(err.shape[1])[None, :] == best[:, None], jnp.inf, err), axis=1)
     named = valid & (e1 <= tol_rad) & (e2 > tol_rad)
@@ -292,9 +254,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thres
     # only the catalog stars that can be named matter: those of the sky-index cell of the pair's
     # boresight (every star within reach of the field, see _local_index); padding → the antipode
     # of the boresight, never within any tolerance. Local index → catalog row through `loc`.
-    loc = cells[cell_of(c0[2], grid)]  # (K,) catalog rows, M = padding
-    loc_vec = jnp.where((loc < star_vectors.shape[0])[:, None],
-                        star_vectors[jnp.minimum(loc, star_vectors.shape[0] - 1)], -c0[2][None, :])
+    loc, loc_vec, _ = local_stars(cells, star_vectors, c0[2], grid)  # (K,) catalog rows, M = padding
     # anchor pass: a close pair fixes the roll poorly, so distances to the pair (roll-free) name
     # the stars first; the pair attitude only picks the side of the pair axis
     rows_a, named_a = anchor_names(c0, body, valid, body[a], body[b], pair_ref[0], pair_ref[1],

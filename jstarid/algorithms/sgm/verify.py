@@ -70,7 +70,7 @@ import jax.numpy as jnp
 from jstarid.attitude import solve_wahba
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
-from jstarid.sky_index import cell_of
+from jstarid.sky_index import local_stars
 
 __all__ = ["verify_ids"]
 
@@ -191,9 +191,7 @@ def _frame_coverage(c, body, valid, cat, cells, tol, *, camera, grid):
     Returns:
         ``(hits, expected)``: () int32 each.
     """
-    loc = cells[cell_of(c[2], grid)]  # c[2] = Cᵀ ẑ: the boresight (ICRS)
-    real = loc < cat.shape[0]
-    vec = jnp.where(real[:, None], cat[jnp.minimum(loc, cat.shape[0] - 1)], -c[2][None, :])
+    _, vec, real = local_stars(cells, cat, c[2], grid)  # c[2] = Cᵀ ẑ: the boresight (ICRS)
     pred = precise.matmul(vec, c.T)  # (K, 3) camera frame
     xy, in_field = camera.project(pred)
     tol_px = jnp.tan(jnp.radians(tol)) * camera.f_px
