@@ -172,10 +172,15 @@ def test_deterministic_and_jit_agrees(catalog6, sgm_camera):
     assert not np.array_equal(np.asarray(a.xy), np.asarray(other.xy))
 
 
-def test_batch_equals_per_scene(catalog6, sgm_camera):
+@pytest.mark.parametrize("narrow", [False, True])
+def test_batch_equals_per_scene(catalog6, sgm_camera, narrow):
+    # narrow: a 4° field holds ≤ 16 detections, so the batch selects with k = 16 of 64
+    camera = js.Camera(512, 512, 7000.0, mag_limit=6.0) if narrow else sgm_camera
     noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.2, n_missing=1, n_false=2)
     key = jax.random.key(12)
-    batch = js.simulate(key, catalog6, sgm_camera, noise, batch_size=6)
+    batch = js.simulate(key, catalog6, camera, noise, batch_size=6)
+    if narrow:
+        assert int(batch.n_stars.max()) <= 16
     # Rebuild the per-scene inputs exactly as `simulate` does and call the per-scene function.
     from jstarid.sky_index import _MEMO
 
@@ -185,12 +190,41 @@ def test_batch_equals_per_scene(catalog6, sgm_camera):
     per = noise.broadcast(6)
     one_scene = jax.jit(functools.partial(
         sim_module._simulate_one, cells=jnp.asarray(index.cells), star_vec=tables[0],
-        star_mag=tables[1], star_row=tables[2], cat_vec=tables[3], camera=sgm_camera, capacity=64,
+        star_mag=tables[1], star_row=tables[2], cat_vec=tables[3], camera=camera, capacity=64,
         grid=index.grid, false_capacity=2, max_missing=1, mode_b=False))
     for i in range(6):
         one = one_scene(keys[i], jax.tree.map(lambda a, i=i: a[i], per), jnp.int32(0))
         np.testing.assert_array_equal(np.asarray(one.truth), np.asarray(batch.truth[i]))
         np.testing.assert_allclose(np.asarray(one.xy), np.asarray(batch.xy[i]), atol=1e-3)
+
+
+def test_keep_brightest_same_for_every_selection_size():
+    """Step 7 may select with any k ≥ the detections (the batch picks the smallest of
+    ``_keep_sizes``): same scene as k = capacity and as NumPy's stable sort, ties by candidate order."""
+    rng = np.random.default_rng(3)
+    n, capacity = 100, 64
+    assert sim_module._keep_sizes(64) == (16, 32, 64)
+    assert sim_module._keep_sizes(200) == (16, 32, 64, 128, 200)
+    assert sim_module._keep_sizes(10) == (10,)
+    for trial in range(20):
+        detected = np.zeros(n, bool)
+        detected[rng.choice(n, size=rng.integers(0, 17), replace=False)] = True
+        mag = np.round(rng.uniform(0.0, 3.0, n) * 2) / 2  # many exact ties
+        det = sim_module._Detections(
+            xy=jnp.asarray(rng.uniform(0, 1000, (n, 2)), jnp.float32), mag=jnp.asarray(mag, jnp.float32),
+            detected=jnp.asarray(detected), truth=jnp.arange(n, dtype=jnp.int32),
+            n_detected=jnp.int32(detected.sum()), false_overflow=jnp.bool_(False))
+        seed = jnp.asarray([trial, 7], jnp.uint32)
+        noise = js.NoiseConfig(position_sigma_px=1.0)
+        scenes = [sim_module._keep_brightest(seed, noise, jnp.eye(3), det, sim_module._brightest(det, k),
+                                             capacity=capacity, n_cand=n) for k in (16, 32, 64)]
+        expect = np.argsort(np.where(detected, mag, np.inf), kind="stable")[:detected.sum()]
+        for scene in scenes:
+            np.testing.assert_array_equal(np.asarray(scene.truth[:len(expect)]), expect)
+            assert not np.asarray(scene.valid[len(expect):]).any()
+            for field in ("xy", "mag", "truth", "valid", "overflow"):
+                np.testing.assert_array_equal(np.asarray(getattr(scene, field)),
+                                              np.asarray(getattr(scenes[-1], field)))
 
 
 def test_overflow_flag_and_brightest_kept(catalog6, sgm_camera):
