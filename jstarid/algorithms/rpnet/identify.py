@@ -229,13 +229,15 @@ def softmax_top3(logits):
 
 
 def top3_blocked(x):
-    """``jax.lax.top_k(x, 3)`` along the last axis through block maxima (≈ 3× faster on CPU for K ≈ 5,000).
+    """``jax.lax.top_k(x, 3)`` along the last axis through block maxima (≈ 10× faster on CPU for K ≈ 5,000).
 
     The last axis is cut into blocks of ⌊√K⌋ entries plus a shorter tail; the three largest entries lie
     in the tail or in the three blocks with the largest maxima (an entry's block maximum is ≥ the
     entry, and at most two entries are larger), so a top-3 over the block maxima, then over those three
     blocks and the tail, is exact. Values are identical to ``lax.top_k``; with exactly tied values the
-    index chosen may differ. (No padding: a padded copy of the logits costs more than ``top_k``.)
+    index chosen may differ. The block maxima come from a strided ``reduce_window`` and the three
+    blocks from a gather of their columns: a reshape of the first n·⌊√K⌋ columns into blocks made a
+    copy of the whole array first (0.118 against 0.012 s for the maxima of (4,096, 3, 5,044)).
 
     Args:
         x: (..., K) float scores (no NaN).
@@ -252,11 +254,13 @@ def top3_blocked(x):
         values, index = jax.lax.top_k(x, 3)
         return values, index.astype(jnp.int32)
     lead = x.shape[:-1]
-    blocks = x[..., :n_blocks * size].reshape(*lead, n_blocks, size)
-    _, which = jax.lax.top_k(jnp.max(blocks, -1), 3)  # (..., 3) blocks holding the top 3 (tail aside)
-    picked = jnp.take_along_axis(blocks, which[..., None], axis=-2).reshape(*lead, 3 * size)
+    window = (1,) * len(lead) + (size,)
+    block_max = jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, window, window, "VALID")
+    _, which = jax.lax.top_k(block_max, 3)  # (..., 3) blocks holding the top 3 (tail aside)
+    columns = (which[..., None] * size + jnp.arange(size)).reshape(*lead, 3 * size)
+    picked = jnp.take_along_axis(x, columns, axis=-1)
     values, pos = jax.lax.top_k(jnp.concatenate([picked, x[..., n_blocks * size:]], -1), 3)
-    in_block = jnp.take_along_axis(which, jnp.minimum(pos // size, 2), axis=-1) * size + pos % size
+    in_block = jnp.take_along_axis(columns, jnp.minimum(pos, 3 * size - 1), axis=-1)
     index = jnp.where(pos < 3 * size, in_block, n_blocks * size + pos - 3 * size)
     return values, index.astype(jnp.int32)
 
