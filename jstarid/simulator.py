@@ -21,10 +21,10 @@ Per scene:
    ``false_radius_px`` about the principal point that lies inside the frame; magnitude uniform in
    ``[false_mag_min, false_mag_max]``; position noise does not apply (their position is random anyway);
 7. all detections are ordered by observed magnitude and the brightest ``capacity`` kept; ``overflow``
-   says more were present. False stars beyond the false-star buffer also set ``overflow``. A batch
-   selects with the smallest of a few ``top_k`` sizes that holds its scenes' detections (the
-   selection costs about k, and most scenes hold far fewer stars than the capacity); the scenes do
-   not depend on that choice.
+   says more were present. False stars beyond the false-star buffer also set ``overflow``. Each
+   chunk of a large batch selects with the smallest of a few ``top_k`` sizes that holds its scenes'
+   detections (the selection costs about k, and most scenes hold far fewer stars than the
+   capacity); the scenes do not depend on that choice.
 
 Randomness: step 1 uses ``jax.random`` on the scene key; steps 2–7 draw from Threefry-2x32 (the same
 hash) written out in ``jnp`` on a per-scene seed, one counter stream per kind of draw, so the draws
@@ -263,7 +263,7 @@ def _scenes_chunked(seeds, noise, att, cell, cells, counts, star_vec, star_mag, 
             return _scenes_batch(
                 k, nz, a, c, cells, star_vec, star_mag, star_row, camera=camera, capacity=capacity,
                 false_capacity=false_capacity, max_missing=max_missing, false_disk=false_disk,
-                n_candidates=width)
+                n_candidates=width, adaptive=True)
         return fn
 
     branches = [run(w) for w in widths]
@@ -312,15 +312,17 @@ def _attitudes(key, rows, cat_vec, *, grid, mode_b):
 
 
 @functools.partial(jax.jit, static_argnames=(
-    "camera", "capacity", "false_capacity", "max_missing", "false_disk", "n_candidates"))
+    "camera", "capacity", "false_capacity", "max_missing", "false_disk", "n_candidates", "adaptive"))
 def _scenes_batch(seeds, noise, att, cell, cells, star_vec, star_mag, star_row, *, camera, capacity,
-                  false_capacity, max_missing, false_disk, n_candidates):
+                  false_capacity, max_missing, false_disk, n_candidates, adaptive=False):
     """Steps 2–7 for a batch, given attitudes and sky cells; ``cells[:, :n_candidates]`` is used.
 
-    Step 7 selects with the smallest k of :func:`_keep_sizes` that holds every scene's detections
-    (``lax.switch`` on the batch maximum): ``top_k``'s cost grows with k, most scenes hold far fewer
-    detections than the capacity, and the large-batch path sorts its chunks by candidate count, so
-    a chunk's scenes have similar counts. The scenes are the same for every k (see :func:`_brightest`).
+    ``adaptive`` (the large-batch path's chunks): step 7 selects with the smallest k of
+    :func:`_keep_sizes` that holds every scene's detections (``lax.switch`` on the batch maximum):
+    ``top_k``'s cost grows with k, most scenes hold far fewer detections than the capacity, and the
+    chunks are sorted by candidate count, so a chunk's scenes have similar counts. The scenes are the
+    same for every k (see :func:`_brightest`). Small batches use k = capacity alone: their cost is
+    mostly compilation, which the extra branches would lengthen.
     """
     def detections(seed, noise_i, att_i, cell_i):
         return _detections(seed, noise_i, att_i, cells[cell_i, :n_candidates], star_vec=star_vec,
@@ -336,7 +338,10 @@ def _scenes_batch(seeds, noise, att, cell, cells, star_vec, star_mag, star_row, 
                                    capacity=capacity, n_cand=n_candidates)
         return lambda args: jax.vmap(one)(*args)
 
-    sizes = _keep_sizes(min(capacity, det.mag.shape[1]))
+    k_max = min(capacity, det.mag.shape[1])
+    if not adaptive:
+        return keep_brightest(k_max)((seeds, noise, att, det))
+    sizes = _keep_sizes(k_max)
     branch = jnp.searchsorted(jnp.asarray(sizes), jnp.max(det.n_detected))
     return jax.lax.switch(jnp.minimum(branch, len(sizes) - 1), [keep_brightest(k) for k in sizes],
                           (seeds, noise, att, det))

@@ -174,28 +174,34 @@ def test_deterministic_and_jit_agrees(catalog6, sgm_camera):
 
 @pytest.mark.parametrize("narrow", [False, True])
 def test_batch_equals_per_scene(catalog6, sgm_camera, narrow):
-    # narrow: a 4° field holds ≤ 16 detections, so the batch selects with k = 16 of 64
+    # narrow: a large batch (chunked) of a 4° field, whose chunks mostly select with k = 16 of 64
     camera = js.Camera(512, 512, 7000.0, mag_limit=6.0) if narrow else sgm_camera
+    n_batch = sim_module._CHUNK_MIN_BATCH if narrow else 6
     noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.2, n_missing=1, n_false=2)
     key = jax.random.key(12)
-    batch = js.simulate(key, catalog6, camera, noise, batch_size=6)
+    batch = js.simulate(key, catalog6, camera, noise, batch_size=n_batch)
+    check = list(range(6))
     if narrow:
-        assert int(batch.n_stars.max()) <= 16
+        n_stars = np.asarray(batch.n_stars)
+        assert np.median(n_stars) <= 8
+        check.append(int(np.argmax(n_stars)))
     # Rebuild the per-scene inputs exactly as `simulate` does and call the per-scene function.
     from jstarid.sky_index import _MEMO
 
     index = [v for k, v in _MEMO.items() if k[0].startswith(catalog6.fingerprint)][-1]
     tables = sim_module._device_tables(catalog6)
-    keys = jax.random.split(key, 6)
-    per = noise.broadcast(6)
+    keys = jax.random.split(key, n_batch)
+    per = noise.broadcast(n_batch)
     one_scene = jax.jit(functools.partial(
         sim_module._simulate_one, cells=jnp.asarray(index.cells), star_vec=tables[0],
         star_mag=tables[1], star_row=tables[2], cat_vec=tables[3], camera=camera, capacity=64,
         grid=index.grid, false_capacity=2, max_missing=1, mode_b=False))
-    for i in range(6):
+    for i in check:
         one = one_scene(keys[i], jax.tree.map(lambda a, i=i: a[i], per), jnp.int32(0))
         np.testing.assert_array_equal(np.asarray(one.truth), np.asarray(batch.truth[i]))
-        np.testing.assert_allclose(np.asarray(one.xy), np.asarray(batch.xy[i]), atol=1e-3)
+        # float32 rounding of the projection (compiled differently) scales with f: 7,000 px narrow
+        np.testing.assert_allclose(np.asarray(one.xy), np.asarray(batch.xy[i]),
+                                   atol=5e-3 if narrow else 1e-3)
 
 
 def test_keep_brightest_same_for_every_selection_size():
