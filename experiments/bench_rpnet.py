@@ -106,7 +106,7 @@ def bench_identify(db, catalog, camera, cfg, opt, name: str = "rpnet") -> dict:
 
     def net(i):
         s = sets[i]
-        return network_candidates(s.xy, s.valid, db.variables, camera=camera, config=cfg,
+        return network_candidates(s.xy, s.valid, db.inference_weights, camera=camera, config=cfg,
                                   n_classes=db.n_classes)
 
     net_first, net_steady = _timed(net, opt["repeats"])

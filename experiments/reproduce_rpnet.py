@@ -112,8 +112,8 @@ def run_sweep(name, key, catalog, camera, db, cfg, n, capacity):
     top1 = []  # top-1 network class of S1 (the detection nearest the centre) is its true star
     for start in range(0, scenes.batch_size, cfg.batch_chunk):
         part = scenes[start:start + cfg.batch_chunk]
-        near, _, cls = network_candidates(part.xy, part.valid, db.variables, camera=camera, config=cfg,
-                                          n_classes=db.n_classes)
+        near, _, cls = network_candidates(part.xy, part.valid, db.inference_weights, camera=camera,
+                                          config=cfg, n_classes=db.n_classes)
         s1 = np.asarray(near)[:, 0]
         truth = np.take_along_axis(np.asarray(part.truth), s1[:, None], 1)[:, 0]
         top1.append(np.asarray(db.guide_rows)[np.asarray(cls)[:, 0, 0]] == truth)

@@ -18,7 +18,7 @@ import pytest
 
 import jstarid as js
 from jstarid.algorithms import rpnet
-from jstarid.algorithms.rpnet import data, pattern, train
+from jstarid.algorithms.rpnet import data, inference, pattern, train
 from jstarid.algorithms.rpnet.identify import (
     PAIRS,
     anchor_names,
@@ -532,17 +532,64 @@ def test_network_candidates_are_softmax_top3(tiny, clean_scenes, bf16, triple):
     _, cam, cfg, db, _ = tiny
     cfg = dataclasses.replace(cfg, network_bf16=bf16)
     s = clean_scenes[:16]
-    near, p, cls = network_candidates(s.xy, s.valid, db.variables, triple, camera=cam, config=cfg,
+    near, p, cls = network_candidates(s.xy, s.valid, db.inference_weights, triple, camera=cam, config=cfg,
                                       n_classes=db.n_classes)
     inputs = pattern.scene_inputs(s.xy, s.valid, near, camera=cam, **pattern.config_kwargs(cfg))
-    logits = train.predict_logits(db.variables, inputs, config=cfg, n_classes=db.n_classes, bf16=bf16)
+    logits = inference.inference_logits(db.inference_weights, inputs, bf16=bf16)
     p_ref, cls_ref = jax.lax.top_k(jax.nn.softmax(logits, -1), 3)
     np.testing.assert_array_equal(np.asarray(cls), np.asarray(cls_ref))
     np.testing.assert_allclose(np.asarray(p), np.asarray(p_ref), rtol=1e-5, atol=1e-7)
+    if not bf16:  # the folded networks pick what the layer-by-layer networks pick
+        layered = train.predict_logits(db.variables, inputs, config=cfg, n_classes=db.n_classes)
+        np.testing.assert_array_equal(np.asarray(cls), np.asarray(jax.lax.top_k(layered, 3)[1]))
     d = np.linalg.norm(np.asarray(s.xy) - [cam.cx, cam.cy], axis=-1)
     d[~np.asarray(s.valid)] = np.inf
     ranks = slice(3 * triple, 3 * triple + 3)  # S1–S3, or the fallback triple's detections
     np.testing.assert_array_equal(np.sort(d, 1)[:, ranks], np.take_along_axis(d, np.asarray(near), 1))
+
+
+def _numpy_layer_by_layer(variables, x, eps=1e-5):
+    """The paper's layers one after the other in float64 NumPy (generator, then classifier)."""
+    gen, clf = variables["generator"], variables["classifier"]["params"]
+    stats = variables["classifier"]["batch_stats"]["bn"]
+
+    def dense(h, layer):
+        return h @ np.asarray(layer["kernel"], np.float64) + np.asarray(layer["bias"], np.float64)
+
+    h = np.maximum(dense(np.asarray(x, np.float64), gen["fc1"]), 0.0)
+    pattern_ = dense(h, gen["fc2"])  # RP_S: no activation
+    z = dense(pattern_, clf["fc3"])
+    z = (z - np.asarray(stats["mean"])) / np.sqrt(np.asarray(stats["var"], np.float64) + eps)
+    z = z * np.asarray(clf["bn"]["scale"]) + np.asarray(clf["bn"]["bias"])
+    return dense(np.maximum(z, 0.0), clf["fc4"])
+
+
+def test_folded_networks_equal_the_layers(tiny):
+    """FC2 ∘ FC3 ∘ BatchNorm folded into one layer: the same logits as the layers in float64 NumPy.
+
+    Uses trained variables with non-trivial BatchNorm statistics (they are set to random values here
+    so that a wrong fold of the mean, variance, scale or bias cannot pass).
+    """
+    _, _, cfg, db, tables = tiny
+    rng = np.random.default_rng(5)
+    variables = jax.tree_util.tree_map(np.asarray, db.variables)
+    bn_stats = variables["classifier"]["batch_stats"]["bn"]
+    bn_params = variables["classifier"]["params"]["bn"]
+    width = bn_stats["mean"].shape[0]
+    bn_stats["mean"] = rng.normal(0.0, 0.5, width).astype(np.float32)
+    bn_stats["var"] = rng.uniform(0.2, 3.0, width).astype(np.float32)
+    bn_params["scale"] = rng.uniform(0.5, 1.5, width).astype(np.float32)
+    bn_params["bias"] = rng.normal(0.0, 0.3, width).astype(np.float32)
+    noisy = rng.uniform(0, 2, (16, cfg.input_size))
+    x = np.concatenate([np.asarray(tables.clean[:48]), noisy]).astype(np.float32)
+    ref = _numpy_layer_by_layer(variables, x)
+    got = np.asarray(inference.inference_logits(inference.fold_networks(variables), jnp.asarray(x)))
+    assert got.shape == ref.shape and got.dtype == np.float32
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4 * np.abs(ref).max())
+    flax_layers = np.asarray(train.predict_logits(variables, jnp.asarray(x), config=cfg,
+                                                  n_classes=db.n_classes))
+    np.testing.assert_allclose(flax_layers, ref, rtol=0, atol=1e-4 * np.abs(ref).max())
+    assert np.mean(np.argmax(got, -1) == np.argmax(ref, -1)) == 1.0
 
 
 def test_identify_invariant_to_detection_order_and_chunks(tiny, clean_scenes):
@@ -580,7 +627,7 @@ def test_coverage_check_fails_scenes_that_name_few_of_the_expected_stars(tiny, c
     np.testing.assert_array_equal(np.asarray(full.ids), np.asarray(base.ids))
 
     xy, valid = np.asarray(s.xy).copy(), np.asarray(s.valid)
-    near, _, _ = network_candidates(s.xy, s.valid, db.variables, camera=cam, config=cfg,
+    near, _, _ = network_candidates(s.xy, s.valid, db.inference_weights, camera=cam, config=cfg,
                                     n_classes=db.n_classes)
     body = np.asarray(cam.unproject(s.xy))
     keep = np.zeros_like(valid)

@@ -9,6 +9,7 @@ when there is none, trains one (:func:`~jstarid.algorithms.rpnet.train.train`) a
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 
 import jax
@@ -17,6 +18,7 @@ import numpy as np
 
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.guide_catalog import guide_rows
+from jstarid.algorithms.rpnet.inference import InferenceWeights, fold_networks
 from jstarid.algorithms.rpnet.train import checkpoint_meta, load_checkpoint, save_checkpoint, train
 from jstarid.catalog import cache_dir
 
@@ -50,6 +52,11 @@ class Database:
     @property
     def n_classes(self) -> int:
         return int(len(self.guide_rows))
+
+    @functools.cached_property
+    def inference_weights(self) -> InferenceWeights:
+        """The networks folded for identification (:func:`.inference.fold_networks`), computed once."""
+        return fold_networks(self.variables)
 
 
 def checkpoint_path(meta: dict[str, str]) -> Path:

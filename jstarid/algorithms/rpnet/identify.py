@@ -34,7 +34,9 @@ Per scene (written once, batched with ``vmap``):
 The paper does not say how the "GNSs are identified easily" once the pair is known; step 4 is that
 step made explicit, and its count threshold is the verification.
 
-Implementation (CPU throughput, same results): one jit per chunk of ``Config.batch_chunk`` scenes runs
+Implementation (CPU throughput, same results): the generator's output layer, FC3 and BatchNorm are
+folded into one affine map (:mod:`~jstarid.algorithms.rpnet.inference`: the same function, 20 % fewer
+multiply-adds); one jit per chunk of ``Config.batch_chunk`` scenes runs
 the network on all 3 × chunk inputs at once (:func:`network_candidates`), then the naming steps in
 ``lax.map`` groups of ``Config.name_chunk`` scenes; naming compares detections only with the catalog
 stars of the sky-index cell of the pair's boresight (≈ 200 instead of the whole catalog; every star
@@ -59,9 +61,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms.rpnet.config import Config, Thresholds
+from jstarid.algorithms.rpnet.inference import inference_logits
 from jstarid.algorithms.rpnet.model import use_bf16
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
-from jstarid.algorithms.rpnet.train import predict_logits
 from jstarid.attitude import solve_wahba
 from jstarid.completion import first_argmax, name_stars
 from jstarid.geometry import precise
@@ -170,10 +172,11 @@ def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_r
     return best.astype(jnp.int32), named & (jnp.sum(same, axis=1) == 1)
 
 
-def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int, triple=0, count: int = 3):
+def _candidates(xy, valid, weights, *, camera, config: Config, n_classes: int, triple=0, count: int = 3):
     """Steps 1–2 for a batch: S1–S3 (eq. 7), their inputs (eq. 3), network, top-3 (eqs. 4, 8).
 
-    One matmul chain over all ``3 B`` inputs (large matrices run near the CPU's matmul peak); the
+    One matmul chain over all ``3 B`` inputs (large matrices run near the CPU's matmul peak), through
+    the networks folded into three dense layers (:mod:`~jstarid.algorithms.rpnet.inference`); the
     softmax's top 3 are taken on the logits (same order) and normalised by the softmax's sum.
     ``triple = t`` (an int32 scalar, traced: one compilation serves every t) takes the detections of
     distance rank 3t … 3t + 2 instead (t = 0: the paper's S1–S3; later triples are the fallback of
@@ -199,8 +202,9 @@ def _candidates(xy, valid, variables, *, camera, config: Config, n_classes: int,
         return near, inputs
 
     near, inputs = jax.vmap(one)(xy, valid)
-    logits = predict_logits(variables, inputs, config=config, n_classes=n_classes,
-                            bf16=use_bf16(config.network_bf16))  # (B, C, K)
+    logits = inference_logits(weights, inputs, bf16=use_bf16(config.network_bf16))  # (B, C, K)
+    if logits.shape[-1] != n_classes:
+        raise ValueError(f"the network has {logits.shape[-1]} classes, the database {n_classes}")
     p, cls = softmax_top3(logits)
     return near, p, cls
 
@@ -394,12 +398,12 @@ def _name_one(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells
                             grid=grid)
 
 
-def network_candidates(xy, valid, variables, triple=0, *, camera, config: Config, n_classes: int):
+def network_candidates(xy, valid, weights, triple=0, *, camera, config: Config, n_classes: int):
     """The network part of identification alone (benchmarks, the weight-grid search).
 
     Args:
         xy: (B, N, 2) centroids (px); valid: (B, N) bool.
-        variables: network variables.
+        weights: the folded networks (``database.inference_weights``).
         triple: int32 scalar t: the detections of distance rank 3t … 3t + 2 (0: S1–S3).
         camera, config, n_classes: static.
 
@@ -407,7 +411,7 @@ def network_candidates(xy, valid, variables, triple=0, *, camera, config: Config
         ``(near, probs, classes)``: (B, 3) int32 detection index of S1, S2, S3 (eq. 7), (B, 3, 3)
         float32 top-3 softmax probabilities p_ij (eq. 8) and (B, 3, 3) int32 their classes.
     """
-    return _network_candidates(xy, valid, variables, triple=triple, camera=camera,
+    return _network_candidates(xy, valid, weights, triple=triple, camera=camera,
                                config=config.compiled(), n_classes=n_classes)
 
 
@@ -415,9 +419,9 @@ _network_candidates = jax.jit(_candidates, static_argnames=("camera", "config", 
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid", "trials"))
-def _identify_chunk(xy, valid, overflow, variables, guide_rows, star_vectors, cells, th, triple, *, camera,
+def _identify_chunk(xy, valid, overflow, weights, guide_rows, star_vectors, cells, th, triple, *, camera,
                     config, n_classes, grid, trials):
-    near, p, cls = _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
+    near, p, cls = _candidates(xy, valid, weights, camera=camera, config=config, n_classes=n_classes,
                                triple=triple)
     fn = functools.partial(_name_one, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
                            th=th, camera=camera, config=config, grid=grid, trials=trials)
@@ -427,9 +431,9 @@ def _identify_chunk(xy, valid, overflow, variables, guide_rows, star_vectors, ce
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid"))
-def _identify_pool_chunk(xy, valid, overflow, variables, guide_rows, star_vectors, cells, th, *, camera,
+def _identify_pool_chunk(xy, valid, overflow, weights, guide_rows, star_vectors, cells, th, *, camera,
                          config, n_classes, grid):
-    near, p, cls = _candidates(xy, valid, variables, camera=camera, config=config, n_classes=n_classes,
+    near, p, cls = _candidates(xy, valid, weights, camera=camera, config=config, n_classes=n_classes,
                                count=3 * config.n_guide_triples)
     fn = functools.partial(_name_pool, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
                            th=th, camera=camera, config=config, grid=grid)
@@ -491,7 +495,7 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
 
     # the kernels compile for config.compiled(); its thresholds travel as traced values, so configs
     # that differ only there (a tolerance or coverage sweep) share every compilation
-    replicated = (database.variables, guide_rows, database.star_vectors, cells, config.thresholds())
+    replicated = (database.inference_weights, guide_rows, database.star_vectors, cells, config.thresholds())
     kernel_config = config.compiled()
 
     def run(subset, trials, chunk, triple=0, pool=False):

@@ -67,7 +67,7 @@ def pair_tables(database, scenes, config: Config | None = None) -> dict[str, np.
     chunk = max(1, config.batch_chunk)
     for start in range(0, scenes.batch_size, chunk):
         part = scenes[start:start + chunk]
-        near, probs, cls = network_candidates(part.xy, part.valid, database.variables, camera=camera,
+        near, probs, cls = network_candidates(part.xy, part.valid, database.inference_weights, camera=camera,
                                               config=config, n_classes=database.n_classes)
         ok, correct, top = _tables_chunk(part.xy, part.valid, part.truth, near, cls, guide_rows,
                                          database.star_vectors, config.thresholds().pair_tol_px,
