@@ -18,8 +18,10 @@ from jstarid.algorithms.sgm.matching import principal_eigenvector
 from jstarid.geometry import precise
 
 PACKAGE = Path(js.__file__).resolve().parent
-# the network's dense layers keep the default (or bfloat16) products on purpose (precise.py docstring)
-NETWORK = {PACKAGE / "algorithms" / "rpnet" / "model.py", PACKAGE / "geometry" / "precise.py"}
+# the network's dense layers (trained and folded for inference) keep the default (or bfloat16)
+# products on purpose (precise.py docstring)
+NETWORK = {PACKAGE / "algorithms" / "rpnet" / "model.py", PACKAGE / "algorithms" / "rpnet" / "inference.py",
+           PACKAGE / "geometry" / "precise.py"}
 PRODUCTS = {"matmul", "einsum", "dot", "tensordot", "inner", "vdot", "dot_general"}
 JAX = {"jnp", "lax", "jax.numpy", "jax.lax"}
 

@@ -66,8 +66,8 @@ def fold_networks(variables: dict, bn_epsilon: float = BN_EPSILON) -> InferenceW
     w2, b2 = f64(gen["fc2"]["kernel"]), f64(gen["fc2"]["bias"])
     w3, b3 = f64(clf["fc3"]["kernel"]), f64(clf["fc3"]["bias"])
     scale = f64(clf["bn"]["scale"]) / np.sqrt(f64(stats["bn"]["var"]) + bn_epsilon)
-    folded_w = (w2 @ w3) * scale
-    folded_b = (b2 @ w3 + b3 - f64(stats["bn"]["mean"])) * scale + f64(clf["bn"]["bias"])
+    folded_w = np.matmul(w2, w3) * scale
+    folded_b = (np.matmul(b2, w3) + b3 - f64(stats["bn"]["mean"])) * scale + f64(clf["bn"]["bias"])
     layers = (gen["fc1"]["kernel"], gen["fc1"]["bias"], folded_w, folded_b,
               clf["fc4"]["kernel"], clf["fc4"]["bias"])
     return InferenceWeights(*(jnp.asarray(np.asarray(a, np.float32)) for a in layers))
