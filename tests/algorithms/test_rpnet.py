@@ -585,7 +585,8 @@ def test_folded_networks_equal_the_layers(tiny):
     ref = _numpy_layer_by_layer(variables, x)
     got = np.asarray(inference.inference_logits(inference.fold_networks(variables), jnp.asarray(x)))
     assert got.shape == ref.shape and got.dtype == np.float32
-    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4 * np.abs(ref).max())
+    # float32 rounding only: ≈ 5e-7 of the largest logit when written
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
     flax_layers = np.asarray(train.predict_logits(variables, jnp.asarray(x), config=cfg,
                                                   n_classes=db.n_classes))
     np.testing.assert_allclose(flax_layers, ref, rtol=0, atol=1e-4 * np.abs(ref).max())

@@ -23,10 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["InferenceWeights", "fold_networks", "inference_logits"]
+from jstarid.algorithms.rpnet.model import BN_EPSILON, bf16_dot_general
 
-# flax.linen.BatchNorm's default epsilon (the Classifier does not change it)
-BN_EPSILON = 1e-5
+__all__ = ["InferenceWeights", "fold_networks", "inference_logits"]
 
 
 class InferenceWeights(NamedTuple):
@@ -74,11 +73,9 @@ def fold_networks(variables: dict, bn_epsilon: float = BN_EPSILON) -> InferenceW
 
 
 def _dense(x, w, b, bf16: bool):
-    if bf16:  # bfloat16 operands, float32 accumulation (see model.bf16_dot_general)
-        y = jnp.matmul(x.astype(jnp.bfloat16), w.astype(jnp.bfloat16), preferred_element_type=jnp.float32)
-    else:
-        y = jnp.matmul(x, w)
-    return y + b
+    if bf16:  # the training networks' bfloat16 product (float32 accumulation)
+        return bf16_dot_general(x, w, (((x.ndim - 1,), (0,)), ((), ()))) + b
+    return jnp.matmul(x, w) + b
 
 
 def inference_logits(weights: InferenceWeights, inputs, *, bf16: bool = False):

@@ -34,6 +34,8 @@ __all__ = ["Classifier", "Decoder", "Generator", "bf16_dot_general", "ce_loss", 
 # CPU feature flags (Linux /proc/cpuinfo names) of native bfloat16 matrix products
 _BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
 
+BN_EPSILON = 1e-5  # the Classifier's BatchNorm ε (flax's default); the inference fold reads it
+
 
 def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> frozenset[str]:
     """The CPU feature flags listed in ``cpuinfo`` (Linux); empty where the file is unreadable."""
@@ -108,7 +110,7 @@ class Classifier(nn.Module):
     @nn.compact
     def __call__(self, z, train: bool = False):
         z = nn.Dense(self.hidden, dot_general=self.dot_general, name="fc3")(z)
-        z = nn.BatchNorm(use_running_average=not train, momentum=0.99, name="bn")(z)
+        z = nn.BatchNorm(use_running_average=not train, momentum=0.99, epsilon=BN_EPSILON, name="bn")(z)
         return nn.Dense(self.n_classes, dot_general=self.dot_general, name="fc4")(nn.relu(z))
 
 
