@@ -469,19 +469,6 @@ def test_coverage_of_an_overflowed_scene_counts_only_what_it_kept(tiny, clean_sc
         np.testing.assert_array_equal(ids[r][named], truth[i][valid[i]][order][named])
 
 
-def test_identify_more_pair_trials_never_worse(tiny, clean_scenes):
-    """Trying the next pairs (extension) keeps every scene the single pair confirmed, and its ids."""
-    _, _, cfg, db, _ = tiny
-    s = clean_scenes[:64]
-    one = rpnet.identify(db, s, dataclasses.replace(cfg, **S1_S3_ONLY))
-    three = rpnet.identify(db, s, dataclasses.replace(cfg, n_pair_trials=3, **S1_S3_ONLY))
-    ok1, ok3 = np.asarray(one.ok), np.asarray(three.ok)
-    assert np.all(ok3[ok1])
-    np.testing.assert_array_equal(np.asarray(three.ids)[ok1], np.asarray(one.ids)[ok1])
-    rep = js.evaluate(s, three, "rpnet", camera=db.camera)
-    assert rep["n_wrong"] == 0
-
-
 # ---------------------------------------------------------------- vectorized weight search, fast paths
 
 
@@ -767,7 +754,7 @@ def test_fallback_triples_only_add_scenes(tiny):
     _, _, cfg, db, _ = tiny
     s = _guide_scenes(tiny, 22, position_sigma_px=0.5, n_false=3, false_radius_px=80.0)
     one = rpnet.identify(db, s, dataclasses.replace(cfg, **S1_S3_ONLY))
-    more = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=4, n_pool_pairs=0))
+    more = rpnet.identify(db, s, dataclasses.replace(cfg, n_pool_pairs=0))  # all 12 triples (15 → 130)
     _assert_only_adds(s, one, more, 11)
     with pytest.raises(ValueError, match="n_guide_triples"):
         dataclasses.replace(cfg, n_guide_triples=0)
@@ -775,11 +762,12 @@ def test_fallback_triples_only_add_scenes(tiny):
 
 def test_pool_pairs_only_add_scenes(tiny):
     """The pool pass (extension) runs only where every triple failed: pairs of correctly classified
-    detections from different triples identify more scenes (21 → 48 of 176 when written)."""
+    detections from different triples identify more scenes (127 → 146 of 176 when written)."""
     _, _, cfg, db, _ = tiny
     s = _guide_scenes(tiny, 23, position_sigma_px=0.5, n_false=4, false_radius_px=120.0)
-    off = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=2, n_pool_pairs=0))
-    on = rpnet.identify(db, s, dataclasses.replace(cfg, n_guide_triples=2, n_pool_pairs=8))
+    # the configurations other tests compile too (each compilation costs ≈ 20 s on 2 cores)
+    off = rpnet.identify(db, s, dataclasses.replace(cfg, n_pool_pairs=0))
+    on = rpnet.identify(db, s, cfg)
     _assert_only_adds(s, off, on, 10)
     with pytest.raises(ValueError, match="n_pool_pairs"):
         dataclasses.replace(cfg, n_pool_pairs=-1)
