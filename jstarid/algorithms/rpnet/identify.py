@@ -15,9 +15,12 @@ Per scene (written once, batched with ``vmap``):
    close pair fixes poorly) and a Wahba fit on those; then every detection is rotated
    into ICRS and named after the nearest catalog star when it lies within ``match_tol_px`` and no
    second catalog star or other detection competes for it; the attitude is refined on every named
-   star (Wahba) and the naming repeated (``n_refine`` passes), then once more with a tolerance of
-   ``match_sigmas`` × the centroid noise estimated from the residuals (clipped to
-   [``match_tol_min_px``, ``match_tol_px``]) and a last refit;
+   star (Wahba) and the naming repeated (``n_refine`` passes); where the residuals show wrong
+   names (a trimmed refit — the better half of the names, then every name within ``trim_sigmas``
+   σ̂ of that fit — has an RMS ``outlier_ratio`` times smaller) the trimmed fit replaces it; then
+   the naming runs once more with a tolerance of ``match_sigmas`` × the centroid noise σ̂ (RMS per
+   axis of the fit's residuals; clipped to [``match_tol_min_px``, ``match_tol_px``]; the pair's own
+   two detections: ``pair_sigmas`` × σ̂) and a last refit;
 5. the scene is identified (``ok``) when at least ``min_verified`` detections are named and they are
    at least ``min_coverage`` of the catalog stars that the final attitude puts inside the frame (a
    wrong or badly rolled attitude names a few stars by coincidence, a right one nearly all; in a
@@ -72,7 +75,8 @@ from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
 from jstarid.sweep import map_batch
 
-__all__ = ["PAIRS", "anchor_names", "identify", "name_stars", "network_candidates", "pair_checks",
+__all__ = ["PAIRS", "anchor_names", "identify", "name_stars", "network_candidates", "noise_sigma",
+           "pair_checks",
            "top3_blocked", "weight_search"]
 
 WIDTH_STEP = 32  # detection columns per scene are cut to a multiple of this in each chunk (identify)
@@ -269,6 +273,43 @@ def top3_blocked(x):
     return values, index.astype(jnp.int32)
 
 
+def noise_sigma(resid, named):
+    """Centroid noise σ̂ (px per axis) from the residuals of an attitude fit, robust to wrong names.
+
+    The median of the named detections' residuals, not their RMS: a false star named after an
+    undetected catalog star sits several σ from it and would inflate an RMS (used for the robust
+    refit's inlier radius in :func:`_verify_pair`). For isotropic Gaussian centroid noise of σ per
+    axis the residual distance is Rayleigh-distributed with median σ·√(2 ln 2); the factor
+    √(2n / (2n − 3)) accounts for the three degrees of freedom of the fitted attitude (as an RMS
+    over 2n − 3 would).
+
+    Args:
+        resid: (N,) residual distances (px).
+        named: (N,) bool, the detections the fit used.
+
+    Returns:
+        () float32 σ̂ (px); 0 when nothing is named.
+    """
+    nf = jnp.sum(named).astype(jnp.float32)
+    sigma = (_masked_median(resid, named) / math.sqrt(2.0 * math.log(2.0))
+             * jnp.sqrt(2.0 * nf / jnp.maximum(2.0 * nf - 3.0, 1.0)))
+    return jnp.where(nf > 0, sigma, 0.0)
+
+
+def _rms_sigma(resid, named):
+    """Centroid noise σ̂ (px per axis): the RMS of the named residual distances over 2n − 3 (the
+    fitted attitude's three degrees of freedom). (N,) px, (N,) bool → () px."""
+    w = named.astype(jnp.float32)
+    return jnp.sqrt(jnp.sum(w * resid**2) / jnp.maximum(2.0 * jnp.sum(w) - 3.0, 1.0))
+
+
+def _masked_median(x, mask):
+    """Median of ``x[mask]`` for (N,) arrays (+inf when the mask is empty)."""
+    n = jnp.sum(mask)
+    r = jnp.sort(jnp.where(mask, x, jnp.inf))
+    return 0.5 * (r[jnp.maximum(n - 1, 0) // 2] + r[jnp.minimum(n // 2, x.shape[0] - 1)])
+
+
 def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thresholds, *, camera,
                  config: Config, grid):
     """Steps 4–5 from one pair: detection ``a`` named catalog row ``row_a``, ``b`` named ``row_b``.
@@ -301,17 +342,41 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thres
     for _ in range(config.n_refine):  # unrolled: a loop inside vmap runs ≈ 4× slower on CPU
         c1 = refine(c1)
     rows0, named0 = name_stars(c1, body, valid, loc_vec, tol)
-    w0 = named0.astype(jnp.float32)
-    # last pass: tolerance from the residuals' RMS (per axis, px) of the refined fit
+    # centroid noise σ̂ (px per axis) from the residuals of the fit on every name (RMS over 2n − 3)
     resid = angle_between(body, precise.matmul(loc_vec[rows0], c1.T)) * camera.f_px
-    sigma = jnp.sqrt(jnp.sum(w0 * resid**2) / jnp.maximum(2.0 * jnp.sum(w0) - 3.0, 1.0))
+    sigma = _rms_sigma(resid, named0)
+    # robust refit (least trimmed squares, one step): at ``match_tol_px`` a false star near where
+    # the attitude puts an undetected catalog star can be named, and a few such names bias the fit
+    # by pixels, so that it keeps naming them. The better half of the names fixes an attitude
+    # without them; the names within ``trim_sigmas`` × its median-based σ̂ refit it on all their
+    # stars again. It replaces the plain fit only when its σ̂ is ``outlier_ratio`` times smaller
+    # (wrong names present): with clean noise both fits agree and the plain one, on every star,
+    # is kept (the trimmed fit's noisier σ̂ alone cost 0.02–0.06 identification points per level
+    # of the Fig. 8 sweep in session 15).
+    better = named0 & (resid <= _masked_median(resid, named0))
+    c_t = solve_wahba(body, loc_vec[rows0], better.astype(jnp.float32))
+    c_t = jnp.where(jnp.sum(better) >= 3, c_t, c1)
+    resid_t = angle_between(body, precise.matmul(loc_vec[rows0], c_t.T)) * camera.f_px
+    inlier = named0 & (resid_t <= jnp.clip(th.trim_sigmas * noise_sigma(resid_t, named0), th.match_tol_min_px,
+                                           th.match_tol_px))
+    c_i = solve_wahba(body, loc_vec[rows0], inlier.astype(jnp.float32))
+    resid_i = angle_between(body, precise.matmul(loc_vec[rows0], c_i.T)) * camera.f_px
+    sigma_i = _rms_sigma(resid_i, inlier)
+    robust = (jnp.sum(inlier) >= 3) & (sigma > th.outlier_ratio * sigma_i)
+    c1 = jnp.where(robust, c_i, c1)
+    resid = jnp.where(robust, resid_i, resid)
+    sigma = jnp.where(robust, sigma_i, sigma)
+    # last pass: the tolerance follows the centroid noise
     tol2 = jnp.clip(th.match_sigmas * sigma, th.match_tol_min_px, th.match_tol_px)
     rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / camera.f_px)
     # the pair's two detections were named by the network and the pair check, not by proximity:
-    # they keep their name at the fixed tolerance (a 3.5 σ̂ radius drops 0.2 % of true stars)
+    # they keep their name out to pair_sigmas · σ̂ (a 3.5 σ̂ radius drops 0.2 % of true stars; at
+    # 8 σ̂ none are lost even where σ̂ from ≈ 10 stars comes out low), not further: a false star
+    # that took the place of an undetected guide star lies many σ̂ from it at low noise
+    pair_tol = jnp.clip(th.pair_sigmas * sigma, th.match_tol_min_px, th.match_tol_px)
     pair_row = jnp.zeros_like(valid).at[a].set(True).at[b].set(True)
     expected = jnp.where(jnp.arange(valid.shape[0]) == a, row_a, row_b)
-    keep0 = pair_row & named0 & (loc[rows0] == expected) & ~named1
+    keep0 = pair_row & named0 & (loc[rows0] == expected) & ~named1 & (resid <= pair_tol)
     rows1 = jnp.where(keep0, rows0, rows1)
     named1 = named1 | keep0
     c2 = solve_wahba(body, loc_vec[rows1], named1.astype(jnp.float32))
