@@ -341,8 +341,12 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thres
     for _ in range(config.n_refine):  # unrolled: a loop inside vmap runs ≈ 4× slower on CPU
         c1 = refine(c1)
     rows0, named0 = name_stars(c1, body, valid, loc_vec, tol)
+
+    def residual_px(c):  # (N,) distance of each detection from its name's predicted position (px)
+        return angle_between(body, precise.matmul(loc_vec[rows0], c.T)) * camera.f_px
+
     # centroid noise σ̂ (px per axis) from the residuals of the fit on every name (RMS over 2n − 3)
-    resid = angle_between(body, precise.matmul(loc_vec[rows0], c1.T)) * camera.f_px
+    resid = residual_px(c1)
     sigma = _rms_sigma(resid, named0)
     # robust refit (least trimmed squares, one step): at ``match_tol_px`` a false star near where
     # the attitude puts an undetected catalog star can be named, and a few such names bias the fit
@@ -355,11 +359,11 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thres
     better = named0 & (resid <= _masked_median(resid, named0))
     c_t = solve_wahba(body, loc_vec[rows0], better.astype(jnp.float32))
     c_t = jnp.where(jnp.sum(better) >= 3, c_t, c1)
-    resid_t = angle_between(body, precise.matmul(loc_vec[rows0], c_t.T)) * camera.f_px
+    resid_t = residual_px(c_t)
     inlier = named0 & (resid_t <= jnp.clip(th.trim_sigmas * noise_sigma(resid_t, named0), th.match_tol_min_px,
                                            th.match_tol_px))
     c_i = solve_wahba(body, loc_vec[rows0], inlier.astype(jnp.float32))
-    resid_i = angle_between(body, precise.matmul(loc_vec[rows0], c_i.T)) * camera.f_px
+    resid_i = residual_px(c_i)
     sigma_i = _rms_sigma(resid_i, inlier)
     robust = (jnp.sum(inlier) >= 3) & (sigma > th.outlier_ratio * sigma_i)
     c1 = jnp.where(robust, c_i, c1)
