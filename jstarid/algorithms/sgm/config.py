@@ -34,9 +34,10 @@ class Config:
             after the other, so each stops on its own: 1e-4 made identification ≈ 1.9× faster and
             gave the same ids, J* and δ as 0 on 448 scenes at σ = 0.5–3 px (one-off measurement).
         prune: not in the paper, and it does not change the outcome: skip the spectral matching
-            of candidates whose matching error provably exceeds ε_δ (:mod:`.bound`; such a candidate
-            can never be returned by Algorithm 1). ``False`` matches every candidate (diagnostics such
-            as ``error`` of failed scenes then cover every candidate).
+            of candidates whose matching error provably exceeds ε_δ, or — once a match with
+            δ* ≤ ε_δ is known — provably exceeds δ* (:mod:`.bound`; such a candidate can never be
+            returned by Algorithm 1: :func:`.search.advance_search`). ``False`` matches every
+            candidate (diagnostics such as ``error`` of failed scenes then cover every candidate).
         prune_max_skip: candidates whose vertex count differs from the image graph's by more than
             this are not bounded (always matched); the bound's cost grows with it.
         min_stars: fewest vertices (main star included) an image neighbor graph needs; fewer → fail.
