@@ -71,6 +71,7 @@ from jstarid.attitude import solve_wahba
 from jstarid.completion import first_argmax, name_stars
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
+from jstarid.robust import masked_median
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
 from jstarid.sweep import map_batch
@@ -290,7 +291,7 @@ def noise_sigma(resid, named):
         () float32 σ̂ (px); 0 when nothing is named.
     """
     nf = jnp.sum(named).astype(jnp.float32)
-    sigma = (_masked_median(resid, named) / math.sqrt(2.0 * math.log(2.0))
+    sigma = (masked_median(resid, named) / math.sqrt(2.0 * math.log(2.0))
              * jnp.sqrt(2.0 * nf / jnp.maximum(2.0 * nf - 3.0, 1.0)))
     return jnp.where(nf > 0, sigma, 0.0)
 
@@ -300,13 +301,6 @@ def _rms_sigma(resid, named):
     fitted attitude's three degrees of freedom). (N,) px, (N,) bool → () px."""
     w = named.astype(jnp.float32)
     return jnp.sqrt(jnp.sum(w * resid**2) / jnp.maximum(2.0 * jnp.sum(w) - 3.0, 1.0))
-
-
-def _masked_median(x, mask):
-    """Median of ``x[mask]`` for (N,) arrays (+inf when the mask is empty)."""
-    n = jnp.sum(mask)
-    r = jnp.sort(jnp.where(mask, x, jnp.inf))
-    return 0.5 * (r[jnp.maximum(n - 1, 0) // 2] + r[jnp.minimum(n // 2, x.shape[0] - 1)])
 
 
 def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thresholds, *, camera,
@@ -356,7 +350,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thres
     # (wrong names present): with clean noise both fits agree and the plain one, on every star,
     # is kept (always using the trimmed fit cost the main star in 9 of 80,000 Fig. 8 scenes and
     # mis-named a dense cluster once).
-    better = named0 & (resid <= _masked_median(resid, named0))
+    better = named0 & (resid <= masked_median(resid, named0))
     c_t = solve_wahba(body, loc_vec[rows0], better.astype(jnp.float32))
     c_t = jnp.where(jnp.sum(better) >= 3, c_t, c1)
     resid_t = residual_px(c_t)

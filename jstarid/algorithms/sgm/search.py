@@ -23,9 +23,9 @@ bound on its δ (:mod:`.bound`) is computed. A candidate whose bound exceeds ε_
 is pruned. Once a success δ* ≤ ε_δ is known at level l*, a candidate below l* is still matched (it
 could succeed and lower l*), but one at l* whose bound exceeds δ* can neither be the argmin nor
 change l*: it is *deferred* (left unmatched). To find a small δ* early, each step first matches every
-scene's candidate with the smallest bound. The outcome is the loop's; only the work shrinks (on 300
-``sgm2022`` scenes the spectral matchings per scene went from 7.2 / 29.3 / 68.6 to 2.3 / 19.3 / 52.2
-at σ = 0 / 1 / 3 px, with identical ids and J*).
+scene's candidate with the smallest bound. The outcome is the loop's; only the work shrinks
+(``experiments/bench_sgm.py --batch 300``: 7.23 / 29.27 / 68.62 → 2.34 / 19.33 / 52.22 spectral
+matchings per scene at σ = 0 / 1 / 3 px; the ids and J* were identical).
 
 Resumption. The search keeps δ of every candidate it has matched and the bound of every deferred
 one (:class:`SearchState`). When the post-match verification rejects the answer J*

@@ -70,6 +70,7 @@ import jax.numpy as jnp
 from jstarid.attitude import solve_wahba
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
+from jstarid.robust import masked_median
 from jstarid.sky_index import local_stars
 
 __all__ = ["verify_ids"]
@@ -82,18 +83,11 @@ def _angle_deg(a, b):
     return jnp.degrees(angle_between(a, b))
 
 
-def _masked_median(x, mask):
-    """Lower median of x (N,) over mask (N,) bool (inf when the mask is empty)."""
-    srt = jnp.sort(jnp.where(mask, x, jnp.inf))
-    n = jnp.sum(mask)
-    return srt[jnp.clip((n - 1) // 2, 0, x.shape[0] - 1)]
-
-
 def _fit(body, ref, named, k, floor_deg, cap_deg):
     """Attitude, residuals (deg), robust RMS s (deg) and tolerance (deg) from the named pairs."""
     c = solve_wahba(body, ref, named.astype(body.dtype))
     resid = _angle_deg(body, precise.matmul(ref, c.T))
-    s = jnp.clip(_RMS_PER_MEDIAN * _masked_median(resid, named), floor_deg / k, cap_deg / k)
+    s = jnp.clip(_RMS_PER_MEDIAN * masked_median(resid, named, lower=True), floor_deg / k, cap_deg / k)
     return c, resid, s, k * s
 
 
