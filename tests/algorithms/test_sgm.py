@@ -108,15 +108,16 @@ def test_false_stars_only_fail_cleanly(setup):
     assert np.all(info["n_matched_graphs"] + info["n_pruned"] > 20)
     # a second call with the same shapes compiles nothing new (STYLE §4)
     from jstarid.algorithms.sgm import search
-    n_compiled = search._match_pairs._cache_size(), search._bound_pairs._cache_size()
+    kernels = (search._match_pairs, search._bound_pairs, search._edge_bound_pairs)
+    n_compiled = tuple(k._cache_size() for k in kernels)
     from jstarid import sweep
     n_sharded = sweep._compiled.cache_info().currsize
     again = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5))
-    assert (search._match_pairs._cache_size(), search._bound_pairs._cache_size()) == n_compiled
+    assert tuple(k._cache_size() for k in kernels) == n_compiled
     np.testing.assert_array_equal(np.asarray(again.ids), np.asarray(result.ids))
     # … nor does another c (eq. 2): it is a traced value of the matching kernel
     other_c = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5, c=1.0))
-    assert (search._match_pairs._cache_size(), search._bound_pairs._cache_size()) == n_compiled
+    assert tuple(k._cache_size() for k in kernels) == n_compiled
     assert sweep._compiled.cache_info().currsize == n_sharded
     assert not np.any(np.asarray(other_c.ok))
     assert not np.any(np.asarray(result.ok))

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from jstarid.algorithms.sgm.bound import sorted_edges
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import catalog_neighbors, mst_weight
 from jstarid.catalog import cache_dir
@@ -77,6 +78,20 @@ class Database:
         if cached is None:
             cached = jnp.asarray(self.adj)
             object.__setattr__(self, "_device_adj", cached)
+        return cached
+
+    @property
+    def edges(self) -> np.ndarray:
+        """(D, K(K − 1)/2) float32 edge lengths of each graph sorted ascending, +inf padded (deg;
+        :func:`~.bound.sorted_edges`, computed on first use): the first n(n − 1)/2 entries of a row
+        are its graph's edges, so a graph of ≤ r vertices is read whole from the first r(r − 1)/2."""
+        cached = self.__dict__.get("_edges")
+        if cached is None:
+            mask = np.arange(self.capacity)[None, :] < self.n[:, None]
+            sort = jax.jit(sorted_edges)
+            cached = np.concatenate([np.asarray(sort(self.adj[lo:lo + 512], mask[lo:lo + 512]))
+                                     for lo in range(0, len(self), 512)])
+            object.__setattr__(self, "_edges", cached)
         return cached
 
 

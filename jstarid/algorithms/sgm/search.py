@@ -18,14 +18,18 @@ before t all have δ > ε_δ, so every earlier level fails in both. With no succ
 loop (up to ties in δ); only the order of work differs. Scenes that are done leave the batch, so a
 batch costs about as much as its hardest scenes.
 
-Branch and bound (``Config.prune``, not in the paper). Before a candidate is matched, a cheap lower
-bound on its δ (:mod:`.bound`) is computed. A candidate whose bound exceeds ε_δ can never succeed and
-is pruned. Once a success δ* ≤ ε_δ is known at level l*, a candidate below l* is still matched (it
-could succeed and lower l*), but one at l* whose bound exceeds δ* can neither be the argmin nor
-change l*: it is *deferred* (left unmatched). To find a small δ* early, each step first matches every
-scene's candidate with the smallest bound. The outcome is the loop's; only the work shrinks
-(``experiments/bench_sgm.py --batch 300``: 7.23 / 29.27 / 68.62 → 2.34 / 19.33 / 52.22 spectral
-matchings per scene at σ = 0 / 1 / 3 px; the ids and J* were identical).
+Branch and bound (``Config.prune``, not in the paper). Before a candidate is matched, lower bounds
+on its δ (:mod:`.bound`) are computed, in two stages: a cheap one for every candidate examined
+(:func:`~.bound.edge_lower_bound`, sorted edge lengths), and the tighter, ≈ 5× dearer one
+(:func:`~.bound.error_lower_bound`, sorted rows and an assignment bound) only for a candidate that
+the first has not excluded and that the search needs (:func:`_refine`). A candidate whose bound
+exceeds ε_δ can never succeed and is pruned. Once a success δ* ≤ ε_δ is known at level l*, a
+candidate below l* is still matched (it could succeed and lower l*), but one at l* whose bound
+exceeds δ* can neither be the argmin nor change l*: it is *deferred* (left unmatched). To find a
+small δ* early, each step first matches every scene's candidate with the smallest bound. The outcome
+is the loop's; only the work shrinks (``experiments/bench_sgm.py --batch 300``: 7.23 / 29.27 / 68.62
+→ 2.34 / 19.33 / 52.22 spectral matchings per scene at σ = 0 / 1 / 3 px with the one-stage bound;
+the ids and J* were identical).
 
 Resumption. The search keeps δ of every candidate it has matched and the bound of every deferred
 one (:class:`SearchState`). When the post-match verification rejects the answer J*
@@ -47,15 +51,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.algorithms.sgm.bound import error_lower_bound, sorted_rows
+from jstarid.algorithms.sgm.bound import edge_lower_bound, error_lower_bound, sorted_edges, sorted_rows
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.geometry import range_search
 from jstarid.sweep import map_batch, replicate
 
-__all__ = ["candidate_windows", "order_candidates", "lower_bounds", "prune_mask", "dynamic_search",
-           "run_pairs", "database_tables", "bucket_up", "next_pow2", "SearchState", "start_search",
-           "advance_search", "search_outcome", "reject_best"]
+__all__ = ["candidate_windows", "order_candidates", "edge_bounds", "lower_bounds", "prune_mask",
+           "dynamic_search", "run_pairs", "database_tables", "bucket_up", "next_pow2", "SearchState",
+           "start_search", "advance_search", "search_outcome", "reject_best"]
 
 
 def _bucket(x: int, m: int) -> int:
@@ -166,7 +170,17 @@ def _bound_pairs(a_i, n_i, cand, db_adj, db_n, *, r, max_skip):
     return out.reshape(n)
 
 
+@jax.jit
+def _edge_bound_pairs(e_i, n_i, e_j, n_j):
+    """:func:`~.bound.edge_lower_bound` of N pairs of sorted edge lists (N, E) → (N,) (deg).
+
+    Vectorized over all N pairs at once (``vmap``; a pair's work is a binary search of E entries in E).
+    """
+    return jax.vmap(edge_lower_bound)(e_i, n_i, e_j, n_j)
+
+
 MIN_CALL_PAIRS = 64  # smallest compiled pair count of a kernel call
+_sorted_edges = jax.jit(sorted_edges)
 
 
 def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
@@ -261,6 +275,43 @@ def database_tables(db):
     return cached
 
 
+def edge_bounds(db, adj_i, n_i, scene, rows, config: Config) -> np.ndarray:
+    """:func:`~.bound.edge_lower_bound` of (scene, candidate) pairs: the search's first-stage bound.
+
+    The database's sorted edge lists are computed once (``Database.edges``), the image graphs' once
+    per call; pairs are grouped by padded vertex count r (a list of r(r − 1)/2 entries) and each
+    group runs as one vectorized call of a power-of-two size (sharded over the devices).
+
+    Args:
+        db: the database. adj_i: (B, K, K) image adjacencies (deg). n_i: (B,) image vertex counts.
+        scene, rows: (N,) scene and database row of each pair.
+        config: :class:`Config` (``size_bucket``).
+
+    Returns:
+        (N,) float32 bound on δ (deg).
+    """
+    lb = np.zeros(rows.size, np.float32)
+    if not rows.size:
+        return lb
+    uniq, local = np.unique(scene, return_inverse=True)
+    k = adj_i.shape[-1]
+    uniq = np.concatenate([uniq, np.full(next_pow2(uniq.size) - uniq.size, uniq[0])])  # few shapes
+    e_img = np.asarray(_sorted_edges(jnp.asarray(adj_i[uniq]),
+                                     jnp.arange(k)[None, :] < jnp.asarray(n_i[uniq])[:, None]))
+    n_j = db.n[rows]
+    r = np.maximum(bucket_up(n_i[scene], config.size_bucket), bucket_up(n_j, config.size_bucket))
+    for size in np.unique(r):
+        at = np.nonzero(r == size)[0]
+        width = int(size * (size - 1) // 2)
+        padded = max(MIN_CALL_PAIRS, next_pow2(at.size))
+        fill = np.concatenate([at, np.full(padded - at.size, at[0])])
+        out = map_batch(_edge_bound_pairs,
+                        (jnp.asarray(e_img[local[fill], :width]), jnp.asarray(n_i[scene[fill]]),
+                         jnp.asarray(db.edges[rows[fill], :width]), jnp.asarray(n_j[fill])))
+        lb[at] = np.asarray(out)[:at.size]
+    return lb
+
+
 def lower_bounds(db, adj_i, n_i, scene, rows, config: Config):
     """:mod:`.bound`'s lower bound on δ of (scene, candidate) pairs.
 
@@ -297,7 +348,8 @@ def _exceeds(bound, error_deg):
 
 
 def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float) -> np.ndarray:
-    """Which (scene, candidate) pairs survive the exact bound of :mod:`.bound`.
+    """Which (scene, candidate) pairs survive the bounds of :mod:`.bound` (the edge bound first, the
+    row bound for the pairs it keeps).
 
     Args:
         db: the database. adj_i: (B, K, K) image adjacencies (deg). n_i: (B,) image vertex counts.
@@ -309,8 +361,11 @@ def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float
         (N,) bool, True for the pairs to match (pairs differing by more than ``prune_max_skip``
         vertices are always kept).
     """
-    lb, _ = lower_bounds(db, adj_i, n_i, scene, rows, config)
-    return ~_exceeds(lb, max_error_deg)
+    keep = ~_exceeds(edge_bounds(db, adj_i, n_i, scene, rows, config), max_error_deg)
+    at = np.nonzero(keep)[0]
+    lb, _ = lower_bounds(db, adj_i, n_i, scene[at], rows[at], config)
+    keep[at] = ~_exceeds(lb, max_error_deg)
+    return keep
 
 
 @dataclasses.dataclass
@@ -331,9 +386,11 @@ class SearchState:
         usable: (B,) bool, scenes searched at all.
         err: (B, W) float32 δ of each matched rank (deg; inf: pruned, deferred, struck out or not
             examined).
-        bound: (B, W) float32 lower bound on δ of each examined rank (deg; 0 where unknown).
-        priority: (B, W) float32 order in which deferred ranks are matched first (their bound;
-            inf where the bound knows nothing: vertex counts too far apart).
+        bound: (B, W) float32 lower bound on δ of each examined rank (deg; 0 where unknown):
+            :func:`~.bound.edge_lower_bound` when examined, the larger of it and
+            :func:`~.bound.error_lower_bound` once refined.
+        refined: (B, W) bool, the bound of an examined rank is final (the second stage has run,
+            or cannot help: vertex counts further apart than ``prune_max_skip``, or no pruning).
         deferred: (B, W) bool, examined and neither pruned nor matched.
         covered: (B,) int32 ranks examined (a prefix).
         matches: ``{(scene, rank): (K,) int32}`` correspondences of the matched pairs with δ ≤ ε_δ
@@ -350,7 +407,7 @@ class SearchState:
     usable: np.ndarray
     err: np.ndarray
     bound: np.ndarray
-    priority: np.ndarray
+    refined: np.ndarray
     deferred: np.ndarray
     covered: np.ndarray
     matches: dict
@@ -373,8 +430,7 @@ def start_search(db, graphs: dict, usable: np.ndarray, config: Config) -> Search
     cand = np.asarray(cand)
     return SearchState(cand=cand, level=np.asarray(level), count=count,
                        usable=np.asarray(usable, bool), err=np.full(cand.shape, np.inf, np.float32),
-                       bound=np.zeros(cand.shape, np.float32),
-                       priority=np.full(cand.shape, np.inf, np.float32),
+                       bound=np.zeros(cand.shape, np.float32), refined=np.zeros(cand.shape, bool),
                        deferred=np.zeros(cand.shape, bool), covered=zeros.copy(), matches={},
                        n_matched=zeros.copy(), n_pruned=zeros.copy(), n_rejected=zeros.copy())
 
@@ -445,8 +501,9 @@ def _examine_block(db, graphs: dict, state: SearchState, config: Config, act: np
                    block: int) -> None:
     """Bound the next ``block`` ranks of the l* prefix of each scene in ``act`` (in place).
 
-    Ranks whose bound exceeds ε_δ are pruned; the others are deferred until :func:`advance_search`
-    finds their matching needed.
+    The first-stage bound (:func:`~.bound.edge_lower_bound`) is computed for every rank; ranks whose
+    bound exceeds ε_δ are pruned, the others are deferred until :func:`advance_search` finds them
+    needed (and refines their bound before matching them: :func:`_refine`).
     """
     width = state.cand.shape[1]
     ranks = state.covered[act, None] + np.arange(block)[None, :]  # (A, block)
@@ -458,16 +515,56 @@ def _examine_block(db, graphs: dict, state: SearchState, config: Config, act: np
     take = inwin & (lev <= lstar[:, None])
     s_idx, c_idx = np.nonzero(take)
     scene, rank = act[s_idx], ranks[s_idx, c_idx]
+    state.refined[scene, rank] = True
     if config.prune and scene.size:
-        lb, bounded = lower_bounds(db, graphs["adj"], graphs["n"].astype(np.int32), scene,
-                                   state.cand[scene, rank], config)
+        n_i = graphs["n"].astype(np.int32)
+        rows = state.cand[scene, rank]
+        lb = edge_bounds(db, graphs["adj"], n_i, scene, rows, config)
         keep = ~_exceeds(lb, config.max_error_deg)
         np.add.at(state.n_pruned, scene[~keep], 1)
         state.bound[scene, rank] = lb
-        state.priority[scene, rank] = np.where(bounded, lb, np.inf)
+        # the second stage only knows something where the vertex counts are close enough
+        state.refined[scene, rank] = np.abs(n_i[scene] - db.n[rows]) > config.prune_max_skip
         scene, rank = scene[keep], rank[keep]
     state.deferred[scene, rank] = True
     state.covered[act] += np.sum(take, axis=1).astype(np.int32)
+
+
+def _refine(db, graphs: dict, state: SearchState, config: Config, scene: np.ndarray,
+            rank: np.ndarray) -> None:
+    """Second-stage bound (:func:`~.bound.error_lower_bound`) of the deferred (scene, rank) pairs not
+    refined yet (in place); those whose bound now exceeds ε_δ are pruned."""
+    todo = ~state.refined[scene, rank]
+    scene, rank = scene[todo], rank[todo]
+    if not scene.size:
+        return
+    lb, _ = lower_bounds(db, graphs["adj"], graphs["n"].astype(np.int32), scene,
+                         state.cand[scene, rank], config)
+    lb = np.maximum(lb, state.bound[scene, rank])
+    state.bound[scene, rank] = lb
+    state.refined[scene, rank] = True
+    out = _exceeds(lb, config.max_error_deg)
+    state.deferred[scene[out], rank[out]] = False
+    np.add.at(state.n_pruned, scene[out], 1)
+
+
+def _probe(db, graphs: dict, state: SearchState, config: Config, act: np.ndarray) -> None:
+    """Match each scene's needed rank with the smallest bound (the likeliest J*; in place).
+
+    Its bound is refined first (one call for all scenes) and it is matched only if the refined bound
+    keeps it. Ranks whose vertex count differs from the image graph's by more than
+    ``prune_max_skip`` come last: only the loose first stage bounds them and such a graph is seldom
+    J*, while a failed probe leaves the scene without δ* and so makes every rank it holds needed.
+    """
+    need = _needed(state, config, act)
+    n_i = graphs["n"].astype(np.int64)
+    far = np.abs(n_i[act, None] - db.n[np.maximum(state.cand[act], 0)]) > config.prune_max_skip
+    first = np.argmin(np.where(need, state.bound[act] + np.where(far, 1e6, 0.0), np.inf), axis=1)
+    probe = np.nonzero(need[np.arange(act.size), first])[0]
+    scene, rank = act[probe], first[probe]
+    _refine(db, graphs, state, config, scene, rank)
+    live = state.deferred[scene, rank]
+    _match_ranks(db, graphs, state, config, scene[live], rank[live])
 
 
 def advance_search(db, graphs: dict, state: SearchState, config: Config,
@@ -477,11 +574,13 @@ def advance_search(db, graphs: dict, state: SearchState, config: Config,
     Each step examines the next block of ranks of every scene whose l* prefix is not covered yet
     (``chunk_size`` ranks, then twice as many at every step up to 512: most scenes finish within
     their first few dozen candidates) and drops the candidates whose :mod:`.bound` proves δ > ε_δ
-    (``Config.prune``; exact, see that module). The rest are matched in two rounds: first each
-    scene's candidate with the smallest bound (the likeliest J*), then every candidate that can
-    still change the answer (:func:`_needed`) — once a success δ* ≤ ε_δ is known at level l*, a
+    (``Config.prune``; exact, see that module). Then: each scene's candidate with the smallest
+    first-stage bound is refined and, if kept, matched (a probe for δ*); the candidates still needed
+    (:func:`_needed`) are refined; a second probe by the refined bound; then every candidate that
+    can still change the answer is matched — once a success δ* ≤ ε_δ is known at level l*, a
     candidate at l* whose bound exceeds δ* cannot be J*, so its matching is deferred (branch and
-    bound, module docstring; the outcome is Algorithm 1's). Ranks of a block beyond the scene's
+    bound, module docstring; the outcome is Algorithm 1's). Without ``prune`` every examined
+    candidate of the l* prefix is matched, in rank order. Ranks of a block beyond the scene's
     current l* prefix are left unexamined (they are not part of Algorithm 1's search).
 
     Args:
@@ -502,11 +601,14 @@ def advance_search(db, graphs: dict, state: SearchState, config: Config,
         if grow.size:
             _examine_block(db, graphs, state, config, grow, block)
             block = min(2 * block, 512)
-        # round 1: the most promising needed rank of each scene; round 2: what is still needed
-        need = _needed(state, config, act)
-        first = np.argmin(np.where(need, state.priority[act], np.inf), axis=1)
-        probe = np.nonzero(need[np.arange(act.size), first])[0]
-        _match_ranks(db, graphs, state, config, act[probe], first[probe])
+        if config.prune:  # without bounds every examined rank is matched, in one round
+            # probe by the first-stage bound: where it finds δ*, most other ranks need no more work
+            _probe(db, graphs, state, config, act)
+            # refine every rank still needed; probe again by the refined bound (where the first
+            # probe found no δ* ≤ ε_δ, all ranks were needed); then match whatever is still needed
+            s_idx, rank = np.nonzero(_needed(state, config, act))
+            _refine(db, graphs, state, config, act[s_idx], rank)
+            _probe(db, graphs, state, config, act)
         s_idx, rank = np.nonzero(_needed(state, config, act))
         _match_ranks(db, graphs, state, config, act[s_idx], rank)
         todo[act] = ~_finished(state, config, act)
