@@ -171,6 +171,27 @@ def setup5():
     return cat, cam, sgm.build_database(cat, cam, sgm.Config(), progress=False)
 
 
+def test_edge_bounds_of_the_search_equal_the_per_pair_bound(setup5):
+    """``search.edge_bounds`` (database edge table, pairs grouped by size and padded) gives each
+    pair the value of :func:`~jstarid.algorithms.sgm.bound.edge_lower_bound` on its own graphs."""
+    from jstarid.algorithms.sgm import search
+    from jstarid.algorithms.sgm.bound import edge_lower_bound, sorted_edges
+    cat, cam, db = setup5
+    cfg = sgm.Config()
+    _, _, g, _ = _noisy_graphs(setup5, cfg, n=5, seed=4, key=2)
+    rng = np.random.default_rng(0)
+    scene = rng.integers(0, 5, 70)
+    rows = rng.choice(len(db), 70, replace=False)
+    got = search.edge_bounds(db, g["adj"], g["n"].astype(np.int32), scene, rows, cfg)
+    k = db.capacity
+    e_i = sorted_edges(jnp.asarray(g["adj"][scene]), jnp.arange(k)[None, :] < g["n"][scene, None])
+    e_j = sorted_edges(jnp.asarray(db.adj[rows]), jnp.arange(k)[None, :] < db.n[rows, None])
+    want = jax.vmap(edge_lower_bound)(e_i, jnp.asarray(g["n"][scene]), e_j, jnp.asarray(db.n[rows]))
+    assert len(np.unique(search.bucket_up(np.maximum(g["n"][scene], db.n[rows]), 8))) > 1
+    np.testing.assert_allclose(got, np.asarray(want), rtol=1e-6, atol=1e-7)
+    assert np.mean(got > 0) > 0.5
+
+
 def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     cat, cam, db = setup5
     # tight ε → several Δw levels are visited; Δw_max cut to 0.5° to bound the work of failures

@@ -27,7 +27,8 @@ With s = 0 (same vertex count, e.g. noise-free scenes) the bound is the sorted-r
 s > ``max_skip`` the bound is set to 0 (no pruning): the programme's cost grows with s.
 
 A second, looser bound (:func:`edge_lower_bound`) compares sorted edge lengths instead of sorted
-rows: no dynamic programme, no assignment, any s, about a fifth of the cost. The search computes it
+rows: no dynamic programme, no assignment, any s, about a fifth of the cost (a one-off timing
+on the candidates of 300 σ = 0 scenes). The search computes it
 for every candidate and the row bound only where the edge bound is not enough
 (:mod:`.search`, branch and bound).
 """
@@ -161,6 +162,7 @@ def error_lower_bound(rows_i, n_i, rows_j, n_j, *, max_skip: int, n_dual: int = 
     return jnp.where((s <= max_skip) & (m >= 2) & jnp.isfinite(bound), bound, 0.0)
 
 
+@jax.jit
 def sorted_edges(adj, mask):
     """Edge lengths of a padded complete graph, each graph's list sorted ascending, +inf padded.
 

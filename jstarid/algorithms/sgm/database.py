@@ -88,8 +88,7 @@ class Database:
         cached = self.__dict__.get("_edges")
         if cached is None:
             mask = np.arange(self.capacity)[None, :] < self.n[:, None]
-            sort = jax.jit(sorted_edges)
-            cached = np.concatenate([np.asarray(sort(self.adj[lo:lo + 512], mask[lo:lo + 512]))
+            cached = np.concatenate([np.asarray(sorted_edges(self.adj[lo:lo + 512], mask[lo:lo + 512]))
                                      for lo in range(0, len(self), 512)])
             object.__setattr__(self, "_edges", cached)
         return cached

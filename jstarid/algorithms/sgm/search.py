@@ -20,16 +20,17 @@ batch costs about as much as its hardest scenes.
 
 Branch and bound (``Config.prune``, not in the paper). Before a candidate is matched, lower bounds
 on its δ (:mod:`.bound`) are computed, in two stages: a cheap one for every candidate examined
-(:func:`~.bound.edge_lower_bound`, sorted edge lengths), and the tighter, ≈ 5× dearer one
-(:func:`~.bound.error_lower_bound`, sorted rows and an assignment bound) only for a candidate that
-the first has not excluded and that the search needs (:func:`_refine`). A candidate whose bound
-exceeds ε_δ can never succeed and is pruned. Once a success δ* ≤ ε_δ is known at level l*, a
-candidate below l* is still matched (it could succeed and lower l*), but one at l* whose bound
-exceeds δ* can neither be the argmin nor change l*: it is *deferred* (left unmatched). To find a
-small δ* early, each step first matches every scene's candidate with the smallest bound. The outcome
-is the loop's; only the work shrinks (``experiments/bench_sgm.py --batch 300``: 7.23 / 29.27 / 68.62
-→ 2.34 / 19.33 / 52.22 spectral matchings per scene at σ = 0 / 1 / 3 px with the one-stage bound;
-the ids and J* were identical).
+(:func:`~.bound.edge_lower_bound`, sorted edge lengths), and the tighter one, ≈ 5× dearer in a
+one-off timing (:func:`~.bound.error_lower_bound`, sorted rows and an assignment bound), only for
+a candidate that the first has not excluded and that the search needs (:func:`_refine`). A
+candidate whose bound exceeds ε_δ can never succeed and is pruned. Once a success δ* ≤ ε_δ is known
+at level l*, a candidate below l* is still matched (it could succeed and lower l*), but one at l*
+whose bound exceeds δ* can neither be the argmin nor change l*: it is *deferred* (left unmatched).
+To find a small δ* early, each step first matches every scene's candidate with the smallest bound.
+The outcome is the loop's; only the work shrinks (``experiments/bench_sgm.py --batch 300``
+prints the spectral matchings per scene: 7.23 / 29.27 / 68.62 at σ = 0 / 1 / 3 px without the
+branch and bound, 2.34 / 19.33 / 52.22 with the row bound alone, 1.12 / 18.52 / 52.07 with both
+stages; the ids and J* were identical).
 
 Resumption. The search keeps δ of every candidate it has matched and the bound of every deferred
 one (:class:`SearchState`). When the post-match verification rejects the answer J*
@@ -57,7 +58,8 @@ from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.geometry import range_search
 from jstarid.sweep import map_batch, replicate
 
-__all__ = ["candidate_windows", "order_candidates", "edge_bounds", "lower_bounds", "prune_mask",
+__all__ = ["candidate_windows", "order_candidates", "edge_bounds", "beyond_row_bound", "lower_bounds",
+           "prune_mask",
            "dynamic_search", "run_pairs", "database_tables", "bucket_up", "next_pow2", "SearchState",
            "start_search", "advance_search", "search_outcome", "reject_best"]
 
@@ -180,7 +182,6 @@ def _edge_bound_pairs(e_i, n_i, e_j, n_j):
 
 
 MIN_CALL_PAIRS = 64  # smallest compiled pair count of a kernel call
-_sorted_edges = jax.jit(sorted_edges)
 
 
 def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
@@ -296,8 +297,8 @@ def edge_bounds(db, adj_i, n_i, scene, rows, config: Config) -> np.ndarray:
     uniq, local = np.unique(scene, return_inverse=True)
     k = adj_i.shape[-1]
     uniq = np.concatenate([uniq, np.full(next_pow2(uniq.size) - uniq.size, uniq[0])])  # few shapes
-    e_img = np.asarray(_sorted_edges(jnp.asarray(adj_i[uniq]),
-                                     jnp.arange(k)[None, :] < jnp.asarray(n_i[uniq])[:, None]))
+    e_img = np.asarray(sorted_edges(jnp.asarray(adj_i[uniq]),
+                                    jnp.arange(k)[None, :] < jnp.asarray(n_i[uniq])[:, None]))
     n_j = db.n[rows]
     r = np.maximum(bucket_up(n_i[scene], config.size_bucket), bucket_up(n_j, config.size_bucket))
     for size in np.unique(r):
@@ -310,6 +311,12 @@ def edge_bounds(db, adj_i, n_i, scene, rows, config: Config) -> np.ndarray:
                          jnp.asarray(db.edges[rows[fill], :width]), jnp.asarray(n_j[fill])))
         lb[at] = np.asarray(out)[:at.size]
     return lb
+
+
+def beyond_row_bound(n_i, n_j, config: Config) -> np.ndarray:
+    """True where two vertex counts differ by more than ``prune_max_skip``: the row bound
+    (:func:`~.bound.error_lower_bound`) knows nothing there and is not computed."""
+    return np.abs(np.asarray(n_i, np.int64) - np.asarray(n_j, np.int64)) > config.prune_max_skip
 
 
 def lower_bounds(db, adj_i, n_i, scene, rows, config: Config):
@@ -326,7 +333,7 @@ def lower_bounds(db, adj_i, n_i, scene, rows, config: Config):
     """
     n_j = db.n[rows]
     s_diff = np.abs(n_i[scene] - n_j)
-    bounded = s_diff <= config.prune_max_skip
+    bounded = ~beyond_row_bound(n_i[scene], n_j, config)
     at = np.nonzero(bounded)[0]
     lb = np.zeros(rows.size, np.float32)
     if at.size:
@@ -359,7 +366,7 @@ def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float
 
     Returns:
         (N,) bool, True for the pairs to match (pairs differing by more than ``prune_max_skip``
-        vertices are always kept).
+        vertices face the edge bound only).
     """
     keep = ~_exceeds(edge_bounds(db, adj_i, n_i, scene, rows, config), max_error_deg)
     at = np.nonzero(keep)[0]
@@ -515,7 +522,7 @@ def _examine_block(db, graphs: dict, state: SearchState, config: Config, act: np
     take = inwin & (lev <= lstar[:, None])
     s_idx, c_idx = np.nonzero(take)
     scene, rank = act[s_idx], ranks[s_idx, c_idx]
-    state.refined[scene, rank] = True
+    state.refined[scene, rank] = True  # without pruning there is nothing to refine
     if config.prune and scene.size:
         n_i = graphs["n"].astype(np.int32)
         rows = state.cand[scene, rank]
@@ -524,7 +531,7 @@ def _examine_block(db, graphs: dict, state: SearchState, config: Config, act: np
         np.add.at(state.n_pruned, scene[~keep], 1)
         state.bound[scene, rank] = lb
         # the second stage only knows something where the vertex counts are close enough
-        state.refined[scene, rank] = np.abs(n_i[scene] - db.n[rows]) > config.prune_max_skip
+        state.refined[scene, rank] = beyond_row_bound(n_i[scene], db.n[rows], config)
         scene, rank = scene[keep], rank[keep]
     state.deferred[scene, rank] = True
     state.covered[act] += np.sum(take, axis=1).astype(np.int32)
@@ -557,8 +564,7 @@ def _probe(db, graphs: dict, state: SearchState, config: Config, act: np.ndarray
     J*, while a failed probe leaves the scene without δ* and so makes every rank it holds needed.
     """
     need = _needed(state, config, act)
-    n_i = graphs["n"].astype(np.int64)
-    far = np.abs(n_i[act, None] - db.n[np.maximum(state.cand[act], 0)]) > config.prune_max_skip
+    far = beyond_row_bound(graphs["n"][act, None], db.n[np.maximum(state.cand[act], 0)], config)
     first = np.argmin(np.where(need, state.bound[act] + np.where(far, 1e6, 0.0), np.inf), axis=1)
     probe = np.nonzero(need[np.arange(act.size), first])[0]
     scene, rank = act[probe], first[probe]
