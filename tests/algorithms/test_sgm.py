@@ -171,25 +171,43 @@ def setup5():
     return cat, cam, sgm.build_database(cat, cam, sgm.Config(), progress=False)
 
 
-def test_edge_bounds_of_the_search_equal_the_per_pair_bound(setup5):
-    """``search.edge_bounds`` (database edge table, pairs grouped by size and padded) gives each
-    pair the value of :func:`~jstarid.algorithms.sgm.bound.edge_lower_bound` on its own graphs."""
+def test_bounds_of_the_search_equal_the_per_pair_bounds(setup5):
+    """``search.edge_bounds`` and ``search.lower_bounds`` (tables sorted once, pairs grouped by size
+    and skip count, padded, sharded) give each pair the value of
+    :func:`~jstarid.algorithms.sgm.bound.edge_lower_bound` / ``error_lower_bound`` computed from
+    its own two graphs."""
+    from functools import partial
+
     from jstarid.algorithms.sgm import search
-    from jstarid.algorithms.sgm.bound import edge_lower_bound, sorted_edges
+    from jstarid.algorithms.sgm.bound import edge_lower_bound, error_lower_bound, sorted_edges, sorted_rows
     cat, cam, db = setup5
     cfg = sgm.Config()
     _, _, g, _ = _noisy_graphs(setup5, cfg, n=5, seed=4, key=2)
     rng = np.random.default_rng(0)
     scene = rng.integers(0, 5, 70)
     rows = rng.choice(len(db), 70, replace=False)
-    got = search.edge_bounds(db, g["adj"], g["n"].astype(np.int32), scene, rows, cfg)
+    n_i = g["n"].astype(np.int32)
+    image = search.image_tables(g["adj"], n_i)
+    got = search.edge_bounds(db, image, n_i, scene, rows, cfg)
     k = db.capacity
-    e_i = sorted_edges(jnp.asarray(g["adj"][scene]), jnp.arange(k)[None, :] < g["n"][scene, None])
-    e_j = sorted_edges(jnp.asarray(db.adj[rows]), jnp.arange(k)[None, :] < db.n[rows, None])
+    m_i = jnp.arange(k)[None, :] < g["n"][scene, None]
+    m_j = jnp.arange(k)[None, :] < db.n[rows, None]
+    e_i = sorted_edges(jnp.asarray(g["adj"][scene]), m_i)
+    e_j = sorted_edges(jnp.asarray(db.adj[rows]), m_j)
     want = jax.vmap(edge_lower_bound)(e_i, jnp.asarray(g["n"][scene]), e_j, jnp.asarray(db.n[rows]))
     assert len(np.unique(search.bucket_up(np.maximum(g["n"][scene], db.n[rows]), 8))) > 1
     np.testing.assert_allclose(got, np.asarray(want), rtol=1e-6, atol=1e-7)
     assert np.mean(got > 0) > 0.5
+    # the row bound: per pair at full capacity K with the largest skip count, against the search's
+    # grouped call at each pair's own size r and skip bucket
+    got, bounded = search.lower_bounds(db, image, n_i, scene, rows, cfg)
+    r_i = sorted_rows(jnp.asarray(g["adj"][scene]), m_i)
+    r_j = sorted_rows(jnp.asarray(db.adj[rows]), m_j)
+    want = jax.vmap(partial(error_lower_bound, max_skip=cfg.prune_max_skip))(
+        r_i, jnp.asarray(g["n"][scene]), r_j, jnp.asarray(db.n[rows]))
+    assert bounded.sum() > 20 and len(np.unique(np.abs(g["n"][scene] - db.n[rows])[bounded])) > 2
+    np.testing.assert_allclose(got[bounded], np.asarray(want)[bounded], rtol=2e-5, atol=1e-6)
+    assert np.all(got[~bounded] == 0)
 
 
 def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):

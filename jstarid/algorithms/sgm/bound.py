@@ -27,8 +27,9 @@ With s = 0 (same vertex count, e.g. noise-free scenes) the bound is the sorted-r
 s > ``max_skip`` the bound is set to 0 (no pruning): the programme's cost grows with s.
 
 A second, looser bound (:func:`edge_lower_bound`) compares sorted edge lengths instead of sorted
-rows: no dynamic programme, no assignment, any s, about a fifth of the cost (a one-off timing
-on the candidates of 300 σ = 0 scenes). The search computes it
+rows: no dynamic programme, no assignment, any s, about a tenth of the cost per pair (3.3 against
+36 µs in session 19's profile of 200 σ = 3 px scenes, both read from tables sorted once:
+:func:`row_table`, :func:`sorted_edges`). The search computes it
 for every candidate and the row bound only where the edge bound is not enough
 (:mod:`.search`, branch and bound).
 """
@@ -39,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["sorted_rows", "error_lower_bound", "sorted_edges", "edge_lower_bound"]
+__all__ = ["sorted_rows", "row_table", "error_lower_bound", "sorted_edges", "edge_lower_bound"]
 
 
 def sorted_rows(adj, mask):
@@ -57,6 +58,27 @@ def sorted_rows(adj, mask):
     keep = mask[..., :, None] & mask[..., None, :] & off
     rows = jnp.sort(jnp.where(keep, adj, jnp.inf), axis=-1)
     return rows[..., : k - 1].astype(jnp.float32)
+
+
+@jax.jit
+def row_table(adj, mask):
+    """:func:`sorted_rows` padded with one more +inf column to a square (..., K, K) table.
+
+    Sorting is the dearest part of the row bound on a CPU (XLA's sort is not vectorized: sorting both
+    graphs' rows cost ≈ 56 µs of ≈ 120 µs per pair at 24 vertex slots in a one-off timing), and a
+    graph's sorted rows do not depend on the candidate it is compared with: the search sorts every
+    database graph once (``Database.rows``) and every image graph once per search, and the row bound
+    reads the table. Square like the adjacency, so that the ``r × r`` corner of a graph of ≤ r
+    vertices holds its rows whole (the first r − 1 columns are :func:`sorted_rows` at size r).
+
+    Args:
+        adj: (..., K, K) adjacency (deg). mask: (..., K) bool vertices.
+
+    Returns:
+        (..., K, K) float32.
+    """
+    rows = sorted_rows(adj, mask)
+    return jnp.concatenate([rows, jnp.full(rows.shape[:-1] + (1,), jnp.inf, rows.dtype)], axis=-1)
 
 
 def _row_cost(short, long, n_short, max_skip: int):
@@ -100,7 +122,13 @@ def _assignment_bound(cost, rows, cols, square, n_iter: int):
     ``Σ_i min_j (cost(i, j) + w_j) − Σ_j w_j`` is a lower bound (weak duality). w = 0 gives the row
     minima; ``n_iter`` subgradient steps (price up for columns chosen by several rows, down for
     unchosen ones) tighten it, and the best value seen is returned — every iterate is a valid bound,
-    so the step rule only affects how tight it gets.
+    so the step rule only affects how tight it gets. The rule: step ``s₀/√(t + 1)`` with s₀ half the
+    mean row minimum, and a row "chooses" every column at its minimum (ties are rare; an argmin and a
+    one-hot cost three times as much per step). Measured once on the 21,458 pairs that the search
+    refined in 100 σ = 3 px scenes (``sgm2022``, ε_δ = 0.4°): 20 steps of this rule pruned 80.4 %,
+    against 80.8 % for 40 steps of the previous rule (s₀ the mean row minimum, argmin) at ≈ 6× the
+    cost, and 80.3 % for the exact assignment optimum (SciPy's ``linear_sum_assignment`` on every
+    tenth pair; the dual cannot exceed it) — the bound is as tight as this relaxation allows.
 
     Args:
         cost: (P, Q) non-negative costs (+inf allowed off ``cols``). rows: (P,) bool rows to assign.
@@ -112,16 +140,16 @@ def _assignment_bound(cost, rows, cols, square, n_iter: int):
     """
     c = jnp.where(rows[:, None] & cols[None, :], cost, jnp.inf)
     row_min = jnp.min(c, axis=1)
-    scale = jnp.sum(jnp.where(rows, row_min, 0.0)) / jnp.maximum(jnp.sum(rows), 1)
+    scale = 0.5 * jnp.sum(jnp.where(rows, row_min, 0.0)) / jnp.maximum(jnp.sum(rows), 1)
     n_cols = cost.shape[1]
 
     def body(t, carry):
         w, best = carry
         red = c + w[None, :]
-        value = jnp.sum(jnp.where(rows, jnp.min(red, axis=1), 0.0)) - jnp.sum(jnp.where(cols, w, 0.0))
+        least = jnp.min(red, axis=1, keepdims=True)
+        value = jnp.sum(jnp.where(rows, least[:, 0], 0.0)) - jnp.sum(jnp.where(cols, w, 0.0))
         best = jnp.maximum(best, value)
-        pick = jax.nn.one_hot(jnp.argmin(red, axis=1), n_cols, dtype=cost.dtype)
-        demand = jnp.sum(jnp.where(rows[:, None], pick, 0.0), axis=0)
+        demand = jnp.sum((red == least) & rows[:, None], axis=0).astype(cost.dtype)
         w = w + scale / jnp.sqrt(t + 1.0) * (demand - 1.0)
         w = jnp.where(square, w, jnp.maximum(w, 0.0))
         return jnp.where(cols, w, 0.0), best
@@ -131,7 +159,7 @@ def _assignment_bound(cost, rows, cols, square, n_iter: int):
     return best
 
 
-def error_lower_bound(rows_i, n_i, rows_j, n_j, *, max_skip: int, n_dual: int = 40):
+def error_lower_bound(rows_i, n_i, rows_j, n_j, *, max_skip: int, n_dual: int = 20):
     """Lower bound on δ_{I,J} of eq. 5 valid for every one-to-one correspondence of min(n_I, n_J) pairs.
 
     Args:

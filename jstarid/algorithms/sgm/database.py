@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from jstarid.algorithms.sgm.bound import sorted_edges
+from jstarid.algorithms.sgm.bound import row_table, sorted_edges
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import catalog_neighbors, mst_weight
 from jstarid.catalog import cache_dir
@@ -72,25 +72,26 @@ class Database:
         return int(self.main.shape[0])
 
     @property
-    def device_adj(self) -> jax.Array:
-        """(D, K, K) adjacency as a device array (cached on first use)."""
-        cached = self.__dict__.get("_device_adj")
-        if cached is None:
-            cached = jnp.asarray(self.adj)
-            object.__setattr__(self, "_device_adj", cached)
-        return cached
-
-    @property
     def edges(self) -> np.ndarray:
         """(D, K(K − 1)/2) float32 edge lengths of each graph sorted ascending, +inf padded (deg;
         :func:`~.bound.sorted_edges`, computed on first use): the first n(n − 1)/2 entries of a row
         are its graph's edges, so a graph of ≤ r vertices is read whole from the first r(r − 1)/2."""
-        cached = self.__dict__.get("_edges")
+        return self._per_graph("_edges", sorted_edges)
+
+    @property
+    def rows(self) -> np.ndarray:
+        """(D, K, K) float32 sorted rows of each graph's adjacency, +inf padded (deg;
+        :func:`~.bound.row_table`, computed on first use): the row bound's input, sorted once."""
+        return self._per_graph("_rows", row_table)
+
+    def _per_graph(self, name: str, fn) -> np.ndarray:
+        """``fn(adj, mask)`` of every graph, in blocks of 512, kept as attribute ``name``."""
+        cached = self.__dict__.get(name)
         if cached is None:
             mask = np.arange(self.capacity)[None, :] < self.n[:, None]
-            cached = np.concatenate([np.asarray(sorted_edges(self.adj[lo:lo + 512], mask[lo:lo + 512]))
+            cached = np.concatenate([np.asarray(fn(self.adj[lo:lo + 512], mask[lo:lo + 512]))
                                      for lo in range(0, len(self), 512)])
-            object.__setattr__(self, "_edges", cached)
+            object.__setattr__(self, name, cached)
         return cached
 
 

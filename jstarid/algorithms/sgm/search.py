@@ -20,8 +20,8 @@ batch costs about as much as its hardest scenes.
 
 Branch and bound (``Config.prune``, not in the paper). Before a candidate is matched, lower bounds
 on its δ (:mod:`.bound`) are computed, in two stages: a cheap one for every candidate examined
-(:func:`~.bound.edge_lower_bound`, sorted edge lengths), and the tighter one, ≈ 5× dearer in a
-one-off timing (:func:`~.bound.error_lower_bound`, sorted rows and an assignment bound), only for
+(:func:`~.bound.edge_lower_bound`, sorted edge lengths), and the tighter one, ≈ 10× dearer per
+pair (:func:`~.bound.error_lower_bound`, sorted rows and an assignment bound), only for
 a candidate that the first has not excluded and that the search needs (:func:`_refine`). A
 candidate whose bound exceeds ε_δ can never succeed and is pruned. Once a success δ* ≤ ε_δ is known
 at level l*, a candidate below l* is still matched (it could succeed and lower l*), but one at l*
@@ -52,15 +52,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.algorithms.sgm.bound import edge_lower_bound, error_lower_bound, sorted_edges, sorted_rows
+from jstarid.algorithms.sgm.bound import edge_lower_bound, error_lower_bound, row_table, sorted_edges
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.geometry import range_search
 from jstarid.sweep import map_batch, replicate
 
 __all__ = ["candidate_windows", "order_candidates", "edge_bounds", "beyond_row_bound", "lower_bounds",
-           "prune_mask",
-           "dynamic_search", "run_pairs", "database_tables", "bucket_up", "next_pow2", "SearchState",
+           "prune_mask", "dynamic_search", "run_pairs", "database_tables", "image_tables", "bucket_up",
+           "next_pow2", "SearchState",
            "start_search", "advance_search", "search_outcome", "reject_best"]
 
 
@@ -145,11 +145,12 @@ def skip_padding(fn, live, args, dead):
 
 
 @functools.partial(jax.jit, static_argnames=("r", "max_skip"))
-def _bound_pairs(a_i, n_i, cand, db_adj, db_n, *, r, max_skip):
+def _bound_pairs(rows_i, n_i, cand, db_rows, db_n, *, r, max_skip):
     """:func:`~.bound.error_lower_bound` of N (image graph, database graph) pairs → (N,) (deg).
 
-    Vectorized over groups of 16 pairs (``vmap``); groups made only of padding pairs (``cand`` = −1)
-    are skipped (bound 0).
+    Reads sorted rows (:func:`~.bound.row_table`: the image's (N, r, r) corner, the database's whole
+    table) instead of sorting per pair. Vectorized over groups of 16 pairs (``vmap``); groups made
+    only of padding pairs (``cand`` = −1) are skipped (bound 0).
     """
     live = cand >= 0
     cand = jnp.maximum(cand, 0)
@@ -157,18 +158,15 @@ def _bound_pairs(a_i, n_i, cand, db_adj, db_n, *, r, max_skip):
     group = math.gcd(n, 16)
     bound = functools.partial(error_lower_bound, max_skip=max_skip)
 
-    def one_group(a_g, ni_g, cand_g):
-        a_j = db_adj[cand_g][:, :r, :r]
-        n_j = db_n[cand_g]
-        rows_i = sorted_rows(a_g, jnp.arange(r)[None, :] < ni_g[:, None])
-        rows_j = sorted_rows(a_j, jnp.arange(r)[None, :] < n_j[:, None])
-        return jax.vmap(bound)(rows_i, ni_g, rows_j, n_j)
+    def one_group(rows_g, ni_g, cand_g):
+        # (r, r − 1): a graph of ≤ r vertices has ≤ r − 1 finite entries per row
+        return jax.vmap(bound)(rows_g[:, :, :r - 1], ni_g, db_rows[cand_g, :r, :r - 1], db_n[cand_g])
 
     def split(x):
         return x.reshape((n // group, group) + x.shape[1:])
 
-    out = skip_padding(one_group, jnp.any(split(live), axis=1), (split(a_i), split(n_i), split(cand)),
-                       jnp.zeros((group,), jnp.float32))
+    out = skip_padding(one_group, jnp.any(split(live), axis=1),
+                       (split(rows_i), split(n_i), split(cand)), jnp.zeros((group,), jnp.float32))
     return out.reshape(n)
 
 
@@ -200,7 +198,7 @@ def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
         yield lo, hi, max(MIN_CALL_PAIRS, next_pow2(hi - lo))
 
 
-def run_pairs(kernel, key_sizes, adj_i, n_i, scene, cand, per_pair_bytes, budget, size_names, out_tails,
+def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes, budget, size_names, out_tails,
               tables, **static):
     """Run a pair kernel over flat (scene, candidate) pairs grouped by padded graph size.
 
@@ -211,11 +209,12 @@ def run_pairs(kernel, key_sizes, adj_i, n_i, scene, cand, per_pair_bytes, budget
 
     Args:
         kernel: :func:`_match_pairs` or :func:`_bound_pairs`; called as
-            ``kernel(a_i, n_i, cand, *tables, **static, **sizes)`` with the image adjacency sliced to
+            ``kernel(image_i, n_i, cand, *tables, **static, **sizes)`` with the image table sliced to
             the group's size; calls are filled up to a power of two with padding pairs whose
             ``cand`` is −1 (the kernel must skip them or give them a harmless value).
         key_sizes: (N, k) int static sizes of each pair (e.g. (p, q) or (r,)); pairs are grouped by row.
-        adj_i: (B, K, K) image adjacencies (NumPy). n_i: (B,) image vertex counts.
+        image: (B, K, K) per-scene table the kernel reads (NumPy): the image adjacencies, or their
+            sorted rows (:func:`~.bound.row_table`). n_i: (B,) image vertex counts.
         scene, cand: (N,) int scene row and database row of each pair.
         per_pair_bytes: function of the sizes → bytes one pair needs inside the kernel.
         budget: bytes per call. size_names: the kernel's static keyword for each column of
@@ -245,7 +244,7 @@ def run_pairs(kernel, key_sizes, adj_i, n_i, scene, cand, per_pair_bytes, budget
             fill[slot] = sel
             cand_fill = np.full(padded, -1, np.int64)
             cand_fill[slot] = cand[sel]
-            batched = (jnp.asarray(adj_i[scene[fill], :sizes[0], :sizes[0]]),
+            batched = (jnp.asarray(image[scene[fill], :sizes[0], :sizes[0]]),
                        jnp.asarray(n_i[scene[fill]]), jnp.asarray(cand_fill))
             res = map_batch(kernel, batched, tuple(tables),
                             static={**static, **dict(zip(size_names, sizes, strict=True))})
@@ -267,24 +266,42 @@ def _spread(n: int, padded: int, n_dev: int) -> np.ndarray:
     return (k % n_dev) * (padded // n_dev) + k // n_dev
 
 
-def database_tables(db):
-    """``(adj, n)`` of the database as device arrays on every device (placed once per database)."""
-    cached = db.__dict__.get("_tables")
+def database_tables(db, table: str = "adj"):
+    """``(db.<table>, n)`` as device arrays on every device (placed once per database and table):
+    ``"adj"`` for the spectral matching, ``"rows"`` (``Database.rows``) for the row bound."""
+    name = f"_tables_{table}"
+    cached = db.__dict__.get(name)
     if cached is None:
-        cached = replicate((db.device_adj, jnp.asarray(db.n)))
-        object.__setattr__(db, "_tables", cached)
+        cached = replicate((jnp.asarray(getattr(db, table)), jnp.asarray(db.n)))
+        object.__setattr__(db, name, cached)
     return cached
 
 
-def edge_bounds(db, adj_i, n_i, scene, rows, config: Config) -> np.ndarray:
-    """:func:`~.bound.edge_lower_bound` of (scene, candidate) pairs: the search's first-stage bound.
-
-    The database's sorted edge lists are computed once (``Database.edges``), the image graphs' once
-    per call; pairs are grouped by padded vertex count r (a list of r(r − 1)/2 entries) and each
-    group runs as one vectorized call of a power-of-two size (sharded over the devices).
+def image_tables(adj_i, n_i) -> dict:
+    """Sorted rows and edges of image graphs, the bounds' inputs (:mod:`.bound`), sorted once.
 
     Args:
-        db: the database. adj_i: (B, K, K) image adjacencies (deg). n_i: (B,) image vertex counts.
+        adj_i: (B, K, K) image adjacencies (deg). n_i: (B,) vertex counts.
+
+    Returns:
+        ``rows``: (B, K, K) :func:`~.bound.row_table`; ``edges``: (B, K(K − 1)/2)
+        :func:`~.bound.sorted_edges` (NumPy).
+    """
+    adj = jnp.asarray(adj_i)
+    mask = jnp.arange(adj.shape[-1])[None, :] < jnp.asarray(n_i)[:, None]
+    return {"rows": np.asarray(row_table(adj, mask)), "edges": np.asarray(sorted_edges(adj, mask))}
+
+
+def edge_bounds(db, image: dict, n_i, scene, rows, config: Config) -> np.ndarray:
+    """:func:`~.bound.edge_lower_bound` of (scene, candidate) pairs: the search's first-stage bound.
+
+    Both sides' sorted edge lists are read from tables sorted once (``Database.edges``,
+    :func:`image_tables`); pairs are grouped by padded vertex count r (a list of r(r − 1)/2 entries)
+    and each group runs as one vectorized call of a power-of-two size (sharded over the devices).
+
+    Args:
+        db: the database. image: :func:`image_tables` of the image graphs. n_i: (B,) image vertex
+            counts.
         scene, rows: (N,) scene and database row of each pair.
         config: :class:`Config` (``size_bucket``).
 
@@ -294,11 +311,6 @@ def edge_bounds(db, adj_i, n_i, scene, rows, config: Config) -> np.ndarray:
     lb = np.zeros(rows.size, np.float32)
     if not rows.size:
         return lb
-    uniq, local = np.unique(scene, return_inverse=True)
-    k = adj_i.shape[-1]
-    uniq = np.concatenate([uniq, np.full(next_pow2(uniq.size) - uniq.size, uniq[0])])  # few shapes
-    e_img = np.asarray(sorted_edges(jnp.asarray(adj_i[uniq]),
-                                    jnp.arange(k)[None, :] < jnp.asarray(n_i[uniq])[:, None]))
     n_j = db.n[rows]
     r = np.maximum(bucket_up(n_i[scene], config.size_bucket), bucket_up(n_j, config.size_bucket))
     for size in np.unique(r):
@@ -307,7 +319,7 @@ def edge_bounds(db, adj_i, n_i, scene, rows, config: Config) -> np.ndarray:
         padded = max(MIN_CALL_PAIRS, next_pow2(at.size))
         fill = np.concatenate([at, np.full(padded - at.size, at[0])])
         out = map_batch(_edge_bound_pairs,
-                        (jnp.asarray(e_img[local[fill], :width]), jnp.asarray(n_i[scene[fill]]),
+                        (jnp.asarray(image["edges"][scene[fill], :width]), jnp.asarray(n_i[scene[fill]]),
                          jnp.asarray(db.edges[rows[fill], :width]), jnp.asarray(n_j[fill])))
         lb[at] = np.asarray(out)[:at.size]
     return lb
@@ -319,11 +331,12 @@ def beyond_row_bound(n_i, n_j, config: Config) -> np.ndarray:
     return np.abs(np.asarray(n_i, np.int64) - np.asarray(n_j, np.int64)) > config.prune_max_skip
 
 
-def lower_bounds(db, adj_i, n_i, scene, rows, config: Config):
-    """:mod:`.bound`'s lower bound on δ of (scene, candidate) pairs.
+def lower_bounds(db, image: dict, n_i, scene, rows, config: Config):
+    """:func:`~.bound.error_lower_bound` of (scene, candidate) pairs: the search's second-stage bound.
 
     Args:
-        db: the database. adj_i: (B, K, K) image adjacencies (deg). n_i: (B,) image vertex counts.
+        db: the database. image: :func:`image_tables` of the image graphs. n_i: (B,) image vertex
+            counts.
         scene, rows: (N,) scene and database row of each pair.
         config: :class:`Config` (``prune_max_skip``, ``size_bucket``, ``memory_budget_mb``).
 
@@ -343,9 +356,9 @@ def lower_bounds(db, adj_i, n_i, scene, rows, config: Config):
         sk = np.where(s_diff[at] == 0, 0,
                       1 << np.ceil(np.log2(np.maximum(s_diff[at], 1))).astype(np.int64))
         (lb[at],) = run_pairs(
-            _bound_pairs, np.stack([r, sk], axis=1), adj_i, n_i, scene[at], rows[at],
+            _bound_pairs, np.stack([r, sk], axis=1), image["rows"], n_i, scene[at], rows[at],
             lambda r_, s_: r_ * r_ * (r_ - 1 + 3 * (s_ + 1)) * 4, config.memory_budget_mb * 2**20,
-            ("r", "max_skip"), [()], database_tables(db))
+            ("r", "max_skip"), [()], database_tables(db, "rows"))
     return lb, bounded
 
 
@@ -368,9 +381,10 @@ def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float
         (N,) bool, True for the pairs to match (pairs differing by more than ``prune_max_skip``
         vertices face the edge bound only).
     """
-    keep = ~_exceeds(edge_bounds(db, adj_i, n_i, scene, rows, config), max_error_deg)
+    image = image_tables(adj_i, n_i)
+    keep = ~_exceeds(edge_bounds(db, image, n_i, scene, rows, config), max_error_deg)
     at = np.nonzero(keep)[0]
-    lb, _ = lower_bounds(db, adj_i, n_i, scene[at], rows[at], config)
+    lb, _ = lower_bounds(db, image, n_i, scene[at], rows[at], config)
     keep[at] = ~_exceeds(lb, max_error_deg)
     return keep
 
@@ -406,6 +420,8 @@ class SearchState:
             against ε_δ (the deferred ones that are never matched come on top:
             :func:`search_outcome`).
         n_rejected: (B,) int32 answers struck out.
+        image: :func:`image_tables` of the batch's image graphs (sorted once per search; ``None``
+            without pruning).
     """
 
     cand: np.ndarray
@@ -421,6 +437,7 @@ class SearchState:
     n_matched: np.ndarray
     n_pruned: np.ndarray
     n_rejected: np.ndarray
+    image: dict | None
 
 
 def start_search(db, graphs: dict, usable: np.ndarray, config: Config) -> SearchState:
@@ -439,7 +456,8 @@ def start_search(db, graphs: dict, usable: np.ndarray, config: Config) -> Search
                        usable=np.asarray(usable, bool), err=np.full(cand.shape, np.inf, np.float32),
                        bound=np.zeros(cand.shape, np.float32), refined=np.zeros(cand.shape, bool),
                        deferred=np.zeros(cand.shape, bool), covered=zeros.copy(), matches={},
-                       n_matched=zeros.copy(), n_pruned=zeros.copy(), n_rejected=zeros.copy())
+                       n_matched=zeros.copy(), n_pruned=zeros.copy(), n_rejected=zeros.copy(),
+                       image=image_tables(graphs["adj"], graphs["n"]) if config.prune else None)
 
 
 def _first_success_level(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarray:
@@ -526,7 +544,7 @@ def _examine_block(db, graphs: dict, state: SearchState, config: Config, act: np
     if config.prune and scene.size:
         n_i = graphs["n"].astype(np.int32)
         rows = state.cand[scene, rank]
-        lb = edge_bounds(db, graphs["adj"], n_i, scene, rows, config)
+        lb = edge_bounds(db, state.image, n_i, scene, rows, config)
         keep = ~_exceeds(lb, config.max_error_deg)
         np.add.at(state.n_pruned, scene[~keep], 1)
         state.bound[scene, rank] = lb
@@ -545,7 +563,7 @@ def _refine(db, graphs: dict, state: SearchState, config: Config, scene: np.ndar
     scene, rank = scene[todo], rank[todo]
     if not scene.size:
         return
-    lb, _ = lower_bounds(db, graphs["adj"], graphs["n"].astype(np.int32), scene,
+    lb, _ = lower_bounds(db, state.image, graphs["n"].astype(np.int32), scene,
                          state.cand[scene, rank], config)
     lb = np.maximum(lb, state.bound[scene, rank])
     state.bound[scene, rank] = lb
