@@ -52,6 +52,21 @@ def _np_greedy(conf, n_i, n_j):
     return match
 
 
+def test_greedy_binarize_equals_the_one_pair_at_a_time_loop():
+    """The round-based binarization gives the sequential greedy assignment, ties included (values
+    drawn from a few levels so that rows and columns share maxima), for every shape and mask."""
+    rng = np.random.default_rng(3)
+    binarize = jax.jit(greedy_binarize)
+    for trial in range(200):
+        p, q = rng.choice([4, 8, 16], 2)
+        n_i, n_j = rng.integers(1, p + 1), rng.integers(1, q + 1)
+        levels = 3 if trial % 2 else 1000
+        conf = rng.integers(0, levels, (p, q)).astype(np.float32) / levels
+        match = np.asarray(binarize(jnp.asarray(conf), jnp.arange(p) < n_i, jnp.arange(q) < n_j))
+        np.testing.assert_array_equal(match[:n_i], _np_greedy(conf, n_i, n_j))
+        assert np.all(match[n_i:] == -1)
+
+
 def test_tiny_graph_by_hand():
     # triangle with sides 1, 2, 1.5 (deg); G_J is the same triangle with vertices permuted (2, 0, 1)
     a_i = np.array([[0, 1, 2], [1, 0, 1.5], [2, 1.5, 0]], np.float32)

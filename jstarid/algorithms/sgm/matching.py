@@ -98,6 +98,17 @@ def principal_eigenvector(k, n_iter: int, tol: float = 0.0):
 def greedy_binarize(conf, mask_i, mask_j):
     """Greedy one-to-one assignment from a confidence matrix.
 
+    The greedy rule takes the largest remaining confidence, fixes that pair and drops its row and
+    column. Computed in rounds instead of one pair at a time: in a round every pair that is the
+    largest of both its row and its column among the remaining entries is fixed at once. That is the
+    same assignment. Order the entries strictly by (confidence descending, flat index ``i·Q + j``
+    ascending), the order in which the one-at-a-time rule breaks ties. A pair that is first of its
+    row and of its column is fixed by that rule sooner or later, because only an entry
+    earlier in the order could take its row or column, and there is none (entries are only ever
+    removed). Every round fixes at least the first remaining entry, so at most min(P, Q) rounds run;
+    on the SGM pairs a few rounds do. ``argmax`` returns the first maximum, so ties follow the same
+    order.
+
     Args:
         conf: (P, Q) confidences γ(ij) ≥ 0.
         mask_i: (P,) bool image vertices.
@@ -109,19 +120,24 @@ def greedy_binarize(conf, mask_i, mask_j):
     """
     p, q = conf.shape
     neg = jnp.asarray(-jnp.inf, conf.dtype)
-    score0 = jnp.where(mask_i[:, None] & mask_j[None, :], conf, neg)
+    valid = mask_i[:, None] & mask_j[None, :]
 
-    def body(_, carry):
-        score, match = carry
-        flat = jnp.argmax(score)
-        i, j = flat // q, flat % q
-        ok = jnp.isfinite(score[i, j])
-        match = match.at[i].set(jnp.where(ok, j, match[i]))
-        cleared = score.at[i, :].set(neg).at[:, j].set(neg)
-        return jnp.where(ok, cleared, score), match
+    def cond(carry):
+        _, live_i, live_j = carry
+        return jnp.any(valid & live_i[:, None] & live_j[None, :])
 
-    _, match = jax.lax.fori_loop(0, min(p, q), body,
-                                 (score0, jnp.full((p,), -1, jnp.int32)))
+    def body(carry):
+        match, live_i, live_j = carry
+        score = jnp.where(valid & live_i[:, None] & live_j[None, :], conf, neg)
+        best_j = jnp.argmax(score, axis=1)  # (P,) first maximum of each row
+        best_i = jnp.argmax(score, axis=0)  # (Q,) first maximum of each column
+        fixed = (best_i[best_j] == jnp.arange(p)) & jnp.isfinite(jnp.max(score, axis=1))
+        match = jnp.where(fixed, best_j.astype(jnp.int32), match)
+        taken_j = jnp.zeros((q,), bool).at[best_j].max(fixed)
+        return match, live_i & ~fixed, live_j & ~taken_j
+
+    match, _, _ = jax.lax.while_loop(
+        cond, body, (jnp.full((p,), -1, jnp.int32), jnp.ones((p,), bool), jnp.ones((q,), bool)))
     return match
 
 
