@@ -105,9 +105,10 @@ def greedy_binarize(conf, mask_i, mask_j):
     ascending), the order in which the one-at-a-time rule breaks ties. A pair that is first of its
     row and of its column is fixed by that rule sooner or later, because only an entry
     earlier in the order could take its row or column, and there is none (entries are only ever
-    removed). Every round fixes at least the first remaining entry, so at most min(P, Q) rounds run;
-    on the SGM pairs a few rounds do. ``argmax`` returns the first maximum, so ties follow the same
-    order.
+    removed). Every round fixes at least the first remaining entry, so at most min(P, Q) rounds run,
+    usually far fewer: on principal eigenvectors of random graphs of 14–35 vertices the rounds took
+    about half the time of the one-pair loop (one-off timing). ``argmax`` returns the first maximum,
+    so ties follow the same order.
 
     Args:
         conf: (P, Q) confidences γ(ij) ≥ 0.
