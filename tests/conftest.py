@@ -30,3 +30,11 @@ def sgm_camera():
 @pytest.fixture
 def key():
     return jax.random.key(0)
+
+
+@pytest.fixture
+def several_devices():
+    """Skip where the default backend has one device: the forced host devices above are CPU devices,
+    and on a GPU host JAX computes on its one GPU (sharding then has nothing to split over)."""
+    if jax.device_count() < 2:
+        pytest.skip(f"one {jax.default_backend()} device: nothing to shard over")

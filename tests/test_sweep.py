@@ -9,7 +9,7 @@ import jstarid as js
 from jstarid.algorithms.sgm.search import _spread, skip_padding
 
 
-def test_use_cpu_cores_reads_an_explicit_count_and_refuses_a_late_change(monkeypatch):
+def test_use_cpu_cores_reads_an_explicit_count_and_refuses_a_late_change(monkeypatch, several_devices):
     assert js.use_cpu_cores() == jax.device_count()  # conftest set the count in XLA_FLAGS
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=7 --foo")
     assert js.use_cpu_cores() == 7
