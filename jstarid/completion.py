@@ -66,8 +66,8 @@ def name_stars(c, body, valid, star_vectors, tol_rad, isolation=1.0):
         ``tol_rad``, the second-nearest catalog star is not within ``isolation · tol_rad``, and no
         other named detection has the same row.
     """
-    ref = precise.matmul(body, c)  # (N, 3) ICRS directions: r = Cᵀ v
-    cos = precise.matmul(ref, star_vectors.T)  # (N, M)
+    ref = precise.small_matmul(body, c)  # (N, 3) ICRS directions: r = Cᵀ v
+    cos = precise.small_matmul(ref, star_vectors.T)  # (N, M), fused into the two argmaxes
     best = first_argmax(cos)  # two reductions instead of a top-2 (a sort on CPU)
     second = first_argmax(jnp.where(jnp.arange(cos.shape[1])[None, :] == best[:, None], -2.0, cos))
     # float32 cosines near 1 resolve only ≈ 3.5e-4 rad (1.4 px here): the cosines pick the two nearest

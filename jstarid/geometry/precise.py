@@ -21,7 +21,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-__all__ = ["PRECISION", "einsum", "matmul"]
+__all__ = ["PRECISION", "einsum", "matmul", "small_matmul"]
 
 PRECISION = jax.lax.Precision.HIGHEST
 
@@ -30,3 +30,29 @@ matmul.__doc__ = "``jnp.matmul`` at full float32 precision on every backend (mod
 
 einsum = functools.partial(jnp.einsum, precision=PRECISION)
 einsum.__doc__ = "``jnp.einsum`` at full float32 precision on every backend (module docstring)."
+
+
+def small_matmul(a, b):
+    """``a @ b`` for a contraction over at most 3 terms (rotations, dot products of unit vectors),
+    written out as float32 products and sums.
+
+    Exact float32 on every backend like :data:`matmul` (elementwise arithmetic has no TF32 mode), and
+    on CPU it fuses with what consumes it — a nearest-star search reduces the (N, M) cosines as they
+    are made — where a ``dot_general`` with a 3-long contraction is handed to a matrix library and
+    written out whole first. In RpNet's verification loop that made identify ≈ 3 % faster
+    (interleaved A/B in one process, README); results agree with :data:`matmul` to float32 rounding.
+
+    Args:
+        a: (..., K) with K ≤ 3.
+        b: (K, M).
+
+    Returns:
+        (..., M) float32.
+    """
+    k = a.shape[-1]
+    if k > 3 or b.ndim != 2 or b.shape[0] != k:
+        raise ValueError(f"small_matmul takes (..., K ≤ 3) @ (K, M), got {a.shape} @ {b.shape}")
+    out = a[..., 0, None] * b[0]
+    for i in range(1, k):
+        out = out + a[..., i, None] * b[i]
+    return out

@@ -12,6 +12,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import jstarid as js
 from jstarid.algorithms.sgm.matching import principal_eigenvector
@@ -90,3 +91,17 @@ def test_traced_kernels_request_float32_products():
     # and the check itself can fail: a plain product leaves the precision to the backend
     assert not _all_highest(_dot_precisions(jax.make_jaxpr(jnp.matmul)(k, k)))
     assert _all_highest(_dot_precisions(jax.make_jaxpr(precise.matmul)(k, k)))
+
+
+def test_small_matmul_is_the_product_without_a_dot():
+    rng = np.random.default_rng(3)
+    for shape_a, shape_b in [((7, 3), (3, 11)), ((2, 5, 3), (3, 4)), ((6, 2), (2, 3)), ((4, 1), (1, 5))]:
+        a, b = rng.normal(size=shape_a), rng.normal(size=shape_b)
+        got = precise.small_matmul(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32))
+        assert got.shape == np.matmul(a, b).shape and got.dtype == jnp.float32
+        np.testing.assert_allclose(np.asarray(got), a @ b, rtol=0, atol=1e-6 * np.abs(a @ b).max())
+    jaxpr = jax.make_jaxpr(precise.small_matmul)(jnp.ones((5, 3)), jnp.ones((3, 9)))
+    assert _dot_precisions(jaxpr) == []  # products and sums: exact float32 on any backend
+    for bad_a, bad_b in [((5, 4), (4, 2)), ((5, 3), (2, 2)), ((5, 3), (3,))]:
+        with pytest.raises(ValueError, match="small_matmul"):
+            precise.small_matmul(jnp.ones(bad_a), jnp.ones(bad_b))
