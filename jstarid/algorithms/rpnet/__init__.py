@@ -3,7 +3,8 @@
 Modules (one concept each): :mod:`.config` (parameters, Table 3 presets), :mod:`.guide_catalog`
 (guide reference stars, §II-A), :mod:`.pattern` (initial input, eq. 3), :mod:`.model` (generator,
 decoder, classifier; eqs. 4–6), :mod:`.data` (training batches on the fly, §II-C), :mod:`.train`
-(two-stage training, checkpoints), :mod:`.database` (cached guide catalog + networks) and
+(two-stage training, checkpoints), :mod:`.grid` (G models trained side by side in one vmapped step:
+seeds × learning rates), :mod:`.database` (cached guide catalog + networks) and
 :mod:`.identify` (weight search, eqs. 7–11, and naming of the other stars).
 
 Usage::
@@ -17,9 +18,11 @@ Usage::
 """
 
 from jstarid.algorithms.rpnet.config import Config, Thresholds, Training
-from jstarid.algorithms.rpnet.database import Database, build_database, load_database
+from jstarid.algorithms.rpnet.database import Database, build_database, database_from_variables, load_database
+from jstarid.algorithms.rpnet.grid import GridResult, grid_members, member_variables, train_grid
 from jstarid.algorithms.rpnet.guide_catalog import guide_rows, load_guide_catalog
 from jstarid.algorithms.rpnet.identify import identify
 
-__all__ = ["Config", "Database", "Thresholds", "Training", "build_database", "guide_rows", "identify",
-           "load_database", "load_guide_catalog"]
+__all__ = ["Config", "Database", "GridResult", "Thresholds", "Training", "build_database",
+           "database_from_variables", "grid_members", "guide_rows", "identify", "load_database",
+           "load_guide_catalog", "member_variables", "train_grid"]

@@ -19,10 +19,16 @@ import numpy as np
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.guide_catalog import guide_rows
 from jstarid.algorithms.rpnet.inference import InferenceWeights, fold_networks
-from jstarid.algorithms.rpnet.train import checkpoint_meta, load_checkpoint, save_checkpoint, train
+from jstarid.algorithms.rpnet.train import (
+    checkpoint_meta,
+    init_variables,
+    load_checkpoint,
+    save_checkpoint,
+    train,
+)
 from jstarid.catalog import cache_dir
 
-__all__ = ["Database", "build_database", "checkpoint_path", "load_database"]
+__all__ = ["Database", "build_database", "checkpoint_path", "database_from_variables", "load_database"]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -108,6 +114,16 @@ def load_database(path, catalog, camera, config: Config | None = None) -> Databa
     rows = guide_rows(catalog, config)
     variables = load_checkpoint(path, config, checkpoint_meta(catalog, camera, config, rows))
     return _database(catalog, camera, config, rows, variables, None, Path(path))
+
+
+def database_from_variables(catalog, camera, config: Config, variables: dict) -> Database:
+    """A :class:`Database` around given network variables (one member of a training grid,
+    :func:`~jstarid.algorithms.rpnet.grid.member_variables`); nothing is read or cached."""
+    rows = guide_rows(catalog, config)
+    expected = jax.eval_shape(lambda: init_variables(jax.random.key(0), config, len(rows)))
+    if jax.tree.map(jnp.shape, variables) != jax.tree.map(lambda a: a.shape, expected):
+        raise ValueError("variables do not have the shapes of this config's networks and guide catalog")
+    return _database(catalog, camera, config, rows, variables, None, None)
 
 
 def _database(catalog, camera, config, rows, variables, history, path) -> Database:

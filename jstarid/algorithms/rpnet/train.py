@@ -41,8 +41,8 @@ from jstarid.algorithms.rpnet.model import (
 )
 from jstarid.algorithms.rpnet.snapshot import Snapshot, load_snapshot, save_snapshot
 
-__all__ = ["checkpoint_meta", "init_variables", "load_checkpoint", "predict_logits", "save_checkpoint",
-           "train"]
+__all__ = ["batch_source", "checkpoint_meta", "clf_learning_rate", "clf_loss_fn", "dae_loss_fn",
+           "init_variables", "load_checkpoint", "predict_logits", "save_checkpoint", "train"]
 
 
 def _modules(config: Config, n_classes: int, dot_general=None):
@@ -75,7 +75,8 @@ def predict_logits(variables, inputs, *, config: Config, n_classes: int, bf16: b
     return clf.apply(variables["classifier"], z, train=False)
 
 
-def _make_dae_step(config: Config, n_classes: int, tx):
+def dae_loss_fn(config: Config, n_classes: int):
+    """Stage-1 loss ``(params, noisy, clean) → (MSE + L2, MSE)`` (eq. 5); params: generator + decoder."""
     gen, dec, _ = _modules(config, n_classes)
     l2 = config.training.l2
 
@@ -84,6 +85,46 @@ def _make_dae_step(config: Config, n_classes: int, tx):
         rec = dec.apply({"params": params["decoder"]}, z)
         mse = mse_loss(clean, rec)  # eq. 5
         return mse + l2 * l2_penalty(params), mse
+
+    return loss_fn
+
+
+def clf_loss_fn(config: Config, n_classes: int):
+    """Stage-2 loss ``(params, batch_stats, gen_params, noisy, label) → (CE + L2, (CE, batch_stats))``
+    (eq. 6) on the frozen generator's codes, BatchNorm in training mode."""
+    gen, _, clf = _modules(config, n_classes)
+    l2 = config.training.l2
+
+    def loss_fn(params, batch_stats, gen_params, noisy, label):
+        z = gen.apply({"params": gen_params}, noisy)  # frozen generator: no gradient reaches it
+        logits, new_state = clf.apply({"params": params, "batch_stats": batch_stats}, z, train=True,
+                                      mutable=["batch_stats"])
+        ce = ce_loss(logits, label)  # eq. 6
+        return ce + l2 * l2_penalty(params), (ce, new_state["batch_stats"])
+
+    return loss_fn
+
+
+def batch_source(catalog, camera, config: Config, tables, key):
+    """``next_batch(stage_key, step)``: the training batch of a step (drawn on the fly from
+    ``fold_in(stage_key, step)``, or cycled from a pool drawn once from ``key`` with
+    ``Training.pool_batches``)."""
+    t = config.training
+    if t.pool_batches:  # pool mode: n batches drawn once, cycled through by both stages
+        k_pool = jax.random.fold_in(key, 10**9)
+        pool = [make_batch(jax.random.fold_in(k_pool, i), catalog, camera, config, tables, t.batch_size)
+                for i in range(t.pool_batches)]
+
+    def next_batch(k, s):
+        if t.pool_batches:
+            return pool[s % t.pool_batches]
+        return make_batch(jax.random.fold_in(k, s), catalog, camera, config, tables, t.batch_size)
+
+    return next_batch
+
+
+def _make_dae_step(config: Config, n_classes: int, tx):
+    loss_fn = dae_loss_fn(config, n_classes)
 
     @jax.jit
     def step(params, opt_state, noisy, clean):
@@ -99,15 +140,7 @@ def _make_dae_step(config: Config, n_classes: int, tx):
 
 
 def _make_clf_step(config: Config, n_classes: int, tx):
-    gen, _, clf = _modules(config, n_classes)
-    l2 = config.training.l2
-
-    def loss_fn(params, batch_stats, gen_params, noisy, label):
-        z = gen.apply({"params": gen_params}, noisy)  # frozen generator: no gradient reaches it
-        logits, new_state = clf.apply({"params": params, "batch_stats": batch_stats}, z, train=True,
-                                      mutable=["batch_stats"])
-        ce = ce_loss(logits, label)  # eq. 6
-        return ce + l2 * l2_penalty(params), (ce, new_state["batch_stats"])
+    loss_fn = clf_loss_fn(config, n_classes)
 
     @jax.jit
     def step(params, batch_stats, opt_state, gen_params, noisy, label):
@@ -117,6 +150,12 @@ def _make_clf_step(config: Config, n_classes: int, tx):
         return optax.apply_updates(params, updates), batch_stats, opt_state, ce
 
     return step
+
+
+def clf_learning_rate(t, clf_steps: int):
+    """Stage 2's learning rate: ``t.clf_lr``, with cosine decay to 1 % over ``clf_steps`` (Table 3)."""
+    return (optax.cosine_decay_schedule(t.clf_lr, max(clf_steps, 1), alpha=0.01) if t.clf_lr_decay
+            else t.clf_lr)
 
 
 def _accuracy(variables, batch, config, n_classes) -> tuple[float, dict[str, float]]:
@@ -160,22 +199,11 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
     snapshot_every = max(1, int(snapshot_every))
     held_out = make_batch(k_eval, catalog, camera, config, tables, t.eval_size)
     dae_steps, clf_steps = t.steps(n_classes)
-    if t.pool_batches:  # pool mode: n batches drawn once, cycled through by both stages
-        k_pool = jax.random.fold_in(k_dae, 10**9)
-        pool = [make_batch(jax.random.fold_in(k_pool, i), catalog, camera, config, tables, t.batch_size)
-                for i in range(t.pool_batches)]
-
-    def next_batch(k, s):
-        if t.pool_batches:
-            return pool[s % t.pool_batches]
-        return make_batch(jax.random.fold_in(k, s), catalog, camera, config, tables, t.batch_size)
-
+    next_batch = batch_source(catalog, camera, config, tables, k_dae)
     history: dict = {"dae_loss": [], "dae_eval": [], "clf_loss": [], "clf_eval": []}
     tx_dae = optax.adam(t.dae_lr)  # stage 1: Adam at the PGN rate, no rate decay
     # stage 2: cosine rate decay and early stop (Table 3)
-    lr = (optax.cosine_decay_schedule(t.clf_lr, max(clf_steps, 1), alpha=0.01) if t.clf_lr_decay
-          else t.clf_lr)
-    tx_clf = optax.adam(lr)
+    tx_clf = optax.adam(clf_learning_rate(t, clf_steps))
     resume = None
     if snapshot_path is not None and Path(snapshot_path).exists():
         resume = load_snapshot(snapshot_path, meta, variables, lambda stage: (
