@@ -28,7 +28,7 @@ import numpy as np
 
 import jstarid as js
 from jstarid.algorithms import rpnet
-from jstarid.algorithms.rpnet.tune import pair_tables, simplex_grid, weight_grid_search
+from jstarid.algorithms.rpnet.tune import mixed_noise, pair_tables, simplex_grid, weight_grid_search
 
 PAPER_PO = (0.45, 0.30, 0.25)
 PAPER_PR = (0.60, 0.25, 0.15)
@@ -47,20 +47,6 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
-def test_noise(n: int, camera) -> tuple[js.NoiseConfig, np.ndarray]:
-    """n scenes, one quarter per family, levels cycling as in the paper's sweeps."""
-    i = np.arange(n)
-    fam, j = i % 4, i // 4
-    pos = np.where(fam == 0, 0.2 * (1 + j % 8), 0.0)
-    mag = np.where(fam == 1, np.array([0.323, 0.484, 0.646, 0.807, 0.969])[j % 5], 0.0)
-    miss = np.where(fam == 2, 1 + j % 5, 0)
-    ratio = np.where(fam == 3, 0.05 * (1 + j % 10), 0.0)
-    noise = js.NoiseConfig(position_sigma_px=pos.astype(np.float32), magnitude_sigma=mag.astype(np.float32),
-                           n_missing=miss.astype(np.int32), false_ratio=ratio.astype(np.float32),
-                           false_mag_min=0.0, false_mag_max=6.0)
-    return noise, fam
-
-
 def main(argv=None):
     args = parse_args(argv)
     n = 400 if args.quick else args.scenes
@@ -73,7 +59,7 @@ def main(argv=None):
     catalog = rpnet.load_guide_catalog(cfg)
     camera = js.camera_preset("rpnet2019")
     db = rpnet.build_database(catalog, camera, cfg)
-    noise, fam = test_noise(n, camera)
+    noise, fam = mixed_noise(n)
     k_rows, k_sim = jax.random.split(jax.random.key(args.seed))
     rows = np.asarray(db.guide_rows)[np.asarray(jax.random.randint(k_rows, (n,), 0, db.n_classes))]
     scenes = js.simulate(k_sim, catalog, camera, noise, capacity=128, boresight_ids=rows)

@@ -115,3 +115,12 @@ def test_real_images_mlv(tmp_path):
         assert e["all"]["named"] > e["own"]["named"] and e["all"]["boresight_error_arcsec"] < 60
     assert "| Azi45 |" in (tmp_path / "table.md").read_text()
     assert len(list(tmp_path.glob("*.png"))) == 4
+
+
+@pytest.mark.slow
+def test_tune_rpnet_training_tiny(tmp_path):
+    rows = _load("tune_rpnet_training").main(["--quick", "--dae-lrs", "1e-3", "3e-3", "--scenes", "8",
+                                              "--out", str(tmp_path)])
+    assert len(rows) == 2 and {r["dae_lr"] for r in rows} == {1e-3, 3e-3}
+    assert all(r["end_to_end"]["misid_rate"] == 0.0 for r in rows)
+    assert (tmp_path / "held_out.png").exists() and "| identified % |" in (tmp_path / "table.md").read_text()

@@ -83,7 +83,7 @@ def grid_members(seeds=(0,), dae_lrs=(1e-3,), clf_lrs=(1e-3,)) -> tuple[np.ndarr
     if not rows:
         raise ValueError("an empty grid: give at least one seed and one rate of each stage")
     s, d, c = zip(*rows, strict=True)
-    return np.asarray(s, np.int64), np.asarray(d, np.float32), np.asarray(c, np.float32)
+    return np.asarray(s, np.int64), np.asarray(d, np.float64), np.asarray(c, np.float64)
 
 
 def member_variables(result: GridResult, g: int) -> dict:
@@ -95,7 +95,7 @@ def member_variables(result: GridResult, g: int) -> dict:
 
 def _check(seeds, dae_lrs, clf_lrs):
     seeds = np.asarray(seeds)
-    dae_lrs, clf_lrs = np.asarray(dae_lrs, np.float32), np.asarray(clf_lrs, np.float32)
+    dae_lrs, clf_lrs = np.asarray(dae_lrs, np.float64), np.asarray(clf_lrs, np.float64)
     if not (seeds.ndim == dae_lrs.ndim == clf_lrs.ndim == 1 and seeds.size == dae_lrs.size == clf_lrs.size
             and seeds.size > 0):
         raise ValueError("seeds, dae_lrs and clf_lrs must be 1-D of one length G ≥ 1 (grid_members)")
@@ -149,7 +149,7 @@ def train_grid(catalog, camera, config: Config, guide_rows, *, seeds, dae_lrs, c
     init_keys = jnp.stack([jax.random.split(jax.random.key(int(s)), 4)[0] for s in seeds])
     variables = jax.vmap(lambda k: init_variables(k, config, n_classes))(init_keys)
     adam = optax.scale_by_adam()
-    d_lr, c_lr = jnp.asarray(dae_lrs), jnp.asarray(clf_lrs)
+    d_lr, c_lr = jnp.asarray(dae_lrs, jnp.float32), jnp.asarray(clf_lrs, jnp.float32)
 
     # Stage 1: denoising autoencoders (eq. 5), one vmapped step for all members.
     dae_loss = dae_loss_fn(config, n_classes)

@@ -23,7 +23,31 @@ import numpy as np
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.identify import PAIRS, network_candidates, pair_checks, weight_search
 
-__all__ = ["pair_tables", "simplex_grid", "weight_grid_search"]
+__all__ = ["mixed_noise", "pair_tables", "simplex_grid", "weight_grid_search"]
+
+
+def mixed_noise(n: int):
+    """The tuning scripts' test set: n scenes' noise, one quarter per family of the paper's Figs. 8–11.
+
+    Scene i has family i mod 4 and level j = i // 4, cycling through that family's levels: position
+    σ 0.2–1.6 px (step 0.2), magnitude σ ∈ {0.323, …, 0.969}, 1–5 missing stars, false-star ratio
+    5–50 % (false V 0–6).
+
+    Returns:
+        ``(noise, family)``: a :class:`jstarid.NoiseConfig` of (n,) fields and the (n,) int family.
+    """
+    from jstarid.simulator import NoiseConfig
+
+    i = np.arange(n)
+    fam, j = i % 4, i // 4
+    pos = np.where(fam == 0, 0.2 * (1 + j % 8), 0.0)
+    mag = np.where(fam == 1, np.array([0.323, 0.484, 0.646, 0.807, 0.969])[j % 5], 0.0)
+    miss = np.where(fam == 2, 1 + j % 5, 0)
+    ratio = np.where(fam == 3, 0.05 * (1 + j % 10), 0.0)
+    noise = NoiseConfig(position_sigma_px=pos.astype(np.float32), magnitude_sigma=mag.astype(np.float32),
+                        n_missing=miss.astype(np.int32), false_ratio=ratio.astype(np.float32),
+                        false_mag_min=0.0, false_mag_max=6.0)
+    return noise, fam
 
 
 def simplex_grid(step: float = 0.05, *, decreasing: bool = True) -> np.ndarray:
