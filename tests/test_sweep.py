@@ -26,6 +26,28 @@ def test_replicate_puts_a_copy_on_every_device():
     np.testing.assert_array_equal(np.asarray(x), np.arange(5))
 
 
+def test_replicate_once_places_an_owners_tables_once_per_name_and_mesh(several_devices):
+    class Owner:  # any object with a __dict__ (catalogs, indexes and databases are frozen dataclasses)
+        pass
+
+    owner, calls = Owner(), []
+
+    def make(value):
+        def fn():
+            calls.append(value)
+            return {"a": jnp.full((3,), value)}
+        return fn
+
+    first = js.sweep.replicate_once(owner, "t", make(1.0))
+    assert js.sweep.replicate_once(owner, "t", make(2.0)) is first  # placed once: make not called
+    other = js.sweep.replicate_once(owner, "u", make(3.0))
+    one = js.sweep.replicate_once(owner, "t", make(4.0), mesh=js.sweep.batch_mesh(jax.devices()[:1]))
+    assert calls == [1.0, 3.0, 4.0]
+    assert len(first["a"].sharding.device_set) == jax.device_count()
+    assert len(one["a"].sharding.device_set) == 1
+    np.testing.assert_array_equal(np.asarray(other["a"]), 3.0)
+
+
 @pytest.mark.parametrize("n, padded, n_dev", [(5, 16, 4), (16, 16, 4), (1, 16, 2), (9, 32, 1), (3, 16, 3)])
 def test_spread_deals_pairs_evenly_into_distinct_slots(n, padded, n_dev):
     slot = _spread(n, padded, n_dev)
