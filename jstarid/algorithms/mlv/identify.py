@@ -57,7 +57,7 @@ from jstarid.algorithms.mlv.voting import (
     observed_sides,
 )
 from jstarid.scene import Identification, Scene
-from jstarid.sweep import map_batch
+from jstarid.sweep import map_batch, replicate_once
 
 __all__ = ["Diagnostics", "Tuning", "default_pool", "identify", "identify_with_diagnostics",
            "identify_scene"]
@@ -335,7 +335,10 @@ def identify_with_diagnostics(database: Database, scenes: Scene, config: Config 
     """
     config = Config() if config is None else config
     # build statistics are static metadata: drop them so cached and fresh databases share a compile
-    database = dataclasses.replace(database, info=())
+    stripped = dataclasses.replace(database, info=())
+    # placed on every device once (kept on the caller's database), not copied on each chunk's call
+    database = (replicate_once(database, "mlv_identify", lambda: stripped) if jax.device_count() > 1
+                else stripped)
     b, cap = scenes.batch_size, scenes.capacity
     tuning = Tuning(
         th1=_per_scene(th1, config.th1, b, jnp.int32), th2=_per_scene(th2, config.th2, b, jnp.int32),

@@ -76,7 +76,7 @@ from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
-from jstarid.sweep import map_batch
+from jstarid.sweep import map_batch, replicate_once
 
 __all__ = ["PAIRS", "anchor_names", "identify", "name_stars", "network_candidates", "noise_sigma",
            "pair_checks", "top3_blocked", "weight_search"]
@@ -559,7 +559,11 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
 
     # the kernels compile for config.compiled(); its thresholds travel as traced values, so configs
     # that differ only there (a tolerance or coverage sweep) share every compilation
-    replicated = (database.inference_weights, guide_rows, database.star_vectors, cells, config.thresholds())
+    tables = (database.inference_weights, guide_rows, database.star_vectors)
+    if jax.device_count() > 1:  # placed on every device once, not copied on each chunk's call
+        tables = replicate_once(database, "rpnet_identify", lambda: tables)
+        cells = replicate_once(index, "device_arrays", index.device_arrays)[0]
+    replicated = (*tables, cells, config.thresholds())
     kernel_config = config.compiled()
 
     def run(subset, trials, chunk, triple=0, pool=False):

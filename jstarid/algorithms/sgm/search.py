@@ -56,7 +56,7 @@ from jstarid.algorithms.sgm.bound import edge_lower_bound, error_lower_bound, ro
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.geometry import range_search
-from jstarid.sweep import map_batch, replicate
+from jstarid.sweep import map_batch, replicate_once
 
 __all__ = ["candidate_windows", "order_candidates", "edge_bounds", "beyond_row_bound", "lower_bounds",
            "prune_mask", "dynamic_search", "run_pairs", "database_tables", "image_tables", "bucket_up",
@@ -269,12 +269,7 @@ def _spread(n: int, padded: int, n_dev: int) -> np.ndarray:
 def database_tables(db, table: str = "adj"):
     """``(db.<table>, n)`` as device arrays on every device (placed once per database and table):
     ``"adj"`` for the spectral matching, ``"rows"`` (``Database.rows``) for the row bound."""
-    name = f"_tables_{table}"
-    cached = db.__dict__.get(name)
-    if cached is None:
-        cached = replicate((jnp.asarray(getattr(db, table)), jnp.asarray(db.n)))
-        object.__setattr__(db, name, cached)
-    return cached
+    return replicate_once(db, table, lambda: (jnp.asarray(getattr(db, table)), jnp.asarray(db.n)))
 
 
 def image_tables(adj_i, n_i) -> dict:
