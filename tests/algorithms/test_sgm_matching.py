@@ -13,6 +13,7 @@ from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import mst_weight
 from jstarid.algorithms.sgm.matching import (
     affinity,
+    affinity_eigenvector,
     greedy_binarize,
     matching_error,
     principal_eigenvector,
@@ -223,6 +224,29 @@ def test_power_iteration_early_stop_agrees_with_fixed_steps():
     x_fixed = principal_eigenvector(k, 300)
     x_tol = jax.jit(principal_eigenvector, static_argnums=1)(k, 300, 1e-7)
     np.testing.assert_allclose(np.asarray(x_tol), np.asarray(x_fixed), atol=1e-5)
+
+
+@pytest.mark.parametrize("n_i, p, n_j, q, tol", [(9, 12, 9, 12, 0.0), (11, 16, 7, 8, 1e-4),
+                                                 (14, 16, 20, 24, 1e-4), (3, 8, 12, 16, 0.0)])
+def test_matrix_free_eigenvector_equals_the_written_out_one(n_i, p, n_j, q, tol):
+    """spectral_match's power steps (entries recomputed in each step) against principal_eigenvector
+    of the stored affinity matrix and against eigh's Perron vector."""
+    rng = np.random.default_rng(n_i * 100 + q)
+    a, ma = _random_graph(rng, n_i, p)
+    b, mb = _random_graph(rng, n_j, q)
+    if n_i == n_j:  # a noisy copy: a clear leading eigenvalue
+        b = a + np.where(a > 0, rng.normal(0, 0.03, a.shape), 0).astype(np.float32)
+        b = (b + b.T) / 2
+    k = affinity(jnp.asarray(a), ma, jnp.asarray(b), mb, C)
+    stored = principal_eigenvector(k, 300, tol).reshape(p, q)
+    free = jax.jit(affinity_eigenvector, static_argnums=(5, 6))(jnp.asarray(a), ma, jnp.asarray(b), mb,
+                                                                 C, 300, tol)
+    np.testing.assert_allclose(np.asarray(free), np.asarray(stored), atol=2e-6)
+    np.testing.assert_array_equal(np.asarray(free)[~ma], 0.0)  # padding rows stay zero
+    vals, vecs = np.linalg.eigh(np.asarray(k, np.float64))
+    gap = vals[-1] - max(vals[-2], -vals[0])  # power steps converge at the rate of the next |λ|
+    if tol == 0 and gap > 0.05 * vals[-1]:
+        np.testing.assert_allclose(np.asarray(free).reshape(-1), np.abs(vecs[:, -1]), atol=1e-4)
 
 
 def _brute_force_min_error(a_i, n_i, a_j, n_j):
