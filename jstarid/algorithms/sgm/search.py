@@ -228,11 +228,13 @@ def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes, budget
     Returns:
         List of the kernel outputs in pair order (NumPy arrays of shape (N,) + tail).
     """
-    outs = None
     n_dev = jax.device_count()
     groups = {}
     for idx, key in enumerate(map(tuple, key_sizes)):
         groups.setdefault(key, []).append(idx)
+    # every call is dispatched before any result is read back, so the devices work on one call
+    # while the host prepares the next (reading each result at once left them idle in between)
+    pending = []
     for sizes, members in groups.items():
         members = np.asarray(members)
         for lo, hi, padded in _batches(members.size, per_pair_bytes(*sizes), budget):
@@ -242,19 +244,23 @@ def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes, budget
             slot = _spread(sel.size, padded, n_dev)
             fill = np.full(padded, sel[0])
             fill[slot] = sel
-            cand_fill = np.full(padded, -1, np.int64)
+            cand_fill = np.full(padded, -1, np.int32)
             cand_fill[slot] = cand[sel]
-            batched = (jnp.asarray(image[scene[fill], :sizes[0], :sizes[0]]),
-                       jnp.asarray(n_i[scene[fill]]), jnp.asarray(cand_fill))
+            # host arrays go straight to their devices' slices (no staging copy on one device)
+            batched = (np.ascontiguousarray(image[scene[fill], :sizes[0], :sizes[0]]),
+                       n_i[scene[fill]].astype(np.int32), cand_fill)
             res = map_batch(kernel, batched, tuple(tables),
                             static={**static, **dict(zip(size_names, sizes, strict=True))})
-            res = res if isinstance(res, tuple) else (res,)
-            if outs is None:
-                outs = [np.full((scene.size,) + tuple(t), -1, np.asarray(r).dtype)
-                        for r, t in zip(res, out_tails, strict=True)]
-            for o, r in zip(outs, res, strict=True):
-                r = np.asarray(r)[slot]
-                o[(sel,) + tuple(slice(0, d) for d in r.shape[1:])] = r
+            pending.append((sel, slot, res if isinstance(res, tuple) else (res,)))
+    outs = None
+    for sel, slot, res in pending:
+        res = [np.asarray(r) for r in res]
+        if outs is None:
+            outs = [np.full((scene.size,) + tuple(t), -1, r.dtype)
+                    for r, t in zip(res, out_tails, strict=True)]
+        for o, r in zip(outs, res, strict=True):
+            r = r[slot]
+            o[(sel,) + tuple(slice(0, d) for d in r.shape[1:])] = r
     return outs
 
 
