@@ -10,6 +10,7 @@ verification step (the same algorithm). Call :func:`run` from ``experiments/benc
 this file.
 
     python experiments/bench_sgm.py --batch 1000
+    python experiments/bench_sgm.py --batch 1000 --sigmas 1 --set size_bucket=16
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import time
 
 import jax
 import numpy as np
+from reproduce_sgm import config_overrides
 
 import jstarid as js
 from jstarid.algorithms import sgm
@@ -31,7 +33,9 @@ def run(args) -> list[dict]:
 
     Args:
         args: namespace (or any object) with ``batch`` (int), ``sigmas`` (floats, px), ``seed``
-            (int), ``capacity`` (int) and ``mag_limit`` (float).
+            (int), ``capacity`` (int), ``mag_limit`` (float) and optionally ``set`` (a list of
+            ``"field=json"`` SGM :class:`~jstarid.algorithms.sgm.Config` overrides, e.g.
+            ``["size_bucket=16"]``, to time a setting against the defaults).
 
     Returns:
         One dict per σ: ``benchmark``, ``sigma_px``, ``batch``, ``warmup_s`` (compile + 64 scenes),
@@ -55,7 +59,7 @@ def run(args) -> list[dict]:
     n_np = int(getattr(args, "numpy_scenes", 5))
     cat = js.load_catalog(getattr(args, "mag_limit", 6.0))
     cam = js.camera_preset("sgm2022")
-    cfg = sgm.Config()
+    cfg = sgm.Config(**config_overrides(getattr(args, "set", None) or []))
     db = sgm.build_database(cat, cam, cfg)
     seed = int(getattr(args, "seed", 0))
     rng = np.random.default_rng(seed)
@@ -118,6 +122,8 @@ def _parser():
     p.add_argument("--mag-limit", type=float, default=6.0)
     p.add_argument("--numpy-scenes", type=int, default=5,
                    help="scenes for the NumPy baseline (0: skip it)")
+    p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="SGM Config overrides, e.g. size_bucket=16 power_tol=1e-4")
     p.add_argument("--json", default=None, help="also write the rows to this file")
     return p
 

@@ -100,6 +100,19 @@ def test_diagnose_sgm_tiny():
     assert len(out["mis_identified"]) == out["outcomes"].get("wrong", 0)
 
 
+
+def test_bench_sgm_tiny_with_overrides():
+    """``--set`` reaches the SGM config; noise-free scenes are all named, as by the NumPy version."""
+    _load("reproduce_sgm")  # bench_sgm imports config_overrides by name, as when run from experiments/
+    bench = _load("bench_sgm")
+    args = bench._parser().parse_args(["--batch", "64", "--sigmas", "0", "--numpy-scenes", "2",
+                                       "--set", "size_bucket=16"])
+    (row,) = bench.run(args)
+    assert row["batch"] == 64 and row["scenes_per_s"] > 0
+    assert row["accuracy"] == 1.0 and row["misid_rate"] == 0.0 and row["numpy_ids_agree"] == 1.0
+    with pytest.raises(SystemExit, match="unknown SGM config field"):
+        bench.run(bench._parser().parse_args(["--batch", "64", "--set", "no_such_field=1"]))
+
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 
 
