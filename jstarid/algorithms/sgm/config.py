@@ -47,7 +47,12 @@ class Config:
             smaller graph gets an infinite error (eq. 5 divides by min(n_I, n_J), which would let a
             1-vertex database graph match any image with error 0).
         memory_budget_mb: bound on the affinity matrices held at once by one matching call (MiB).
-        size_bucket: graph sizes are padded up to a multiple of this, to bound recompilation.
+        size_bucket: graph sizes are padded up to a multiple of this, to bound recompilation. A
+            pair's matching costs ∝ (p·q)² in the padded sizes, so a smaller bucket runs faster but
+            compiles more kernels (``bench_sgm.py --batch 1000 --set size_bucket=…``, session 22,
+            each run beside a default one: 4 gave +3–11 % scenes/s at σ = 1 px and +12–18 % at 3 px
+            for a first call 1.5× as long; 16 gave −26 % / −34 %). 8 suits interactive batches; 4
+            pays for itself over runs of several thousand noisy scenes in one process.
         vertex_check_deg: not in the paper (``None`` = off, the paper's behaviour). When set, after
             the best match every matched image vertex whose median edge residual
             ``|A_I(i,k) − A_J(π(i),π(k))|`` over the other matched vertices exceeds this (deg) is left
