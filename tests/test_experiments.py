@@ -100,7 +100,6 @@ def test_diagnose_sgm_tiny():
     assert len(out["mis_identified"]) == out["outcomes"].get("wrong", 0)
 
 
-
 def test_bench_sgm_tiny_with_overrides():
     """``--set`` reaches the SGM config; noise-free scenes are all named, as by the NumPy version."""
     _load("reproduce_sgm")  # bench_sgm imports config_overrides by name, as when run from experiments/
@@ -110,8 +109,13 @@ def test_bench_sgm_tiny_with_overrides():
     (row,) = bench.run(args)
     assert row["batch"] == 64 and row["scenes_per_s"] > 0
     assert row["accuracy"] == 1.0 and row["misid_rate"] == 0.0 and row["numpy_ids_agree"] == 1.0
+    # an override that changes the outcome: no main star has 1,000 neighbours, so every scene fails
+    (starved,) = bench.run(bench._parser().parse_args(["--batch", "64", "--sigmas", "0", "--numpy-scenes",
+                                                       "0", "--set", "min_stars=1000"]))
+    assert starved["failure_rate"] == 1.0 and starved["misid_rate"] == 0.0
     with pytest.raises(SystemExit, match="unknown SGM config field"):
         bench.run(bench._parser().parse_args(["--batch", "64", "--set", "no_such_field=1"]))
+
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 
