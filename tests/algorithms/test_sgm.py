@@ -381,6 +381,65 @@ def _verify(db, cfg, scenes, ids, ok, with_main_ambiguous=False):
     return np.asarray(out.ids), np.asarray(out.ok)
 
 
+def test_two_nearest_equals_top_k():
+    """The verification's two-nearest search (two ``argmin`` passes) returns ``lax.top_k(−d, 2)``'s
+    columns and values, ties (lowest column first) and rows with fewer than two finite entries
+    included."""
+    from jstarid.algorithms.sgm.verify import _two_nearest
+    rng = np.random.default_rng(0)
+    for trial in range(60):
+        shape = (int(rng.integers(1, 6)), int(rng.integers(2, 9)))
+        d = (rng.uniform(0, 1, shape) if trial % 3 == 0
+             else rng.choice([0.1, 0.2, 0.3, np.inf], size=shape)).astype(np.float32)
+        first, d_first, second, d_second = (np.asarray(x) for x in _two_nearest(jnp.asarray(d)))
+        neg, two = (np.asarray(x) for x in jax.lax.top_k(-jnp.asarray(d), 2))
+        np.testing.assert_array_equal(np.stack([first, second], 1), two)
+        np.testing.assert_array_equal(np.stack([d_first, d_second], 1), -neg)
+
+
+def test_verification_on_the_named_rows_only_equals_all_rows(setup):
+    """``verify_ids(max_named=M)`` tests only the named detections (compacted to M rows): the same
+    ids and ok as testing every detection slot; a scene with more than M names fails, never
+    verified partly."""
+    from jstarid.algorithms.sgm.verify import verify_ids
+    from jstarid.sky_index import build_sky_index
+    cat, cam, cfg, db = setup
+    rows = np.random.default_rng(5).choice(len(cat), 12, replace=False)
+    scenes = js.simulate(jax.random.key(23), cat, cam, js.NoiseConfig(position_sigma_px=1.5, n_false=1),
+                         capacity=CAPACITY, boresight_ids=rows)
+    truth, valid = np.asarray(scenes.truth), np.asarray(scenes.valid)
+    ids = np.where(valid, truth, -1)
+    # 6 … 17 names per scene (a match names a graph's members only)
+    ids[np.cumsum(ids >= 0, axis=1) > 6 + np.arange(len(rows))[:, None]] = -1
+    first_two = np.nonzero(ids[0] >= 0)[0][:2]
+    ids[0, first_two] = ids[0, first_two[::-1]]  # a swapped pair of names
+    n_named = np.sum(ids >= 0, axis=1)
+    cat_np = np.asarray(cat.unit_vectors, np.float64)
+    index = build_sky_index(cat_np, cam.half_diagonal_rad, key=f"sgm-frame-{cat.fingerprint}")
+    main = js.metrics.main_star_index(scenes, cam)
+
+    def run(max_named):
+        out = verify_ids(jnp.asarray(cat_np, jnp.float32), jnp.asarray(cat.mag, jnp.float32),
+                         index.device_arrays()[0], scenes.xy, scenes.mag, scenes.valid,
+                         jnp.asarray(ids), jnp.ones(len(rows), bool), jnp.asarray(main), camera=cam,
+                         grid=index.grid, k=3.5, floor_deg=0.02, cap_deg=0.3, amb_k=3.0,
+                         amb_deg=0.2, partner_joint=True, partner_k=3.5, mag_sigma=0.0, rms_z=1.0,
+                         min_matched=3, min_coverage=0.4, n_near=2 * db.capacity,
+                         max_named=max_named)
+        return [np.asarray(x) for x in out]
+
+    every = run(None)
+    assert every[1].sum() >= 6  # most scenes pass
+    for got, want in zip(run(18), every, strict=True):
+        np.testing.assert_array_equal(got, want)
+    few = run(10)  # scenes with more than 10 names fail; the others are untouched
+    many = n_named > 10
+    assert many.any() and (~many).any()
+    assert not few[1][many].any() and np.all(few[0][many] == -1)
+    np.testing.assert_array_equal(few[0][~many], every[0][~many])
+    np.testing.assert_array_equal(few[1][~many], every[1][~many])
+
+
 def test_verification_catches_a_swapped_close_pair(setup):
     """Post-match verification (our addition): swapping the ids of a close pair is never accepted."""
     cat, cam, cfg, db = setup

@@ -50,6 +50,7 @@ from jstarid.attitude import estimate_attitude
 from jstarid.metrics import nearest_to_principal_point
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index
+from jstarid.sweep import map_batch, replicate_once
 
 __all__ = ["identify", "scene_graphs"]
 
@@ -194,27 +195,41 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config):
         the scenes failed only because their main star's name is contested.
     """
     cat_np = np.asarray(db.catalog.unit_vectors, np.float64)
-    cat = jnp.asarray(cat_np, jnp.float32)
-    n_near = int(min(2 * db.capacity, cat.shape[0]))
+    n_near = int(min(2 * db.capacity, cat_np.shape[0]))
     # every catalog star within the field's half diagonal of any boresight in a cell (frame coverage)
     index = build_sky_index(cat_np, db.camera.half_diagonal_rad,
                             key=f"sgm-frame-{db.catalog.fingerprint}")
-    cells, _ = index.device_arrays()
-    cat_mag = jnp.asarray(db.catalog.mag, jnp.float32)
-    ids, ok, main_ambiguous = verify_ids(
-                         cat, cat_mag, cells, scenes.xy, scenes.mag, scenes.valid, result.ids,
-                         result.ok, jnp.asarray(main), camera=db.camera, grid=index.grid,
-                         k=float(config.verify_k), floor_deg=float(config.verify_floor_deg),
-                         cap_deg=float(config.verify_cap_deg),
-                         amb_k=float(config.verify_ambiguity_k),
-                         amb_deg=float(config.verify_ambiguity_deg),
-                         partner_joint=bool(config.verify_partner_joint),
-                         partner_k=float(config.verify_partner_k),
-                         mag_sigma=float(config.verify_magnitude_sigma or 0.0),
-                         rms_z=float(config.verify_rms_z),
-                         min_matched=int(config.min_matched),
-                         min_coverage=float(config.verify_min_coverage), n_near=n_near)
+    # the catalog tables on every device once per database (the scenes are split over the devices)
+    tables = replicate_once(db, "verify", lambda: (
+        jnp.asarray(cat_np, jnp.float32), jnp.asarray(db.catalog.mag, jnp.float32),
+        index.device_arrays()[0]))
+    # identify names only the neighbor graph's members (at most its capacity K): the ambiguity tests
+    # then run on K rows, not on every detection slot; more names (a caller's own) → all slots
+    n_named = int(np.max(np.sum(np.asarray(result.ids) >= 0, axis=1), initial=0))
+    max_named = int(db.capacity) if n_named <= db.capacity else None
+    ids, ok, main_ambiguous = map_batch(
+        _verify_scenes, (scenes.xy, scenes.mag, scenes.valid, result.ids, result.ok,
+                         jnp.asarray(main)), tables,
+        static=dict(camera=db.camera, grid=index.grid,
+                    k=float(config.verify_k), floor_deg=float(config.verify_floor_deg),
+                    cap_deg=float(config.verify_cap_deg),
+                    amb_k=float(config.verify_ambiguity_k),
+                    amb_deg=float(config.verify_ambiguity_deg),
+                    partner_joint=bool(config.verify_partner_joint),
+                    partner_k=float(config.verify_partner_k),
+                    mag_sigma=float(config.verify_magnitude_sigma or 0.0),
+                    rms_z=float(config.verify_rms_z),
+                    min_matched=int(config.min_matched),
+                    min_coverage=float(config.verify_min_coverage), n_near=n_near,
+                    max_named=max_named))
     return Identification(ids=ids, ok=ok, attitude=None), np.asarray(main_ambiguous)
+
+
+def _verify_scenes(xy, mag, valid, ids, ok, main, cat, cat_mag, cells, **settings):
+    """:func:`~jstarid.algorithms.sgm.verify.verify_ids` with the scenes first and the tables after,
+    the argument order of :func:`jstarid.sweep.map_batch` (which splits the scenes over the devices:
+    the verification works on each scene alone)."""
+    return verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, **settings)
 
 
 def _rename_and_reverify(db, scenes: Scene, verified: Identification, g, config: Config):
