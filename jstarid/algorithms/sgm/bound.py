@@ -106,11 +106,14 @@ def _row_cost(short, long, n_short, max_skip: int):
         for u in range(max_skip + 1):  # unrolled: (P, Q) planes vectorize well, the u axis is tiny
             best = jnp.minimum(best, d[u])  # non-decreasing skips: min over u' ≤ u
             out.append((x - y[None, :, u]) ** 2 + best)
-        return jnp.where(t < n_short, jnp.stack(out), d)
+        return jnp.stack(out)
 
     zeros = jnp.zeros((short.shape[0], long.shape[0]), jnp.float32)
     d0 = jnp.stack([zeros] + [zeros + big] * max_skip)
-    d = jax.lax.fori_loop(0, r, step, d0)
+    # n_short steps, not R: a loop over all R columns that left the planes unchanged past n_short
+    # took 1.3–2× as long with the same (bitwise) result (one-off timing of 256 real pairs per
+    # size, R = 16–32, s_max = 4 and 8)
+    d = jax.lax.fori_loop(0, jnp.minimum(n_short, r), step, d0)
     return jnp.min(d, axis=0)
 
 
