@@ -110,8 +110,8 @@ def _upper_rms(resid, mask, z: float):
 
 def _two_nearest(d):
     """Column and value of the two smallest entries of each row of d (R, N), lowest column first on
-    ties — ``lax.top_k(−d, 2)``, which on a CPU cost ≈ 0.8 ms per scene (R = 112, N = 128: 70 % of
-    the verification) against a few µs for two ``argmin`` passes.
+    ties — ``lax.top_k(−d, 2)``, which on a CPU cost ≈ 0.9 ms per scene (R = 112, N = 128: over half
+    of the verification, session 23) against a few µs for two ``argmin`` passes.
 
     Returns:
         ``(first, d_first, second, d_second)``: (R,) int32, (R,) float, (R,) int32, (R,) float.
