@@ -298,3 +298,25 @@ def test_error_lower_bound_never_exceeds_the_best_correspondence():
     assert float(bound(r, 6, r, 6, max_skip=2)) < 1e-6
     b, mb = _random_graph(rng, 2, 8)
     assert float(bound(r, 6, sorted_rows(jnp.asarray(b), mb), 2, max_skip=2)) == 0.0
+
+
+def test_row_cost_is_the_cheapest_monotone_assignment():
+    """The row bound's programme (``bound._row_cost``) against brute force: every short row of
+    ``n_short`` entries (fewer than the table's R columns, +inf padded) placed in order into each long
+    row, skipping at most ``max_skip`` long entries before each one."""
+    from jstarid.algorithms.sgm.bound import _row_cost
+    rng = np.random.default_rng(12)
+    for n_short, s, max_skip in [(3, 2, 2), (4, 1, 3), (2, 3, 3), (5, 0, 2), (3, 3, 2)]:
+        r = 7  # table width: entries past n_short (short) / n_short + s (long) are +inf padding
+        short = np.full((3, r), np.inf, np.float32)
+        long = np.full((4, r), np.inf, np.float32)
+        short[:, :n_short] = np.sort(rng.uniform(0, 5, (3, n_short)), axis=1)
+        long[:, :n_short + s] = np.sort(rng.uniform(0, 5, (4, n_short + s)), axis=1)
+        got = np.asarray(_row_cost(jnp.asarray(short), jnp.asarray(long), n_short, max_skip))
+        want = np.full((3, 4), np.inf)
+        for i, j in itertools.product(range(3), range(4)):
+            for pos in itertools.combinations(range(n_short + s), n_short):
+                if all(p - t <= max_skip for t, p in enumerate(pos)):
+                    cost = np.sum((short[i, :n_short] - long[j, list(pos)]) ** 2)
+                    want[i, j] = min(want[i, j], cost)
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)

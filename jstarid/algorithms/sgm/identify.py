@@ -194,23 +194,33 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config):
         ``(Identification, main_ambiguous)``: the verified ids and ok, and (B,) NumPy bool for
         the scenes failed only because their main star's name is contested.
     """
-    cat_np = np.asarray(db.catalog.unit_vectors, np.float64)
-    n_near = int(min(2 * db.capacity, cat_np.shape[0]))
-    # every catalog star within the field's half diagonal of any boresight in a cell (frame coverage)
-    index = build_sky_index(cat_np, db.camera.half_diagonal_rad,
-                            key=f"sgm-frame-{db.catalog.fingerprint}")
-    # the catalog tables on every device once per database (the scenes are split over the devices)
-    tables = replicate_once(db, "verify", lambda: (
-        jnp.asarray(cat_np, jnp.float32), jnp.asarray(db.catalog.mag, jnp.float32),
-        index.device_arrays()[0]))
+    tables, settings = _verify_inputs(db, config)
     # identify names only the neighbor graph's members (at most its capacity K): the ambiguity tests
     # then run on K rows, not on every detection slot; more names (a caller's own) → all slots
     n_named = int(np.max(np.sum(np.asarray(result.ids) >= 0, axis=1), initial=0))
     max_named = int(db.capacity) if n_named <= db.capacity else None
     ids, ok, main_ambiguous = map_batch(
         _verify_scenes, (scenes.xy, scenes.mag, scenes.valid, result.ids, result.ok,
-                         jnp.asarray(main)), tables,
-        static=dict(camera=db.camera, grid=index.grid,
+                         jnp.asarray(main)), tables, static={**settings, "max_named": max_named})
+    return Identification(ids=ids, ok=ok, attitude=None), np.asarray(main_ambiguous)
+
+
+def _verify_inputs(db, config: Config):
+    """The catalog tables and the static settings of :func:`~jstarid.algorithms.sgm.verify.verify_ids`
+    for a database and a config (``max_named`` excepted).
+
+    Returns:
+        ``(tables, settings)``: ``(cat, cat_mag, cells)`` placed on every device once per database
+        (the scenes are split over the devices), and a dict of the keyword arguments.
+    """
+    cat_np = np.asarray(db.catalog.unit_vectors, np.float64)
+    # every catalog star within the field's half diagonal of any boresight in a cell (frame coverage)
+    index = build_sky_index(cat_np, db.camera.half_diagonal_rad,
+                            key=f"sgm-frame-{db.catalog.fingerprint}")
+    tables = replicate_once(db, "verify", lambda: (
+        jnp.asarray(cat_np, jnp.float32), jnp.asarray(db.catalog.mag, jnp.float32),
+        index.device_arrays()[0]))
+    settings = dict(camera=db.camera, grid=index.grid,
                     k=float(config.verify_k), floor_deg=float(config.verify_floor_deg),
                     cap_deg=float(config.verify_cap_deg),
                     amb_k=float(config.verify_ambiguity_k),
@@ -220,9 +230,9 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config):
                     mag_sigma=float(config.verify_magnitude_sigma or 0.0),
                     rms_z=float(config.verify_rms_z),
                     min_matched=int(config.min_matched),
-                    min_coverage=float(config.verify_min_coverage), n_near=n_near,
-                    max_named=max_named))
-    return Identification(ids=ids, ok=ok, attitude=None), np.asarray(main_ambiguous)
+                    min_coverage=float(config.verify_min_coverage),
+                    n_near=int(min(2 * db.capacity, cat_np.shape[0])))
+    return tables, settings
 
 
 def _verify_scenes(xy, mag, valid, ids, ok, main, cat, cat_mag, cells, **settings):
