@@ -113,11 +113,12 @@ def _row_cost(short, long, n_short, max_skip: int):
     # n_short steps, not R: a loop over all R columns that left the planes unchanged past n_short
     # took 1.3–2× as long with the same (bitwise) result (one-off timing of 256 real pairs per
     # size, R = 16–32, s_max = 4 and 8)
-    # Tried and left (session 24): writing all R steps out (masked past n_short) lets XLA fuse the
-    # programme into one elementwise kernel — 1.6–1.8× faster for the whole row-bound stage on the
-    # 76,498 pairs of 1,000 σ = 1 px scenes (3.0–3.3 → 1.7–2.1 s, same bounds), ≈ 4 % more
-    # scenes/s in bench_sgm.py, but 30–43 s more compilation in the first call (one kernel per
-    # size, skip count and call size), which only pays back after ≈ 30,000 scenes
+    # Tried and left (session 24, one-off timings): writing all R steps out (masked past n_short)
+    # lets XLA fuse the programme into one elementwise kernel — the row-bound stage on the 76,498
+    # pairs of 1,000 σ = 1 px scenes took 1.7–2.1 s instead of 3.0–3.3 s (same bounds), bench_sgm.py
+    # gave ≈ 4 % more scenes/s (50.2 / 55.1 against 50.9 / 50.1 at σ = 1 px, 17.4 / 17.9 against
+    # 16.8 / 17.3 at 3 px, interleaved), but the stage's first call compiled 30–43 s longer (one
+    # kernel per size, skip count and call size), which pays back only after ≈ 30,000 scenes
     d = jax.lax.fori_loop(0, jnp.minimum(n_short, r), step, d0)
     return jnp.min(d, axis=0)
 
