@@ -5,6 +5,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
@@ -115,6 +116,18 @@ def test_bench_sgm_tiny_with_overrides():
     assert starved["failure_rate"] == 1.0 and starved["misid_rate"] == 0.0
     with pytest.raises(SystemExit, match="unknown SGM config field"):
         bench.run(bench._parser().parse_args(["--batch", "64", "--set", "no_such_field=1"]))
+
+
+def test_bench_sgm_matching_tail():
+    """The tail figures of the matchings per scene, checked on a hand-made batch."""
+    bench = _load("bench_sgm")
+    counts = np.array([1] * 95 + [100] * 5)  # 5 scenes (the top 5 %) hold 500 of 595 matchings
+    tail = bench.matching_tail(counts[::-1])
+    assert tail["matched_median"] == 1.0 and tail["matched_top5_share"] == round(500 / 595, 3)
+    assert tail["matched_p99"] == 100.0 and tail["matched_p90"] == 1.0
+    # 7 scenes: the top 5 % is one scene (rounded up); nothing matched gives a share of 0
+    assert bench.matching_tail([0, 0, 0, 0, 0, 0, 6])["matched_top5_share"] == 1.0
+    assert bench.matching_tail(np.zeros(10))["matched_top5_share"] == 0.0
 
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
