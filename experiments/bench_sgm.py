@@ -123,9 +123,9 @@ def matching_tail(n_matched) -> dict:
     """How the spectral matchings spread over the scenes of a batch.
 
     Under noise a few scenes hold most of the work: Algorithm 1 must show that every candidate of
-    the Δw levels below the one that succeeds fails, and a scene whose MST weight moved (a star
-    crossed the neighbor circle) succeeds only at a wide Δw, after matching the hundreds of
-    candidates the bound cannot exclude. The mean alone hides that.
+    the Δw levels below the one that succeeds fails, and a scene whose MST weight lies far from its
+    true graph's (e.g. a star crossed the neighbor circle) succeeds only at a wide Δw, after matching
+    the hundreds of candidates the bound cannot exclude. The mean alone hides that.
 
     Args:
         n_matched: (B,) spectral matchings run per scene.

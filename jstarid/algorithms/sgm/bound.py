@@ -43,7 +43,9 @@ Cauchy interlacing for the unmatched vertices excluded 0.15 % of them, an inject
 assignment of the sorted edge lengths (a dynamic programme over skipped long-side edges) 1.4 %.
 This bound without its skip limit (``max_skip`` 40) excluded 16–23 % of the 25 % of matched pairs
 whose vertex counts differ by more than 8 (the default ``Config.prune_max_skip``), ≈ 5 % of the
-matchings, for a bound that costs more with every skip.
+matchings, for a bound that costs more with every skip. The failing pairs' power iteration stops
+after 5–8 steps (10th–90th percentile, 300 matched pairs sampled; the succeeding ones 7–12), so a
+faster eigensolver would not make their matchings much cheaper either.
 """
 
 from __future__ import annotations
