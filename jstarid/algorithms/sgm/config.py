@@ -235,6 +235,16 @@ class Config:
         """The largest Δw Algorithm 1 searches (deg)."""
         return self.dw0_deg + (self.n_levels - 1) * self.dw_step_deg
 
+    def paper_only(self) -> Config:
+        """This config without the extensions that change the outcome: the paper's algorithm alone.
+
+        Turns off the post-match verification (``verify``) and the leftover naming
+        (``leftover_tol_deg``); the branch and bound (``prune``) stays, since it changes only the
+        work (:mod:`~jstarid.algorithms.sgm.search`). What a plain re-implementation of the paper
+        (``experiments/sgm_numpy_reference.py``) returns, id for id.
+        """
+        return dataclasses.replace(self, verify=False, leftover_tol_deg=None)
+
     def database_key(self) -> dict:
         """The fields that shape the database (the cache key, with the catalog fingerprint)."""
         return {"radius_deg": float(self.radius_deg), "neighbor_capacity": self.neighbor_capacity,
