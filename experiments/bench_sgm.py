@@ -113,8 +113,8 @@ def run(args) -> list[dict]:
               f"{row['matched_p99']:g}, top 5 % of scenes {100 * row['matched_top5_share']:.0f} %)  "
               f"acc={ev['accuracy']:.4f} "
               f"fail={ev['failure_rate']:.4f} misid={ev['misid_rate']:.4f}  NumPy "
-              f"{np_rate:.3f} scenes/s → ×{row['speedup_vs_numpy']}, ids agree {agree:.2f}",
-              flush=True)
+              f"{np_rate:.3f} scenes/s → ×{row['speedup_vs_numpy']}, ids agree {agree:.2f}  "
+              f"peak RSS {row['peak_rss_mb']} MB", flush=True)
     return out
 
 
