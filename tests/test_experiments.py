@@ -1,4 +1,5 @@
-"""Smoke tests of the experiment scripts at tiny sizes (slow: run with ``pytest -m slow``)."""
+"""Tests of the experiment scripts and the NumPy SGM reference at tiny sizes (the heavy ones are
+marked slow: run with ``pytest -m slow``)."""
 
 import dataclasses
 import importlib.util

@@ -590,7 +590,7 @@ def test_grid_replay_equals_separate_searches(setup5):
     """One c × ε_δ grid evaluation (tuning module) gives each grid point's own Algorithm 1 result."""
     from jstarid.algorithms.sgm import tuning
     cat, cam, db = setup5
-    base = sgm.Config(dw_max_deg=0.5, verify=False, leftover_tol_deg=None)
+    base = sgm.Config(dw_max_deg=0.5).paper_only()
     rows, scenes, g, usable = _noisy_graphs(setup5, base, n=6, seed=3, key=9)
     cs, eps = [1.0, 1.74], [0.05, 0.1, 0.4]
     errors = tuning.candidate_errors(db, g, usable, base, cs, max(eps))

@@ -33,14 +33,14 @@ branch and bound, 2.34 / 19.33 / 52.22 with the row bound alone, 1.12 / 18.52 / 
 stages; the ids and J* were identical).
 
 Why the search keeps Algorithm 1's order instead of matching by bound. A best-first search (match
-each scene's candidates in ascending bound order over the whole Δw_max window and accept the first δ
-≤ ε_δ) is not the paper's, and was tried to see whether it would pay (one-off scratch run, session
-26, 300 scenes at σ = 1 px, default Config, before the post-match verification, at most 400
-matchings per scene): it ran 55.0 spectral matchings per scene (median 15, 99th percentile 375)
-against Algorithm 1's 17.2, and named the wrong main star in 20.7 % of the scenes against 8.7 % (σ =
-3 px: 145.5 matchings, median 107, against 51.4, and 22.3 % wrong against 10.0 %). The bound ranks
-candidates worse than |w_J − w_I| does (a window held 2,247 candidates per scene, 658 of them with a
-bound ≤ ε_δ), so it serves to prune, not to order.
+each scene's candidates in ascending bound order over the whole Δw_max window and accept the first
+δ ≤ ε_δ) is not the paper's, and was tried to see whether it would pay (one-off scratch run,
+session 26, 300 scenes at σ = 1 px, default Config, before the post-match verification, at most
+400 matchings per scene): it ran 55.0 spectral matchings per scene (median 15, 99th percentile
+375) against Algorithm 1's 17.2, and named the wrong main star in 20.7 % of the scenes against
+8.7 % (at σ = 3 px: 145.5 matchings, median 107, against 51.4, and 22.3 % wrong against 10.0 %).
+The bound ranks candidates worse than |w_J − w_I| does (a window held 2,247 candidates per scene,
+658 of them with a bound ≤ ε_δ), so it serves to prune, not to order.
 
 Resumption. The search keeps δ of every candidate it has matched and the bound of every deferred
 one (:class:`SearchState`). When the post-match verification rejects the answer J*
