@@ -212,7 +212,7 @@ def run(args) -> list[dict]:
         opt["batch_note"] = f"batch {opt['batch']} raised to {MIN_BATCH} for rpnet"
         print(f"(rpnet: {opt['batch_note']})", flush=True)
         opt["batch"] = MIN_BATCH
-    cfg = rpnet.Config.quick() if opt["config"] == "quick" else rpnet.Config.paper()
+    cfg = rpnet.Config.quick() if opt["config"] == "quick" else rpnet.Config()
     catalog = rpnet.load_guide_catalog(cfg)
     camera = js.camera_preset("rpnet2019")
     db = rpnet.build_database(catalog, camera, cfg, progress=False)

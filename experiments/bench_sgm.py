@@ -6,7 +6,7 @@ scenes twice: the first call (``first_call_s``) may still compile a few shape bu
 (``steady_s``) runs compiled code only; scenes/s = B / ``steady_s``. Side by side, the
 straightforward NumPy implementation (``sgm_numpy_reference.py``: per-candidate ``np.linalg.eig``,
 Python loops) runs on the first ``--numpy-scenes`` scenes; its ids are compared with ours without the
-post-match verification and the leftover naming (``Config.paper_only``: the same algorithm; the
+post-match verification and the leftover naming (``Config.paper``: the same algorithm; the
 leftover naming also names stars of the circle that a J* with fewer vertices leaves unmatched).
 Call :func:`run` from ``experiments/benchmark.py`` or run this file.
 
@@ -43,7 +43,7 @@ def run(args) -> list[dict]:
         ``first_call_s`` (B scenes, may compile more), ``steady_s`` (B scenes, compiled),
         ``scenes_per_s``, ``compile_s`` (warm-up estimate), ``matched_per_scene`` /
         ``pruned_per_scene`` (spectral matchings run and candidates the bound removed, mean per
-        scene; from ``identify(..., details=True)``), the tail of the matchings per scene
+        scene; from ``identify(..., diagnostics=True)``), the tail of the matchings per scene
         (:func:`matching_tail`: ``matched_median``, ``matched_p90``, ``matched_p99``,
         ``matched_top5_share``), ``accuracy``,
         ``failure_rate``, ``misid_rate``, ``numpy_scenes_per_s``, ``speedup_vs_numpy``,
@@ -62,7 +62,8 @@ def run(args) -> list[dict]:
     n_np = int(getattr(args, "numpy_scenes", 5))
     cat = js.load_catalog(getattr(args, "mag_limit", 6.0))
     cam = js.camera_preset("sgm2022")
-    cfg = sgm.Config(**config_overrides(getattr(args, "set", None) or []))
+    overrides = config_overrides(getattr(args, "set", None) or [])
+    cfg = sgm.Config(**overrides)
     db = sgm.build_database(cat, cam, cfg)
     seed = int(getattr(args, "seed", 0))
     rng = np.random.default_rng(seed)
@@ -77,7 +78,7 @@ def run(args) -> list[dict]:
         sgm.identify(db, scenes[:64], cfg, with_attitude=False)
         warm = time.perf_counter() - t0
         t0 = time.perf_counter()
-        first_res, info = sgm.identify(db, scenes, cfg, with_attitude=False, details=True)
+        first_res, info = sgm.identify(db, scenes, cfg, with_attitude=False, diagnostics=True)
         jax.block_until_ready(first_res.ids)
         first = time.perf_counter() - t0  # may compile the buckets the warm-up did not meet
         t0 = time.perf_counter()
@@ -92,15 +93,16 @@ def run(args) -> list[dict]:
             t0 = time.perf_counter()
             np_ids = [ref.identify_scene(db, xy[s], valid[s], cfg)[0] for s in range(n_np)]
             np_rate = n_np / (time.perf_counter() - t0)
-            paper = sgm.identify(db, scenes[:n_np], cfg.paper_only(), with_attitude=False)
+            paper = sgm.identify(db, scenes[:n_np], sgm.Config.paper(**overrides),
+                                 with_attitude=False)
             agree = float(np.mean([np.array_equal(a, b)
                                    for a, b in zip(np_ids, np.asarray(paper.ids), strict=True)]))
         row = {"benchmark": "sgm", "sigma_px": float(sigma), "batch": batch, "warmup_s": warm,
                "first_call_s": first, "steady_s": steady, "scenes_per_s": round(batch / steady, 2),
                "compile_s": round(warm, 1), "accuracy": ev["accuracy"],
-               "matched_per_scene": round(float(np.mean(info["n_matched_graphs"])), 2),
-               "pruned_per_scene": round(float(np.mean(info["n_pruned"])), 1),
-               **matching_tail(info["n_matched_graphs"]),
+               "matched_per_scene": round(float(np.mean(info.n_matched)), 2),
+               "pruned_per_scene": round(float(np.mean(info.n_pruned)), 1),
+               **matching_tail(info.n_matched),
                "failure_rate": ev["failure_rate"], "misid_rate": ev["misid_rate"],
                "numpy_scenes": n_np, "numpy_scenes_per_s": round(np_rate, 3),
                "speedup_vs_numpy": round(batch / steady / np_rate, 1), "numpy_ids_agree": agree,

@@ -9,7 +9,7 @@ attitude) to the star it was named after and to its own star::
     python experiments/diagnose_sgm.py --experiment lost --sigma 0 --n-stars 800
     python experiments/diagnose_sgm.py --experiment lost --sigma 2.5 --batches 3   # full size, rows 768–1023
 
-Failure causes (from ``identify(..., details=True)``): ``unusable`` (too few stars, or overflow),
+Failure causes (from ``identify(..., diagnostics=True)``): ``unusable`` (too few stars, or overflow),
 ``no δ ≤ ε_δ`` (Algorithm 1 found no match), ``main star contested`` (the match passed every test but
 a close rival star contests the main star's name), ``matches rejected`` (the verification rejected
 every match the search offered, the retries included).
@@ -32,11 +32,11 @@ OUTCOME_NAMES = {js.metrics.CORRECT: "correct", js.metrics.INCOMPLETE: "incomple
 
 def failure_cause(info: dict, s: int) -> str:
     """The cause of scene ``s``'s failure, from :func:`~jstarid.algorithms.sgm.identify` details."""
-    if not info["usable"][s]:
+    if not info.usable[s]:
         return "unusable"
-    if info["main_contested"][s]:
+    if info.main_contested[s]:
         return "main star contested"
-    if not info["match_ok"][s] and info["n_rejected"][s] == 0:
+    if not info.match_ok[s] and info.n_rejected[s] == 0:
         return "no δ ≤ ε_δ"
     return "matches rejected"
 
@@ -66,15 +66,15 @@ def diagnose(cfg: ExpConfig, exp: str, sigma: float, batches=None) -> dict:
     rows = main_star_rows(cfg, cat)
     outcomes, causes, retried, wrong = Counter(), Counter(), 0, []
     for start, scenes in level_scenes(cfg, cat, cam, rows, exp, sigma, batches):
-        res, info = sgm.identify(db, scenes, scfg, details=True)
+        res, info = sgm.identify(db, scenes, scfg, diagnostics=True)
         code = np.asarray(js.scene_outcomes(scenes, res, "sgm", camera=cam,
                                             radius_deg=scfg.radius_deg)["outcome"])
         outcomes.update(OUTCOME_NAMES[int(c)] for c in code)
-        retried += int(np.sum((code == js.metrics.CORRECT) & (info["n_rejected"] > 0)))
+        retried += int(np.sum((code == js.metrics.CORRECT) & (info.n_rejected > 0)))
         causes.update(failure_cause(info, s) for s in np.nonzero(code == js.metrics.FAIL)[0])
         for s in np.nonzero(code == js.metrics.WRONG)[0]:
-            wrong.append({"main_star_row": int(rows[start + s]), "n_rejected": int(info["n_rejected"][s]),
-                          "level": int(info["level"][s]), "delta_deg": float(info["error"][s]),
+            wrong.append({"main_star_row": int(rows[start + s]), "n_rejected": int(info.n_rejected[s]),
+                          "level": int(info.level[s]), "delta_deg": float(info.error[s]),
                           "names": wrong_names(scenes, res, cam, cat, s)})
     return {"experiment": exp, "sigma_px": sigma, "outcomes": dict(outcomes),
             "correct_after_rejections": retried, "failure_causes": dict(causes),

@@ -153,7 +153,7 @@ def main(argv=None):
         db = algo.build_database(catalog, camera, cfg)
         t0 = time.perf_counter()
         if algo_name == "sgm":  # with the diagnostics of why a scene failed
-            result, info = algo.identify(db, scenes, cfg, details=True)
+            result, info = algo.identify(db, scenes, cfg, diagnostics=True)
         else:
             result, info = algo.identify(db, scenes, cfg), None
         timings[algo_name] = time.perf_counter() - t0
@@ -178,11 +178,11 @@ def main(argv=None):
                                       att, reference[name]["boresight_ra_deg"],
                                       reference[name]["boresight_dec_deg"]), 1) if have else None))
             if info is not None:
-                main_hip = int(truth[info["main"][i]])
+                main_hip = int(truth[info.main[i]])
                 row = catalog.row_of_hip([main_hip])[0] if main_hip > 0 else -1
                 graphs = np.nonzero(db.main == row)[0] if row >= 0 else []
                 entry["sgm_details"] = dict(
-                    image_graph_vertices=int(info["n_i"][i]), best_error_deg=float(info["error"][i]),
+                    image_graph_vertices=int(info.n_i[i]), best_error_deg=float(info.error[i]),
                     main_star_hip=main_hip, main_star_in_catalog=bool(row >= 0),
                     main_star_database_graph_vertices=[int(db.n[g]) for g in graphs])
             per_image[i]["algorithms"][algo_name] = entry

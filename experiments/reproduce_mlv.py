@@ -88,7 +88,7 @@ def run_sweep(name, key, catalog, camera, db, cfg, n, capacity):
                          capacity=capacity)
     t_sim = time.perf_counter() - t0
     t0 = time.perf_counter()
-    result, diag = mlv.identify_with_diagnostics(db, scenes, cfg)
+    result, diag = mlv.identify(db, scenes, cfg, diagnostics=True)
     result.ids.block_until_ready()
     t_id = time.perf_counter() - t0
     rows = []

@@ -84,7 +84,7 @@ def parse_args(argv=None):
 
 
 def make_config(args) -> rpnet.Config:
-    cfg = rpnet.Config.quick() if args.config == "quick" else rpnet.Config.paper()
+    cfg = rpnet.Config.quick() if args.config == "quick" else rpnet.Config()
     if args.n_pair_trials is not None:
         cfg = dataclasses.replace(cfg, n_pair_trials=args.n_pair_trials)
     if args.n_guide_triples is not None:

@@ -141,14 +141,14 @@ def _run_level(cfg, scfg, cat, cam, db, rows, exp, sigma) -> dict:
     outcomes, fake_in, ceiling, confident, n_graphs = [], [], [], [], []
     t0 = time.perf_counter()
     for _, scenes in level_scenes(cfg, cat, cam, rows, exp, sigma):
-        res, info = sgm.identify(db, scenes, scfg, details=True)
+        res, info = sgm.identify(db, scenes, scfg, diagnostics=True)
         out_s = js.scene_outcomes(scenes, res, "sgm", camera=cam, radius_deg=scfg.radius_deg)
         outcomes.append(np.asarray(out_s["outcome"]))
         fake_in.append(_fake_inside(scenes, cam, scfg.radius_deg))
         ceiling.append(naming_ceiling(scenes, cat, cam, radius_deg=scfg.radius_deg))
         confident.append(naming_ceiling(scenes, cat, cam, radius_deg=scfg.radius_deg,
                                         margin_nats=scfg.verify_ambiguity_k ** 2, sigma_px=sigma))
-        n_graphs.append(info["n_matched_graphs"])
+        n_graphs.append(info.n_matched)
     code = np.concatenate(outcomes)
     total, fail = code.size, int(np.sum(code == js.metrics.FAIL))
     correct, wrong = int(np.sum(code == js.metrics.CORRECT)), int(np.sum(code == js.metrics.WRONG))

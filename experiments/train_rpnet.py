@@ -38,7 +38,7 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
 
-    cfg = rpnet.Config.quick() if args.config == "quick" else rpnet.Config.paper()
+    cfg = rpnet.Config.quick() if args.config == "quick" else rpnet.Config()
     overrides = {k: v for k, v in (("dae_steps", args.dae_steps), ("clf_steps", args.clf_steps),
                                    ("batch_size", args.batch_size), ("pool_batches", args.pool_batches),
                                    ("seed", args.seed)) if v is not None}

@@ -13,7 +13,7 @@ per level. Three parts:
   on disk and shared by all Δv) and reused for every noise level.
 - ``grid``: Th1 = Th2 ∈ ``--th`` × ε ∈ ``--eps`` (deg; the vertex-match side tolerance is set to ε
   too) at the ``--grid-levels`` position-noise levels, default Δv, extensions on. Th and ε are
-  traced per-scene values (``identify_with_diagnostics(th1=, th2=, eps_deg=, side_tol_deg=)``), so
+  traced per-scene values (``identify(..., tuning=mlv.Tuning(th1, th2, eps_rad, side_tol_rad))``), so
   the whole grid is one batch axis: ONE ``identify`` call and one compilation (its window shape is
   set by the largest Th) serve every (Th, ε, noise) cell.
 - ``nstars``: N ∈ ``--n-stars`` at the grid levels, default Δv, Th, ε. N changes array shapes (C(N,3)
@@ -85,9 +85,9 @@ def _rates(scenes, result, diag, lo, hi):
             "n_scenes": rep["n_scenes"]}
 
 
-def _identify_timed(db, scenes, cfg, **tuning):
+def _identify_timed(db, scenes, cfg, tuning=None):
     t0 = time.perf_counter()
-    result, diag = mlv.identify_with_diagnostics(db, scenes, cfg, **tuning)
+    result, diag = mlv.identify(db, scenes, cfg, diagnostics=True, tuning=tuning)
     result.ids.block_until_ready()
     return result, diag, time.perf_counter() - t0
 
@@ -133,8 +133,9 @@ def run_grid(args, catalog, camera, scenes, levels, n):
     th = np.repeat([g[0] for g in grid], s)  # (G·S,) per-scene values, grid cell outermost
     eps = np.repeat([g[1] for g in grid], s)
     tiled = _tile(scenes, len(grid))
-    result, diag, seconds = _identify_timed(db, tiled, cfg, th1=th, th2=th, eps_deg=eps,
-                                            side_tol_deg=eps)
+    eps_rad = np.deg2rad(eps.astype(np.float32))
+    tuning = mlv.Tuning(th1=th, th2=th, eps_rad=eps_rad, side_tol_rad=eps_rad)
+    result, diag, seconds = _identify_timed(db, tiled, cfg, tuning)
     rows = []
     for g, (t, e) in enumerate(grid):
         for i, lv in enumerate(levels):

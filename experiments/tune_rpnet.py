@@ -51,7 +51,7 @@ def main(argv=None):
     args = parse_args(argv)
     n = 400 if args.quick else args.scenes
     step = 0.1 if args.quick else args.step
-    cfg = rpnet.Config.quick() if args.config == "quick" else rpnet.Config.paper()
+    cfg = rpnet.Config.quick() if args.config == "quick" else rpnet.Config()
     if args.paper_check:
         cfg = dataclasses.replace(cfg, pair_tol_px=None)
     out = Path(args.out or f"results/tune_rpnet_{args.config}" + ("_paper_check" if args.paper_check else ""))

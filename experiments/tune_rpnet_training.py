@@ -56,7 +56,7 @@ def parse_args(argv=None):
 
 
 def _base_config(args) -> rpnet.Config:
-    cfg = rpnet.Config.quick() if args.config == "quick" else rpnet.Config.paper()
+    cfg = rpnet.Config.quick() if args.config == "quick" else rpnet.Config()
     t = cfg.training
     dae, clf = (50, 50) if args.quick else (args.dae_steps, args.clf_steps)
     t = dataclasses.replace(t, dae_steps=t.dae_steps if dae is None else dae,

@@ -66,7 +66,7 @@ def run(cfg: TuneConfig) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     cat = js.load_catalog(6.0)
     cam = js.camera_preset("sgm2022")
-    base = sgm.Config().paper_only()
+    base = sgm.Config.paper()
     db = sgm.build_database(cat, cam, base)
     rng = np.random.default_rng(cfg.seed)
     rows = np.sort(rng.choice(len(cat), cfg.scenes, replace=False))

@@ -119,7 +119,8 @@ def _solve(args) -> int:
     scenes = js.extract_centroids(np.stack(images), capacity=args.capacity, shard=True)
     algo = js.algorithms.get(args.algorithm)
     # RpNet trains a network per camera on first use: the quick preset takes minutes, the paper's hours
-    cfg = getattr(algo.Config, args.rpnet_preset)() if args.algorithm == "rpnet" else algo.Config()
+    cfg = ((algo.Config.quick() if args.rpnet_preset == "quick" else algo.Config())
+           if args.algorithm == "rpnet" else algo.Config())
     result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)
     if args.name_all:
         result = js.name_from_attitude(cat, cam, scenes, result, tol_px=args.tol_px)

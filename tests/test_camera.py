@@ -46,7 +46,7 @@ def test_preset_fields_of_view():
     assert js.camera_preset("sgm2022").fov_x_deg == pytest.approx(20.0, abs=1e-9)
     assert js.camera_preset("mlv2021").fov_x_deg == pytest.approx(25.0, abs=1e-9)
     rp = js.camera_preset("rpnet2019")
-    assert rp.fov_diagonal_deg == pytest.approx(20.0, abs=0.05)  # SPEC §6 note: diagonal, not side
+    assert rp.fov_diagonal_deg == pytest.approx(20.0, abs=0.05)  # conventions §6 note: diagonal, not side
     assert rp.fov_x_deg == pytest.approx(14.2, abs=0.05)
     zy3 = js.camera_preset("zy3")
     assert (zy3.cx, zy3.cy) == (515.247, 513.320)

@@ -7,7 +7,7 @@ from jstarid import catalog as catalog_module
 
 def test_star_count_before_double_removal():
     cat = js.load_catalog(6.0, double_mode="keep")
-    assert 5000 <= len(cat) <= 5200  # SPEC §2: about 5,100 stars at V ≤ 6.0
+    assert 5000 <= len(cat) <= 5200  # docs/conventions.md §2: about 5,100 stars at V ≤ 6.0
 
 
 def test_double_removal_drops_a_few_stars(catalog6):

@@ -120,8 +120,8 @@ def test_bench_sgm_tiny_with_overrides():
         bench.run(bench._parser().parse_args(["--batch", "64", "--set", "no_such_field=1"]))
 
 
-def test_sgm_paper_only_equals_the_numpy_reference_on_noisy_scenes():
-    """``Config.paper_only`` gives the ids of the plain NumPy SGM (bench_sgm's baseline) under noise;
+def test_sgm_paper_equals_the_numpy_reference_on_noisy_scenes():
+    """``Config.paper`` gives the ids of the plain NumPy SGM (bench_sgm's baseline) under noise;
     the leftover naming (an extension) would not: it also names stars a smaller J* leaves out."""
     import jax
 
@@ -137,7 +137,7 @@ def test_sgm_paper_only_equals_the_numpy_reference_on_noisy_scenes():
                          capacity=128, boresight_ids=rows)
     xy, valid = np.asarray(scenes.xy, np.float64), np.asarray(scenes.valid)
     want = np.stack([ref.identify_scene(db, xy[s], valid[s], cfg)[0] for s in range(len(rows))])
-    paper = np.asarray(sgm.identify(db, scenes, cfg.paper_only(), with_attitude=False).ids)
+    paper = np.asarray(sgm.identify(db, scenes, sgm.Config.paper(), with_attitude=False).ids)
     np.testing.assert_array_equal(paper, want)
     assert np.all((paper >= 0).sum(axis=1) >= cfg.min_matched)
     leftover = np.asarray(sgm.identify(db, scenes, dataclasses.replace(cfg, verify=False),

@@ -1,9 +1,7 @@
-"""Algorithm registry: ``get(name)`` returns an algorithm module with the SPEC §4 verbs.
-
-Every algorithm is a subpackage (or module) of :mod:`jstarid.algorithms` exposing ``Config`` (a frozen,
-hashable dataclass with the paper's defaults), ``build_database(catalog, camera, config)`` and
-``identify(database, scenes, config) -> Identification``. Algorithms never import each other; shared
-pieces live in :mod:`jstarid.geometry`.
+"""Algorithm registry: ``get(name)`` returns an algorithm module that keeps the contract of
+:mod:`jstarid.algorithms.base` (``Config``, ``Tuning``, ``Database``, ``Diagnostics``,
+``build_database``, ``identify``). Algorithms never import each other; shared pieces live in
+:mod:`jstarid.geometry` and :mod:`jstarid.algorithms.base`.
 """
 
 from __future__ import annotations
@@ -24,7 +22,7 @@ _REGISTRY: dict[str, str] = {
 
 
 def register(name: str, module_path: str) -> None:
-    """Register an algorithm module (importable path) under ``name``."""
+    """Register an algorithm module (importable path) under ``name``; :func:`get` checks it."""
     _REGISTRY[name] = module_path
 
 
@@ -38,7 +36,14 @@ def names() -> tuple[str, ...]:
 
 
 def get(name: str) -> ModuleType:
-    """The algorithm module registered as ``name`` (raises ``ValueError`` if unknown)."""
+    """The algorithm module registered as ``name``.
+
+    Raises:
+        ValueError: ``name`` is not registered.
+        TypeError: the module does not keep the contract (:func:`.base.check_algorithm`).
+    """
     if name not in _REGISTRY or not _available(name):
         raise ValueError(f"unknown algorithm {name!r}; available: {', '.join(names())}")
-    return importlib.import_module(_REGISTRY[name])
+    from jstarid.algorithms.base import check_algorithm
+
+    return check_algorithm(importlib.import_module(_REGISTRY[name]), name)

@@ -1,22 +1,29 @@
 """A reference "identifier" for tests only: returns the truth, optionally corrupted.
 
 It lets the metrics and the evaluation harness be tested before (and independently of) the real
-algorithms. ``fail_fraction`` of the scenes are reported as failures (``ok = False``, no ids) and
-``wrong_fraction`` of the scenes get one identified star's id replaced by a different catalog row.
-Which scenes are corrupted is drawn from ``Config.seed`` (deterministic).
+algorithms, and it is the smallest complete example of the algorithm contract
+(:mod:`jstarid.algorithms.base`). ``fail_fraction`` of the scenes are reported as failures
+(``ok = False``, no ids) and ``wrong_fraction`` of the scenes get one identified star's id replaced by
+a different catalog row. Which scenes are corrupted is drawn from ``Config.seed`` (deterministic).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
+from jstarid.algorithms.base import cache_key, check_scenes
 from jstarid.scene import Identification, Scene
 
-__all__ = ["Config", "build_database", "identify"]
+__all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "identify"]
+
+
+class Tuning(NamedTuple):
+    """The oracle has no tolerances to sweep."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,16 +34,60 @@ class Config:
     wrong_fraction: float = 0.0
     seed: int = 0
 
+    def __post_init__(self):
+        if not (0.0 <= self.fail_fraction <= 1.0 and 0.0 <= self.wrong_fraction <= 1.0):
+            raise ValueError("fail_fraction and wrong_fraction must be in [0, 1]")
 
-def build_database(catalog, camera, config: Config = Config()):
+    @classmethod
+    def paper(cls, **overrides) -> Config:
+        """There is no paper: the truth, uncorrupted."""
+        return cls(**overrides)
+
+    def tuning(self) -> Tuning:
+        return Tuning()
+
+    def database_fields(self) -> dict:
+        return {}
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=[], meta_fields=["n_stars", "key"])
+@dataclasses.dataclass(frozen=True)
+class Database:
     """The oracle needs only the catalog size (to draw a wrong id)."""
-    del camera, config
-    return {"n_stars": len(catalog)}
+
+    n_stars: int
+    key: str = ""
+
+    def cache_key(self) -> str:
+        return self.key
 
 
-def identify(database, scenes: Scene, config: Config = Config()) -> Identification:
-    """Truth for every true star, −1 for false stars; scenes corrupted as configured."""
-    return _identify(scenes, database["n_stars"], config)
+class Diagnostics(NamedTuple):
+    """Attributes: n_candidates (B,) int32 zeros (nothing is searched); overflow (B,) bool, the
+    scene's own flag."""
+
+    n_candidates: jax.Array
+    overflow: jax.Array
+
+
+def build_database(catalog, camera, config: Config | None = None, *, progress: bool = True) -> Database:
+    """The catalog size; nothing to build or cache."""
+    config = Config() if config is None else config
+    return Database(n_stars=len(catalog),
+                    key=cache_key("oracle", 1, catalog, camera, config.database_fields()))
+
+
+def identify(database: Database, scenes: Scene, config: Config | None = None, *,
+             diagnostics: bool = False):
+    """Truth for every true star, −1 for false stars; a scene with no true star fails; scenes
+    corrupted as configured."""
+    config = Config() if config is None else config
+    check_scenes(scenes)
+    result = _identify(scenes, database.n_stars, config)
+    if diagnostics:
+        return result, Diagnostics(n_candidates=jnp.zeros(scenes.batch_size, jnp.int32),
+                                   overflow=scenes.overflow)
+    return result
 
 
 @functools.partial(jax.jit, static_argnames=("n_stars", "config"))
@@ -53,4 +104,5 @@ def _identify(scenes, n_stars, config):
     bad = (ids[rows, first] + 1) % n_stars
     ids = ids.at[rows, first].set(jnp.where(wrong & has, bad, ids[rows, first]))
     ids = jnp.where(fail[:, None], -1, ids)
-    return Identification(ids=ids.astype(jnp.int32), ok=~fail, attitude=None)
+    return Identification(ids=ids.astype(jnp.int32), ok=~fail & has,
+                          attitude=None)

@@ -187,7 +187,7 @@ def test_database_cache_roundtrip(catalog, tmp_path, monkeypatch):
     monkeypatch.setenv("JSTARID_CACHE", str(tmp_path))
     cfg = mlv.Config(n_boresights=300)
     a = mlv.build_database(catalog, CAM, cfg, progress=False)
-    assert not a.info_dict()["cached"] and list(tmp_path.glob("mlv-db-*.npz"))
+    assert not a.info_dict()["cached"] and list(tmp_path.glob(f"mlv-{a.cache_key()}.npz"))
     b = mlv.build_database(catalog, CAM, cfg, progress=False)
     assert b.info_dict()["cached"]
     np.testing.assert_array_equal(np.asarray(a.keys), np.asarray(b.keys))
@@ -286,8 +286,8 @@ def test_candidate_overflow_is_flagged(catalog, database):
     tight = mlv.Config(n_boresights=CFG.n_boresights, candidate_capacity=2,
                        max_candidate_capacity=2, batch_chunk=4)
     with pytest.warns(UserWarning, match="candidates"):
-        _, diag = mlv.identify_with_diagnostics(database, scenes, tight)
-    counts = np.asarray(diag.n_candidates)
+        _, diag = mlv.identify(database, scenes, tight, diagnostics=True)
+    counts = np.asarray(diag.triangle_candidates)
     np.testing.assert_array_equal(np.asarray(diag.n_overflow_triangles), np.sum(counts > 2, 1))
     assert np.all(np.asarray(diag.candidate_overflow) == (np.sum(counts > 2, 1) > 0))
     assert np.any(np.asarray(diag.candidate_overflow))
@@ -295,16 +295,16 @@ def test_candidate_overflow_is_flagged(catalog, database):
     grow = mlv.Config(n_boresights=CFG.n_boresights, candidate_capacity=2,
                       max_candidate_capacity=4, batch_chunk=4)
     with pytest.warns(UserWarning, match="more than 4 candidates"):
-        _, diag2 = mlv.identify_with_diagnostics(database, scenes, grow)
+        _, diag2 = mlv.identify(database, scenes, grow, diagnostics=True)
     assert diag2.capacity == 4
-    np.testing.assert_array_equal(np.asarray(diag2.n_candidates), counts)
+    np.testing.assert_array_equal(np.asarray(diag2.triangle_candidates), counts)
     np.testing.assert_array_equal(np.asarray(diag2.n_overflow_triangles), np.sum(counts > 4, 1))
 
 
 def test_batched_matches_per_scene_and_capacity(catalog, database):
     noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.3, n_false=2)
     scenes = js.simulate(jax.random.key(13), catalog, CAM, noise, batch_size=4, capacity=64)
-    batched, diag = mlv.identify_with_diagnostics(database, scenes, CFG)
+    batched, diag = mlv.identify(database, scenes, CFG, diagnostics=True)
     n = CFG.n_stars
     one = jax.jit(identify_scene, static_argnames=("config", "capacity"))
     for i in range(4):  # the per-scene core, without vmap
@@ -330,29 +330,30 @@ def test_tuning_arrays_match_static_configs(catalog, database):
     tiled = jax.tree_util.tree_map(lambda a: jnp.concatenate([a] * len(grid)), base)
     th = np.repeat([g[0] for g in grid], 4)
     eps = np.repeat([g[1] for g in grid], 4)
-    swept, sdiag = mlv.identify_with_diagnostics(database, tiled, CFG, th1=th, th2=th,
-                                                 eps_deg=eps, side_tol_deg=eps)
+    eps_rad = np.deg2rad(eps.astype(np.float32))
+    tuning = mlv.Tuning(th1=th, th2=th, eps_rad=eps_rad, side_tol_rad=eps_rad)
+    swept, sdiag = mlv.identify(database, tiled, CFG, diagnostics=True, tuning=tuning)
     for g, (t, e) in enumerate(grid):
         cfg = dataclasses.replace(CFG, th1=t, th2=t, eps_deg=e, side_tol_deg=e)
-        ref, rdiag = mlv.identify_with_diagnostics(database, tiled, cfg)
+        ref, rdiag = mlv.identify(database, tiled, cfg, diagnostics=True)
         part = slice(4 * g, 4 * g + 4)
         np.testing.assert_array_equal(np.asarray(swept.ids[part]), np.asarray(ref.ids[part]))
         np.testing.assert_array_equal(np.asarray(swept.ok[part]), np.asarray(ref.ok[part]))
-        np.testing.assert_array_equal(np.asarray(sdiag.n_candidates[part]),
-                                      np.asarray(rdiag.n_candidates[part]))
+        np.testing.assert_array_equal(np.asarray(sdiag.triangle_candidates[part]),
+                                      np.asarray(rdiag.triangle_candidates[part]))
         np.testing.assert_array_equal(np.asarray(sdiag.votes[part]), np.asarray(rdiag.votes[part]))
     with pytest.raises(ValueError):
-        mlv.identify_with_diagnostics(database, base, CFG, eps_deg=np.ones(3))
+        mlv.identify(database, base, CFG, tuning=CFG.tuning()._replace(eps_rad=np.ones(3)))
 
 
 def test_small_candidate_pool_same_result(catalog, database):
     """Scenes overflowing the shared candidate buffer are recomputed: P never changes the result."""
     noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.3)
     scenes = js.simulate(jax.random.key(17), catalog, CAM, noise, batch_size=4, capacity=64)
-    ref, rdiag = mlv.identify_with_diagnostics(database, scenes, CFG)
-    totals = np.sum(np.asarray(rdiag.n_candidates), 1)
+    ref, rdiag = mlv.identify(database, scenes, CFG, diagnostics=True)
+    totals = np.sum(np.asarray(rdiag.triangle_candidates), 1)
     small = dataclasses.replace(CFG, candidate_pool=int(0.75 * totals.min()))  # every scene retries
-    got, gdiag = mlv.identify_with_diagnostics(database, scenes, small)
+    got, gdiag = mlv.identify(database, scenes, small, diagnostics=True)
     np.testing.assert_array_equal(np.asarray(got.ids), np.asarray(ref.ids))
     np.testing.assert_array_equal(np.asarray(gdiag.votes), np.asarray(rdiag.votes))
 

@@ -83,7 +83,7 @@ def test_config_sizes():
                                 position_weights=(0.5, 0.3, 0.2))
     assert loose.compiled() == cfg.compiled() and hash(loose.compiled()) == hash(cfg.compiled())
     assert dataclasses.replace(cfg, n_refine=2).compiled() != cfg.compiled()
-    th = loose.thresholds()
+    th = loose.tuning()
     assert float(th.match_tol_px) == 9.0 and np.isinf(th.pair_tol_px) and th.min_verified.dtype == jnp.int32
     np.testing.assert_allclose(th.position_weights, [0.5, 0.3, 0.2])
 
@@ -362,7 +362,7 @@ def test_pair_checks_match_numpy(pair_tol_px):
     stars[cand_rows[0, 0]] = body[0]
     stars[cand_rows[1, 0]] = body[2]
     valid = np.array([True, True, True, True, False, True])  # S3 invalid: its pairs fail
-    th = rpnet.Config(pair_tol_px=pair_tol_px).thresholds()
+    th = rpnet.Config(pair_tol_px=pair_tol_px).tuning()
     got = np.asarray(pair_checks(jnp.asarray(body, jnp.float32), jnp.asarray(valid), jnp.asarray(near),
                                  jnp.asarray(cand_rows), jnp.asarray(stars, jnp.float32), th.pair_tol_px,
                                  camera=cam))
@@ -850,7 +850,7 @@ def test_verification_names_no_false_star_beside_an_undetected_star():
 
     def verify(config):
         return _verify_pair(jnp.int32(a), jnp.int32(b), jnp.int32(rows[0]), jnp.int32(missing[0]), body,
-                            valid, jnp.asarray(vec, jnp.float32), cells, config.thresholds(), camera=cam,
+                            valid, jnp.asarray(vec, jnp.float32), cells, config.tuning(), camera=cam,
                             config=config, grid=index.grid)
 
     ids, named, c, _ = verify(cfg)

@@ -53,7 +53,7 @@ def test_registry_and_database(setup):
         ref = np.degrees(np.arccos(np.clip(v @ v.T, -1, 1)))
         np.testing.assert_allclose(db.adj[t, :db.n[t], :db.n[t]], ref, atol=1e-3)
     assert db.nbytes > 0 and db.build_seconds >= 0
-    assert len(_twin_rows(db)) > 0  # SPEC §7 pitfall 2: twins exist
+    assert len(_twin_rows(db)) > 0  # docs/conventions.md §7 pitfall 2: twins exist
     with pytest.raises(ValueError):
         sgm.build_database(cat, cam, sgm.Config(neighbor_capacity=8), use_cache=False,
                            progress=False)
@@ -65,12 +65,12 @@ def test_noise_free_scenes_all_correct_including_twins(setup):
     rows = np.concatenate([np.random.default_rng(1).choice(len(cat), 3, replace=False), twins])
     scenes = js.simulate(jax.random.key(3), cat, cam, js.NoiseConfig(), capacity=CAPACITY,
                          boresight_ids=rows)
-    result, info = sgm.identify(db, scenes, cfg, details=True)
+    result, info = sgm.identify(db, scenes, cfg, diagnostics=True)
     report = js.evaluate(scenes, result, "sgm", camera=cam, radius_deg=cfg.radius_deg)
     assert report["identification_rate"] == 1.0, report
     assert report["misid_rate"] == 0.0
     # the main star is named through the correspondence: right even when J* is its twin
-    main = info["main"]
+    main = info.main
     named = np.asarray(result.ids)[np.arange(rows.size), main]
     np.testing.assert_array_equal(named, rows)
     # the attitude-based naming of leftovers (an extension, Config.leftover_tol_deg) restores
@@ -103,9 +103,9 @@ def test_false_stars_only_fail_cleanly(setup):
     xy = [cam.cx + rng.uniform(-250, 250, (n, 2)) for n in (12, 15)]
     scenes = js.scenes_from_centroids(xy, capacity=32)
     # Δw_max cut to 0.5° to keep the test fast (the full 6° window matches ~2,700 graphs per scene)
-    result, info = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5), details=True)
+    result, info = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5), diagnostics=True)
     # candidates were really examined (spectral matching or the exact pruning bound) and rejected
-    assert np.all(info["n_matched_graphs"] + info["n_pruned"] > 20)
+    assert np.all(info.n_matched + info.n_pruned > 20)
     # a second call with the same shapes compiles nothing new (STYLE §4)
     from jstarid.algorithms.sgm import search
     kernels = (search._match_pairs, search._bound_pairs, search._edge_bound_pairs)
@@ -217,7 +217,7 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     rows = np.random.default_rng(2).choice(len(cat), 4, replace=False)
     scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)
-    batch, info = sgm.identify(db, scenes, cfg, details=True)
+    batch, info = sgm.identify(db, scenes, cfg, diagnostics=True)
     from jstarid.algorithms.sgm.identify import scene_graphs
     g = scene_graphs(scenes.xy, scenes.valid, camera=cam, radius_deg=cfg.radius_deg,
                      capacity=db.capacity)
@@ -225,11 +225,11 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     for s in range(rows.size):
         best, err, level, n_tried = _sequential_algorithm1(
             db, np.asarray(g["adj"][s]), np.asarray(g["mask"][s]), float(g["w"][s]), cfg)
-        assert info["best"][s] == best
-        assert info["level"][s] == level
+        assert info.best[s] == best
+        assert info.level[s] == level
         if best >= 0:
-            np.testing.assert_allclose(info["error"][s], err, rtol=1e-4, atol=1e-6)
-            assert info["n_matched_graphs"][s] + info["n_pruned"][s] >= n_tried
+            np.testing.assert_allclose(info.error[s], err, rtol=1e-4, atol=1e-6)
+            assert info.n_matched[s] + info.n_pruned[s] >= n_tried
         levels.append(level)
         single = sgm.identify(db, scenes[s], cfg)
         np.testing.assert_array_equal(np.asarray(single.ids)[0], np.asarray(batch.ids)[s])
@@ -237,10 +237,10 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     # the test exercised success at level 0, at a later level, and failure
     assert 0 in levels and max(levels) > 0 and -1 in levels, levels
     # the exact pruning bound changes nothing but the work done
-    full, info_full = sgm.identify(db, scenes, dataclasses.replace(cfg, prune=False), details=True)
+    full, info_full = sgm.identify(db, scenes, dataclasses.replace(cfg, prune=False), diagnostics=True)
     np.testing.assert_array_equal(np.asarray(full.ids), np.asarray(batch.ids))
-    np.testing.assert_array_equal(info_full["best"], info["best"])
-    assert np.all(info_full["n_pruned"] == 0) and np.sum(info["n_pruned"]) > 0
+    np.testing.assert_array_equal(info_full.best, info.best)
+    assert np.all(info_full.n_pruned == 0) and np.sum(info.n_pruned) > 0
 
 
 def _noisy_graphs(setup5, cfg, *, n, seed, key):
@@ -312,14 +312,14 @@ def test_verification_retries_recover_scenes_whose_first_match_was_wrong(setup):
     rows = np.sort(np.random.default_rng(7).choice(len(cat), 800, replace=False))
     scenes = js.simulate(jax.random.key(3), cat, cam, js.NoiseConfig(n_missing=1),
                          capacity=CAPACITY, boresight_ids=rows)[np.array([105, 760, 791])]
-    once, info0 = sgm.identify(db, scenes, dataclasses.replace(cfg, verify_retries=0), details=True)
-    assert not np.any(np.asarray(once.ok)) and np.all(info0["match_ok"])  # rejected, so failed
-    assert not np.any(info0["main_contested"])  # the match was wrong, not the main star contested
-    again, info = sgm.identify(db, scenes, cfg, details=True)
+    once, info0 = sgm.identify(db, scenes, dataclasses.replace(cfg, verify_retries=0), diagnostics=True)
+    assert not np.any(np.asarray(once.ok)) and np.all(info0.match_ok)  # rejected, so failed
+    assert not np.any(info0.main_contested)  # the match was wrong, not the main star contested
+    again, info = sgm.identify(db, scenes, cfg, diagnostics=True)
     out = js.scene_outcomes(scenes, again, "sgm", camera=cam, radius_deg=cfg.radius_deg)
     assert np.all(np.asarray(out["outcome"]) == js.metrics.CORRECT)
-    assert np.all(info["n_rejected"] >= 1) and np.all(info["error"] < 1e-3)
-    assert np.max(info["n_rejected"]) == 3  # one scene needed every retry
+    assert np.all(info.n_rejected >= 1) and np.all(info.error < 1e-3)
+    assert np.max(info.n_rejected) == 3  # one scene needed every retry
 
 
 def test_verification_tells_a_contested_main_star_from_a_wrong_match(setup):
@@ -590,7 +590,7 @@ def test_grid_replay_equals_separate_searches(setup5):
     """One c × ε_δ grid evaluation (tuning module) gives each grid point's own Algorithm 1 result."""
     from jstarid.algorithms.sgm import tuning
     cat, cam, db = setup5
-    base = sgm.Config(dw_max_deg=0.5).paper_only()
+    base = sgm.Config.paper(dw_max_deg=0.5)
     rows, scenes, g, usable = _noisy_graphs(setup5, base, n=6, seed=3, key=9)
     cs, eps = [1.0, 1.74], [0.05, 0.1, 0.4]
     errors = tuning.candidate_errors(db, g, usable, base, cs, max(eps))
@@ -601,10 +601,10 @@ def test_grid_replay_equals_separate_searches(setup5):
     for ci, ei in [(0, 0), (0, 2), (1, 1)]:
         c, e = cs[ci], eps[ei]
         res, info = sgm.identify(db, scenes, dataclasses.replace(base, c=c, max_error_deg=e),
-                                 with_attitude=False, details=True)
+                                 with_attitude=False, diagnostics=True)
         np.testing.assert_array_equal(ok[:, ci, ei], np.asarray(res.ok))
         best = np.where(ok[:, ci, ei], errors["cand"][np.arange(rows.size), rank[:, ci, ei]], -1)
-        np.testing.assert_array_equal(best, info["best"])
+        np.testing.assert_array_equal(best, info.best)
         np.testing.assert_array_equal(ids[:, ci, ei], np.asarray(res.ids))
     assert ok.any() and not ok.all()  # the grid has successes and failures
 

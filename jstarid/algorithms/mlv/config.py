@@ -1,16 +1,39 @@
-"""MLV settings: a frozen, hashable dataclass with the paper's defaults (seed 001, Table 1)."""
+"""Multilayer-voting settings (MLV, Sensors 2021): a frozen, hashable dataclass, Table 1 defaults."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from typing import NamedTuple
 
-__all__ = ["Config"]
+import jax
+import numpy as np
+
+__all__ = ["Config", "Tuning"]
+
+
+class Tuning(NamedTuple):
+    """Per-scene values of the tolerances that do not change array shapes (traced, not static).
+
+    Passing them as arrays lets one compilation serve a whole grid of Th1/Th2/ε values: the grid is
+    a batch axis (:func:`~jstarid.algorithms.mlv.identify` takes scalars or (B,) arrays;
+    :meth:`Config.tuning` gives the config's scalars).
+
+    Attributes:
+        th1, th2: int32 tolerances Th1, Th2 of eq. 7 (bins).
+        eps_rad: float32 verification tolerance ε of eq. 8 (rad).
+        side_tol_rad: float32 side tolerance of the vertex-matching extension (rad).
+    """
+
+    th1: jax.Array
+    th2: jax.Array
+    eps_rad: jax.Array
+    side_tol_rad: jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """Multilayer-voting parameters (Sensors 2021, 21, 3084; SPEC §7).
+    """Multilayer-voting parameters (Sensors 2021, 21, 3084; docs/conventions.md §7).
 
     Paper parameters (Table 1):
         n_stars: N, the brightest detections (and, in the database, the brightest catalog stars per
@@ -157,6 +180,23 @@ class Config:
     def eps_rad(self) -> float:
         """ε in radians."""
         return math.radians(self.eps_deg)
+
+    @classmethod
+    def paper(cls, **overrides) -> Config:
+        """The paper's algorithm alone (Table 1 parameters, none of our extensions): no vertex
+        matching, no leave-one-out attitude check, no field check."""
+        return cls(**{"vertex_match": False, "attitude_check": False, "field_check": False,
+                      **overrides})
+
+    def tuning(self) -> Tuning:
+        """This config's traced tolerances as a :class:`Tuning` of scalars (Th1, Th2 in bins;
+        ε and the side tolerance in rad)."""
+        # float32 degrees → radians in float32, as a (B,) grid of degrees would be converted
+        def rad(deg):
+            return float(np.deg2rad(np.float32(deg)))
+
+        return Tuning(th1=int(self.th1), th2=int(self.th2), eps_rad=rad(self.eps_deg),
+                      side_tol_rad=rad(self.side_tol_deg))
 
     def database_fields(self) -> dict:
         """The settings that shape the database (its cache key: all but Δv1, Δv2, which only shape

@@ -20,8 +20,6 @@ rectangle query of eq. 7 is then 2·Th1 + 1 contiguous ranges (one per v̂1 valu
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import math
 import time
 
@@ -29,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.mlv.config import Config
 from jstarid.algorithms.mlv.features import discretize, singular_values, triangle_combinations
 from jstarid.attitude import rotation_from_boresight
@@ -67,6 +66,7 @@ class Database:
             identifier needs it to turn centroids into directions.
         dv1, dv2: the discretization units Δv1, Δv2 the keys were made with (static).
         info: build statistics (static): triangles, stars, bytes, build seconds, cache path.
+        key: :meth:`cache_key` (static; empty when built from a given triangle table).
     """
 
     keys: jax.Array
@@ -82,6 +82,11 @@ class Database:
     dv1: float = dataclasses.field(metadata={"static": True})
     dv2: float = dataclasses.field(metadata={"static": True})
     info: tuple = dataclasses.field(default=(), metadata={"static": True})
+    key: str = dataclasses.field(default="", metadata={"static": True})
+
+    def cache_key(self) -> str:
+        """The database's cache key (:func:`jstarid.algorithms.base.cache_key`)."""
+        return self.key
 
     @property
     def n_triangles(self) -> int:
@@ -127,9 +132,7 @@ def _cache_key(catalog, camera: Camera, config: Config) -> str:
     # the triangle table does not depend on Δv1, Δv2 (only the features computed from it at load
     # time do): one cached table serves every discretization
     fields = {k: v for k, v in config.database_fields().items() if k not in ("dv1", "dv2")}
-    payload = {"version": _DB_VERSION, "catalog": catalog.fingerprint,
-               "camera": dataclasses.asdict(camera), "config": fields}
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:20]
+    return cache_key("mlv", _DB_VERSION, catalog, camera, fields)
 
 
 def _brightest_in_field(bore, roll, rows, vec, real, *, camera: Camera, n: int):
@@ -269,15 +272,17 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *,
         (0 when loaded from the cache) and ``cache_path``.
     """
     config = Config() if config is None else config
-    path = cache_dir() / f"mlv-db-{_cache_key(catalog, camera, config)}.npz"
+    key = _cache_key(catalog, camera, config)
+    path = cache_dir() / f"mlv-{key}.npz"
     if use_cache and path.exists():
         with np.load(path) as data:
             triangles = data["triangles"]
             build_seconds = float(data["build_seconds"])
-        return database_from_triangles(catalog, camera, triangles, config.dv1, config.dv2,
-                                       info={"build_seconds": 0.0, "cached": True,
-                                             "original_build_seconds": build_seconds,
-                                             "cache_path": str(path)})
+        db = database_from_triangles(catalog, camera, triangles, config.dv1, config.dv2,
+                                     info={"build_seconds": 0.0, "cached": True,
+                                           "original_build_seconds": build_seconds,
+                                           "cache_path": str(path)})
+        return dataclasses.replace(db, key=key)
     t0 = time.perf_counter()
     triangles = _triangle_table(catalog, camera, config, progress)
     seconds = time.perf_counter() - t0
@@ -288,4 +293,4 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *,
     db = database_from_triangles(catalog, camera, triangles, config.dv1, config.dv2,
                                  info={"build_seconds": seconds, "cached": False,
                                        "cache_path": str(path) if use_cache else ""})
-    return db
+    return dataclasses.replace(db, key=key)

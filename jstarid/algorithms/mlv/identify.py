@@ -38,7 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.algorithms.mlv.config import Config
+from jstarid.algorithms.base import check_scenes
+from jstarid.algorithms.mlv.config import Config, Tuning
 from jstarid.algorithms.mlv.database import Database
 from jstarid.algorithms.mlv.features import discretize, singular_values, triangle_combinations
 from jstarid.algorithms.mlv.verify import (
@@ -59,18 +60,21 @@ from jstarid.algorithms.mlv.voting import (
 from jstarid.scene import Identification, Scene
 from jstarid.sweep import map_batch, replicate_once
 
-__all__ = ["Diagnostics", "Tuning", "default_pool", "identify", "identify_with_diagnostics",
-           "identify_scene"]
+__all__ = ["Diagnostics", "default_pool", "identify", "identify_scene"]
 
 
 class Diagnostics(NamedTuple):
-    """Per-scene internals of :func:`identify_with_diagnostics` (batch axis first).
+    """Per-scene internals of :func:`identify` (batch axis first).
 
     Attributes:
+        n_candidates: (B,) int32 database triangles matched by the scene's triangles (eq. 7), summed
+            over its C(N, 3) triangles.
+        overflow: (B,) bool, the scene overflowed its capacity or some triangle had more candidates
+            than the buffer held (``candidate_overflow``).
         candidate_overflow: (B,) bool, some triangle had more candidates than the buffer held (it
             cast no votes).
         n_overflow_triangles: (B,) int32 such triangles.
-        n_candidates: (B, T) int32 candidate count of each of the T = C(N, 3) triangles (before
+        triangle_candidates: (B, T) int32 candidate count of each of the T = C(N, 3) triangles (before
             the buffer), 0 for triangles with a padding vertex.
         candidates: (B, N) int32 catalog row voted for each of the N brightest detections (−1 none).
         votes: (B, N) int32 votes of that candidate.
@@ -80,9 +84,11 @@ class Diagnostics(NamedTuple):
         capacity: the candidate buffer K finally used (host int).
     """
 
+    n_candidates: jax.Array
+    overflow: jax.Array
     candidate_overflow: jax.Array
     n_overflow_triangles: jax.Array
-    n_candidates: jax.Array
+    triangle_candidates: jax.Array
     candidates: jax.Array
     votes: jax.Array
     cluster_size: jax.Array
@@ -92,24 +98,6 @@ class Diagnostics(NamedTuple):
 
 
 _REDO = 8  # scenes per recomputation with the full candidate buffer
-
-
-class Tuning(NamedTuple):
-    """Per-scene values of the tolerances that do not change array shapes (traced, not static).
-
-    Passing them as arrays lets one compilation serve a whole grid of Th1/Th2/ε values: the grid is
-    a batch axis (:func:`identify_with_diagnostics` takes scalars or (B,) arrays).
-
-    Attributes:
-        th1, th2: int32 tolerances Th1, Th2 of eq. 7 (bins).
-        eps_rad: float32 verification tolerance ε of eq. 8 (rad).
-        side_tol_rad: float32 side tolerance of the vertex-matching extension (rad).
-    """
-
-    th1: jax.Array
-    th2: jax.Array
-    eps_rad: jax.Array
-    side_tol_rad: jax.Array
 
 
 def default_pool(config: Config, th1_max: int | None = None, th2_max: int | None = None,
@@ -163,7 +151,7 @@ def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_x
             overflows. With vertex matching, the candidates that pass the side check are moved to a
             second buffer of Q = max(1024, P/8) slots (Q = P when P = T·K). A scene whose candidates
             exceed P, or whose side-checked ones exceed Q, sets ``pool_overflow`` (its votes are
-            then incomplete: :func:`identify_with_diagnostics` recomputes it with a doubled P,
+            then incomplete: :func:`identify` recomputes it with a doubled P,
             up to T·K).
         th1_max: static bound of ``tuning.th1`` (the window has 2·th1_max + 1 v̂1 rows);
             ``None``: ``config.th1``.
@@ -292,9 +280,9 @@ def _brightest(scenes: Scene, n: int):
     return xy.astype(jnp.float32), valid
 
 
-def _per_scene(value, default, b: int, dtype):
-    """(b,) array of a scalar or (b,) per-scene value (``None``: ``default``)."""
-    a = jnp.asarray(default if value is None else value, dtype)
+def _per_scene(value, b: int, dtype):
+    """(b,) array of a scalar or (b,) per-scene value."""
+    a = jnp.asarray(value, dtype)
     if a.ndim == 0:
         return jnp.full((b,), a, dtype)
     if a.shape != (b,):
@@ -310,9 +298,9 @@ def _pad_rows(tree, size: int):
     return jax.tree_util.tree_map(pad, tree)
 
 
-def identify_with_diagnostics(database: Database, scenes: Scene, config: Config | None = None, *,
-                              th1=None, th2=None, eps_deg=None, side_tol_deg=None):
-    """:func:`identify` plus its :class:`Diagnostics`, with optional per-scene tolerances.
+def identify(database: Database, scenes: Scene, config: Config | None = None, *,
+             diagnostics: bool = False, tuning: Tuning | None = None):
+    """Identify a batch of scenes with the multilayer voting algorithm.
 
     Scenes are processed in chunks of ``config.batch_chunk`` (the last chunk padded, so one
     compilation serves any batch size above it). When a chunk flags a candidate overflow (a
@@ -323,27 +311,35 @@ def identify_with_diagnostics(database: Database, scenes: Scene, config: Config 
     so the result never depends on P.
 
     Args:
-        database, scenes, config: as :func:`identify`.
-        th1, th2: Th1, Th2 (bins), scalars or (B,) int arrays; ``None``: the config's.
-        eps_deg: ε (deg), scalar or (B,); ``None``: the config's.
-        side_tol_deg: vertex-match side tolerance (deg), scalar or (B,); ``None``: the config's.
-            These are traced (:class:`Tuning`): a grid of values is a batch axis served by one
-            compilation (one per max Th1, which sets the window's shape).
+        database: from :func:`~jstarid.algorithms.mlv.build_database` (same camera as the scenes).
+        scenes: :class:`~jstarid.scene.Scene` batch (B, capacity).
+        config: :class:`~jstarid.algorithms.mlv.Config`; ``None``: ``Config()``.
+        diagnostics: also return the :class:`Diagnostics`.
+        tuning: :class:`~jstarid.algorithms.mlv.Tuning` whose leaves are scalars or (B,) arrays
+            (Th1, Th2 in bins; ε, side tolerance in rad); ``None``: ``config.tuning()``. Traced:
+            a grid of values is a batch axis served by one compilation (one per max Th1, which
+            sets the window's shape).
 
     Returns:
+        :class:`~jstarid.scene.Identification` with ``ids`` (B, capacity) aligned with the scene's
+        detections (only verified cluster members among the N brightest are named, others −1),
+        ``ok`` (B,) and ``attitude`` (B, 3, 3): the rotation C (ICRS → camera) fitted to the named
+        stars (Wahba / SVD, equal weights), NaN where not ``ok``; with ``diagnostics``, the tuple
         ``(Identification, Diagnostics)``.
     """
     config = Config() if config is None else config
+    check_scenes(scenes)
     # build statistics are static metadata: drop them so cached and fresh databases share a compile
-    stripped = dataclasses.replace(database, info=())
+    stripped = dataclasses.replace(database, info=(), key="")
     # placed on every device once (kept on the caller's database), not copied on each chunk's call
     database = (replicate_once(database, "mlv_identify", lambda: stripped) if jax.device_count() > 1
                 else stripped)
     b, cap = scenes.batch_size, scenes.capacity
+    tuning = config.tuning() if tuning is None else tuning
     tuning = Tuning(
-        th1=_per_scene(th1, config.th1, b, jnp.int32), th2=_per_scene(th2, config.th2, b, jnp.int32),
-        eps_rad=jnp.deg2rad(_per_scene(eps_deg, config.eps_deg, b, jnp.float32)),
-        side_tol_rad=jnp.deg2rad(_per_scene(side_tol_deg, config.side_tol_deg, b, jnp.float32)))
+        th1=_per_scene(tuning.th1, b, jnp.int32), th2=_per_scene(tuning.th2, b, jnp.int32),
+        eps_rad=_per_scene(tuning.eps_rad, b, jnp.float32),
+        side_tol_rad=_per_scene(tuning.side_tol_rad, b, jnp.float32))
     if bool(jnp.any(tuning.th1 < 0)) or bool(jnp.any(tuning.th2 < 0)):
         raise ValueError("th1 and th2 must be ≥ 0")
     th1_max, th2_max = int(jnp.max(tuning.th1)), int(jnp.max(tuning.th2))
@@ -391,28 +387,14 @@ def identify_with_diagnostics(database: Database, scenes: Scene, config: Config 
     n = config.n_stars
     ids = jnp.full((b, cap), -1, jnp.int32).at[:, : min(n, cap)].set(out["ids"][:, :cap])
     result = Identification(ids=ids, ok=out["ok"], attitude=out["attitude"])
-    diag = Diagnostics(candidate_overflow=out["overflow"], n_overflow_triangles=out["n_overflow"],
-                       n_candidates=out["n_candidates"], candidates=out["candidates"],
+    if not diagnostics:
+        return result
+    diag = Diagnostics(n_candidates=jnp.sum(out["n_candidates"], axis=1, dtype=jnp.int32),
+                       overflow=out["overflow"] | scenes.overflow,
+                       candidate_overflow=out["overflow"], n_overflow_triangles=out["n_overflow"],
+                       triangle_candidates=out["n_candidates"], candidates=out["candidates"],
                        votes=out["votes"], cluster_size=out["cluster_size"],
                        field_predicted=out["field_predicted"], field_seen=out["field_seen"],
                        capacity=k_used)
     return result, diag
-
-
-def identify(database: Database, scenes: Scene, config: Config | None = None) -> Identification:
-    """Identify a batch of scenes with the multilayer voting algorithm (SPEC §4).
-
-    Args:
-        database: from :func:`~jstarid.algorithms.mlv.build_database` (same camera as the scenes).
-        scenes: :class:`~jstarid.scene.Scene` batch (B, capacity).
-        config: :class:`~jstarid.algorithms.mlv.Config`; the default is the paper's parameters.
-
-    Returns:
-        :class:`~jstarid.scene.Identification` with ``ids`` (B, capacity) aligned with the scene's
-        detections (only verified cluster members among the N brightest are named, others −1),
-        ``ok`` (B,) and ``attitude`` (B, 3, 3): the rotation C (ICRS → camera) fitted to the named
-        stars (Wahba / SVD, equal weights), NaN where not ``ok``.
-    """
-    return identify_with_diagnostics(database, scenes, config)[0]
-
 

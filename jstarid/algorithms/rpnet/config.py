@@ -1,9 +1,9 @@
-"""RpNet settings: frozen, hashable dataclasses with the paper's defaults (Xu et al. 2019; SPEC §7).
+"""RpNet settings: frozen, hashable dataclasses with the paper's defaults (Xu et al. 2019; conventions §7).
 
 Two groups: :class:`Training` (what shapes the trained network: Table 3 hyper-parameters, the noise
 families of §II-C) and :class:`Config` (initial input, guide catalog, network widths, training, and the
 identification-time settings of §II-E). Everything that shapes the trained network enters
-:meth:`Config.database_key`, the key of the cached checkpoint; identification-time settings do not.
+:meth:`Config.database_fields`, the key of the cached checkpoint; identification-time settings do not.
 """
 
 from __future__ import annotations
@@ -18,15 +18,15 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-__all__ = ["Config", "Thresholds", "Training"]
+__all__ = ["Config", "Training", "Tuning"]
 
 
-class Thresholds(NamedTuple):
+class Tuning(NamedTuple):
     """The identification settings that compiled identification reads as traced values.
 
     A change of any of them (a tolerance sweep, another coverage threshold, a weight grid) reuses the
     compiled identification instead of compiling it again (≈ 30 s per configuration on 2 CPU cores).
-    Built by :meth:`Config.thresholds`; the fields mean what the :class:`Config` fields of the same
+    Built by :meth:`Config.tuning`; the fields mean what the :class:`Config` fields of the same
     name mean.
 
     Attributes:
@@ -53,7 +53,7 @@ class Thresholds(NamedTuple):
 
 # Config fields that compiled identification never reads as compile-time constants: the traced
 # thresholds, and the host loop's chunking and pass counts (passed to the kernels separately).
-_NOT_COMPILED = (*Thresholds._fields, "n_pair_trials", "batch_chunk")
+_NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,7 +148,7 @@ class Training:
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """RpNet parameters (Xu et al. 2019, IEEE Access 7, 92 193; SPEC §7).
+    """RpNet parameters (Xu et al. 2019, IEEE Access 7, 92 193; docs/conventions.md §7).
 
     Initial input (§II-A, eq. 3):
         rho_deg: pattern radius ρ (6°).
@@ -306,10 +306,10 @@ class Config:
         if self.n_candidates != 3 or len(self.position_weights) != 3 or len(self.probability_weights) != 3:
             raise ValueError("the weight search uses three detections and three candidates (Table 5)")
 
-    def thresholds(self) -> Thresholds:
-        """The traced identification settings (:class:`Thresholds`) as device arrays."""
+    def tuning(self) -> Tuning:
+        """The traced identification settings (:class:`Tuning`) as device arrays."""
         f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
-        return Thresholds(
+        return Tuning(
             pair_tol_px=f32(jnp.inf if self.pair_tol_px is None else self.pair_tol_px),
             match_tol_px=f32(self.match_tol_px), anchor_radius_px=f32(self.anchor_radius_px),
             match_sigmas=f32(self.match_sigmas), match_tol_min_px=f32(self.match_tol_min_px),
@@ -321,7 +321,7 @@ class Config:
     def compiled(self) -> Config:
         """This config with every field compiled identification does not read statically reset to
         its default: the static argument of the identification kernels, so that configs differing
-        only in :class:`Thresholds` (or the host loop's settings) share one compilation."""
+        only in :class:`Tuning` (or the host loop's settings) share one compilation."""
         defaults = {f.name: f.default for f in dataclasses.fields(self) if f.name in _NOT_COMPILED}
         return dataclasses.replace(self, **defaults)
 
@@ -342,10 +342,13 @@ class Config:
 
     @classmethod
     def paper(cls, **overrides) -> Config:
-        """Paper network, input and Table 3 training."""
-        return cls(training=Training.paper(), **overrides)
+        """The paper's algorithm alone: paper network, input and Table 3 training, and none of our
+        identification extensions (no pair-angle test, the single most confident pair, the
+        detections S1–S3 only, no pool of pairs, no coverage test)."""
+        return cls(**{"pair_tol_px": None, "n_pair_trials": 1, "n_guide_triples": 1,
+                      "n_pool_pairs": 0, "min_coverage": 0.0, **overrides})
 
-    def database_key(self) -> dict:
+    def database_fields(self) -> dict:
         """The settings that shape the trained network (identification-time ones left out)."""
         keep = ("rho_deg", "m", "e_deg", "guide_mag_limit", "guide_min_sep_deg", "gen_widths", "clf_width")
         out = {k: getattr(self, k) for k in keep}
@@ -353,5 +356,5 @@ class Config:
         return out
 
     def fingerprint(self) -> str:
-        """Short hash of :meth:`database_key`."""
-        return hashlib.sha256(json.dumps(self.database_key(), sort_keys=True).encode()).hexdigest()[:16]
+        """Short hash of :meth:`database_fields` (recorded in checkpoints, to refuse a mismatch)."""
+        return hashlib.sha256(json.dumps(self.database_fields(), sort_keys=True).encode()).hexdigest()[:16]

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.guide_catalog import guide_rows
 from jstarid.algorithms.rpnet.inference import InferenceWeights, fold_networks
@@ -28,12 +29,17 @@ from jstarid.algorithms.rpnet.train import (
 )
 from jstarid.catalog import cache_dir
 
-__all__ = ["Database", "build_database", "checkpoint_path", "database_from_variables", "load_database"]
+__all__ = ["Database", "build_database", "checkpoint_path", "database_from_variables", "database_key",
+           "load_database"]
 
 
+@functools.partial(jax.tree_util.register_dataclass,
+                   data_fields=["guide_rows", "star_vectors", "variables"],
+                   meta_fields=["config", "camera", "catalog_fingerprint", "history", "path", "key"])
 @dataclasses.dataclass(frozen=True, eq=False)
 class Database:
-    """Everything :func:`~jstarid.algorithms.rpnet.identify` needs.
+    """Everything :func:`~jstarid.algorithms.rpnet.identify` needs (a pytree: the class list, the
+    star vectors and the network variables are its leaves).
 
     Attributes:
         config: the :class:`Config` the networks were trained for.
@@ -44,6 +50,7 @@ class Database:
         variables: network variables (see :mod:`~jstarid.algorithms.rpnet.train`).
         history: training history when trained in this call, else ``None``.
         path: the checkpoint file, when cached.
+        key: :meth:`cache_key`.
     """
 
     config: Config
@@ -54,6 +61,12 @@ class Database:
     variables: dict
     history: dict | None = None
     path: Path | None = None
+    key: str = ""
+
+    def cache_key(self) -> str:
+        """The database's cache key (:func:`jstarid.algorithms.base.cache_key`): catalog, camera and
+        the network-shaping settings (``Config.database_fields()``)."""
+        return self.key
 
     @property
     def n_classes(self) -> int:
@@ -65,9 +78,17 @@ class Database:
         return fold_networks(self.variables)
 
 
-def checkpoint_path(meta: dict[str, str]) -> Path:
-    """Cache file of a checkpoint with these fingerprints."""
-    return cache_dir() / "rpnet" / f"rpnet-{meta['catalog']}-{meta['camera']}-{meta['config']}.msgpack"
+_FORMAT = 1  # bump when the checkpoint's layout changes meaning
+
+
+def database_key(catalog, camera, config: Config) -> str:
+    """:func:`jstarid.algorithms.base.cache_key` of the networks for this catalog, camera, config."""
+    return cache_key("rpnet", _FORMAT, catalog, camera, config.database_fields())
+
+
+def checkpoint_path(catalog, camera, config: Config) -> Path:
+    """Cache file of the checkpoint for this catalog, camera and network-shaping config."""
+    return cache_dir() / "rpnet" / f"rpnet-{database_key(catalog, camera, config)}.msgpack"
 
 
 def build_database(catalog, camera, config: Config | None = None, *, cache: bool = True,
@@ -90,7 +111,7 @@ def build_database(catalog, camera, config: Config | None = None, *, cache: bool
     config = Config() if config is None else config
     rows = guide_rows(catalog, config)
     meta = checkpoint_meta(catalog, camera, config, rows)
-    path = checkpoint_path(meta)
+    path = checkpoint_path(catalog, camera, config)
     history = None
     if cache and path.exists():
         variables = load_checkpoint(path, config, meta)
@@ -130,4 +151,4 @@ def _database(catalog, camera, config, rows, variables, history, path) -> Databa
     return Database(config=config, camera=camera, catalog_fingerprint=catalog.fingerprint,
                     guide_rows=np.asarray(rows, np.int32),
                     star_vectors=jnp.asarray(catalog.unit_vectors, jnp.float32), variables=variables,
-                    history=history, path=path)
+                    history=history, path=path, key=database_key(catalog, camera, config))

@@ -52,7 +52,7 @@ do not idle while the host collects a chunk (+15–20 % scenes/s on 2 cores, REA
 verification's 3-term products are written out (:func:`jstarid.geometry.precise.small_matmul`).
 The kernels compile for :meth:`Config.compiled` (the config with its thresholds and host-loop
 settings reset) and read the tolerances, counts and weights as traced values
-(:class:`~jstarid.algorithms.rpnet.config.Thresholds`): a sweep over them compiles once.
+(:class:`~jstarid.algorithms.rpnet.config.Tuning`): a sweep over them compiles once.
 """
 
 from __future__ import annotations
@@ -60,12 +60,14 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.algorithms.rpnet.config import Config, Thresholds
+from jstarid.algorithms.base import check_scenes
+from jstarid.algorithms.rpnet.config import Config, Tuning
 from jstarid.algorithms.rpnet.inference import inference_logits
 from jstarid.algorithms.rpnet.model import use_bf16
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
@@ -78,8 +80,8 @@ from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
 from jstarid.sweep import map_batch, replicate_once
 
-__all__ = ["PAIRS", "anchor_names", "identify", "name_stars", "network_candidates", "noise_sigma",
-           "pair_checks", "top3_blocked", "weight_search"]
+__all__ = ["PAIRS", "Diagnostics", "anchor_names", "identify", "name_stars", "network_candidates",
+           "noise_sigma", "pair_checks", "top3_blocked", "weight_search"]
 
 WIDTH_STEP = 32  # detection columns per scene are cut to a multiple of this in each chunk (identify)
 
@@ -305,7 +307,7 @@ def _rms_sigma(resid, named):
     return jnp.sqrt(jnp.sum(w * resid**2) / jnp.maximum(2.0 * jnp.sum(w) - 3.0, 1.0))
 
 
-def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thresholds, *, camera,
+def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Tuning, *, camera,
                  config: Config, grid):
     """Steps 4–5 from one pair: detection ``a`` named catalog row ``row_a``, ``b`` named ``row_b``.
 
@@ -386,7 +388,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Thres
     return loc[rows1], named1, c2, jnp.sum(inside)
 
 
-def _first_confirmed(score, a, b, row_a, row_b, body, valid, overflow, star_vectors, cells, th: Thresholds,
+def _first_confirmed(score, a, b, row_a, row_b, body, valid, overflow, star_vectors, cells, th: Tuning,
                      *, camera, config: Config, grid):
     """Verify the pairs in the given (score) order and keep the first confirmed one (step 5).
 
@@ -414,7 +416,7 @@ def _first_confirmed(score, a, b, row_a, row_b, body, valid, overflow, star_vect
     return ids.astype(jnp.int32), ok, att.astype(jnp.float32)
 
 
-def _name_pool(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells, th: Thresholds, *, camera,
+def _name_pool(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells, th: Tuning, *, camera,
                config: Config, grid):
     """Pool pass for one scene (extension, ``Config.n_pool_pairs``): pairs across all triples.
 
@@ -441,7 +443,7 @@ def _name_pool(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cell
                             star_vectors, cells, th, camera=camera, config=config, grid=grid)
 
 
-def _name_one(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells, th: Thresholds, *, camera,
+def _name_one(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells, th: Tuning, *, camera,
               config: Config, grid, trials=(0, 1)):
     """Steps 3–5 for one scene, from the network's candidates (module docstring).
 
@@ -524,7 +526,24 @@ def _pass_chunk(n_scenes: int, config: Config) -> int:
     return min(config.batch_chunk, max(16, 1 << int(np.ceil(np.log2(n_scenes)))))
 
 
-def identify(database, scenes: Scene, config: Config | None = None) -> Identification:
+class Diagnostics(NamedTuple):
+    """Per-scene internals of :func:`identify` (host NumPy arrays, batch axis first).
+
+    Attributes:
+        n_candidates: (B,) int32 candidate pairs submitted to verification over all passes (an
+            upper bound: a pass stops at its first confirmed pair).
+        overflow: (B,) bool, ``Scene.overflow`` (the identifier itself has no buffer to overflow).
+        n_passes: (B,) int32 identification passes run on the scene (1 + the later passes it
+            needed: next pairs, further triples, the pool of pairs).
+    """
+
+    n_candidates: np.ndarray
+    overflow: np.ndarray
+    n_passes: np.ndarray
+
+
+def identify(database, scenes: Scene, config: Config | None = None, *, diagnostics: bool = False,
+             tuning: Tuning | None = None):
     """Identify a batch of scenes (host loop over fixed-size chunks of one compiled function per width).
 
     Args:
@@ -532,16 +551,20 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
         scenes: (B, N) :class:`~jstarid.scene.Scene` taken with ``database.camera``.
         config: identification settings; ``None`` uses ``database.config``. Its network-shaping
             settings must match the database's.
+        diagnostics: also return the :class:`Diagnostics`.
+        tuning: the traced settings (:class:`~jstarid.algorithms.rpnet.Tuning`, scalars shared by
+            the batch); ``None``: ``config.tuning()``. Another value reuses the compilation.
 
     Returns:
         :class:`~jstarid.scene.Identification` with ids (B, N), ok (B,), attitude (B, 3, 3) (NaN
-        where not ok).
+        where not ok); with ``diagnostics``, the tuple ``(Identification, Diagnostics)``.
 
     Raises:
         ValueError: ``config`` describes another network than the database holds.
     """
     config = database.config if config is None else config
-    if config.fingerprint() != database.config.fingerprint():
+    check_scenes(scenes)
+    if config.database_fields() != database.config.database_fields():
         raise ValueError("config's network settings differ from the database's; build a database for it")
     b, n = scenes.batch_size, scenes.xy.shape[1]
     guide_rows = jnp.asarray(database.guide_rows, jnp.int32)
@@ -556,6 +579,8 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
     ids_out = np.full((b, n), -1, np.int32)
     ok_out = np.zeros((b,), bool)
     att_out = np.full((b, 3, 3), np.nan, np.float32)
+    n_pairs = np.zeros((b,), np.int32)
+    n_passes = np.zeros((b,), np.int32)
 
     # the kernels compile for config.compiled(); its thresholds travel as traced values, so configs
     # that differ only there (a tolerance or coverage sweep) share every compilation
@@ -563,10 +588,12 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
     if jax.device_count() > 1:  # placed on every device once, not copied on each chunk's call
         tables = replicate_once(database, "rpnet_identify", lambda: tables)
         cells = replicate_once(index, "device_arrays", index.device_arrays)[0]
-    replicated = (*tables, cells, config.thresholds())
+    replicated = (*tables, cells, config.tuning() if tuning is None else tuning)
     kernel_config = config.compiled()
 
     def run(subset, trials, chunk, triple=0, pool=False):
+        n_pairs[subset] += config.n_pool_pairs if pool else trials[1] - trials[0]
+        n_passes[subset] += 1
         order = subset[np.argsort(last[subset], kind="stable")]
         pending = []  # every chunk is dispatched before any result is read back (no idle gaps)
         for start in range(0, order.size, chunk):
@@ -612,4 +639,7 @@ def identify(database, scenes: Scene, config: Config | None = None) -> Identific
     failed = np.nonzero(~ok_out & (n_valid >= 2))[0]
     if config.n_pool_pairs and failed.size:  # last: pairs across the triples (_name_pool)
         run(failed, None, _pass_chunk(failed.size, config), pool=True)
-    return Identification(ids=jnp.asarray(ids_out), ok=jnp.asarray(ok_out), attitude=jnp.asarray(att_out))
+    result = Identification(ids=jnp.asarray(ids_out), ok=jnp.asarray(ok_out), attitude=jnp.asarray(att_out))
+    if diagnostics:
+        return result, Diagnostics(n_candidates=n_pairs, overflow=overflow_all.copy(), n_passes=n_passes)
+    return result

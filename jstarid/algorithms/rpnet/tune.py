@@ -94,7 +94,7 @@ def pair_tables(database, scenes, config: Config | None = None) -> dict[str, np.
         near, probs, cls = network_candidates(part.xy, part.valid, database.inference_weights, camera=camera,
                                               config=config, n_classes=database.n_classes)
         ok, correct, top = _tables_chunk(part.xy, part.valid, part.truth, near, cls, guide_rows,
-                                         database.star_vectors, config.thresholds().pair_tol_px,
+                                         database.star_vectors, config.tuning().pair_tol_px,
                                          camera=camera)
         for name, value in (("probs", probs), ("pair_ok", ok), ("pair_correct", correct),
                             ("guide_correct", top)):

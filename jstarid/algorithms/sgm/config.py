@@ -4,13 +4,29 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import NamedTuple
 
-__all__ = ["Config"]
+import jax
+
+__all__ = ["Config", "Tuning"]
+
+
+class Tuning(NamedTuple):
+    """SGM's sweepable tolerances (:func:`~jstarid.algorithms.sgm.tuning.grid_identifications`
+    takes a grid of each as an array axis; scalars here by default).
+
+    Attributes:
+        c: edge-similarity adjustor of eq. 2 (1/deg).
+        max_error_deg: ε_δ, matching-error threshold of Algorithm 1 (deg).
+    """
+
+    c: jax.Array | float
+    max_error_deg: jax.Array | float
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """Frozen, hashable SGM configuration. Angles in degrees, as in the paper (SPEC §7).
+    """Frozen, hashable SGM configuration. Angles in degrees, as in the paper (conventions §7).
 
     Attributes:
         radius_deg: r, radius of the neighbor circle (deg).
@@ -235,17 +251,20 @@ class Config:
         """The largest Δw Algorithm 1 searches (deg)."""
         return self.dw0_deg + (self.n_levels - 1) * self.dw_step_deg
 
-    def paper_only(self) -> Config:
-        """This config without the extensions that change the outcome: the paper's algorithm alone.
+    @classmethod
+    def paper(cls, **overrides) -> Config:
+        """The paper's algorithm alone (Table 1 parameters, none of our extensions that change
+        the outcome): no post-match verification (``verify``) and no leftover naming
+        (``leftover_tol_deg``). The branch and bound (``prune``) stays: it changes only the work.
+        What a plain re-implementation of the paper (``experiments/sgm_numpy_reference.py``)
+        returns, id for id."""
+        return cls(**{"verify": False, "leftover_tol_deg": None, **overrides})
 
-        Turns off the post-match verification (``verify``) and the leftover naming
-        (``leftover_tol_deg``); the branch and bound (``prune``) stays, since it changes only the
-        work (:mod:`~jstarid.algorithms.sgm.search`). What a plain re-implementation of the paper
-        (``experiments/sgm_numpy_reference.py``) returns, id for id.
-        """
-        return dataclasses.replace(self, verify=False, leftover_tol_deg=None)
+    def tuning(self) -> Tuning:
+        """This config's sweepable tolerances as a :class:`Tuning` of scalars."""
+        return Tuning(c=float(self.c), max_error_deg=float(self.max_error_deg))
 
-    def database_key(self) -> dict:
-        """The fields that shape the database (the cache key, with the catalog fingerprint)."""
+    def database_fields(self) -> dict:
+        """The fields that shape the database (its cache key, with the catalog fingerprint)."""
         return {"radius_deg": float(self.radius_deg), "neighbor_capacity": self.neighbor_capacity,
                 "size_bucket": int(self.size_bucket)}

@@ -13,8 +13,7 @@ the catalog fingerprint and the config fields that shape it).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
+import functools
 import math
 import time
 
@@ -23,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.sgm.bound import row_table, sorted_edges
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import catalog_neighbors, mst_weight
@@ -34,9 +34,13 @@ __all__ = ["Database", "build_database"]
 _FORMAT = 1  # bump when the stored arrays change meaning
 
 
+@functools.partial(jax.tree_util.register_dataclass,
+                   data_fields=["main", "members", "n", "adj", "w", "kvector"],
+                   meta_fields=["capacity", "radius_deg", "camera", "catalog", "build_seconds",
+                                "nbytes", "from_cache", "key"])
 @dataclasses.dataclass(frozen=True, eq=False)
 class Database:
-    """SGM database, rows sorted by ascending w.
+    """SGM database, rows sorted by ascending w (a pytree: the arrays are its leaves).
 
     Attributes:
         main: (D,) int32 catalog row of each database main star.
@@ -52,6 +56,7 @@ class Database:
         build_seconds: time spent building (0 when loaded from the cache … then ``load_seconds``).
         nbytes: bytes of the stored arrays.
         from_cache: loaded from disk.
+        key: :meth:`cache_key`, the name of its cache file.
     """
 
     main: np.ndarray
@@ -67,6 +72,11 @@ class Database:
     build_seconds: float
     nbytes: int
     from_cache: bool
+    key: str = ""
+
+    def cache_key(self) -> str:
+        """The database's cache key (:func:`jstarid.algorithms.base.cache_key`)."""
+        return self.key
 
     def __len__(self) -> int:
         return int(self.main.shape[0])
@@ -99,10 +109,9 @@ def _round_up(x: int, m: int) -> int:
     return int(math.ceil(x / m) * m)
 
 
-def _cache_path(catalog, config: Config):
-    key = json.dumps({"catalog": catalog.fingerprint, "format": _FORMAT, **config.database_key()},
-                     sort_keys=True)
-    return cache_dir() / f"sgm-db-{hashlib.sha256(key.encode()).hexdigest()[:20]}.npz"
+def _cache_key(catalog, config: Config) -> str:
+    # the graphs do not depend on the camera: the paper projects each main star to the centre
+    return cache_key("sgm", _FORMAT, catalog, None, config.database_fields())
 
 
 def _build_arrays(catalog, config: Config, progress: bool):
@@ -165,7 +174,8 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
         import warnings
         warnings.warn(f"neighbor circle r={config.radius_deg}° exceeds the half field of view "
                       f"({half_fov:.2f}°): image graphs will be cut by the frame", stacklevel=2)
-    path = _cache_path(catalog, config)
+    key = _cache_key(catalog, config)
+    path = cache_dir() / f"sgm-{key}.npz"
     t0 = time.perf_counter()
     arrays, from_cache = None, False
     if use_cache and path.exists():
@@ -187,4 +197,4 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
         w=arrays["w"], kvector=kv, capacity=int(arrays["members"].shape[1]),
         radius_deg=float(config.radius_deg), camera=camera, catalog=catalog,
         build_seconds=elapsed, nbytes=int(sum(a.nbytes for a in arrays.values())),
-        from_cache=from_cache)
+        from_cache=from_cache, key=key)

@@ -31,11 +31,13 @@ from __future__ import annotations
 
 import functools
 import warnings
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.algorithms.base import check_scenes
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import image_graph
 from jstarid.algorithms.sgm.search import (
@@ -52,7 +54,43 @@ from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index
 from jstarid.sweep import map_batch, replicate_once
 
-__all__ = ["identify", "scene_graphs"]
+__all__ = ["Diagnostics", "identify", "scene_graphs"]
+
+
+class Diagnostics(NamedTuple):
+    """Per-scene internals of :func:`identify` (host NumPy arrays, batch axis first).
+
+    Attributes:
+        n_candidates: (B,) int32 database graphs examined: spectrally matched or excluded by the
+            bound (``n_matched + n_pruned``).
+        overflow: (B,) bool, the scene or its neighbor graph exceeded its capacity.
+        n_matched: (B,) spectral matchings run.
+        n_pruned: (B,) candidates the branch and bound excluded without matching.
+        n_rejected: (B,) matches the post-match verification rejected.
+        n_i: (B,) vertices of the image neighbor graph. w_i: (B,) its MST weight (deg).
+        main: (B,) detection index of the main star.
+        usable: (B,) the scene entered the search (a detection, no overflow, ≥ ``min_stars``).
+        match_ok: (B,) Algorithm 1 accepted a match (δ ≤ ε_δ), before the verification.
+        best: (B,) database row of the accepted match (−1 none); best_main: its catalog main star.
+        error: (B,) its matching error δ (deg, eq. 5). level: (B,) the Δw level it was found at.
+        main_contested: (B,) failed only because a close rival contests the main star's name.
+    """
+
+    n_candidates: np.ndarray
+    overflow: np.ndarray
+    n_matched: np.ndarray
+    n_pruned: np.ndarray
+    n_rejected: np.ndarray
+    n_i: np.ndarray
+    w_i: np.ndarray
+    main: np.ndarray
+    usable: np.ndarray
+    match_ok: np.ndarray
+    best: np.ndarray
+    best_main: np.ndarray
+    error: np.ndarray
+    level: np.ndarray
+    main_contested: np.ndarray
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "radius_deg", "capacity"))
@@ -74,8 +112,8 @@ def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int):
     return {**g, "main": main.astype(jnp.int32), "any": jnp.any(valid, axis=-1)}
 
 
-def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: bool = True,
-             details: bool = False):
+def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bool = False,
+             with_attitude: bool = True):
     """Identify the stars of the main star's neighbor circle in every scene.
 
     Args:
@@ -83,21 +121,20 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         scenes: (B, N) :class:`~jstarid.scene.Scene` from ``db.camera``.
         config: :class:`Config` (search parameters; its database fields must match ``db``);
             ``None`` → the paper defaults (plus the post-match verification, ``Config.verify``).
+        diagnostics: also return the per-scene :class:`Diagnostics`.
         with_attitude: also solve Wahba from the identified stars (``Identification.attitude``).
-        details: also return a dict of per-scene diagnostics (graph sizes, w_I, δ, level, the
-            number of matches the verification rejected ``n_rejected``, ``main_contested``: failed
-            only because a close rival contests the main star's name, …).
 
     Returns:
         :class:`~jstarid.scene.Identification` — ``ids`` (B, N) int32 catalog rows for the matched
         detections in the neighbor circle that survive the post-match verification (−1 elsewhere;
-        a scene the verification rejects has ``ok`` False and every id −1), ``ok`` (B,) — and, with
-        ``details``, a ``(result, info)`` tuple.
+        a scene the verification rejects has ``ok`` False and every id −1), ``ok`` (B,) — or, with
+        ``diagnostics``, a ``(result, Diagnostics)`` tuple.
 
     Raises:
         ValueError: ``config.radius_deg`` differs from the database's.
     """
     config = Config() if config is None else config
+    check_scenes(scenes)
     if abs(config.radius_deg - db.radius_deg) > 1e-12:
         raise ValueError(f"config.radius_deg={config.radius_deg} but the database was built with "
                          f"r={db.radius_deg}")
@@ -128,15 +165,17 @@ def identify(db, scenes: Scene, config: Config | None = None, *, with_attitude: 
         att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
         att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
         result = Identification(ids=result.ids, ok=result.ok, attitude=att)
-    if details:
+    if diagnostics:
         ok = res["ok"]
-        info = {"n_i": g["n"], "w_i": g["w"], "main": g["main"], "overflow": g["overflow"],
-                "usable": usable, "best_main": np.where(ok, db.main[np.clip(res["best"], 0, None)],
-                                                         -1),
-                "match_ok": ok, "main_contested": contested_main,
-                **{k: res[k] for k in ("error", "level", "n_matched_graphs", "n_pruned",
-                                       "n_rejected", "best")}}
-        return result, info
+        matched, pruned = res["n_matched_graphs"], res["n_pruned"]
+        diag = Diagnostics(
+            n_candidates=(matched + pruned).astype(np.int32),
+            overflow=g["overflow"] | np.asarray(scenes.overflow), n_matched=matched,
+            n_pruned=pruned, n_rejected=res["n_rejected"], n_i=g["n"], w_i=g["w"], main=g["main"],
+            usable=usable, match_ok=ok, best=res["best"],
+            best_main=np.where(ok, db.main[np.clip(res["best"], 0, None)], -1), error=res["error"],
+            level=res["level"], main_contested=contested_main)
+        return result, diag
     return result
 
 

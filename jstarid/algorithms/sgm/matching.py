@@ -11,8 +11,8 @@ Pipeline for one pair (image graph G_I with P ≥ n_I vertex slots, database gra
 4. matching error eq. 5, ``‖A'_I − A_J‖_F / min(n_I, n_J)`` over the matched sub-graphs.
 
 Cost: the affinity matrix holds (P·Q)² entries and every power step reads each once — the n⁴ growth
-the paper reports (SPEC §7 pitfall 4). :func:`spectral_match` builds the entries from
-e^{±c·a} factors (:func:`affinity_eigenvector`; XLA writes them once per pair and the steps read
+the paper reports (docs/conventions.md §7, SGM pitfall 4). :func:`spectral_match` builds the entries
+from e^{±c·a} factors (:func:`affinity_eigenvector`; XLA writes them once per pair and the steps read
 them); :func:`affinity` and :func:`principal_eigenvector` are the written-out reference. Callers
 pad P and Q to small buckets and bound the batch.
 """

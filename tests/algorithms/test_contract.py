@@ -1,0 +1,197 @@
+"""The algorithm contract (:mod:`jstarid.algorithms.base`), checked on every registered algorithm.
+
+Each algorithm runs in a small "world" (catalog, camera, config) chosen so the suite stays fast; an
+algorithm registered without an entry in ``WORLDS`` runs on the default world (V ≤ 6, the
+``sgm2022`` camera, ``Config()``) and must pass there or fail loudly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jstarid as js
+from jstarid.algorithms import base
+
+NAMES = js.algorithms.names()
+
+
+def _rpnet_config():
+    rpnet = js.algorithms.get("rpnet")
+    training = rpnet.Training(dae_lr=3e-3, clf_lr=3e-3, dae_steps=200, clf_steps=200, batch_size=128,
+                              eval_every=100, eval_size=128, pool_batches=3, sim_capacity=64, seed=1)
+    return rpnet.Config(rho_deg=20.0, e_deg=0.1, gen_widths=(64, 128), clf_width=64,
+                        training=training, pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=64)
+
+
+# name → (catalog V limit, camera, config factory); small but realistic settings per algorithm
+WORLDS = {
+    "sgm": (6.0, lambda: js.camera_preset("sgm2022"),
+            lambda: js.algorithms.get("sgm").Config(power_iterations=30)),
+    "mlv": (5.5, lambda: js.camera_preset("mlv2021"),
+            lambda: js.algorithms.get("mlv").Config(n_boresights=20_000, batch_chunk=100)),
+    "rpnet": (3.0, lambda: js.Camera.from_fov(1024, 1024, 60.0, mag_limit=3.0), _rpnet_config),
+}
+
+
+@dataclasses.dataclass
+class World:
+    algo: object
+    catalog: object
+    camera: object
+    config: object
+    database: object
+
+
+_WORLDS: dict[str, World] = {}
+
+
+def world(name: str) -> World:
+    """The algorithm's world, its database built once per test process."""
+    if name not in _WORLDS:
+        algo = js.algorithms.get(name)
+        limit, camera, config = WORLDS.get(name, (6.0, lambda: js.camera_preset("sgm2022"),
+                                                  lambda: algo.Config()))
+        catalog, camera, config = js.load_catalog(limit), camera(), config()
+        database = algo.build_database(catalog, camera, config, progress=False)
+        _WORLDS[name] = World(algo, catalog, camera, config, database)
+    return _WORLDS[name]
+
+
+def _paper(w: World):
+    """The world's config with the settings ``Config.paper()`` changes from ``Config()``."""
+    default, paper = w.algo.Config(), w.algo.Config.paper()
+    changed = {f.name: getattr(paper, f.name) for f in dataclasses.fields(paper)
+               if getattr(paper, f.name) != getattr(default, f.name)}
+    return dataclasses.replace(w.config, **changed)
+
+
+def _clean_scenes(w: World, n: int, seed: int):
+    rows = np.random.default_rng(seed).choice(len(w.catalog), n, replace=False)
+    return js.simulate(jax.random.key(seed), w.catalog, w.camera, js.NoiseConfig(), capacity=128,
+                       boresight_ids=rows)
+
+
+def _random_point_scenes(w: World, n: int, n_points: int, seed: int):
+    """Scenes of uniformly random points (no star pattern behind them): truth −1 everywhere."""
+    rng = np.random.default_rng(seed)
+    size = np.array([w.camera.width - 1, w.camera.height - 1])
+    xy = [rng.uniform(0, 1, (n_points, 2)) * size for _ in range(n)]
+    mag = [np.sort(rng.uniform(1.0, w.catalog.mag_limit, n_points)) for _ in range(n)]
+    return js.scenes_from_centroids(xy, mag, capacity=48)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_module_offers_the_contract(name):
+    """Names, signatures, config presets, the Tuning tuple and a pytree database with a cache key."""
+    w = world(name)
+    base.check_algorithm(w.algo, name)
+    assert hash(w.config) == hash(dataclasses.replace(w.config))  # frozen, hashable
+    paper = w.algo.Config.paper()
+    assert isinstance(paper, w.algo.Config)
+    tuning = w.config.tuning()
+    assert isinstance(tuning, w.algo.Tuning) and isinstance(tuning, tuple)
+    assert isinstance(w.config.database_fields(), dict)
+    key = w.database.cache_key()
+    assert isinstance(key, str) and len(key) == 20
+    again = w.algo.build_database(w.catalog, w.camera, w.config, progress=False)  # from the cache
+    assert again.cache_key() == key
+    leaves, treedef = jax.tree.flatten(w.database)
+    assert type(jax.tree.unflatten(treedef, leaves)) is type(w.database)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_noise_free_scenes_are_identified(name):
+    """Noise-free scenes: most identified (strict: ≥ 3 correct, none wrong; the small worlds' tiny
+    RpNet network misses a few), none wrong — with ``Config()`` and with ``Config.paper()``;
+    diagnostics have the contract's shapes."""
+    w = world(name)
+    scenes = _clean_scenes(w, 12, seed=1)
+    for config in (w.config, _paper(w)):
+        result, diag = w.algo.identify(w.database, scenes, config, diagnostics=True)
+        report = js.evaluate(scenes, result, "strict")
+        assert report["misid_rate"] == 0.0, (name, config)
+        assert report["identification_rate"] >= 0.8, (name, report)
+        assert np.shape(diag.n_candidates) == (12,) and np.shape(diag.overflow) == (12,)
+        assert np.issubdtype(np.asarray(diag.n_candidates).dtype, np.integer)
+        assert np.asarray(diag.overflow).dtype == bool
+        assert np.all(np.asarray(diag.n_candidates) >= 0)
+    if result.attitude is not None:
+        ok = np.asarray(result.ok)
+        err = np.asarray(js.attitude_errors_arcsec(result.attitude, scenes.attitude)[0])[ok]
+        assert np.all(err < 60.0), err
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_random_points_and_false_stars_are_never_claimed(name):
+    """Scenes with no star pattern (random points) and scenes of false stars only: never ``ok``, no id."""
+    w = world(name)
+    random_points = _random_point_scenes(w, 8, 15, seed=2)
+    for scenes in (random_points, random_points[:4]):
+        result = w.algo.identify(w.database, scenes, w.config)
+        assert not np.any(np.asarray(result.ok)), name
+        assert np.all(np.asarray(result.ids) == -1), name
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_batch_equals_per_scene(name):
+    """Identifying a batch gives each scene what identifying it alone gives."""
+    w = world(name)
+    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=1)
+    rows = np.random.default_rng(3).choice(len(w.catalog), 4, replace=False)
+    scenes = js.simulate(jax.random.key(3), w.catalog, w.camera, noise, capacity=128,
+                         boresight_ids=rows)
+    batch = w.algo.identify(w.database, scenes, w.config)
+    for i in range(scenes.batch_size):
+        one = w.algo.identify(w.database, scenes[i], w.config)
+        np.testing.assert_array_equal(np.asarray(one.ids)[0], np.asarray(batch.ids)[i])
+        assert bool(np.asarray(one.ok)[0]) == bool(np.asarray(batch.ok)[i])
+        if batch.attitude is not None and bool(np.asarray(batch.ok)[i]):
+            np.testing.assert_allclose(np.asarray(one.attitude)[0], np.asarray(batch.attitude)[i],
+                                       atol=1e-5)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_overflow_is_flagged(name):
+    """A scene packed with more detections than its capacity reports ``overflow`` in the diagnostics."""
+    w = world(name)
+    scenes = _clean_scenes(w, 2, seed=4)
+    xy = [np.asarray(scenes.xy[i])[np.asarray(scenes.valid[i])] for i in range(2)]
+    mag = [np.asarray(scenes.mag[i])[np.asarray(scenes.valid[i])] for i in range(2)]
+    n_keep = int(min(len(a) for a in xy)) - 1
+    assert n_keep >= 3
+    packed = js.scenes_from_centroids(xy, mag, capacity=n_keep)
+    assert np.all(np.asarray(packed.overflow))
+    result, diag = w.algo.identify(w.database, packed, w.config, diagnostics=True)
+    assert np.all(np.asarray(diag.overflow)), name
+    assert np.asarray(result.ids).shape == (2, n_keep)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_degenerate_scenes_fail_cleanly(name):
+    """Empty scenes and scenes of one or two detections: a clean failure, not an error."""
+    w = world(name)
+    centre = np.array([[w.camera.cx, w.camera.cy]])
+    xy = [np.zeros((0, 2)), centre, np.concatenate([centre, centre + 40.0])]
+    scenes = js.scenes_from_centroids(xy, None, capacity=16)
+    result = w.algo.identify(w.database, scenes, w.config)
+    assert not np.any(np.asarray(result.ok))
+    assert np.all(np.asarray(result.ids) == -1)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_bad_inputs_give_clear_errors(name):
+    """Not a Scene, inconsistent shapes, NaN centroids: a ``TypeError``/``ValueError`` up front."""
+    w = world(name)
+    scenes = _clean_scenes(w, 2, seed=5)
+    with pytest.raises(TypeError, match="Scene"):
+        w.algo.identify(w.database, np.asarray(scenes.xy), w.config)
+    with pytest.raises(ValueError, match="shapes"):
+        w.algo.identify(w.database, dataclasses.replace(scenes, mag=scenes.mag[:, :3]), w.config)
+    with pytest.raises(ValueError, match="NaN"):
+        w.algo.identify(w.database, dataclasses.replace(scenes, xy=scenes.xy.at[0, 0, 0].set(jnp.nan)),
+                        w.config)
