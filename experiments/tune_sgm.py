@@ -45,8 +45,8 @@ class TuneConfig:
 def _graphs(scenes, db, cfg):
     g = scene_graphs(scenes.xy, scenes.valid, camera=db.camera, radius_deg=float(db.radius_deg),
                      capacity=int(db.capacity))
-    g = {k: np.asarray(v) for k, v in g.items()}
-    usable = g["any"] & ~g["overflow"] & (g["n"] >= cfg.min_stars)
+    g = jax.tree.map(np.asarray, g)
+    usable = g.any & ~g.overflow & (g.n >= cfg.min_stars)
     return g, usable
 
 
@@ -57,7 +57,7 @@ def delta_w(cat, cam, db, rows, sigmas, capacity, key):
     g, usable = _graphs(scenes, db, sgm.Config())
     w_true = np.empty(len(cat), np.float32)
     w_true[db.main] = db.w
-    dw = (g["w"] - w_true[np.tile(rows, len(sigmas))]).reshape(len(sigmas), rows.size)
+    dw = (g.w - w_true[np.tile(rows, len(sigmas))]).reshape(len(sigmas), rows.size)
     return dw, usable.reshape(len(sigmas), rows.size)
 
 

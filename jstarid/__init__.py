@@ -1,6 +1,6 @@
 """jstarid: lost-in-space star identification in JAX (SPEC §9 public API)."""
 
-from jstarid import algorithms, plotting, sweep
+from jstarid import algorithms, plotting, runtime
 from jstarid.attitude import (
     attitude_errors_arcsec,
     estimate_attitude,
@@ -18,15 +18,15 @@ from jstarid.centroid import CentroidConfig, extract_centroids, read_image
 from jstarid.compilation_cache import enable_compilation_cache
 from jstarid.completion import name_from_attitude
 from jstarid.metrics import evaluate, scene_outcomes
+from jstarid.runtime import use_cpu_cores
 from jstarid.scene import Identification, Scene, scenes_from_centroids
 from jstarid.simulator import NoiseConfig, noise_grid, simulate
-from jstarid.sweep import use_cpu_cores
 
 __version__ = "0.1.0"
 
 __all__ = [
     "Camera", "Catalog", "CentroidConfig", "Identification", "NoiseConfig", "Scene", "algorithms",
-    "plotting", "sweep", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
+    "plotting", "runtime", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
     "estimate_attitude", "evaluate", "extract_centroids", "load_catalog", "name_from_attitude",
     "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation", "read_image",
     "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",

@@ -1,7 +1,7 @@
 """Attitude utilities: random rotations, conversions at the API edge, Wahba's problem, errors.
 
 An attitude is a rotation matrix ``C`` taking ICRS vectors into the camera frame, ``v_cam = C @ r``
-(SPEC §1). Its rows are the camera axes expressed in ICRS; row 2 is the boresight.
+(docs/conventions.md §1). Its rows are the camera axes expressed in ICRS; row 2 is the boresight.
 
 (RA, Dec, roll) convention: the boresight points at (α, δ); with roll φ = 0 the camera +x axis points
 east (increasing α) and +y north, and a positive roll turns +x towards north:

@@ -1,9 +1,9 @@
-"""Pinhole camera model and the camera presets of SPEC §6.
+"""Pinhole camera model and the camera presets of docs/conventions.md §6.
 
-Frames (SPEC §1): the camera frame has +z along the boresight, +x along increasing pixel column and +y
-along increasing pixel row. Pixel coordinates are ``(x, y) = (column, row)`` with the origin at the
-centre of pixel (0, 0), so the image spans ``0 ≤ x ≤ W−1``, ``0 ≤ y ≤ H−1`` and the default principal
-point is the image centre ``((W−1)/2, (H−1)/2)``.
+Frames (docs/conventions.md §1): the camera frame has +z along the boresight, +x along increasing pixel
+column and +y along increasing pixel row. Pixel coordinates are ``(x, y) = (column, row)`` with the
+origin at the centre of pixel (0, 0), so the image spans ``0 ≤ x ≤ W−1``, ``0 ≤ y ≤ H−1`` and the
+default principal point is the image centre ``((W−1)/2, (H−1)/2)``.
 
 A :class:`Camera` is a frozen, hashable dataclass: it is passed to jit-compiled functions as a static
 argument, and its ``project`` / ``unproject`` methods are pure ``jnp`` functions.
@@ -96,7 +96,7 @@ class Camera:
         return math.atan(math.hypot(dx, dy) / self.f_px)
 
     def project(self, v_cam):
-        """Project camera-frame vectors to pixels (SPEC §1 pinhole model).
+        """Project camera-frame vectors to pixels (docs/conventions.md §1 pinhole model).
 
         Args:
             v_cam: (..., 3) vectors in the camera frame (need not be unit length).
@@ -151,17 +151,18 @@ def _tetra3_test() -> Camera:
 
 
 _PRESETS = {
-    # seed 000 §Simulation setting: 1024², 20°×20° FOV, V ≤ 6.0.
+    # You et al. 2022 (SGM), §Simulation setting: 1024², 20°×20° FOV, V ≤ 6.0.
     "sgm2022": lambda: Camera(1024, 1024, 512.0 / math.tan(math.radians(10.0)), mag_limit=6.0,
                               name="sgm2022"),
-    # seed 001 §3: 1024², 25°×25° FOV, V ≤ 5.5 (simulation catalog to 6.5).
+    # Sensors 2021 multilayer voting (MLV), §3: 1024², 25°×25° FOV, V ≤ 5.5 (simulation catalog to 6.5).
     "mlv2021": lambda: Camera(1024, 1024, 512.0 / math.tan(math.radians(12.5)), mag_limit=5.5,
                               name="mlv2021"),
-    # seed 004 Table 4: f = 49.277 mm, 0.012 mm pixels. The paper's "20°×20°" is in fact the
-    # diagonal FOV of these optics (≈14.2° per side); we keep the optics (SPEC §6 note).
+    # Xu et al. 2019 (RpNet), Table 4: f = 49.277 mm, 0.012 mm pixels. The paper's "20°×20°" is in fact the
+    # diagonal FOV of these optics (≈14.2° per side); we keep the optics (conventions §6 note).
     "rpnet2019": lambda: Camera.from_optics(1024, 1024, 49.277, 0.012, mag_limit=6.0,
                                             name="rpnet2019"),
-    # seed 004 Table 7 (ZY-3 star tracker): f = 43.258 mm, 0.015 mm pixels, off-centre principal point.
+    # Xu et al. 2019 (RpNet), Table 7 (ZY-3 star tracker): f = 43.258 mm, 0.015 mm pixels,
+    # off-centre principal point.
     "zy3": lambda: Camera.from_optics(1024, 1024, 43.258, 0.015, cx=515.247, cy=513.320,
                                       mag_limit=6.0, name="zy3"),
     "tetra3_test": _tetra3_test,
@@ -174,7 +175,7 @@ def preset_names() -> tuple[str, ...]:
 
 
 def camera_preset(name: str, **overrides) -> Camera:
-    """A camera preset of SPEC §6 (``sgm2022``, ``mlv2021``, ``rpnet2019``, ``zy3``, ``tetra3_test``).
+    """A camera preset of conventions §6 (``sgm2022``, ``mlv2021``, ``rpnet2019``, ``zy3``, ``tetra3_test``).
 
     Args:
         name: preset name.

@@ -6,9 +6,9 @@ algorithm's rate can be compared with what is reachable at all rather than with 
 
 **The oracle.** It is told the true attitude, which detections are false, and which catalog star
 produced each required detection; only the correspondence between those detections and those stars
-is hidden. Under SPEC §3's position noise (independent Gaussian x and y, one σ for every star) and with
-the labels exchangeable a priori (magnitudes ignored, as SGM ignores them), the posterior of a
-correspondence π is ∝ exp(−Σ_i ‖x_i − s_π(i)‖² / 2σ²). Its maximum-a-posteriori choice, the
+is hidden. Under the position noise of conventions §3 (independent Gaussian x and y, one σ for every
+star) and with the labels exchangeable a priori (magnitudes ignored, as SGM ignores them), the
+posterior of a correspondence π is ∝ exp(−Σ_i ‖x_i − s_π(i)‖² / 2σ²). Its maximum-a-posteriori choice, the
 assignment of least summed squared pixel distance, is the decision that most often names *all* of
 them correctly, whatever σ is. A real identifier knows less (no attitude, no star set, false stars
 unmarked), so over many scenes its fraction of fully and correctly named scenes cannot exceed the
@@ -52,7 +52,7 @@ def naming_ceiling(scenes: Scene, star_vectors, camera, *, region: str = "sgm",
             :class:`~jstarid.catalog.Catalog`.
         camera: the scenes' camera.
         region: ``"sgm"`` — the true stars in the main star's neighbor circle (the SGM criterion of
-            SPEC §5, same circle as :func:`jstarid.metrics.scene_outcomes`); ``"all"`` — every true
+            conventions §5, same circle as :func:`jstarid.metrics.scene_outcomes`); ``"all"`` — every true
             detection.
         radius_deg: neighbor-circle radius r (deg) for ``"sgm"``.
         margin_nats: confidence margin (nats); 0 = the MAP ceiling.

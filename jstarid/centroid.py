@@ -31,8 +31,8 @@ with static sizes. Per image:
 6. **Output.** The ``capacity`` brightest by flux, ``mag = zero_point − 2.5 log10(flux)``; ``overflow``
    when more were found.
 
-Pixel convention as everywhere in jstarid (SPEC §1): x = column, y = row, origin at the centre of pixel
-(0, 0).
+Pixel convention as everywhere in jstarid (docs/conventions.md §1): x = column, y = row, origin at the
+centre of pixel (0, 0).
 """
 
 from __future__ import annotations
@@ -44,8 +44,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.runtime import map_batch
 from jstarid.scene import Scene
-from jstarid.sweep import map_batch
 
 __all__ = ["CentroidConfig", "extract_centroids", "read_image"]
 
@@ -121,7 +121,7 @@ def extract_centroids(images, config: CentroidConfig = CentroidConfig(), *,
         images: (B, H, W) or (H, W) pixel values (any real dtype; converted to float32).
         config: :class:`CentroidConfig`.
         capacity: static N, detections kept per image.
-        shard: split the batch over every device (:func:`jstarid.sweep.map_batch`); the result is
+        shard: split the batch over every device (:func:`jstarid.runtime.map_batch`); the result is
             the same as the single-device call's.
 
     Returns:
@@ -192,6 +192,7 @@ def _bilinear(grid, ys, xs):
 
     y0, y1, fy = axis_weights(ys, grid.shape[0])
     x0, x1, fx = axis_weights(xs, grid.shape[1])
+    fx = fx[None, :]
     top = grid[y0][:, x0] * (1 - fx) + grid[y0][:, x1] * fx
     bottom = grid[y1][:, x0] * (1 - fx) + grid[y1][:, x1] * fx
     return top * (1 - fy)[:, None] + bottom * fy[:, None]

@@ -232,7 +232,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if argv is None:  # a command-line run (tests pass argv): keep compiled code for the next run
         from jstarid.compilation_cache import enable_compilation_cache
-        from jstarid.sweep import use_cpu_cores
+        from jstarid.runtime import use_cpu_cores
         enable_compilation_cache()
         use_cpu_cores()  # SGM's pair kernels split over every core (one JAX device each)
     try:

@@ -1,12 +1,11 @@
 """Persistent XLA compilation cache for the experiment scripts and the CLI (an edge utility).
 
 SGM compiles one executable per padded graph-size bucket and pair count, so the first call of a
-process spends most of its time compiling (measured on the 2-core machine, ``bench_sgm.py --batch
-128 --sigmas 1``: 64-scene warm-up 82.8 s and first 128-scene call 45.8 s without a cache, 19.5 s and
-17.1 s in the next process with it). JAX can keep compiled executables on disk
-(``jax_compilation_cache_dir``); :func:`enable_compilation_cache` turns that on under the project's
-cache directory. The library itself never calls it: importing jstarid does not change global JAX
-settings. Benchmarks leave it off so that their compile times stay honest.
+process spends most of its time compiling (on a 2-core CPU, a short noisy ``bench_sgm.py`` run spends
+≈ 2 min before its first timed call without a cache, ≈ 40 s with a warm one). JAX can keep compiled
+executables on disk (``jax_compilation_cache_dir``); :func:`enable_compilation_cache` turns that on
+under the project's cache directory. The library itself never calls it: importing jstarid does not
+change global JAX settings. Benchmarks leave it off so that their compile times stay honest.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Outcomes and rates of SPEC §5.
+"""Outcomes and rates of docs/conventions.md §5.
 
 Per scene: ``n_correct`` (ids == truth ≥ 0), ``n_wrong`` (an id given to a false star or to a star not
 in the catalog, or an id ≠ truth) and ``n_identified``. The scene outcome is
@@ -9,13 +9,13 @@ in the catalog, or an id ≠ truth) and ``n_identified``. The scene outcome is
 - ``INCOMPLETE``: ``ok``, nothing wrong, but the criterion does not hold (e.g. only two stars named
   under the strict criterion). It counts against the identification rate, not as a failure.
 
-Criteria (SPEC §5):
+Criteria (docs/conventions.md §5):
 
 - ``"strict"`` and ``"mlv"``: ≥ 3 correct and none wrong;
 - ``"sgm"``: every true star inside the neighbor circle (radius r, default 6°) of the main star — the
-  detection nearest the principal point — is identified correctly (seed 000);
+  detection nearest the principal point — is identified correctly (You et al. 2022);
 - ``"rpnet"``: the main (guide) star — the detection nearest the principal point — is correct when it
-  is a catalog star, at least one star is correct, and none is wrong (seed 004).
+  is a catalog star, at least one star is correct, and none is wrong (Xu et al. 2019).
 
 Rates: identification = correct / total; accuracy (SGM eq. 9) = correct / (total − fail); failure =
 fail / total; misid = wrong / total.
@@ -46,7 +46,7 @@ def nearest_to_principal_point(xy, valid, camera):
     This is the "main star" of SGM and the guide star of RpNet; algorithms and metrics share it so
     both name the same detection.
     """
-    centre = jnp.array([camera.cx, camera.cy], xy.dtype)
+    centre = jnp.array([camera.cx, camera.cy], xy.dtype).reshape((1,) * (xy.ndim - 1) + (2,))
     d2 = jnp.sum((xy - centre) ** 2, axis=-1)
     return jnp.argmin(jnp.where(valid, d2, jnp.inf), axis=-1)
 
@@ -58,7 +58,7 @@ def main_star_index(scenes: Scene, camera):
 
 def in_neighbor_circle(scenes: Scene, camera, radius_deg: float = 6.0):
     """(B, N) bool: valid detections whose (noisy) centroid lies within ``radius_deg`` of the main
-    star's centroid — the SGM neighbor circle (seed 000), the main star included."""
+    star's centroid — the SGM neighbor circle (You et al. 2022), the main star included."""
     rows = jnp.arange(scenes.truth.shape[0])
     main = main_star_index(scenes, camera)
     v = camera.unproject(scenes.xy)  # (B, N, 3)
@@ -126,7 +126,7 @@ def _outcomes(scenes, ids, ok, criterion, camera, radius_deg):
 
 def evaluate(scenes: Scene, result: Identification, criterion: str = "strict", *, camera=None,
              radius_deg: float = 6.0) -> dict[str, float]:
-    """Rates over a batch (SPEC §5), plus attitude error statistics when ``result.attitude`` is set.
+    """Rates over a batch (conventions §5), plus attitude error statistics when ``result.attitude`` is set.
 
     Returns:
         dict with ``n_scenes``, ``n_correct``, ``n_wrong``, ``n_fail``, ``n_incomplete`` (scene

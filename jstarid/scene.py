@@ -1,7 +1,7 @@
 """The two pytrees every algorithm shares: :class:`Scene` (input) and :class:`Identification` (output).
 
-Both follow SPEC §3–4: a batch axis first, a static capacity N per scene with a ``valid`` mask, and
-pixel coordinates in the camera convention of :mod:`jstarid.camera`.
+Both follow docs/conventions.md §3–4: a batch axis first, a static capacity N per scene with a ``valid``
+mask, and pixel coordinates in the camera convention of :mod:`jstarid.camera`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ __all__ = ["Scene", "Identification", "scenes_from_centroids"]
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """A batch of B star-tracker scenes with static capacity N (SPEC §3).
+    """A batch of B star-tracker scenes with static capacity N (docs/conventions.md §3).
 
     Attributes:
         xy: (B, N, 2) float32 centroids (px), zero where not ``valid``.
@@ -62,7 +62,7 @@ class Scene:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Identification:
-    """What an algorithm says about a batch of scenes (SPEC §4).
+    """What an algorithm says about a batch of scenes (docs/conventions.md §4).
 
     Attributes:
         ids: (B, N) int32 catalog row given to each detection, −1 = not identified.

@@ -43,10 +43,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid import random_streams as streams
 from jstarid.attitude import random_rotation, rotation_from_boresight
+from jstarid.runtime import device_cache, map_batch, on_every_device, pad_rows
 from jstarid.scene import Scene
 from jstarid.sky_index import build_sky_index, cell_of
-from jstarid.sweep import map_batch, replicate_once
 
 __all__ = ["NoiseConfig", "simulate", "noise_grid"]
 
@@ -159,7 +160,7 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         capacity: static N, detections kept per scene (brightest first).
         boresight_ids: (B,) catalog rows; scene i has its boresight on that star and a random roll
             (mode b).
-        shard: split the batch over every device (:func:`jstarid.sweep.map_batch`); the scenes
+        shard: split the batch over every device (:func:`jstarid.runtime.map_batch`); the scenes
             are identical to the single-device call.
 
     Returns:
@@ -214,9 +215,9 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
     if shard and jax.device_count() > 1:
         # both stages split over the devices, the tables placed on each device once (they are
         # long-lived: the index is memoised, the tables kept on the catalog)
-        cat_vec = replicate_once(catalog, "simulator_catalog", lambda: tables[3])
-        replicated = (*replicate_once(index, "device_arrays", index.device_arrays),
-                      *replicate_once(catalog, "simulator_stars", lambda: tables[:3]))
+        cat_vec = on_every_device(catalog, "simulator_catalog", lambda: tables[3])
+        replicated = (*on_every_device(index, "device_arrays", index.device_arrays),
+                      *on_every_device(catalog, "simulator_stars", lambda: tables[:3]))
         first = map_batch(_attitudes_of, (_scene_keys(key, batch_size), rows), (cat_vec,),
                           static=stage1)
         return map_batch(_stage2, (*first, noise_b), replicated, static=statics)
@@ -262,7 +263,7 @@ def _scenes_chunked(seeds, noise, att, cell, cells, counts, star_vec, star_mag, 
     b = cell.shape[0]
     n_chunks = -(-b // _CHUNK)
     order = jnp.argsort(counts[cell])
-    order = jnp.concatenate([order, jnp.broadcast_to(order[-1:], (n_chunks * _CHUNK - b,))])
+    order = pad_rows(order, n_chunks * _CHUNK, mode="edge")
     chunked = jax.tree.map(lambda a: a[order].reshape(n_chunks, _CHUNK, *a.shape[1:]),
                            (seeds, noise, att, cell))
     need = counts[cell][order].reshape(n_chunks, _CHUNK).max(axis=1)
@@ -290,15 +291,14 @@ def _device_tables(catalog):
     Returns ``(vec_T (3, M+1), mag (M+1,), row (M+1,), catalog unit vectors (N, 3))``; the vectors are
     stored component-major so the hot loop gathers three contiguous 1-D tables.
     """
-    cached = getattr(catalog, "_sim_device_tables", None)
-    if cached is None:
+    def make():
         vec = np.concatenate([catalog.sim_unit_vectors, [[0.0, 0.0, 1.0]]]).astype(np.float32)
         mag = np.concatenate([catalog.sim_mag, [np.inf]]).astype(np.float32)
         row = np.concatenate([catalog.sim_row, [-1]]).astype(np.int32)
-        cached = (jnp.asarray(vec.T.copy()), jnp.asarray(mag), jnp.asarray(row),
-                  jnp.asarray(catalog.unit_vectors, jnp.float32))
-        object.__setattr__(catalog, "_sim_device_tables", cached)
-    return cached
+        return (jnp.asarray(vec.T.copy()), jnp.asarray(mag), jnp.asarray(row),
+                jnp.asarray(catalog.unit_vectors, jnp.float32))
+
+    return device_cache.cached(catalog, "simulator_tables", make)
 
 
 def _attitude_one(key, row, cat_vec, mode_b):
@@ -323,13 +323,14 @@ def _scene_keys(key, batch_size):
 
 
 def _attitudes_of(keys, rows, cat_vec, *, grid, mode_b):
-    """Per-scene seeds (B, 2) uint32 (:func:`_scene_seed`), attitudes (B, 3, 3), sky cells (B,).
+    """Per-scene seeds (B, 2) uint32 (:func:`~jstarid.random_streams.scene_seed`), attitudes
+    (B, 3, 3), sky cells (B,).
 
     The seeds are materialised here, in their own computation, so that stage 2 reads them instead of
     re-deriving them inside every fused per-candidate loop.
     """
     att = jax.vmap(lambda k, r: _attitude_one(k, r, cat_vec, mode_b))(keys, rows)
-    return jax.vmap(_scene_seed)(keys), att, cell_of(att[:, 2], grid)
+    return jax.vmap(streams.scene_seed)(keys), att, cell_of(att[:, 2], grid)
 
 
 @functools.partial(jax.jit, static_argnames=(
@@ -387,96 +388,9 @@ def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_v
     """One whole scene (steps 1–7) with the full candidate list: the per-scene reference."""
     att = _attitude_one(key, row, cat_vec, mode_b)
     return _scene_from_attitude(
-        _scene_seed(key), noise, att, cells[cell_of(att[2], grid)], star_vec=star_vec, star_mag=star_mag,
-        star_row=star_row, camera=camera, capacity=capacity, false_capacity=false_capacity,
+        streams.scene_seed(key), noise, att, cells[cell_of(att[2], grid)], star_vec=star_vec,
+        star_mag=star_mag, star_row=star_row, camera=camera, capacity=capacity, false_capacity=false_capacity,
         max_missing=max_missing, false_disk=false_disk)
-
-
-def _threefry2x32(k0, k1, x0, x1):
-    """Threefry-2x32 (20 rounds), bit-identical to ``jax.extend.random.threefry_2x32``, unrolled.
-
-    JAX lowers its Threefry to a 5-step ``while`` loop on CPU; inside the simulator's vmapped chunks
-    that loop cannot fuse with its consumers and costs more than the rest of the scene. Written out
-    in ``jnp`` the hash fuses with the uniform → normal transform into one vectorised loop.
-    All arguments are uint32 arrays (broadcast together); returns the two output words.
-    """
-    def rotl(v, r):
-        return (v << np.uint32(r)) | (v >> np.uint32(32 - r))
-
-    ks = (k0, k1, k0 ^ k1 ^ np.uint32(0x1BD11BDA))
-    rotations = ((13, 15, 26, 6), (17, 29, 16, 24))
-    x0, x1 = x0 + ks[0], x1 + ks[1]
-    for i in range(5):
-        for r in rotations[i % 2]:
-            x0 = x0 + x1
-            x1 = rotl(x1, r) ^ x0
-        x0 = x0 + ks[(i + 1) % 3]
-        x1 = x1 + ks[(i + 2) % 3] + np.uint32(i + 1)
-    return x0, x1
-
-
-# Counter-space streams of a scene's seed (the second Threefry input word): one per kind of draw.
-_STREAM_POSITION, _STREAM_MAG, _STREAM_MISSING, _STREAM_FALSE_XY, _STREAM_FALSE_MAG = 1, 2, 3, 4, 5
-_STREAM_FALSE_R, _STREAM_FALSE_T = 6, 7
-
-
-def _scene_seed(key):
-    """(2,) uint32 Threefry key for a scene's steps 2–7, derived from the scene key."""
-    if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
-        data = jax.random.key_data(key)
-    else:  # legacy uint32 key
-        data = jnp.asarray(key, jnp.uint32)
-    if data.shape != (2,):  # another key implementation: draw a Threefry key from it
-        data = jax.random.bits(key, (2,), jnp.uint32)
-    # hashed once so the streams below share no counter with jax.random's use of the scene key
-    return jnp.stack(_threefry2x32(data[0], data[1], np.uint32(0x243F6A88), np.uint32(0x85A308D3)))
-
-
-def _words(seed, stream, n):
-    """Random uint32 words of one stream of a scene.
-
-    Word i (row-major position) is the first output word of Threefry(seed, (i, stream)), so for a
-    1-d ``n`` the first m words are the same for any n ≥ m: a scene gets identical noise whatever
-    candidate-list width its chunk uses. (Using both output words would halve the hashing, but
-    interleaving them defeats XLA's vectorisation, and the hash is the cheap part next to the normal
-    transform.)
-
-    Args:
-        seed: (2,) uint32 scene seed (:func:`_scene_seed`).
-        stream: static int, the kind of draw (one of the ``_STREAM_*`` constants).
-        n: static int or shape tuple.
-
-    Returns:
-        uint32 array of shape ``(n,)`` or ``n``.
-    """
-    shape = (n,) if isinstance(n, int) else tuple(n)
-    # row-major counters of an n-d shape, built from iotas (a reshaped arange would not fuse as well)
-    count = jnp.zeros(shape, jnp.uint32)
-    for d in range(len(shape)):
-        count = count * np.uint32(shape[d]) + jax.lax.broadcasted_iota(jnp.uint32, shape, d)
-    return _threefry2x32(seed[0], seed[1], count, np.uint32(stream))[0]
-
-
-def _unit_uniform(words):
-    """uint32 words → float32 uniforms in [0, 1) (23 random mantissa bits, as ``jax.random.uniform``)."""
-    bits = jax.lax.shift_right_logical(words, jnp.uint32(9)) | jnp.uint32(0x3F800000)
-    return jax.lax.bitcast_convert_type(bits, jnp.float32) - 1.0
-
-
-def _uniforms(seed, stream, n):
-    """float32 uniforms in [0, 1) of shape ``(n,)`` or ``n``, prefix-stable in n (see :func:`_words`)."""
-    return _unit_uniform(_words(seed, stream, n))
-
-
-def _normals(seed, stream, n):
-    """Standard normal float32 draws of shape ``(n,)`` or ``n``, prefix-stable in n (:func:`_words`).
-
-    ``jax.random.normal``'s transform: √2 · erfinv(u) with u uniform in (−1, 1), u's lower end nudged
-    off −1 as JAX does.
-    """
-    lo = np.nextafter(np.float32(-1.0), np.float32(0.0))
-    u = jnp.maximum(lo, _unit_uniform(_words(seed, stream, n)) * (1.0 - lo) + lo)
-    return np.float32(math.sqrt(2.0)) * jax.lax.erf_inv(u)
 
 
 def _drop_missing(seed, detected, n_missing, max_missing):
@@ -487,7 +401,7 @@ def _drop_missing(seed, detected, n_missing, max_missing):
     does not depend on the batch's ``max_missing``.
 
     Args:
-        seed: the scene's Threefry key pair (:func:`_scene_seed`).
+        seed: the scene's Threefry key pair (:func:`~jstarid.random_streams.scene_seed`).
         detected: (K,) bool, detected true stars.
         n_missing: int32 scalar, stars to remove (≤ ``max_missing``).
         max_missing: static bound on ``n_missing`` over the batch.
@@ -495,7 +409,7 @@ def _drop_missing(seed, detected, n_missing, max_missing):
     Returns:
         (K,) bool, the detections left.
     """
-    u = _uniforms(seed, _STREAM_MISSING, max_missing)
+    u = streams.uniforms(seed, streams.MISSING, max_missing)
 
     def drop(i, det):
         n_left = jnp.sum(det, dtype=jnp.int32)
@@ -515,8 +429,9 @@ def _scene_from_attitude(seed, noise, att, idx, *, star_vec, star_mag, star_row,
     """Steps 2–7 for one scene (see the module docstring); ``noise`` fields are scalars here.
 
     Args:
-        seed: (2,) uint32, the scene's Threefry key pair for steps 2–7 (:func:`_scene_seed` of the
-            scene key, whose own draws gave the attitude in step 1).
+        seed: (2,) uint32, the scene's Threefry key pair for steps 2–7
+            (:func:`~jstarid.random_streams.scene_seed` of the scene key, whose own draws gave the
+            attitude in step 1).
         noise: per-scene :class:`NoiseConfig`.
         att: (3, 3) attitude.
         idx: (K,) candidate simulation-star indices (a prefix of the cell's list, padded with the
@@ -566,7 +481,7 @@ def _detections(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, 
     xy = jnp.stack([x, y], -1)
 
     # 3. magnitude noise before the detection limit; the star is in the field by its true position
-    obs_mag = star_mag[idx] + noise.magnitude_sigma * _normals(seed, _STREAM_MAG, n_cand)
+    obs_mag = star_mag[idx] + noise.magnitude_sigma * streams.normals(seed, streams.MAG, n_cand)
     detected = in_field & (obs_mag <= camera.mag_limit) & jnp.isfinite(obs_mag)
 
     # 5. missing stars
@@ -581,8 +496,8 @@ def _detections(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, 
         from_ratio = jnp.round(p * n_true / jnp.maximum(1.0 - p, 1e-6)).astype(jnp.int32)
         n_false = noise.n_false + from_ratio
         f_xy = _false_positions(seed, false_capacity, noise.false_radius_px, camera, disk=false_disk)
-        f_mag = noise.false_mag_min + (noise.false_mag_max - noise.false_mag_min) * _uniforms(
-            seed, _STREAM_FALSE_MAG, false_capacity)
+        f_mag = noise.false_mag_min + (noise.false_mag_max - noise.false_mag_min) * streams.uniforms(
+            seed, streams.FALSE_MAG, false_capacity)
         f_on = jnp.arange(false_capacity) < n_false
         false_overflow = n_false > false_capacity
         xy = jnp.concatenate([xy, f_xy])
@@ -620,7 +535,7 @@ def _keep_brightest(seed, noise, att, det, keep, *, capacity, n_cand):
     #    The (k, 2) draws come straight from 2-d counters and the positions from one gather of (x, y)
     #    rows: fused with a stack of separate x and y columns, the draws were recomputed per output
     #    element and not vectorised.
-    jitter = noise.position_sigma_px * _normals(seed, _STREAM_POSITION, (k, 2))
+    jitter = noise.position_sigma_px * streams.normals(seed, streams.POSITION, (k, 2))
     jitter = jnp.where((keep < n_cand)[:, None], jitter, 0.0)
     out_xy = jnp.where(valid[:, None], det.xy[keep] + jitter, 0.0)
     out_mag = jnp.where(valid, det.mag[keep], jnp.inf)
@@ -644,15 +559,15 @@ def _false_positions(seed, n, radius_px, camera, *, disk: bool, tries: int = 8):
     is used (a disk mostly outside the frame is rare; the last candidate is clipped in as a fallback).
     """
     w, h = camera.width - 1.0, camera.height - 1.0
-    frame = _uniforms(seed, _STREAM_FALSE_XY, (n, 2)) * jnp.array([w, h])
+    frame = streams.uniforms(seed, streams.FALSE_XY, (n, 2)) * jnp.array([[w, h]])
     if not disk:  # no finite radius in the batch: the disk draws would all be discarded
         return frame
     rad = jnp.minimum(radius_px, 2.0 * (w + h))  # inf → a disk that covers the frame
-    r = rad * jnp.sqrt(_uniforms(seed, _STREAM_FALSE_R, (tries, n)))
-    t = 2.0 * jnp.pi * _uniforms(seed, _STREAM_FALSE_T, (tries, n))
+    r = rad * jnp.sqrt(streams.uniforms(seed, streams.FALSE_R, (tries, n)))
+    t = 2.0 * jnp.pi * streams.uniforms(seed, streams.FALSE_T, (tries, n))
     cand = jnp.stack([camera.cx + r * jnp.cos(t), camera.cy + r * jnp.sin(t)], -1)  # (tries, n, 2)
     inside = camera.contains(cand)
     first = jnp.argmax(inside, axis=0)
     pick = jnp.take_along_axis(cand, first[None, :, None], axis=0)[0]
-    pick = jnp.clip(pick, 0.0, jnp.array([w, h]))
+    pick = jnp.clip(pick, 0.0, jnp.array([[w, h]]))
     return jnp.where(jnp.isinf(radius_px), frame, pick)

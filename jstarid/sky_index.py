@@ -16,6 +16,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.runtime import device_cache
+
 __all__ = ["SkyIndex", "build_sky_index", "cell_of", "local_stars"]
 
 _MEMO: dict = {}
@@ -45,11 +47,8 @@ class SkyIndex:
 
     def device_arrays(self):
         """``(cells, counts)`` as device arrays, copied once per index (the index is memoised)."""
-        cached = self.__dict__.get("_device")
-        if cached is None:
-            cached = (jnp.asarray(self.cells), jnp.asarray(self.counts))
-            object.__setattr__(self, "_device", cached)
-        return cached
+        return device_cache.cached(self, "sky_index",
+                                   lambda: (jnp.asarray(self.cells), jnp.asarray(self.counts)))
 
 
 def cell_of(direction, grid: int):

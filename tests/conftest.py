@@ -9,6 +9,10 @@ import pytest  # noqa: E402
 
 import jstarid as js  # noqa: E402
 
+# Broadcasting between arrays of different rank must be written out (``a[:, None]``), as in diffrax's
+# and optax's suites: an implicit rank promotion is usually a shape bug.
+jax.config.update("jax_numpy_rank_promotion", "raise")
+
 # One persistent XLA cache for the whole run: the pytest-xdist workers (and the scripts the tests
 # start) compile many of the same kernels (SGM's per-size pair kernels, the tiny RpNet network), and
 # each compiles a kernel only when no other process has stored it yet. Compilation dominates the

@@ -303,7 +303,7 @@ def test_sharded_simulation_equals_single_device(catalog6, sgm_camera, several_d
 
 
 def test_repeated_sharded_calls_do_not_recompile(catalog6, sgm_camera):
-    from jstarid import sweep
+    from jstarid.runtime import devices as sweep
 
     js.simulate(jax.random.key(1), catalog6, sgm_camera, batch_size=8, shard=True)
     before = sweep._compiled.cache_info().currsize

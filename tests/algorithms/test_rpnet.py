@@ -608,7 +608,7 @@ def test_coverage_check_fails_scenes_that_name_few_of_the_expected_stars(tiny, c
     longer be named. Clean scenes name all the expected stars, so a threshold of 0.9 changes nothing
     there; the pushed scenes name too few of them and fail, while without the check they are confirmed.
     """
-    from jstarid import sweep
+    from jstarid.runtime import devices as sweep
     _, cam, cfg, db, _ = tiny
     s = clean_scenes[:96]
     strict = dataclasses.replace(cfg, min_coverage=0.9)
@@ -757,7 +757,7 @@ def test_more_pair_trials_only_add_scenes(tiny):
 
 def test_fallback_triples_only_add_scenes(tiny):
     """Later triples (extension) run only where S1–S3 confirmed nothing: false stars crowding the
-    centre no longer fail the scene."""
+    centre do not fail the scene."""
     _, _, cfg, db, _ = tiny
     s = _guide_scenes(tiny, 22, position_sigma_px=0.5, n_false=3, false_radius_px=80.0)
     one = rpnet.identify(db, s, dataclasses.replace(cfg, **S1_S3_ONLY))
@@ -822,8 +822,8 @@ def test_verification_names_no_false_star_beside_an_undetected_star():
     """A noise-free frame where two catalog stars went undetected and a false star lies 4–5 px from
     each (one of them is a detection of the confident pair, named after the missing star): neither
     false star is named, every real one is, and the attitude is exact. Without the robust refit and
-    the pair's σ̂-based tolerance (as before session 16) the RMS noise estimate, inflated by the
-    two, names a false star."""
+    the pair's σ̂-based tolerance (``outlier_ratio`` and ``pair_sigmas`` set out of reach) the RMS
+    noise estimate, inflated by the two, names a false star."""
     from jstarid.algorithms.rpnet.identify import _local_index, _verify_pair
 
     cat = js.load_catalog(5.0)
@@ -865,10 +865,10 @@ def test_verification_names_no_false_star_beside_an_undetected_star():
 
 def test_robust_refit_leaves_clean_noise_alone(tiny):
     """With Gaussian centroid noise alone the trimmed fit's σ̂ is not ``outlier_ratio`` below the
-    plain fit's, so the robust refit changes nothing (session 15: always using it cost the main star
-    in 9 of 80,000 Fig. 8 scenes). On these scenes an always-on refit with the default 6 σ̂ radius
+    plain fit's, so the robust refit changes nothing (always using it costs the main star in about
+    one Fig. 8 scene in 10,000). On these scenes an always-on refit with the default 6 σ̂ radius
     happens to give the same ids too, so the check that the comparison sees the refit take over uses
-    a 1 σ̂ radius (it changed 99 of 176 scenes when written)."""
+    a 1 σ̂ radius (it changes most of the scenes)."""
     _, _, cfg, db, _ = tiny
     s = _guide_scenes(tiny, 24, position_sigma_px=1.0)
     default = rpnet.identify(db, s, cfg)

@@ -78,14 +78,14 @@ def test_noise_free_scenes_all_correct_including_twins(setup):
     import dataclasses
 
     from jstarid.algorithms.sgm.identify import _name_leftovers, scene_graphs
-    g = {k: np.asarray(v) for k, v in scene_graphs(
+    g = jax.tree.map(np.asarray, scene_graphs(
         scenes.xy, scenes.valid, camera=cam, radius_deg=cfg.radius_deg,
-        capacity=db.capacity).items()}
+        capacity=db.capacity))
     ids = np.array(result.ids)
     knocked = ids.copy()
     for s in range(rows.size):
-        if g["n"][s] >= 6:  # keep ≥ 3 named stars for the attitude
-            knocked[s, g["members"][s][1:g["n"][s]][:2]] = -1
+        if g.n[s] >= 6:  # keep ≥ 3 named stars for the attitude
+            knocked[s, g.members[s][1:g.n[s]][:2]] = -1
     assert np.sum(knocked != ids) > 0
     restored = _name_leftovers(db, scenes, js.Identification(ids=jnp.asarray(knocked),
                                                              ok=result.ok), g,
@@ -106,11 +106,11 @@ def test_false_stars_only_fail_cleanly(setup):
     result, info = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5), diagnostics=True)
     # candidates were really examined (spectral matching or the exact pruning bound) and rejected
     assert np.all(info.n_matched + info.n_pruned > 20)
-    # a second call with the same shapes compiles nothing new (STYLE §4)
+    # a second call with the same shapes compiles nothing new (no retracing)
     from jstarid.algorithms.sgm import search
     kernels = (search._match_pairs, search._bound_pairs, search._edge_bound_pairs)
     n_compiled = tuple(k._cache_size() for k in kernels)
-    from jstarid import sweep
+    from jstarid.runtime import devices as sweep
     n_sharded = sweep._compiled.cache_info().currsize
     again = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5))
     assert tuple(k._cache_size() for k in kernels) == n_compiled
@@ -186,26 +186,26 @@ def test_bounds_of_the_search_equal_the_per_pair_bounds(setup5):
     rng = np.random.default_rng(0)
     scene = rng.integers(0, 5, 70)
     rows = rng.choice(len(db), 70, replace=False)
-    n_i = g["n"].astype(np.int32)
-    image = search.image_tables(g["adj"], n_i)
+    n_i = g.n.astype(np.int32)
+    image = search.image_tables(g.adj, n_i)
     got = search.edge_bounds(db, image, n_i, scene, rows, cfg)
     k = db.capacity
-    m_i = jnp.arange(k)[None, :] < g["n"][scene, None]
+    m_i = jnp.arange(k)[None, :] < g.n[scene, None]
     m_j = jnp.arange(k)[None, :] < db.n[rows, None]
-    e_i = sorted_edges(jnp.asarray(g["adj"][scene]), m_i)
+    e_i = sorted_edges(jnp.asarray(g.adj[scene]), m_i)
     e_j = sorted_edges(jnp.asarray(db.adj[rows]), m_j)
-    want = jax.vmap(edge_lower_bound)(e_i, jnp.asarray(g["n"][scene]), e_j, jnp.asarray(db.n[rows]))
-    assert len(np.unique(search.bucket_up(np.maximum(g["n"][scene], db.n[rows]), 8))) > 1
+    want = jax.vmap(edge_lower_bound)(e_i, jnp.asarray(g.n[scene]), e_j, jnp.asarray(db.n[rows]))
+    assert len(np.unique(search.bucket_up(np.maximum(g.n[scene], db.n[rows]), 8))) > 1
     np.testing.assert_allclose(got, np.asarray(want), rtol=1e-6, atol=1e-7)
     assert np.mean(got > 0) > 0.5
     # the row bound: per pair at full capacity K with the largest skip count, against the search's
     # grouped call at each pair's own size r and skip bucket
     got, bounded = search.lower_bounds(db, image, n_i, scene, rows, cfg)
-    r_i = sorted_rows(jnp.asarray(g["adj"][scene]), m_i)
+    r_i = sorted_rows(jnp.asarray(g.adj[scene]), m_i)
     r_j = sorted_rows(jnp.asarray(db.adj[rows]), m_j)
     want = jax.vmap(partial(error_lower_bound, max_skip=cfg.prune_max_skip))(
-        r_i, jnp.asarray(g["n"][scene]), r_j, jnp.asarray(db.n[rows]))
-    assert bounded.sum() > 20 and len(np.unique(np.abs(g["n"][scene] - db.n[rows])[bounded])) > 2
+        r_i, jnp.asarray(g.n[scene]), r_j, jnp.asarray(db.n[rows]))
+    assert bounded.sum() > 20 and len(np.unique(np.abs(g.n[scene] - db.n[rows])[bounded])) > 2
     np.testing.assert_allclose(got[bounded], np.asarray(want)[bounded], rtol=2e-5, atol=1e-6)
     assert np.all(got[~bounded] == 0)
 
@@ -224,7 +224,7 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     levels = []
     for s in range(rows.size):
         best, err, level, n_tried = _sequential_algorithm1(
-            db, np.asarray(g["adj"][s]), np.asarray(g["mask"][s]), float(g["w"][s]), cfg)
+            db, np.asarray(g.adj[s]), np.asarray(g.mask[s]), float(g.w[s]), cfg)
         assert info.best[s] == best
         assert info.level[s] == level
         if best >= 0:
@@ -250,10 +250,10 @@ def _noisy_graphs(setup5, cfg, *, n, seed, key):
     rows = np.random.default_rng(seed).choice(len(cat), n, replace=False)
     scenes = js.simulate(jax.random.key(key), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)
-    g = {k: np.asarray(v) for k, v in scene_graphs(scenes.xy, scenes.valid, camera=cam,
+    g = jax.tree.map(np.asarray, scene_graphs(scenes.xy, scenes.valid, camera=cam,
                                                     radius_deg=cfg.radius_deg,
-                                                    capacity=db.capacity).items()}
-    return rows, scenes, g, g["any"] & ~g["overflow"] & (g["n"] >= cfg.min_stars)
+                                                    capacity=db.capacity))
+    return rows, scenes, g, g.any & ~g.overflow & (g.n >= cfg.min_stars)
 
 
 @pytest.mark.parametrize("eps", [0.1, 0.4])
@@ -267,9 +267,8 @@ def test_search_resumed_after_a_rejection_equals_algorithm1_without_that_candida
     cfg = sgm.Config(max_error_deg=eps, chunk_size=8, dw_max_deg=0.5)
     rows, _, g, usable = _noisy_graphs(setup5, cfg, n=4 if eps < 0.4 else 6, seed=2 if eps < 0.4 else 3,
                                        key=6)
-    state = search.start_search(db, g, usable, cfg)
-    search.advance_search(db, g, state, cfg)
-    out = search.search_outcome(state, cfg, g["mask"].shape[1])
+    state = search.advance_search(db, g, search.start_search(db, g, usable, cfg), cfg)
+    out = search.search_outcome(state, cfg, g.mask.shape[1])
     # branch and bound: candidates whose bound exceeds the best δ are never matched, and for some
     # of them the first-stage (edge) bound was enough: the row bound was never computed
     assert state.deferred.any() or eps < 0.4
@@ -277,27 +276,27 @@ def test_search_resumed_after_a_rejection_equals_algorithm1_without_that_candida
     struck = [set() for _ in rows]
     resumed = recalled = 0
     for _ in range(3):  # strike out every answer three times over
-        redo = np.nonzero(out["ok"])[0]
+        redo = np.nonzero(out.ok)[0]
         for s in redo:
-            struck[s].add(int(out["best"][s]))
+            struck[s].add(int(out.best[s]))
         work, was_deferred = state.covered.copy(), state.deferred.copy()
-        search.reject_best(state, out, redo)
-        search.advance_search(db, g, state, cfg, np.isin(np.arange(rows.size), redo))
+        state = search.advance_search(db, g, search.reject_best(state, out, redo), cfg,
+                                      np.isin(np.arange(rows.size), redo))
         recalled += int(np.sum(was_deferred & ~state.deferred))
-        out = search.search_outcome(state, cfg, g["mask"].shape[1])
+        out = search.search_outcome(state, cfg, g.mask.shape[1])
         for s in range(rows.size):
             best, err, level, n_tried = _sequential_algorithm1(
-                db, g["adj"][s], g["mask"][s], float(g["w"][s]), cfg, exclude=struck[s])
-            assert out["best"][s] == best and out["level"][s] == level
+                db, g.adj[s], g.mask[s], float(g.w[s]), cfg, exclude=struck[s])
+            assert out.best[s] == best and out.level[s] == level
             if best >= 0:
-                np.testing.assert_allclose(out["error"][s], err, rtol=1e-4, atol=1e-6)
-                assert out["match"][s].max() >= 0
+                np.testing.assert_allclose(out.error[s], err, rtol=1e-4, atol=1e-6)
+                assert out.match[s].max() >= 0
             # every candidate examined once (matched, pruned or deferred), never matched again
             # after a rejection; the batched prefix holds the sequential loop's candidates
             assert state.n_matched[s] + state.n_pruned[s] + state.deferred[s].sum() == state.covered[s]
             assert not np.any(state.deferred[s] & np.isfinite(state.err[s]))
             assert state.covered[s] >= n_tried or not usable[s]
-            assert out["n_rejected"][s] == len(struck[s])
+            assert out.n_rejected[s] == len(struck[s])
         resumed += int(np.sum(state.covered != work))
     # the resumed searches examined further candidates; a scene lost two answers
     assert resumed > 0 and any(len(x) >= 2 for x in struck)
@@ -471,18 +470,18 @@ def test_rename_after_verification_names_a_detection_the_match_paired_wrongly(se
                          boresight_ids=rows)
     g = scene_graphs(scenes.xy, scenes.valid, camera=cam, radius_deg=cfg.radius_deg,
                      capacity=db.capacity)
-    g = {k: np.asarray(v) for k, v in g.items()}
+    g = jax.tree.map(np.asarray, g)
     truth = np.asarray(scenes.truth)
     circle = np.zeros_like(truth, dtype=bool)
     for s in range(len(rows)):
-        circle[s, g["members"][s][g["mask"][s]]] = True
+        circle[s, g.members[s][g.mask[s]]] = True
     named = np.where(circle, truth, -1)  # what a correct match names: the circle's detections
     # each scene: the circle detection closest to a detection outside the circle is named after
     # that outside star — a wrong name of a present star, which the residual test must catch
     wrong, victim = named.copy(), []
     for s in range(len(rows)):
         outside = truth[s][(truth[s] >= 0) & ~circle[s]]
-        inside = np.array([d for d in np.nonzero(named[s] >= 0)[0] if d != g["main"][s]])
+        inside = np.array([d for d in np.nonzero(named[s] >= 0)[0] if d != g.main[s]])
         cos = cat.unit_vectors[truth[s, inside]] @ cat.unit_vectors[outside].T  # the closest pair
         i, o = np.unravel_index(np.argmax(cos), cos.shape)
         wrong[s, inside[i]] = outside[o]

@@ -191,6 +191,7 @@ def test_vertex_check_unnames_the_inconsistent_vertex():
 
     from jstarid.algorithms.sgm import Config
     from jstarid.algorithms.sgm.identify import _check_vertices
+    from jstarid.algorithms.sgm.search import SearchOutcome
 
     rng = np.random.default_rng(4)
     pts = rng.uniform(-5, 5, (10, 2))
@@ -203,7 +204,9 @@ def test_vertex_check_unnames_the_inconsistent_vertex():
     a_i[0, :10, :10] = np.linalg.norm(img[:, None] - img[None], axis=-1)
     match = np.full((1, k), -1, np.int32)
     match[0, :10] = np.arange(10)
-    res = {"match": match, "ok": np.array([True]), "best": np.array([0])}
+    one = np.zeros(1, np.int32)
+    res = SearchOutcome(ok=np.array([True]), best=one, rank=one, match=match, error=np.zeros(1),
+                        n_matched=one, n_pruned=one, n_rejected=one, level=one)
     cfg = dataclasses.replace(Config(), vertex_check_deg=0.2)
     m, ok = _check_vertices(a_i, a_j, res, cfg)
     assert bool(ok[0])

@@ -35,6 +35,9 @@ class Tuning(NamedTuple):
 class Config:
     """Multilayer-voting parameters (Sensors 2021, 21, 3084; docs/conventions.md §7).
 
+    The evidence behind the defaults of the choices the paper leaves open is in docs/design/mlv.md
+    (mlv2021 scenes with random attitudes; ``experiments/reproduce_mlv.py`` has the full sweeps).
+
     Paper parameters (Table 1):
         n_stars: N, the brightest detections (and, in the database, the brightest catalog stars per
             boresight) that form the C(N, 3) triangle units. Paper: 10 (6–12 in its Table 4
@@ -45,30 +48,20 @@ class Config:
         n_boresights: database boresights, evenly on the sphere (Fibonacci lattice; the paper cites
             [26] for its even distribution). Paper: 100,000.
 
-    Choices the paper leaves open (measured on mlv2021 scenes with random attitudes, 400 per
-    condition; "2.5 px" = Fig. 6's worst case with magnitude σ 0.3, "6 false" = Fig. 8's, "0.7
-    mag" = Fig. 7's; ``experiments/reproduce_mlv.py`` has the full sweeps):
+    Choices the paper leaves open:
         th1, th2: tolerances Th1, Th2 of eq. 7 on the *discretized* features (bins). A centroid
-            error of σ px moves a true triangle's v̂1 by ≈ 1 bin and v̂2 by < 1 bin per px (95th
-            percentiles of |Δv̂1|, |Δv̂2|: 1, 1 at 0.5 px; 3, 2 at 1 px; 6, 4 at 2.5 px). Th1 = Th2 = 1
-            keeps 76 % of the true triangles at 1 px and 35 % at 2.5 px, which the 120-triangle
-            vote tolerates, while a window of 3 × 3 bins already returns a median of 23 database
-            triangles (99th percentile 138, max 159 at 1 px; Th = 2: 61 / 290 / 327). With the
-            paper's voting, Th = 1 beat Th = 2 on 6 false and 0.7 mag (89 % vs 83 %, 84 % vs 78 %)
-            and lost a little at 2.5 px (85 % vs 88 %); Th = 0 (exact bins) fell to 39 % there.
+            error of σ px moves a true triangle's v̂1 by ≈ 1 bin and v̂2 by < 1 bin per px; 1 keeps
+            enough true triangles for the 120-triangle vote while a 3 × 3-bin window already returns
+            a median of 23 database triangles (Th = 2: 61).
         eps_deg: verification tolerance ε on pair angles (eq. 8), degrees. One pixel is 0.0244°
-            here and a pair angle's error is ≈ √2·σ px, 0.086° at σ = 2.5 px; ε = 0.2° keeps true
-            pairs up to the Fig. 6 noise. Sweep of ε (= ``side_tol_deg``) with all extensions on,
-            1,000 scenes each, identification % at 2.5 px / 0.7 mag / 6 false: 0.1°: 83.0 / 99.3 /
-            99.8; 0.15°: 97.8 / 99.1 / 99.5; 0.2°: 99.1 / 99.1 / 99.2; 0.3°: 99.2 / 98.7 / 99.2.
-            The looseness is paid back by the attitude check below.
-        candidate_capacity: K, the most candidates a triangle may have and still vote; 256
-            covers the largest count seen with Th = 1 (159). A triangle with more than K is
-            flagged (``Diagnostics.candidate_overflow``) and casts no vote;
-            :func:`~jstarid.algorithms.mlv.identify` then recomputes the chunk with a doubled K
-            up to ``max_candidate_capacity`` (host-side), so nothing is silently dropped below
-            that bound. (The candidates themselves go to one shared buffer per scene,
-            ``candidate_pool``.)
+            here and a pair angle's error is ≈ √2·σ px, 0.086° at σ = 2.5 px; 0.2° keeps true pairs
+            up to the Fig. 6 noise, and the attitude check below pays back the looseness.
+        candidate_capacity: K, the most candidates a triangle may have and still vote; 256 covers
+            the largest count seen with Th = 1 (159). A triangle with more than K is flagged
+            (``Diagnostics.candidate_overflow``) and casts no vote;
+            :func:`~jstarid.algorithms.mlv.identify` then recomputes the chunk with a doubled K up
+            to ``max_candidate_capacity`` (host-side), so nothing is silently dropped below that
+            bound. (The candidates themselves go to one shared buffer per scene, ``candidate_pool``.)
         max_candidate_capacity: the largest K the host retry may reach.
         candidate_pool: P, one shared candidate buffer per scene for all its triangles (``None``:
             :func:`~jstarid.algorithms.mlv.identify.default_pool`, ≈ 7 slots per triangle per
@@ -86,13 +79,11 @@ class Config:
             orientations, as scenes with random roll do.
 
     Extensions (``vertex_match=False, attitude_check=False, field_check=False`` is the paper's
-    algorithm; the defaults turn all three on):
+    algorithm, :meth:`paper`; the defaults turn all three on):
         vertex_match: check each candidate triangle's three side angles against the observed ones
             within ``side_tol_deg`` and vote for the *corresponding* star only (the paper votes for
             all three stars at each vertex, Fig. 3). Singular values fix only two of a triangle's
-            three shape parameters; the third removes most wrong candidates. Identification
-            rate with / without (Th = 1): 2.5 px 98.5 % / 85 %; 6 false 99.0 % / 88.5 %;
-            0.7 mag 98.8 % / 84 % (mis-identifications 0.3–1.5 % before the attitude check).
+            three shape parameters; the third removes most wrong candidates.
         side_tol_deg: side tolerance of ``vertex_match`` (deg), as ε.
         min_votes: a detection needs this many votes to have a candidate.
         attitude_check: after verification, predict every cluster member from the attitude of
@@ -100,29 +91,21 @@ class Config:
             nearest catalog star within ``residual_sigmas`` × (the scene's estimated centroid
             noise), clipped to [``residual_min_deg``, ``residual_max_deg``], and no other catalog
             star is within ``ambiguity_deg``, and it is the scene detection nearest to its
-            star's predicted position. Close pairs swapping ids and false stars next to catalog
-            stars caused every mis-identification seen with ε = 0.2°: 0.3–1.5 % → 0 / 0 / 0 on
-            the three conditions above (identification 100 %, 99.3 %, 98.5 %). With all
-            extensions, 42,000 scenes of the Figs. 6–8 sweeps (2,000 per level) gave no
-            mis-identification; one in 1,000 was seen at 2.5 px with another seed (two close
-            pairs swapped at once).
+            star's predicted position. Why: close pairs swapping ids and false stars next to
+            catalog stars caused every mis-identification left after vertex matching.
         residual_sigmas, residual_min_deg, residual_max_deg: the attitude-check tolerance.
         outlier_sigmas, outlier_min_others: the attitude check's outlier test
             (:func:`~jstarid.algorithms.mlv.verify.attitude_check`): a member with at least
             ``outlier_min_others`` other members must also lie within ``outlier_sigmas`` × the
             noise scale of the *other* members (from the fit without it, so a wrong member
-            cannot inflate its own tolerance); 0 turns it off. It removed the last two
-            mis-identifications of the 10,000-scene sweeps (false stars 4.8 and 8.3 px from an
-            undetected catalog star at 1 px noise, accepted because they inflated the scene's σ̂
-            to 1.5–2 px); applied to every cluster size it cost 0.2 % identification at 2.5 px.
+            cannot inflate its own tolerance); 0 turns it off.
         ambiguity_deg: a second catalog star this close to a member's predicted position makes
             the member ambiguous (dropped).
         field_check: under the attitude of the final cluster, at least
             ``field_check_fraction`` of the N brightest catalog stars predicted in the frame must
-            have a detection within ``residual_max_deg``. With vertex matching, a three-member
-            cluster can be one chance triangle match (its pair angles were already checked by
-            the match); that was the last kind of mis-identification left (≈ 0.03 % of the
-            scenes with 5–6 false stars).
+            have a detection within ``residual_max_deg``. Why: with vertex matching, a
+            three-member cluster can be one chance triangle match (its pair angles were already
+            checked by the match).
     """
 
     n_stars: int = 10

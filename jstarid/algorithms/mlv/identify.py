@@ -57,8 +57,8 @@ from jstarid.algorithms.mlv.voting import (
     gather_pool,
     observed_sides,
 )
+from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, take_rows
 from jstarid.scene import Identification, Scene
-from jstarid.sweep import map_batch, replicate_once
 
 __all__ = ["Diagnostics", "default_pool", "identify", "identify_scene"]
 
@@ -257,6 +257,17 @@ def _identify_batch(xy, valid, all_xy, all_valid, tuning, db, config, capacity, 
     return jax.lax.map(one, args, batch_size=config.map_batch)
 
 
+# the outputs of identify_scene, in the order the batched kernel returns them
+_KEYS = ("ids", "ok", "overflow", "attitude", "n_overflow", "n_candidates", "candidates", "votes",
+         "cluster_size", "field_predicted", "field_seen", "pool_total", "pool_overflow")
+
+
+def _identify_rows(xy, valid, all_xy, all_valid, tuning, db, **static):
+    """:func:`_identify_batch` with its outputs as a tuple in :data:`_KEYS` order."""
+    out = _identify_batch(xy, valid, all_xy, all_valid, tuning, db, **static)
+    return tuple(out[key] for key in _KEYS)
+
+
 def _kernel_config(config: Config) -> Config:
     """The config with the fields the compiled kernel does not read as static values set to their
     defaults, so that configs differing only in buffers, chunking, database settings or the traced
@@ -288,14 +299,6 @@ def _per_scene(value, b: int, dtype):
     if a.shape != (b,):
         raise ValueError(f"per-scene values must be scalars or ({b},) arrays, got {a.shape}")
     return a
-
-
-def _pad_rows(tree, size: int):
-    """Pad every leaf's leading axis with zeros (empty scenes) to ``size``."""
-    def pad(a):
-        return jnp.pad(a, [(0, size - a.shape[0])] + [(0, 0)] * (a.ndim - 1))
-
-    return jax.tree_util.tree_map(pad, tree)
 
 
 def identify(database: Database, scenes: Scene, config: Config | None = None, *,
@@ -332,7 +335,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     # build statistics are static metadata: drop them so cached and fresh databases share a compile
     stripped = dataclasses.replace(database, info=(), key="")
     # placed on every device once (kept on the caller's database), not copied on each chunk's call
-    database = (replicate_once(database, "mlv_identify", lambda: stripped) if jax.device_count() > 1
+    database = (on_every_device(database, "mlv_identify", lambda: stripped) if jax.device_count() > 1
                 else stripped)
     b, cap = scenes.batch_size, scenes.capacity
     tuning = config.tuning() if tuning is None else tuning
@@ -347,39 +350,43 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     all_xy, all_valid = scenes.xy.astype(jnp.float32), scenes.valid
     if all_xy.shape[1] < config.n_stars:
         all_xy, all_valid = xy, valid
-    kernel_config = _kernel_config(config)
+    batched = jax.tree.map(np.asarray, (xy, valid, all_xy, all_valid, tuning))
     t = math.comb(config.n_stars, 3)
     chunk = min(config.batch_chunk, b)
-    outs, k_used = [], config.candidate_capacity
-    for lo in range(0, b, chunk):
-        hi = min(lo + chunk, b)
-        args = (xy[lo:hi], valid[lo:hi], all_xy[lo:hi], all_valid[lo:hi],
-                jax.tree_util.tree_map(lambda a, lo=lo, hi=hi: a[lo:hi], tuning))
-        if hi - lo < chunk:  # pad the last chunk to the compiled shape with empty scenes
-            args = _pad_rows(args, chunk)
-        k = config.candidate_capacity
-        while True:
-            pool = default_pool(config, th1_max, th2_max, k, database.n_triangles)
-            # the chunk's scenes split over every device (one per CPU core after js.use_cpu_cores())
-            out = map_batch(_identify_batch, args, (database,),
-                            static=dict(config=kernel_config, capacity=k, pool=pool, th1_max=th1_max))
-            if not bool(jnp.any(out["overflow"])) or k >= config.max_candidate_capacity:
-                break
-            k = min(2 * k, config.max_candidate_capacity)
-        k_used = max(k_used, k)
-        redo = np.flatnonzero(np.asarray(out["pool_overflow"]))
-        # rare (≈ 0.2 % of scenes): recompute those scenes with a doubled buffer, up to P = T·K
-        # (which cannot overflow), _REDO scenes at a time (one compilation per buffer size)
-        while redo.size and pool < t * k:
-            pool = min(2 * pool, t * k)
-            for i in range(0, redo.size, _REDO):
-                r = redo[i:i + _REDO]
-                sub = _pad_rows(jax.tree_util.tree_map(lambda a, r=r: a[r], args), _REDO)
-                fix = _identify_batch(*sub, database, kernel_config, k, pool, th1_max)
-                out = jax.tree_util.tree_map(lambda a, f, r=r: a.at[r].set(f[: r.size]), out, fix)
-            redo = np.flatnonzero(np.asarray(out["pool_overflow"]))
-        outs.append(jax.tree_util.tree_map(lambda a, n=hi - lo: a[:n], out))
-    out = {key: jnp.concatenate([o[key] for o in outs]) for key in outs[0]}
+    static = dict(config=_kernel_config(config), th1_max=th1_max)
+    tails = [(config.n_stars,), (), (), (3, 3), (), (t,), (config.n_stars,), (config.n_stars,),
+             (), (), (), (), ()]
+    out = None
+    capacity_of = np.zeros((b,), np.int64)  # the candidate buffer K each scene was last run with
+    pool_of = np.zeros((b,), np.int64)
+
+    def run(rows, k, pool, size):
+        nonlocal out
+        # the scenes split over every device (one per CPU core after js.use_cpu_cores())
+        out = run_calls(_identify_rows, chunk_calls(rows, size), lambda c: take_rows(batched, c),
+                        (database,), static=dict(static, capacity=k, pool=pool), n_rows=b,
+                        tails=tails, fills=[0] * len(tails), out=out)
+        capacity_of[rows], pool_of[rows] = k, pool
+        return out[_KEYS.index("overflow")][rows]
+
+    # a triangle with more than K candidates is flagged: those scenes run again with a doubled K,
+    # up to max_candidate_capacity (K changes nothing for scenes that never overflow it)
+    k_used = grow_until(
+        lambda k, rows: run(rows, k, default_pool(config, th1_max, th2_max, k, database.n_triangles),
+                            chunk),
+        np.arange(b), config.candidate_capacity, config.max_candidate_capacity)
+    # rare (≈ 0.2 % of scenes): candidates beyond the shared buffer P; those scenes run again with a
+    # doubled P, up to P = T·K (which cannot overflow), _REDO scenes per call
+    while True:
+        redo = np.flatnonzero(out[_KEYS.index("pool_overflow")] & (pool_of < t * capacity_of))
+        if not redo.size:
+            break
+        for k in np.unique(capacity_of[redo]):
+            rows = redo[capacity_of[redo] == k]
+            for pool in np.unique(pool_of[rows]):
+                sub = rows[pool_of[rows] == pool]
+                run(sub, int(k), int(min(2 * pool, t * k)), _REDO)
+    out = {key: jnp.asarray(value) for key, value in zip(_KEYS, out, strict=True)}
     if bool(jnp.any(out["overflow"])):
         warnings.warn(f"MLV: {int(jnp.sum(out['overflow']))} scenes had triangles with more than "
                       f"{config.max_candidate_capacity} candidates (those triangles cast no vote)",

@@ -117,19 +117,15 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
 
     Outlier test (``outlier_sigmas``): σ̂ above comes from a fit that includes every member, so a
     wrong member inflates the very tolerance it is tested against (it pulls the fit and adds its
-    own residual to the median). Seen at 5–6 false stars, 1 px noise (``reproduce_mlv.py``,
-    seed 2021, 10,000 scenes per level): a false star 8.3 px from an undetected catalog star
-    (which lay just outside the frame) had a leave-one-out residual of 8.0 px against a tolerance
-    of 8.1 px (σ̂ = 2.0 px); another, 4.8 px from a star below the detection limit, 4.3 px against
-    6.0 px. So each member is also tested against a *clean* scale, σ̂ᵢ from the other members'
-    residuals under the fit without it: median radius / 1.1774 / √(1 − 1.5/n'), n' = the other
-    members (the fit of 3 parameters to 2n' coordinates shrinks in-sample residuals), and must
-    lie within ``outlier_sigmas`` × σ̂ᵢ (same clipping). For the wrong member that scale is
-    uncontaminated: 5.0 σ̂ and 3.7 σ̂ in the two scenes. The test is tighter than the first one,
-    so it also drops some true stars; it applies only when n' ≥ ``outlier_min_others``, where a
-    dropped star still leaves a cluster of ≥ ``outlier_min_others`` (in small clusters σ̂ᵢ rests
-    on 2–4 residuals and the extra losses failed scenes: identification at 2.5 px fell from
-    99.47 % to 99.24 % with the test applied to every cluster, 99.46 % with n' ≥ 5).
+    own residual to the median); a false star a few px from an undetected catalog star, in a scene
+    with several false stars, can then pass. So each member is also tested against a *clean*
+    scale, σ̂ᵢ from the other members' residuals under the fit without it: median radius / 1.1774 /
+    √(1 − 1.5/n'), n' = the other members (the fit of 3 parameters to 2n' coordinates shrinks
+    in-sample residuals), and must lie within ``outlier_sigmas`` × σ̂ᵢ (same clipping). The test is
+    tighter than the first one, so it also drops some true stars; it applies only when
+    n' ≥ ``outlier_min_others``, where a dropped star still leaves a cluster of
+    ≥ ``outlier_min_others`` (in small clusters σ̂ᵢ rests on 2–4 residuals and the extra losses fail
+    scenes). The cases behind it: docs/design/mlv.md.
 
     Args:
         det_vectors: (n, 3) detection directions (camera frame).
@@ -164,7 +160,7 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
     pred = precise.einsum("ni,nij->nj", det_vectors, loo)  # rows: C_iᵀ v_i in ICRS
     cos = precise.matmul(pred, catalog_vectors.T)  # (n, M)
     near = jnp.argmax(cos, axis=1)  # two argmax passes: cheaper than top_k on CPU
-    cos2 = jnp.max(jnp.where(jnp.arange(cos.shape[1]) == near[:, None], -2.0, cos), axis=1)
+    cos2 = jnp.max(jnp.where(jnp.arange(cos.shape[1])[None, :] == near[:, None], -2.0, cos), axis=1)
     ang1 = angle_between(pred, catalog_vectors[near])
     # cos2 only decides "within ambiguity_rad": compare cosines (no precision needed here)
     if scene_vectors is None:

@@ -34,7 +34,7 @@ def candidate_ranges(keys, v1h, v2h, *, th1, th2, v1_offset: int, stride: int, n
         th1_max = int(th1)
     d1 = jnp.arange(-th1_max, th1_max + 1, dtype=jnp.int32)
     # rows outside the table are clipped to −1 / n_rows: their key ranges are empty (no overflow)
-    row = jnp.clip(v1h[..., None] - v1_offset + d1, -1, n_rows)
+    row = jnp.clip(v1h[..., None] - v1_offset + d1.reshape((1,) * jnp.ndim(v1h) + (-1,)), -1, n_rows)
     lo2 = jnp.clip(v2h - th2, 0, stride - 1)[..., None]
     hi2 = jnp.clip(v2h + th2, 0, stride - 1)[..., None]
     empty = (v2h + th2 < 0) | (v2h - th2 > stride - 1)
@@ -44,7 +44,8 @@ def candidate_ranges(keys, v1h, v2h, *, th1, th2, v1_offset: int, stride: int, n
     # side="right" on hi_key for integer keys
     both = jnp.searchsorted(keys, jnp.stack([lo_key, hi_key + 1]), side="left").astype(jnp.int32)
     start, end = both[0], both[1]
-    off = jnp.abs(d1) > th1  # window rows beyond a traced Th1 (none when th1 == th1_max)
+    # window rows beyond a traced Th1 (none when th1 == th1_max)
+    off = (jnp.abs(d1) > th1).reshape((1,) * empty.ndim + (-1,))
     count = jnp.where(empty[..., None] | off, 0, end - start)
     return start, count
 

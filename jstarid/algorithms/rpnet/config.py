@@ -132,15 +132,12 @@ class Training:
 
     @classmethod
     def quick(cls) -> Training:
-        """A smoke-scale run, ≈ 8–10 min on 2 CPU cores for the full V ≤ 6 guide catalog (K = 5,044).
+        """A smoke-scale run, minutes on 2 CPU cores for the full V ≤ 6 guide catalog (K = 5,044).
 
         Same losses, noise families and optimiser as the paper; less data: 3,000 DAE steps and 3,000
         classifier steps of 256 fresh samples (≈ 1.5 M samples in all, vs 41 M in the paper), and a
-        10× higher DAE learning rate (1e-3) so that the short run gets somewhere. Measured on 2 shared
-        CPU cores at batch 256, data drawn fresh each step: ≈ 32 DAE steps/s and ≈ 13 classifier
-        steps/s (the 512×5,044 output layer dominates), so ≈ 6–7 min plus ≈ 1 min of compilation.
-        A run of 1,200 + 800 such steps (2 min) already gave 91 % held-out guide accuracy (position
-        98 %, missing 97 %, false 96 %, magnitude 73 %). Not expected to reach paper accuracy.
+        10× higher DAE learning rate (1e-3) so that the short run gets somewhere. Not expected to
+        reach paper accuracy (experiments/RESULTS.md has its figures).
         """
         return cls(dae_lr=1e-3, dae_steps=3000, clf_steps=3000, batch_size=256, eval_every=250,
                    eval_size=1024)
@@ -179,10 +176,8 @@ class Config:
         match_tol_px: a detection is named, after the confident pair fixes the attitude, when a
             catalog star projects within this distance (px) and neither a second catalog star nor
             another detection competes for it (first pass; also the upper bound of the second, and
-            the tolerance of the pair's own two detections). 6.5 px: with the ``paper`` network on
-            10,000 scenes at σ = 1.6 px, 5 px left the main star unnamed in 0.74 % of them (a
-            3.1 σ radius), 6.5 px in 0.08 % (98.07 → 98.79 % identified), with no change at 20–30 %
-            false stars and no mis-identification.
+            the tolerance of the pair's own two detections). 6.5 px: at σ = 1.6 px, 5 px (a 3.1 σ
+            radius) left the main star unnamed in 0.74 % of scenes, 6.5 px in 0.08 %.
         anchor_radius_px: first naming pass, from the pair: a detection is named by its angular
             distances to the two pair stars (roll-free, within ``match_tol_px``), searching catalog
             stars within this radius (px) of where the pair attitude puts it (the pair's roll
@@ -198,60 +193,43 @@ class Config:
             trimmed squares): the attitude is fitted on the better half of the names, then on every
             name within ``trim_sigmas`` × that fit's median-based σ̂ (:func:`.identify.noise_sigma`);
             it replaces the fit on all names when its RMS σ̂ is ``outlier_ratio`` times smaller,
-            i.e. when a few wrong names inflate the residuals. With clean Gaussian noise the two σ̂
-            agree (without the fit, the ratio passes 1.5 in 1.5e-3 of 5-star, 1e-4 of 12-star and
-            none of 400,000 20-star NumPy trials), so the plain fit is kept. 6 σ̂ keeps every true
-            star at high noise and still drops a false star a few px off at low noise (σ̂ ≈ 0.1 px;
-            the clip to ``match_tol_min_px`` applies).
+            i.e. when a few wrong names inflate the residuals (with clean Gaussian noise the two σ̂
+            agree, so the plain fit is kept). 6 σ̂ keeps every true star at high noise and still
+            drops a false star a few px off at low noise (the clip to ``match_tol_min_px`` applies).
         pair_sigmas: the confident pair's two detections keep their names (given by the network,
             not by proximity) out to ``pair_sigmas · σ̂`` (clipped like the last pass) rather than
             ``match_sigmas · σ̂`` but no further: a false star beside an undetected guide star,
-            classified as that star from its neighbours, lies many σ̂ away at low noise. (Session
-            15: with the pair at ``match_tol_px`` and the RMS σ̂ alone, the ``quick`` network named
-            false stars in 3 of 180,000 scenes of its magnitude and false-star sweeps; 5 σ̂ cost the
-            main star in 21 of 80,000 Fig. 8 scenes, where σ̂ from a few stars came out low.)
+            classified as that star from its neighbours, lies many σ̂ away at low noise, while 5 σ̂
+            cost true main stars where σ̂ from a few stars came out low.
         min_verified: fewest named detections (the pair included) for the scene to count as
             identified; below it the scene fails (ok = False, ids = −1). 5: the pair plus three
-            confirmations. With 4, a swapped pair (S1 given S2's star and vice versa: the pair angle
-            matches exactly, the attitude is rotated by ≈ 180°) was confirmed by two coincidences in
-            2 of 176 scenes on a coarse 60° test camera; with 5 none, and no loss on rpnet2019 scenes.
+            confirmations; with 4, a swapped pair (rotated attitude, the pair angle matching
+            exactly) was confirmed by two coincidences on a wide test camera.
         min_coverage: extension: the named detections must also be at least this fraction of the
             catalog stars (V ≤ the catalog limit) that the final attitude projects inside the frame
-            (inset by ``match_tol_px``). Measured with the ``quick`` network on 4 × 8,192 scenes
-            (σ 1.6 px, 0.969 mag, 5 missing, 50 % false): correct scenes name ≥ 0.5 of them (0.1st
-            percentile; 0.9 at 1.6 px), the 12 mis-identified ones ≤ 0.31 (a correct pair whose
-            roll stayed wrong, or a swapped close pair, confirmed by 5–11 coincidences); 0.4 turned
-            all 12 into failures and one correct scene into a failure. 0 = off. A scene flagged
+            (inset by ``match_tol_px``); 0 = off. 0.4: correct scenes name ≥ 0.5 of them, the
+            mis-identified ones seen (a wrong roll, a swapped close pair) ≤ 0.31. A scene flagged
             ``overflow`` (more detections than its capacity, the brightest kept) counts at most as
-            many catalog stars as it kept detections: a dense real frame (``tetra3_test``, 24 of
-            its 67 V ≤ 7 stars kept) otherwise failed although all 24 were named.
+            many catalog stars as it kept detections, so a dense real frame is not failed.
         n_pair_trials: extension: the admissible pairs tried, by decreasing score, until one is
             confirmed (1 = the paper's single confident pair). The next pairs are only tried on the
             scenes the best one did not confirm (a second pass), so the cost grows with the failure
-            rate, not with n. With the ``paper`` network on 10,000 scenes at σ = 1 px, 3 instead of
-            1 turned 0.2 % failures into 0.01 % (99.79 → 99.98 % identified; 1.6 px: +0.75 points).
+            rate, not with n. 3 instead of 1 cuts failures at σ = 1 px from 0.2 % to 0.01 %.
         n_guide_triples: extension: when no pair of S1–S3 is confirmed, the next three
             detections by distance from the centre (ranks 4–6, then 7–9, …) go through steps 2–5
             in turn, up to this many triples (1 = the paper's S1–S3 only). Run only on the scenes
-            still unconfirmed, so the cost grows with the failure rate. With the ``paper`` network
-            on 2,000 scenes per level (``reproduce_rpnet.py --sweeps fig9,fig10 --n-guide-triples T
-            --n-pool-pairs 0``), T = 1 / 3 / 6 / 12 / 20 triples identified 72.0 / 91.3 / 96.85 /
-            97.6 / 97.7 % at σ_m = 0.969 mag and 36.0 / 50.3 / 66.1 / 81.8 / 88.0 % at 50 % false
-            stars, with the same mis-identified scenes (1 and 2) throughout; 12 covers the ≈ 30–38
-            detections of a typical ``rpnet2019`` scene.
+            still unconfirmed, so the cost grows with the failure rate. 12 covers the ≈ 30–38
+            detections of a typical ``rpnet2019`` scene (at σ_m = 0.969 mag: 72.0 → 97.6 %).
         n_pool_pairs: extension: after the triples, on the scenes still unconfirmed, the pairs of
             candidates of any two of the 3 · ``n_guide_triples`` nearest detections are scored
             (eq. 11 without the position weights) and this many of the best are verified in score
-            order (0 = off). With the ``paper`` network on 2,000 scenes per level (12 triples),
-            8 pool pairs took 97.60 → 99.60 % at σ_m = 0.969 mag and 81.75 → 99.10 % at 50 % false
-            stars, with the same mis-identified scenes.
+            order (0 = off). 8: 97.6 → 99.6 % at σ_m = 0.969 mag, 81.8 → 99.1 % at 50 % false.
         network_bf16: run the network's matmuls on bfloat16 operands with float32 accumulation
             (parameters stay float32): ≈ 2× the matmul rate on CPUs with AVX512-BF16 and on GPUs,
-            but slower than float32 on CPUs without native bfloat16 (an AVX2-only AMD EPYC: 2,252
-            against 2,709 scenes/s, ``experiments/bench_rpnet.py --precision both``). ``None``
-            (default): bfloat16 where the hardware has it (:func:`.model.native_bf16`: a GPU or TPU
-            backend, or AVX512-BF16 / AMX-BF16 in the CPU flags), float32 elsewhere; ``True`` /
-            ``False`` force one. The two give the same ids in 99.93–99.98 % of scenes (README).
+            but slower than float32 on CPUs without native bfloat16. ``None`` (default): bfloat16
+            where the hardware has it (:func:`.model.native_bf16`: a GPU or TPU backend, or
+            AVX512-BF16 / AMX-BF16 in the CPU flags), float32 elsewhere; ``True`` / ``False`` force
+            one. The two give the same ids in 99.93–99.98 % of scenes.
         batch_chunk: scenes per compiled identification call; the network runs on all of them at
             once (3 × chunk inputs per matmul: large matrices run near the CPU's matmul peak).
         name_chunk: scenes vmapped together in the naming steps inside a call (``lax.map`` groups;

@@ -28,6 +28,7 @@ from jstarid.algorithms.rpnet.train import (
     train,
 )
 from jstarid.catalog import cache_dir
+from jstarid.runtime import device_cache
 
 __all__ = ["Database", "build_database", "checkpoint_path", "database_from_variables", "database_key",
            "load_database"]
@@ -72,10 +73,11 @@ class Database:
     def n_classes(self) -> int:
         return int(len(self.guide_rows))
 
-    @functools.cached_property
+    @property
     def inference_weights(self) -> InferenceWeights:
-        """The networks folded for identification (:func:`.inference.fold_networks`), computed once."""
-        return fold_networks(self.variables)
+        """The networks folded for identification (:func:`.inference.fold_networks`), computed once
+        per database (kept in :data:`jstarid.runtime.device_cache`)."""
+        return device_cache.cached(self, "rpnet_inference", lambda: fold_networks(self.variables))
 
 
 _FORMAT = 1  # bump when the checkpoint's layout changes meaning

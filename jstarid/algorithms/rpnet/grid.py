@@ -3,7 +3,7 @@
 Each member g has its own initialisation seed and its own stage-1 (DAE) and stage-2 (classifier)
 learning rates. Their parameters and Adam moments carry a leading member axis, and one jit-compiled,
 ``vmap``-ped step updates all G on the same batch — drawn once per step, so the on-the-fly data
-(about half of a CPU training step, most of a GPU one; README) is shared by the whole grid, and the
+(about half of a CPU training step, most of a GPU one) is shared by the whole grid, and the
 G small networks become batched matrix products. Widths change the shapes, so a width grid is a loop
 over architectures, each a vmapped group (``experiments/tune_rpnet_training.py``).
 
@@ -12,9 +12,10 @@ Member g follows :func:`~jstarid.algorithms.rpnet.train.train` for
 keys (training batches and the held-out batch) come from ``config.training.seed`` for every member,
 so that all members are compared on the same samples. A member whose seed is that seed is therefore
 the single run of :func:`train` at its rates (tested, to float32 rounding of the batched products).
-Adam is written as ``scale_by_adam`` followed by −lr_g · (cosine factor), which is ``optax.adam``
-with that rate (schedule) — the rate as a per-member array instead of a constant. Each member keeps
-its best held-out classifier (``Training.early_stop``), as :func:`train` does.
+The optimiser is ``optax.inject_hyperparams(optax.adam)``: the learning rate lives in the optimiser
+state, so each member carries its own rate (stage 2 sets it to lr_g · the cosine factor every
+step). Each member keeps its best held-out classifier (``Training.early_stop``), as :func:`train`
+does.
 """
 
 from __future__ import annotations
@@ -107,11 +108,6 @@ def _check(seeds, dae_lrs, clf_lrs):
     return seeds, dae_lrs, clf_lrs
 
 
-def _scaled(updates, factor):
-    """Adam directions × (−rate) of one member: ``optax.scale_by_learning_rate``'s step."""
-    return jax.tree.map(lambda u: -factor * u, updates)
-
-
 def _select(mask, new, old):
     """Per member: ``new`` where ``mask`` (G,) is set, else ``old`` (pytrees with a leading G axis)."""
     mask = jnp.asarray(mask)
@@ -148,26 +144,29 @@ def train_grid(catalog, camera, config: Config, guide_rows, *, seeds, dae_lrs, c
     # each member's initialisation: the k_init that train() derives from its seed
     init_keys = jnp.stack([jax.random.split(jax.random.key(int(s)), 4)[0] for s in seeds])
     variables = jax.vmap(lambda k: init_variables(k, config, n_classes))(init_keys)
-    adam = optax.scale_by_adam()
+    # Adam with the rate in its state (one per member); update() reads the rate from the state. Only
+    # the rate is injected: b1, b2, eps stay Python constants, exactly as optax.adam in train()
+    adam = optax.inject_hyperparams(optax.adam, static_args=("b1", "b2", "eps", "eps_root", "nesterov"))
+    tx = adam(learning_rate=0.0)
     d_lr, c_lr = jnp.asarray(dae_lrs, jnp.float32), jnp.asarray(clf_lrs, jnp.float32)
 
     # Stage 1: denoising autoencoders (eq. 5), one vmapped step for all members.
     dae_loss = dae_loss_fn(config, n_classes)
 
-    def dae_step(params, state, lr, noisy, clean):
+    def dae_step(params, state, noisy, clean):
         (_, mse), grads = jax.value_and_grad(dae_loss, has_aux=True)(params, noisy, clean)
-        updates, state = adam.update(grads, state, params)
-        return optax.apply_updates(params, _scaled(updates, lr)), state, mse
+        updates, state = tx.update(grads, state, params)
+        return optax.apply_updates(params, updates), state, mse
 
-    dae_step = jax.jit(jax.vmap(dae_step, in_axes=(0, 0, 0, None, None)))
+    dae_step = jax.jit(jax.vmap(dae_step, in_axes=(0, 0, None, None)))
     dae_eval = jax.jit(jax.vmap(lambda p, x, y: dae_loss(p, x, y)[1], in_axes=(0, None, None)))
     params = {"generator": variables["generator"], "decoder": variables["decoder"]}
-    state = jax.vmap(adam.init)(params)
+    state = jax.vmap(lambda lr, p: adam(learning_rate=lr).init(p))(d_lr, params)
     dae_hist, dae_at = [], []
     bar = tqdm(range(dae_steps), desc=f"RpNet grid of {seeds.size}, stage 1", disable=not progress)
     for s in bar:
         batch = next_batch(k_dae, s)
-        params, state, _ = dae_step(params, state, d_lr, batch.noisy, batch.clean)
+        params, state, _ = dae_step(params, state, batch.noisy, batch.clean)
         if (s + 1) % t.eval_every == 0 or s + 1 == dae_steps:
             dae_hist.append(np.asarray(dae_eval(params, held_out.noisy, held_out.clean)))
             dae_at.append(s + 1)
@@ -182,8 +181,9 @@ def train_grid(catalog, camera, config: Config, guide_rows, *, seeds, dae_lrs, c
     def clf_step(params, stats, state, lr, gen_params, step, noisy, label):
         (_, (ce, stats)), grads = jax.value_and_grad(clf_loss, has_aux=True)(
             params, stats, gen_params, noisy, label)
-        updates, state = adam.update(grads, state, params)
-        return optax.apply_updates(params, _scaled(updates, lr * factor(step))), stats, state, ce
+        state = state._replace(hyperparams={**state.hyperparams, "learning_rate": lr * factor(step)})
+        updates, state = tx.update(grads, state, params)
+        return optax.apply_updates(params, updates), stats, state, ce
 
     clf_step = jax.jit(jax.vmap(clf_step, in_axes=(0, 0, 0, 0, 0, None, None, None)))
 
@@ -194,7 +194,7 @@ def train_grid(catalog, camera, config: Config, guide_rows, *, seeds, dae_lrs, c
     family = np.asarray(held_out.family)
     label = np.asarray(held_out.label)
     clf = dict(variables["classifier"])
-    state = jax.vmap(adam.init)(clf["params"])
+    state = jax.vmap(lambda lr, p: adam(learning_rate=lr).init(p))(c_lr, clf["params"])
     best_acc = np.full(seeds.size, -1.0)
     best = clf
     clf_hist, clf_fam, clf_at = [], [], []

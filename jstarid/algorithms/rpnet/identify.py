@@ -46,7 +46,7 @@ stars of the sky-index cell of the pair's boresight (≈ 200 instead of the whol
 that could be named is in it), the refinement passes are unrolled, argmax/argmin are two plain
 reductions (:func:`jstarid.completion.first_argmax`), and scenes are sorted by their number of
 detection columns so that each chunk is cut to the width it needs (:data:`WIDTH_STEP`); each chunk's
-scenes are split over every JAX device (:func:`jstarid.sweep.map_batch`; the results equal the
+scenes are split over every JAX device (:func:`jstarid.runtime.map_batch`; the results equal the
 one-device call); every chunk of a pass is dispatched before any result is read back, so the devices
 do not idle while the host collects a chunk (+15–20 % scenes/s on 2 cores, README); the
 verification's 3-term products are written out (:func:`jstarid.geometry.precise.small_matmul`).
@@ -76,9 +76,9 @@ from jstarid.completion import first_argmax, name_stars
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
+from jstarid.runtime import chunk_calls, on_every_device, run_calls, take_rows
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
-from jstarid.sweep import map_batch, replicate_once
 
 __all__ = ["PAIRS", "Diagnostics", "anchor_names", "identify", "name_stars", "network_candidates",
            "noise_sigma", "pair_checks", "top3_blocked", "weight_search"]
@@ -200,7 +200,7 @@ def _candidates(xy, valid, weights, *, camera, config: Config, n_classes: int, t
 
     def one(xy_s, valid_s):
         body = camera.unproject(xy_s)  # (N, 3) camera frame
-        d2 = jnp.where(valid_s, jnp.sum((xy_s - centre) ** 2, -1), jnp.inf)
+        d2 = jnp.where(valid_s, jnp.sum((xy_s - centre[None, :]) ** 2, -1), jnp.inf)
         # S1, S2, S3 (eq. 7) for triple 0; invalid detections come last (an invalid S_i makes its
         # pairs inadmissible). A static top-k over every triple's ranks, not an argsort: XLA's sort
         # is slow on CPU (network part 3,970 → 3,170 scenes/s with argsort).
@@ -269,7 +269,8 @@ def top3_blocked(x):
     window = (1,) * len(lead) + (size,)
     block_max = jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, window, window, "VALID")
     _, which = jax.lax.top_k(block_max, 3)  # (..., 3) blocks holding the top 3 (tail aside)
-    columns = (which[..., None] * size + jnp.arange(size)).reshape(*lead, 3 * size)
+    offsets = jnp.arange(size).reshape((1,) * which.ndim + (size,))
+    columns = (which[..., None] * size + offsets).reshape(*lead, 3 * size)
     picked = jnp.take_along_axis(x, columns, axis=-1)
     values, pos = jax.lax.top_k(jnp.concatenate([picked, x[..., n_blocks * size:]], -1), 3)
     in_block = jnp.take_along_axis(columns, jnp.minimum(pos, 3 * size - 1), axis=-1)
@@ -586,41 +587,32 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
     # that differ only there (a tolerance or coverage sweep) share every compilation
     tables = (database.inference_weights, guide_rows, database.star_vectors)
     if jax.device_count() > 1:  # placed on every device once, not copied on each chunk's call
-        tables = replicate_once(database, "rpnet_identify", lambda: tables)
-        cells = replicate_once(index, "device_arrays", index.device_arrays)[0]
+        tables = on_every_device(database, "rpnet_identify", lambda: tables)
+        cells = on_every_device(index, "device_arrays", index.device_arrays)[0]
     replicated = (*tables, cells, config.tuning() if tuning is None else tuning)
     kernel_config = config.compiled()
+
+    common = dict(camera=database.camera, config=kernel_config, n_classes=database.n_classes,
+                  grid=index.grid)
+    out = [ids_out, ok_out, att_out]
+
+    def args(call):
+        # the chunk's columns cut to its widest scene, rounded up to a multiple of WIDTH_STEP
+        width = int(min(n, max(WIDTH_STEP, -(-int(last[call.rows].max()) // WIDTH_STEP) * WIDTH_STEP)))
+        return take_rows((xy_all[:, :width], valid_all[:, :width], overflow_all), call)
 
     def run(subset, trials, chunk, triple=0, pool=False):
         n_pairs[subset] += config.n_pool_pairs if pool else trials[1] - trials[0]
         n_passes[subset] += 1
-        order = subset[np.argsort(last[subset], kind="stable")]
-        pending = []  # every chunk is dispatched before any result is read back (no idle gaps)
-        for start in range(0, order.size, chunk):
-            sel = order[start:start + chunk]
-            width = int(min(n, max(WIDTH_STEP, -(-int(last[sel].max()) // WIDTH_STEP) * WIDTH_STEP)))
-            xy, valid, overflow = xy_all[sel, :width], valid_all[sel, :width], overflow_all[sel]
-            pad = chunk - len(sel)
-            if pad:  # pad the last chunk to the compiled size with empty scenes
-                xy = np.pad(xy, ((0, pad), (0, 0), (0, 0)))
-                valid = np.pad(valid, ((0, pad), (0, 0)))
-                overflow = np.pad(overflow, (0, pad))
-            common = dict(camera=database.camera, config=kernel_config, n_classes=database.n_classes,
-                          grid=index.grid)
-            # each chunk split over every device (one per CPU core after js.use_cpu_cores())
-            if pool:
-                ids, ok, att = map_batch(_identify_pool_chunk, (xy, valid, overflow), replicated,
-                                         static=common)
-            else:
-                ids, ok, att = map_batch(_identify_chunk, (xy, valid, overflow),
-                                         (*replicated, jnp.int32(triple)),
-                                         static=dict(common, trials=trials))
-            pending.append((sel, width, ids, ok, att))
-        for sel, width, ids, ok, att in pending:
-            keep = len(sel)
-            ids_out[sel, :width] = np.asarray(ids)[:keep]
-            ok_out[sel] = np.asarray(ok)[:keep]
-            att_out[sel] = np.asarray(att)[:keep]
+        # scenes sorted by their last valid detection, so each chunk's width fits its scenes
+        calls = chunk_calls(subset[np.argsort(last[subset], kind="stable")], chunk)
+        if pool:
+            run_calls(_identify_pool_chunk, calls, args, replicated, static=common, n_rows=b,
+                      tails=[(n,), (), (3, 3)], fills=[-1, False, np.nan], out=out)
+        else:
+            run_calls(_identify_chunk, calls, args, (*replicated, jnp.int32(triple)),
+                      static=dict(common, trials=trials), n_rows=b, tails=[(n,), (), (3, 3)],
+                      fills=[-1, False, np.nan], out=out)
 
     run(np.arange(b), (0, 1), max(1, min(config.batch_chunk, b)))
     n_valid = valid_all.sum(1)

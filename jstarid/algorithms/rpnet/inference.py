@@ -73,6 +73,7 @@ def fold_networks(variables: dict, bn_epsilon: float = BN_EPSILON) -> InferenceW
 
 
 def _dense(x, w, b, bf16: bool):
+    b = b.reshape((1,) * (x.ndim - 1) + b.shape)
     if bf16:  # the training networks' bfloat16 product (float32 accumulation)
         return bf16_dot_general(x, w, (((x.ndim - 1,), (0,)), ((), ()))) + b
     return jnp.matmul(x, w) + b

@@ -53,7 +53,7 @@ def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> frozenset[str]:
 def native_bf16() -> bool:
     """Whether the default JAX backend multiplies bfloat16 natively: any GPU or TPU backend, or a
     CPU with AVX512-BF16 or AMX-BF16. Elsewhere bfloat16 operands are converted in software and
-    the network runs slower than in float32 (measured in the README)."""
+    the network runs slower than in float32 (docs/design/rpnet.md)."""
     if jax.default_backend() != "cpu":
         return True
     return bool(cpu_flags() & _BF16_CPU_FLAGS)
@@ -69,7 +69,7 @@ def bf16_dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_elem
 
     Operands keep 8 mantissa bits (relative rounding ≤ 2⁻⁹ per entry); the sums are exact float32
     accumulations, so a logit moves by ≈ 2⁻⁹·√n·(typical |w·x|) — far below the gaps that decide the
-    top-3 candidates in practice (measured in the RpNet reproduction, README).
+    top-3 candidates in practice (the two precisions give the same ids in 99.93–99.98 % of scenes).
     """
     del precision, preferred_element_type
     return jax.lax.dot_general(lhs.astype(jnp.bfloat16), rhs.astype(jnp.bfloat16), dimension_numbers,

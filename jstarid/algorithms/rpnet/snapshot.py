@@ -1,6 +1,6 @@
 """Training snapshots: resume an interrupted RpNet training where it stopped.
 
-A ``paper``-scale training takes 80 min on two CPU cores; a crash or a killed job must not lose it.
+A ``paper``-scale training takes hours on a CPU; a crash or a killed job must not lose it.
 :func:`~jstarid.algorithms.rpnet.train.train` writes a snapshot every few hundred steps (the stage,
 the next step, the variables, the optimizer state, the classifier kept by early stopping and the
 history), and a later call with the same snapshot file continues from it. Training batches depend

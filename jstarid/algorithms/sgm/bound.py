@@ -19,33 +19,19 @@ the inner sum is at least ``C(i, π(i))``, the cheapest monotone assignment of t
 small dynamic programme over "how many long-row entries were skipped so far" (0 … s) computes in
 O(n·s). So ``(m·δ)² ≥ min over one-to-one π of Σ_{i ∈ S} C(i, π(i))``, an assignment problem whose
 Lagrangian dual gives a lower bound for any column prices: the prices start at 0 (the row minima,
-``Σ_i min_j C(i, j)``) and a few subgradient steps raise it (on candidate windows of real scenes, the
-share of candidates pruned at ε_δ = 0.4° rose from 71 % to 84 %). When n_I = n_J every vertex of L
-is matched as well and ``Σ_{j ∈ L} min_i C(i, j)`` bounds it too.
+``Σ_i min_j C(i, j)``) and a few subgradient steps raise it (on real scenes they raise the share of
+candidates pruned at ε_δ = 0.4° from 71 % to 84 %). When n_I = n_J every vertex of L is matched as
+well and ``Σ_{j ∈ L} min_i C(i, j)`` bounds it too.
 
 With s = 0 (same vertex count, e.g. noise-free scenes) the bound is the sorted-row distance. For
 s > ``max_skip`` the bound is set to 0 (no pruning): the programme's cost grows with s.
 
 A second, looser bound (:func:`edge_lower_bound`) compares sorted edge lengths instead of sorted
-rows: no dynamic programme, no assignment, any s, about a tenth of the cost per pair (3.3 against
-36 µs in session 19's profile of 200 σ = 3 px scenes, both read from tables sorted once:
-:func:`row_table`, :func:`sorted_edges`). The search computes it
-for every candidate and the row bound only where the edge bound is not enough
-(:mod:`.search`, branch and bound).
-
-What the row bound leaves to the spectral matching, and what else was tried (one-off scratch
-analysis, session 25, 400 scenes at σ = 1 px, default Config): of the 20.0 matchings per scene,
-17.3 are candidates below the Δw level that succeeds (any level in a failed scene); 94 % of the
-matched candidates fail, with δ = 5.0–7.5 ε_δ (10th–90th percentile), while the bound of the
-matched candidates is 0.06–0.96 ε_δ (median 0.80). Other exact bounds, computed on the same pairs,
-were weaker: the Hoffman–Wielandt eigenvalue bound ``‖A − B'‖_F² ≥ Σ (λ_k(A) − λ_k(B'))²`` with
-Cauchy interlacing for the unmatched vertices excluded 0.15 % of them, an injective monotone
-assignment of the sorted edge lengths (a dynamic programme over skipped long-side edges) 1.4 %.
-This bound without its skip limit (``max_skip`` 40) excluded 16–23 % of the 25 % of matched pairs
-whose vertex counts differ by more than 8 (the default ``Config.prune_max_skip``), ≈ 5 % of the
-matchings, for a bound that costs more with every skip. The failing pairs' power iteration stops
-after 5–8 steps (10th–90th percentile, 300 matched pairs sampled; the succeeding ones 7–12), so a
-faster eigensolver would not make their matchings much cheaper either.
+rows: no dynamic programme, no assignment, any s, about a tenth of the cost per pair (both read from
+tables sorted once: :func:`row_table`, :func:`sorted_edges`). The search computes it for every
+candidate and the row bound only where the edge bound is not enough (:mod:`.search`, branch and
+bound). What the bounds leave to the spectral matching, and the other exact bounds tried, are in
+docs/design/sgm.md.
 """
 
 from __future__ import annotations
@@ -68,7 +54,7 @@ def sorted_rows(adj, mask):
         padding vertices are all +inf.
     """
     k = adj.shape[-1]
-    off = ~jnp.eye(k, dtype=bool)
+    off = (~jnp.eye(k, dtype=bool)).reshape((1,) * (mask.ndim - 1) + (k, k))
     keep = mask[..., :, None] & mask[..., None, :] & off
     rows = jnp.sort(jnp.where(keep, adj, jnp.inf), axis=-1)
     return rows[..., : k - 1].astype(jnp.float32)
@@ -78,9 +64,9 @@ def sorted_rows(adj, mask):
 def row_table(adj, mask):
     """:func:`sorted_rows` padded with one more +inf column to a square (..., K, K) table.
 
-    Sorting is the dearest part of the row bound on a CPU (XLA's sort is not vectorized: sorting both
-    graphs' rows cost ≈ 56 µs of ≈ 120 µs per pair at 24 vertex slots in a one-off timing), and a
-    graph's sorted rows do not depend on the candidate it is compared with: the search sorts every
+    Sorting is the dearest part of the row bound on a CPU (XLA's sort is not vectorized: about half
+    the cost per pair when both graphs' rows are sorted), and a graph's sorted rows do not depend on
+    the candidate it is compared with: the search sorts every
     database graph once (``Database.rows``) and every image graph once per search, and the row bound
     reads the table. Square like the adjacency, so that the ``r × r`` corner of a graph of ≤ r
     vertices holds its rows whole (the first r − 1 columns are :func:`sorted_rows` at size r).
@@ -124,15 +110,8 @@ def _row_cost(short, long, n_short, max_skip: int):
 
     zeros = jnp.zeros((short.shape[0], long.shape[0]), jnp.float32)
     d0 = jnp.stack([zeros] + [zeros + big] * max_skip)
-    # n_short steps, not R: a loop over all R columns that left the planes unchanged past n_short
-    # took 1.3–2× as long with the same (bitwise) result (one-off timing of 256 real pairs per
-    # size, R = 16–32, s_max = 4 and 8)
-    # Tried and left (session 24, one-off timings): writing all R steps out (masked past n_short)
-    # lets XLA fuse the programme into one elementwise kernel — the row-bound stage on the 76,498
-    # pairs of 1,000 σ = 1 px scenes took 1.7–2.1 s instead of 3.0–3.3 s (same bounds), bench_sgm.py
-    # gave ≈ 4 % more scenes/s (50.2 / 55.1 against 50.9 / 50.1 at σ = 1 px, 17.4 / 17.9 against
-    # 16.8 / 17.3 at 3 px, interleaved), but the stage's first call compiled 30–43 s longer (one
-    # kernel per size, skip count and call size), which pays back only after ≈ 30,000 scenes
+    # n_short steps, not R: looping over all R columns gives the same (bitwise) result in 1.3–2× the
+    # time; an unrolled loop fuses into one kernel but compiles far longer (docs/design/sgm.md)
     d = jax.lax.fori_loop(0, jnp.minimum(n_short, r), step, d0)
     return jnp.min(d, axis=0)
 
@@ -147,11 +126,8 @@ def _assignment_bound(cost, rows, cols, square, n_iter: int):
     unchosen ones) tighten it, and the best value seen is returned — every iterate is a valid bound,
     so the step rule only affects how tight it gets. The rule: step ``s₀/√(t + 1)`` with s₀ half the
     mean row minimum, and a row "chooses" every column at its minimum (ties are rare; an argmin and a
-    one-hot cost three times as much per step). Measured once on the 21,458 pairs that the search
-    refined in 100 σ = 3 px scenes (``sgm2022``, ε_δ = 0.4°): 20 steps of this rule pruned 80.4 %,
-    against 80.8 % for 40 steps of the previous rule (s₀ the mean row minimum, argmin) at ≈ 6× the
-    cost, and 80.3 % for the exact assignment optimum (SciPy's ``linear_sum_assignment`` on every
-    tenth pair; the dual cannot exceed it) — the bound is as tight as this relaxation allows.
+    one-hot cost three times as much per step). 20 steps prune about as many candidates as the exact
+    assignment optimum would (the dual cannot exceed it; docs/design/sgm.md).
 
     Args:
         cost: (P, Q) non-negative costs (+inf allowed off ``cols``). rows: (P,) bool rows to assign.

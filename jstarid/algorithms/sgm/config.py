@@ -28,6 +28,9 @@ class Tuning(NamedTuple):
 class Config:
     """Frozen, hashable SGM configuration. Angles in degrees, as in the paper (conventions §7).
 
+    Fields marked *extension* are not in the paper; :meth:`paper` turns off those that change the
+    outcome. docs/design/sgm.md gives the evidence behind the defaults.
+
     Attributes:
         radius_deg: r, radius of the neighbor circle (deg).
         dw0_deg: Δw₀, initial half-width of the rough-search window on w (deg).
@@ -35,152 +38,74 @@ class Config:
         dw_max_deg: Δw_max, largest Δw searched (deg).
         c: edge-similarity adjustor of eq. 2 (1/deg).
         max_error_deg: ε_δ, matching-error threshold of Algorithm 1 (deg, eq. 5).
-        neighbor_capacity: static vertex capacity of a database neighbor graph (main star
-            included); ``None`` chooses it from the data (largest graph, rounded up to
-            ``size_bucket``). The image graph uses the same capacity; a scene with more detections
-            inside its neighbor circle fails (flagged, never truncated silently).
+        neighbor_capacity: static vertex capacity of the database and image neighbor graphs (main
+            star included); ``None``: the largest database graph, rounded up to ``size_bucket``. A
+            scene with more detections in its neighbor circle fails (flagged, never truncated).
         chunk_size: candidate ranks per scene in the first step of the batched search (each later
             step takes twice as many, up to 512).
-        power_iterations: number of power-iteration steps for the principal eigenvector (the
-            largest number when ``power_tol`` > 0). In a one-off measurement, 30 gave the same
-            correspondence as 400 steps on all 12,732 (image, candidate) pairs of 40 σ = 2 px
-            scenes within ±1° of w_I (so did 20; 60 was the previous default).
-        power_tol: stop the power iteration of a pair once no entry of its unit vector changes by
-            more than this in a step (0: always ``power_iterations`` steps). Pairs are matched one
-            after the other, so each stops on its own: 1e-4 made identification ≈ 1.9× faster and
-            gave the same ids, J* and δ as 0 on 448 scenes at σ = 0.5–3 px (one-off measurement).
-        prune: not in the paper, and it does not change the outcome: skip the spectral matching
-            of candidates whose matching error provably exceeds ε_δ, or — once a match with
-            δ* ≤ ε_δ is known — provably exceeds δ* (:mod:`.bound`; such a candidate can never be
-            returned by Algorithm 1: :func:`.search.advance_search`). ``False`` matches every
-            candidate (diagnostics such as ``error`` of failed scenes then cover every candidate).
+        power_iterations: largest number of power-iteration steps for the principal eigenvector;
+            30 gave the same correspondences as 400 on every noisy pair tested.
+        power_tol: stop a pair's power iteration once no entry of its unit vector moves more than
+            this in a step (0: never early); 1e-4 kept every id, J* and δ tested, ≈ 1.9× faster.
+        prune: extension that changes only the work: skip the spectral matching of candidates whose
+            δ provably exceeds ε_δ, or a δ* ≤ ε_δ already found (:mod:`.bound`,
+            :func:`.search.advance_search`). ``False`` matches every candidate (diagnostics).
         prune_max_skip: candidates whose vertex count differs from the image graph's by more than
             this are not bounded (always matched); the bound's cost grows with it.
         min_stars: fewest vertices (main star included) an image neighbor graph needs; fewer → fail.
-            Not in the paper (which never meets tiny graphs): a 1- or 2-vertex graph matches almost
-            anything.
-        min_matched: fewest matched vertex pairs for a candidate to count; a candidate with a
-            smaller graph gets an infinite error (eq. 5 divides by min(n_I, n_J), which would let a
-            1-vertex database graph match any image with error 0).
+            Not in the paper (which never meets tiny graphs): a 1- or 2-vertex graph matches anything.
+        min_matched: fewest matched vertex pairs for a candidate to count; fewer → infinite error
+            (eq. 5 divides by min(n_I, n_J): a 1-vertex graph would match any image with error 0).
         memory_budget_mb: bound on the affinity matrices held at once by one matching call (MiB).
         size_bucket: graph sizes are padded up to a multiple of this, to bound recompilation. A
-            pair's matching costs ∝ (p·q)² in the padded sizes, so a smaller bucket runs faster but
-            compiles more kernels (``bench_sgm.py --batch 1000 --set size_bucket=…``, session 22,
-            each run beside a default one: 4 gave +3–11 % scenes/s at σ = 1 px and +12–18 % at 3 px
-            for a first call 1.5× as long; 16 gave −26 % / −34 %). 8 suits interactive batches; 4
-            pays for itself over runs of several thousand noisy scenes in one process.
-        vertex_check_deg: not in the paper (``None`` = off, the paper's behaviour). When set, after
-            the best match every matched image vertex whose median edge residual
-            ``|A_I(i,k) − A_J(π(i),π(k))|`` over the other matched vertices exceeds this (deg) is left
-            unnamed (−1), and the scene fails if fewer than ``min_matched`` vertices stay named.
-            Greedy binarization always pairs min(n_I, n_J) vertices, so a star that crossed the
-            circle boundary (or a false star) is otherwise paired with a leftover database vertex
-            and named wrongly.
-        leftover_tol_deg: not in the paper; 0.3° by default (``None`` = off, the paper's
-            behaviour). Detections inside the image neighbor circle left unnamed by the match
-            (typically a star that crossed the circle boundary under position noise, so it is not in
-            G_J) are named by the attitude solved from the matched stars: the nearest catalog star
-            within this angle (deg), if not already used in the scene; the verification step then
-            checks them like every other name. Measured with ``reproduce_sgm.py --n-stars 100
-            --sigmas 0 1.5 3 --experiments position lost`` (same scenes, verification on): accuracy
-            79.0 → 90.9 % (position, 1.5 px), 72.7 → 74.2 % (3 px), 84.7 → 88.4 % (lost, 1.5 px),
-            62.4 → 72.5 % (lost, 3 px); one mis-identified scene of 600 in each run.
-        verify: not in the paper; on by default (``False`` = the paper's behaviour). After the match
-            (and the optional steps above) every named star is checked against the attitude fitted
-            from the named stars (:mod:`.verify`): stars whose residual exceeds
-            ``verify_k`` × the robust residual RMS (clipped to [``verify_floor_deg``,
-            ``verify_cap_deg``]) are unnamed, and so is a star with a rival catalog star within
-            ``max(3·tol, verify_ambiguity_deg)`` unless ``d_alt² − d_own² ≥ (verify_ambiguity_k·s)²``.
-            The scene fails when the main star is unnamed, fewer than ``min_matched`` stars or fewer
-            than half of the named stars remain. Trades mis-identifications for failures.
-        verify_k: tolerance in units of the robust residual RMS (3.5: a true star exceeds it with
+            pair's matching costs ∝ (p·q)² in the padded sizes: 8 suits interactive batches; 4 runs
+            faster but compiles more kernels, which pays off over thousands of noisy scenes.
+        vertex_check_deg: extension, off (``None``). When set, a matched image vertex whose median
+            edge residual ``|A_I(i,k) − A_J(π(i),π(k))|`` over the other matched vertices exceeds
+            this (deg) is unnamed (−1); the scene fails if fewer than ``min_matched`` stay named.
+            Why: greedy binarization pairs even a star that crossed the circle boundary.
+        leftover_tol_deg: extension, 0.3° (``None`` = off). Detections in the image neighbor circle
+            that the match left unnamed (typically a star that crossed the circle boundary, so it is
+            not in G_J) are named after the nearest unused catalog star within this angle (deg)
+            under the attitude of the matched stars; the verification then checks them too.
+        verify: extension, on (``False`` = the paper). Every named star is checked against the
+            attitude fitted from the named stars (:mod:`.verify`: noise-tied residual tolerance,
+            close-pair ambiguity guard, frame coverage); the scene fails (rather than risk a
+            mis-identification) when the main star is unnamed or < ``min_matched`` or half remain.
+        verify_k: residual tolerance in robust-RMS units (3.5: a true star exceeds it with
             probability exp(−3.5²) ≈ 5·10⁻⁶).
         verify_floor_deg: smallest tolerance (deg); 0.02° ≈ 1 px of the sgm2022 camera.
         verify_cap_deg: largest tolerance (deg); 0.3° ≈ 3.5 × the residual RMS at σ = 3 px (the
             paper's largest noise), so a wrong attitude cannot widen the tolerance further.
-        verify_ambiguity_k: margin of the ambiguity guard in robust-RMS units: the kept name is at
-            least exp(``verify_ambiguity_k²``) times likelier than the rival under isotropic Gaussian
-            noise (3.0: ≈ 8,100×). A clean swap fails for any value ≥ 0 (its own residual ≈ the pair's
-            separation, the rival's ≈ the noise); the margin also catches swaps the noise blurs, at
-            the cost of unnaming true stars of nearly indistinguishable pairs (incomplete scenes).
-            Measured by replaying the verification on the raw matches of 1,400 scenes (7 noisy
-            levels of the session-4 200-star Table 2 run, σ 1–3 px, with the joint test and the
-            frame coverage): 2.0 left 3 scenes mis-identified (a detection of a close pair that
-            drifted 2.7–3.1 σ towards the other star, likelihood ratio ≈ 30–300) and 1,133 correct;
-            2.5 left none and 1,079 correct (the other 54 incomplete: one star of a close pair
-            unnamed); 3.0 none and 1,011 correct. A mis-identification is worse than an unnamed
-            star, so 2.5 until session 11. Then 3.0 (e^9; worst-case error of a near-tie decision
-            with the true σ Φ(−√(2·9)) = 1.1·10⁻⁵, against 2·10⁻⁴ at 2.5): with the partner rule and
-            the high-side s most close-pair names are decided by other tests, and the full-size lost
-            run's one mis-identification (σ = 2.5 px, main star row 1001: a detection 3.4 σ from its
-            own star, 1.3 px from the absent lost star, 5.6 nats with the true σ) passed the single
-            test's 6.25-nat margin. ``diagnose_sgm.py --experiment lost --sigma 2.5 --batches 3``:
-            194 correct + 1 mis-identified → 193 correct, 0; the README's sampled Table 2 (4,200
-            scenes) moved by at most one scene per level (3 at lost 3 px), MA 88.85 / 88.02 / 88.75
-            → 88.91 / 87.94 / 88.87 %, none mis-identified either way.
+        verify_ambiguity_k: margin k of the ambiguity guard (robust-RMS units s): a star with a
+            rival catalog star within ``max(3·tol, verify_ambiguity_deg)`` keeps its name only when
+            ``d_alt² − d_own² ≥ (k·s)²``: e^{k²} times likelier (3.0: ≈ 8,100×; a near-tie errs with
+            probability ≤ Φ(−√(2k²)) ≈ 1.1·10⁻⁵). Costs names of nearly indistinguishable pairs.
         verify_ambiguity_deg: smallest window of the ambiguity guard (deg).
-        verify_partner_joint: when a rival star of a named detection has a detection of its own
-            (within the tolerance, nearer to the rival than to any other catalog star, named after
-            the rival or unnamed), passing the joint exchange test alone with the margin
-            ``verify_partner_k`` also keeps the name (:mod:`.verify` step 3); ``False`` = the
-            single and joint tests must both pass. Session 7, ``reproduce_sgm.py --n-stars 200``
-            (4,200 scenes, the README's Table 2): MA 88.68 / 89.21 / 88.13 → 91.14 / 90.99 /
-            90.28 %, ALN 73.22 / 74.73 / 68.16 → 78.92 / 78.14 / 73.48 % (position / lost / fake),
-            no mis-identified scene either way. The first version of the rule (session 6: margin
-            ``verify_ambiguity_k``, no nearest-star condition) reached ALN 86.10 / 87.57 / 80.77 %
-            but mis-identified 2 of those scenes.
-        verify_partner_k: margin of the partner rule's exchange test in robust-RMS units (3.5:
-            the names are ≥ e^12.25 times likelier than the exchange). It replaces two tests of
-            margin ``verify_ambiguity_k`` by one, so it asks for more; with 2.5 a pair 0.067°
-            apart at σ = 1 px whose detections had drifted past each other passed it by 6.28 nats
-            for the wrong names. The partner path only adds names; the rule also counts a kept
-            other detection at its own name's cost in the joint test (module :mod:`.verify`). 3.0 on the
-            README's 4,200 Table 2 scenes: ALN 83.33 / 83.15 / 78.02 % (3.5: 78.92 / 78.14 /
-            73.48 %), no mis-identification either. 3.5 because, with the true σ, the wrong names
-            of a pair d RMS units apart beat the right ones by 2d² + 2d·Z nats (Z standard normal),
-            so they pass a margin m with probability at most Φ(−√(2m)), reached at d = √(m/2): 1.1·10⁻⁵
-            at m = 9, 3.7·10⁻⁷ at 12.25 (a Monte-Carlo check agreed), and a full-size run makes tens
-            of thousands of such decisions.
+        verify_partner_joint: a name whose rival star has a detection of its own (within the
+            tolerance, nearest to the rival, named after it or unnamed) is also kept by passing the
+            joint exchange test alone, with margin ``verify_partner_k`` (:mod:`.verify` step 3);
+            ``False``: the single and the joint test must both pass.
+        verify_partner_k: margin of the partner rule's exchange test (robust-RMS units); one test
+            instead of two, so it asks for more: at 3.5 the wrong names of a close pair pass with
+            probability ≤ Φ(−√24.5) ≈ 4·10⁻⁷ per decision (tens of thousands in a full-size run).
         verify_rms_z: the ambiguity margins' s (:func:`.verify._upper_rms`) is the kept residuals'
-            RMS over the lower Φ(−z) quantile of their χ² (2n − 3 degrees of freedom), so it comes
-            out below the true RMS with probability Φ(−z): 16 % at 1.0. 2.0 (2.3 %) with the margin
-            2.5 also removes the mis-identification above, but on the sampled Table 2 it cost 3 MA
-            points (85.71 / 85.61 / 86.14 %) and 4.5–6.6 ALN points: a larger
-            ``verify_ambiguity_k`` buys the same safety far more cheaply.
-        verify_magnitude_sigma: not used by default (``None``; SGM is magnitude-free). When set, the
-            ambiguity tests add each hypothesis' magnitude cost ``(m_obs − V)² / (2σ²)`` with this
-            σ (mag). On the session-6 replay with σ = 0.3 and the first partner rule (the scenes had no
-            magnitude noise, so this is an upper bound): correct scenes at σ = 3 px 170 → 178
-            (position), 163 → 168 (lost), 164 → 174 (fake), none mis-identified.
-        verify_rename: not in the paper; on by default (needs ``verify`` and ``leftover_tol_deg``).
-            After the verification, the detections of the image graph it left unnamed are named again
-            from the verified attitude (the ``leftover_tol_deg`` rule) and the scene is verified again,
-            so every new name passes the same tests; a scene the second verification rejects keeps
-            the first one's result. Why: the match can pair a detection with the wrong database
-            vertex (seen noise-free in the full-size run: a 39-vertex graph whose δ = 0.34° passed
-            ε_δ with one detection named after a star 2.2° from its own); the verification unnames
-            it, but the leftover naming ran before, when it was still named, so the scene stayed
-            incomplete.
-        verify_retries: not in the paper; on by default (needs ``verify``). When the verification
-            rejects a scene's match, that candidate J* is struck out, as if its δ exceeded ε_δ, and
-            Algorithm 1 goes on where it stopped — the next best candidate of the same Δw prefix
-            with δ ≤ ε_δ, else the next levels — and the new answer is verified in turn; at most
-            this many times per scene (0 = the scene fails at the first rejection). A scene
-            failed only because a close rival star contests its main star's name (the match passed
-            every other test) is not searched on: another graph cannot settle that. The
-            verification thus becomes part of Algorithm 1's acceptance test (δ ≤ ε_δ and
-            verified), and nothing is matched twice (:class:`.search.SearchState`). Why: ε_δ = 0.4°
-            admits wrong graphs at small Δw before the right one, whose w_J a lost star or noise
-            moved further from w_I, is reached. Noise-free with one lost star, ``python
-            experiments/diagnose_sgm.py --experiment lost --sigma 0 --n-stars 800``: 3 failed
-            scenes with ``verify_retries=0``, 1 with 3. Full size (``reproduce_sgm.py``), one lost
-            star: failures 0.53 → 0.16 % at σ = 0, 1.12 → 0.79 % at 0.5 px.
-        verify_min_coverage: the frame-coverage test of the verification (0 = off): at least this
-            fraction of the catalog stars that the verified attitude projects inside the frame (inset
-            by the tolerance) must have a detection within the tolerance. 0.4 as in RpNet
-            (``rpnet.Config.min_coverage``). Measured on the 8 mis-identified scenes of the session-4
-            200-star Table 2 run: the 2 wrong small-graph matches covered 11–12 % of the frame, the
-            6 close-pair swaps and the correct scenes 97–100 %.
+            RMS over the lower Φ(−z) quantile of their χ² (2n − 3 degrees of freedom): too small
+            with probability Φ(−z), 16 % at 1.0.
+        verify_magnitude_sigma: ``None`` (SGM is magnitude-free); when set, the ambiguity tests add
+            each hypothesis' magnitude cost ``(m_obs − V)² / (2σ²)`` with this σ (mag).
+        verify_rename: extension, on (needs ``verify`` and ``leftover_tol_deg``): image-graph
+            detections the verification unnamed are named again from the verified attitude (the
+            ``leftover_tol_deg`` rule) and the scene is verified again, keeping the first result if
+            that fails. Why: a wrongly paired detection is unnamed only after the leftover naming.
+        verify_retries: extension (needs ``verify``; 0 = fail at the first rejection). A rejected
+            match strikes out J* as if δ > ε_δ and Algorithm 1 goes on where it stopped, matching
+            nothing twice (:class:`.search.SearchState`), at most this many times per scene; not
+            when only a close rival contests the main star (no other graph settles that). Why:
+            ε_δ = 0.4° admits wrong graphs at small Δw before the right one is reached.
+        verify_min_coverage: fraction of the catalog stars the verified attitude projects inside
+            the frame (inset by ``verify_cap_deg``) that need a detection within ``verify_cap_deg``
+            (0 = off). 0.4 as in RpNet: wrong small-graph matches cover ≈ 10 %, correct ones ≥ 97 %.
     """
 
     radius_deg: float = 6.0
@@ -253,11 +178,9 @@ class Config:
 
     @classmethod
     def paper(cls, **overrides) -> Config:
-        """The paper's algorithm alone (Table 1 parameters, none of our extensions that change
-        the outcome): no post-match verification (``verify``) and no leftover naming
-        (``leftover_tol_deg``). The branch and bound (``prune``) stays: it changes only the work.
-        What a plain re-implementation of the paper (``experiments/sgm_numpy_reference.py``)
-        returns, id for id."""
+        """The paper's algorithm alone: Table 1 parameters, no ``verify``, no ``leftover_tol_deg``
+        (``prune`` stays: it changes only the work). Returns, id for id, what a plain
+        re-implementation of the paper (``experiments/sgm_numpy_reference.py``) returns."""
         return cls(**{"verify": False, "leftover_tol_deg": None, **overrides})
 
     def tuning(self) -> Tuning:

@@ -28,6 +28,7 @@ from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import catalog_neighbors, mst_weight
 from jstarid.catalog import cache_dir
 from jstarid.geometry import KVector, build_kvector
+from jstarid.runtime import device_cache
 
 __all__ = ["Database", "build_database"]
 
@@ -95,14 +96,14 @@ class Database:
         return self._per_graph("_rows", row_table)
 
     def _per_graph(self, name: str, fn) -> np.ndarray:
-        """``fn(adj, mask)`` of every graph, in blocks of 512, kept as attribute ``name``."""
-        cached = self.__dict__.get(name)
-        if cached is None:
+        """``fn(adj, mask)`` of every graph, in blocks of 512, computed once per database
+        (kept in :data:`jstarid.runtime.device_cache`)."""
+        def make():
             mask = np.arange(self.capacity)[None, :] < self.n[:, None]
-            cached = np.concatenate([np.asarray(fn(self.adj[lo:lo + 512], mask[lo:lo + 512]))
-                                     for lo in range(0, len(self), 512)])
-            object.__setattr__(self, name, cached)
-        return cached
+            return np.concatenate([np.asarray(fn(self.adj[lo:lo + 512], mask[lo:lo + 512]))
+                                   for lo in range(0, len(self), 512)])
+
+        return device_cache.cached(self, "sgm" + name, make)
 
 
 def _round_up(x: int, m: int) -> int:

@@ -8,6 +8,8 @@ Here a graph of at most K vertices is stored padded: vertices first (the main st
 
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -66,6 +68,29 @@ def mst_weight(adj, mask):
     return total
 
 
+class ImageGraph(NamedTuple):
+    """Image neighbor graph(s) (leading batch axes, if any, on every field).
+
+    Attributes:
+        members: (…, K) int32 detection index of each vertex (main star first; −1 padding).
+        mask: (…, K) bool real vertices. adj: (…, K, K) float32 adjacency A_I (deg, 0 on padding).
+        n: (…,) int32 vertices. w: (…,) float32 MST weight w_I (deg).
+        overflow: (…,) bool, more than K detections inside the circle (the graph is unusable).
+        main: (…,) int32 detection index of the main star; ``any``: (…,) bool, the scene has a
+            detection (both set by :func:`~jstarid.algorithms.sgm.identify.scene_graphs`; −1 and
+            False for a lone graph).
+    """
+
+    members: Any
+    mask: Any
+    adj: Any
+    n: Any
+    w: Any
+    overflow: Any
+    main: Any = -1
+    any: Any = False
+
+
 def image_graph(vecs, valid, main, radius_deg: float, capacity: int):
     """The neighbor graph of detection ``main`` in one scene (You et al. 2022, "Rough search").
 
@@ -77,10 +102,9 @@ def image_graph(vecs, valid, main, radius_deg: float, capacity: int):
         capacity: static K, vertex capacity.
 
     Returns:
-        dict with ``members`` (K,) int32 detection index of each vertex (main star first, the others in
-        scene order, i.e. brightest first; −1 padding), ``mask`` (K,) bool, ``adj`` (K, K) float32 (deg),
-        ``n`` () int32 vertices, ``w`` () MST weight (deg), ``overflow`` () bool (more than K
-        detections inside the circle; the graph is then unusable).
+        :class:`ImageGraph` of one scene (``members`` (K,), ``mask`` (K,), ``adj`` (K, K) deg,
+        ``n``, ``w`` deg, ``overflow``): vertices are the main star first, then the others in scene
+        order (brightest first); an overflowing graph is unusable.
     """
     n_det = vecs.shape[0]
     ang = separation_deg(vecs, vecs[main][None, :])
@@ -96,9 +120,8 @@ def image_graph(vecs, valid, main, radius_deg: float, capacity: int):
     members = jnp.where(mask, take, -1).astype(jnp.int32)
     v = jnp.where(mask[:, None], vecs[jnp.clip(members, 0, n_det - 1)], 0.0)
     adj = adjacency_deg(v, mask)
-    return {"members": members, "mask": mask, "adj": adj.astype(jnp.float32),
-            "n": n.astype(jnp.int32), "w": mst_weight(adj, mask).astype(jnp.float32),
-            "overflow": count > capacity}
+    return ImageGraph(members=members, mask=mask, adj=adj.astype(jnp.float32), n=n.astype(jnp.int32),
+                      w=mst_weight(adj, mask).astype(jnp.float32), overflow=count > capacity)
 
 
 def catalog_neighbors(unit_vectors: np.ndarray, row: int, radius_deg: float) -> np.ndarray:

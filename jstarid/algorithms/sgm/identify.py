@@ -50,9 +50,9 @@ from jstarid.algorithms.sgm.search import (
 from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
 from jstarid.metrics import nearest_to_principal_point
+from jstarid.runtime import map_batch, on_every_device
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index
-from jstarid.sweep import map_batch, replicate_once
 
 __all__ = ["Diagnostics", "identify", "scene_graphs"]
 
@@ -102,14 +102,14 @@ def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int):
         camera: static :class:`~jstarid.camera.Camera`. radius_deg: r (deg). capacity: static K.
 
     Returns:
-        dict of (B, …) arrays from :func:`~jstarid.algorithms.sgm.graph.image_graph` plus ``main``
-        (B,) int32 main-star detection and ``any`` (B,) bool (the scene has a detection).
+        :class:`~jstarid.algorithms.sgm.graph.ImageGraph` of (B, …) arrays, with ``main`` (B,)
+        int32 main-star detection and ``any`` (B,) bool (the scene has a detection).
     """
     main = nearest_to_principal_point(xy, valid, camera)
     vecs = camera.unproject(xy)
     g = jax.vmap(image_graph, in_axes=(0, 0, 0, None, None))(vecs, valid, main, radius_deg,
                                                              capacity)
-    return {**g, "main": main.astype(jnp.int32), "any": jnp.any(valid, axis=-1)}
+    return g._replace(main=main.astype(jnp.int32), any=jnp.any(valid, axis=-1))
 
 
 def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bool = False,
@@ -140,24 +140,22 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
                          f"r={db.radius_deg}")
     g = scene_graphs(scenes.xy, scenes.valid, camera=db.camera, radius_deg=float(db.radius_deg),
                      capacity=int(db.capacity))
-    g = {k: np.asarray(v) for k, v in g.items()}
-    usable = g["any"] & ~g["overflow"] & (g["n"] >= config.min_stars)
-    state = start_search(db, g, usable, config)
-    advance_search(db, g, state, config)
-    res = search_outcome(state, config, g["mask"].shape[1])
+    g = jax.tree.map(np.asarray, g)
+    usable = g.any & ~g.overflow & (g.n >= config.min_stars)
+    state = advance_search(db, g, start_search(db, g, usable, config), config)
+    res = search_outcome(state, config, g.mask.shape[1])
     result, contested_main = _names_from_match(db, scenes, g, res, config)
     contested_main = contested_main.copy()  # a view of a device array is read-only
     if config.verify:
         for _ in range(config.verify_retries):
             # matches the verification rejected: strike them out and let Algorithm 1 go on —
             # unless only the main star's name was contested (another graph cannot settle that)
-            retry = res["ok"] & ~np.asarray(result.ok) & ~contested_main
+            retry = res.ok & ~np.asarray(result.ok) & ~contested_main
             if not np.any(retry):
                 break
             redo = np.nonzero(retry)[0]
-            reject_best(state, res, redo)
-            advance_search(db, g, state, config, retry)
-            res = search_outcome(state, config, g["mask"].shape[1])
+            state = advance_search(db, g, reject_best(state, res, redo), config, retry)
+            res = search_outcome(state, config, g.mask.shape[1])
             sub, sub_contested = _names_from_match(db, scenes, g, res, config, rows=redo)
             result = _merge(result, sub, redo)
             contested_main[redo] = sub_contested
@@ -166,15 +164,15 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
         att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
         result = Identification(ids=result.ids, ok=result.ok, attitude=att)
     if diagnostics:
-        ok = res["ok"]
-        matched, pruned = res["n_matched_graphs"], res["n_pruned"]
+        ok = res.ok
+        matched, pruned = res.n_matched, res.n_pruned
         diag = Diagnostics(
             n_candidates=(matched + pruned).astype(np.int32),
-            overflow=g["overflow"] | np.asarray(scenes.overflow), n_matched=matched,
-            n_pruned=pruned, n_rejected=res["n_rejected"], n_i=g["n"], w_i=g["w"], main=g["main"],
-            usable=usable, match_ok=ok, best=res["best"],
-            best_main=np.where(ok, db.main[np.clip(res["best"], 0, None)], -1), error=res["error"],
-            level=res["level"], main_contested=contested_main)
+            overflow=g.overflow | np.asarray(scenes.overflow), n_matched=matched,
+            n_pruned=pruned, n_rejected=res.n_rejected, n_i=g.n, w_i=g.w, main=g.main,
+            usable=usable, match_ok=ok, best=res.best,
+            best_main=np.where(ok, db.main[np.clip(res.best, 0, None)], -1), error=res.error,
+            level=res.level, main_contested=contested_main)
         return result, diag
     return result
 
@@ -196,25 +194,25 @@ def _names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
     """
     if rows is not None:
         padded = np.concatenate([rows, np.full(next_pow2(rows.size) - rows.size, rows[0])])
-        sub, amb = _names_from_match(db, scenes[padded], {k: v[padded] for k, v in g.items()},
-                                     {k: v[padded] for k, v in res.items()}, config)
+        sub, amb = _names_from_match(db, scenes[padded], jax.tree.map(lambda v: v[padded], g),
+                                     jax.tree.map(lambda v: v[padded], res), config)
         return sub[:rows.size], amb[:rows.size]
     if config.vertex_check_deg is not None:
         res = dict(res)
-        res["match"], res["ok"] = _check_vertices(g["adj"], db.adj, res, config)
+        res.match, res.ok = _check_vertices(g.adj, db.adj, res, config)
     b, n_det = scenes.valid.shape
     ids = np.full((b, n_det), -1, np.int32)
-    sc, vert = np.nonzero(res["match"] >= 0)
-    det = g["members"][sc, vert]
-    ids[sc, det] = db.members[res["best"][sc], res["match"][sc, vert]]
-    ok = res["ok"]
+    sc, vert = np.nonzero(res.match >= 0)
+    det = g.members[sc, vert]
+    ids[sc, det] = db.members[res.best[sc], res.match[sc, vert]]
+    ok = res.ok
     result = Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=None)
     if config.leftover_tol_deg is not None and np.any(ok):
         ids = _name_leftovers(db, scenes, result, g, config)
         result = Identification(ids=jnp.asarray(ids), ok=result.ok, attitude=None)
     main_ambiguous = np.zeros(b, bool)
     if config.verify and np.any(ok):
-        result, main_ambiguous = _verify(db, scenes, result, g["main"], config)
+        result, main_ambiguous = _verify(db, scenes, result, g.main, config)
         if config.verify_rename and config.leftover_tol_deg is not None and np.any(result.ok):
             result = _rename_and_reverify(db, scenes, result, g, config)
     return result, main_ambiguous
@@ -256,7 +254,7 @@ def _verify_inputs(db, config: Config):
     # every catalog star within the field's half diagonal of any boresight in a cell (frame coverage)
     index = build_sky_index(cat_np, db.camera.half_diagonal_rad,
                             key=f"sgm-frame-{db.catalog.fingerprint}")
-    tables = replicate_once(db, "verify", lambda: (
+    tables = on_every_device(db, "verify", lambda: (
         jnp.asarray(cat_np, jnp.float32), jnp.asarray(db.catalog.mag, jnp.float32),
         index.device_arrays()[0]))
     settings = dict(camera=db.camera, grid=index.grid,
@@ -276,7 +274,7 @@ def _verify_inputs(db, config: Config):
 
 def _verify_scenes(xy, mag, valid, ids, ok, main, cat, cat_mag, cells, **settings):
     """:func:`~jstarid.algorithms.sgm.verify.verify_ids` with the scenes first and the tables after,
-    the argument order of :func:`jstarid.sweep.map_batch` (which splits the scenes over the devices:
+    the argument order of :func:`jstarid.runtime.map_batch` (which splits the scenes over the devices:
     the verification works on each scene alone)."""
     return verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, **settings)
 
@@ -298,7 +296,7 @@ def _rename_and_reverify(db, scenes: Scene, verified: Identification, g, config:
     if not np.any(changed):
         return verified
     proposal = Identification(ids=jnp.asarray(ids), ok=verified.ok, attitude=None)
-    again, _ = _verify(db, scenes, proposal, g["main"], config)
+    again, _ = _verify(db, scenes, proposal, g.main, config)
     take = changed & np.asarray(again.ok)
     ids = np.where(take[:, None], np.asarray(again.ids), before)
     return Identification(ids=jnp.asarray(ids), ok=verified.ok, attitude=None)
@@ -309,21 +307,20 @@ def _check_vertices(adj_i, db_adj, res, config: Config):
 
     Args:
         adj_i: (B, K, K) image adjacencies (deg). db_adj: (D, K, K) database adjacencies (deg).
-        res: :func:`~jstarid.algorithms.sgm.search.dynamic_search` output (``match``, ``best``,
-            ``ok``).
+        res: :class:`~jstarid.algorithms.sgm.search.SearchOutcome` (``match``, ``best``, ``ok``).
         config: :class:`Config`.
 
     Returns:
         ``(match, ok)``: (B, K) the kept correspondence (−1 elsewhere), (B,) bool.
     """
-    match, ok = res["match"].copy(), res["ok"].copy()
+    match, ok = res.match.copy(), res.ok.copy()
     rows = np.nonzero(ok)[0]
     if rows.size == 0:
         return match, ok
     m = match[rows]
     used = m >= 0
     mj = np.clip(m, 0, None)
-    a_j = db_adj[res["best"][rows][:, None, None], mj[:, :, None], mj[:, None, :]]
+    a_j = db_adj[res.best[rows][:, None, None], mj[:, :, None], mj[:, None, :]]
     d = np.abs(adj_i[rows] - a_j)
     both = used[:, :, None] & used[:, None, :]
     both &= ~np.eye(m.shape[1], dtype=bool)[None]
@@ -354,7 +351,7 @@ def _name_leftovers(db, scenes: Scene, result: Identification, g: dict, config: 
     cat = np.asarray(db.catalog.unit_vectors, np.float64)
     cos_tol = np.cos(np.radians(config.leftover_tol_deg))
     for s in np.nonzero(have)[0]:
-        mem = g["members"][s][g["mask"][s]]
+        mem = g.members[s][g.mask[s]]
         todo = mem[ids[s, mem] < 0]
         if todo.size == 0:
             continue

@@ -122,20 +122,13 @@ def affinity_eigenvector(a_i, mask_i, a_j, mask_j, c: float, n_iter: int, tol: f
     """:func:`principal_eigenvector` of :func:`affinity`, K's entries made from the factors.
 
     Written as if each power step recomputed the entries it reads inside the reduction
-    ``y(ij) = Σ_km K(ij, km) x(km)``. What XLA (CPU, jax 0.10) compiles is different: its
-    loop-invariant code motion takes the (P, Q, P, Q) block out of the while loop, so K is written
-    once per pair and each step is one multiply-reduce over it (seen in the optimized HLO of a
-    ``lax.map`` of this function over 64 pairs, session 23). Per pair that is ≈ 0.1 / 0.3 / 0.75 /
-    0.3 ms for writing K at P = Q = 16 / 24 / 32 / 40 plus ≈ 0.02 / 0.03 / 0.1 / 0.26 ms per step
-    (one-off timings of 64 real pairs per size), against ≈ 0.05 / 0.1 / 0.2 / 0.44 ms per step if
-    each step recomputed its entries (64 random graph pairs per size): with the 5–12 steps real
-    pairs take, neither way wins by much. Against the written-out reference (:func:`affinity` then
-    :func:`principal_eigenvector`; its first step costs 1.3–3× as much at P = Q = 16–40, one-off
-    timing) this form took 0.75–0.97× the time per pair (session 21, README) with the same matches
-    and errors on every pair timed. Also tried (one-off, session 23): a step through sorted prefix
-    sums (e^{−c|a−b|} splits at a = b, O(P·Q·(P + Q)) per step) gave the same eigenvectors to
-    4·10⁻⁸ but took 1.1–3× as long at P = Q = 16–40 (XLA's CPU gathers). The steps are those of
+    ``y(ij) = Σ_km K(ij, km) x(km)``. XLA on CPU hoists the (P, Q, P, Q) block out of the while loop
+    (loop-invariant code motion), so K is written once per pair and each step is one multiply-reduce
+    over it; with the 5–12 steps real pairs take, that costs about as much as recomputing the entries
+    in every step, and less than the written-out reference (:func:`affinity` then
+    :func:`principal_eigenvector`), with the same matches and errors. The steps are those of
     :func:`principal_eigenvector` (uniform start, normalised products, the same early stop).
+    Timings and the alternatives tried: docs/design/sgm.md.
 
     Args:
         a_i, mask_i, a_j, mask_j, c: as :func:`affinity`.
@@ -163,9 +156,8 @@ def greedy_binarize(conf, mask_i, mask_j):
     row and of its column is fixed by that rule sooner or later, because only an entry
     earlier in the order could take its row or column, and there is none (entries are only ever
     removed). Every round fixes at least the first remaining entry, so at most min(P, Q) rounds run,
-    usually far fewer: on principal eigenvectors of random graphs of 14–35 vertices the rounds took
-    about half the time of the one-pair loop (one-off timing). ``argmax`` returns the first maximum,
-    so ties follow the same order.
+    usually far fewer (about half the time of the one-pair loop on graphs of 14–35 vertices).
+    ``argmax`` returns the first maximum, so ties follow the same order.
 
     Args:
         conf: (P, Q) confidences γ(ij) ≥ 0.

@@ -57,6 +57,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -64,14 +65,15 @@ import numpy as np
 
 from jstarid.algorithms.sgm.bound import edge_lower_bound, error_lower_bound, row_table, sorted_edges
 from jstarid.algorithms.sgm.config import Config
+from jstarid.algorithms.sgm.graph import ImageGraph
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.geometry import range_search
-from jstarid.sweep import map_batch, replicate_once
+from jstarid.runtime import Call, map_batch, on_every_device, run_calls
 
-__all__ = ["candidate_windows", "order_candidates", "edge_bounds", "beyond_row_bound", "lower_bounds",
-           "prune_mask", "dynamic_search", "run_pairs", "database_tables", "image_tables", "bucket_up",
-           "next_pow2", "SearchState",
-           "start_search", "advance_search", "search_outcome", "reject_best"]
+__all__ = ["ImageTables", "SearchOutcome", "SearchState", "advance_search", "beyond_row_bound",
+           "bucket_up", "candidate_windows", "database_tables", "dynamic_search", "edge_bounds",
+           "image_tables", "lower_bounds", "next_pow2", "order_candidates", "prune_mask",
+           "reject_best", "run_pairs", "search_outcome", "start_search"]
 
 
 def _bucket(x: int, m: int) -> int:
@@ -212,7 +214,7 @@ def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes, budget
               tables, **static):
     """Run a pair kernel over flat (scene, candidate) pairs grouped by padded graph size.
 
-    Each call's pairs are split over every device (:func:`jstarid.sweep.map_batch`): on a CPU with
+    Each call's pairs are split over every device (:func:`jstarid.runtime.map_batch`): on a CPU with
     ``--xla_force_host_platform_device_count=n`` the n slices run on n cores at once, where one device
     leaves the second core of a 2-core machine mostly idle (a pair's small matrix products do not
     spread over threads: one core measured only 12 % slower than two).
@@ -242,36 +244,27 @@ def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes, budget
     groups = {}
     for idx, key in enumerate(map(tuple, key_sizes)):
         groups.setdefault(key, []).append(idx)
-    # every call is dispatched before any result is read back, so the devices work on one call
-    # while the host prepares the next (reading each result at once left them idle in between)
-    pending = []
+    calls = []
     for sizes, members in groups.items():
         members = np.asarray(members)
         for lo, hi, padded in _batches(members.size, per_pair_bytes(*sizes), budget):
-            sel = members[lo:hi]
-            # padding pairs repeat the first pair's scene with candidate −1 (kernels skip them); the
-            # real pairs are dealt round-robin to the devices' equal slices so each gets its share
-            slot = _spread(sel.size, padded, n_dev)
-            fill = np.full(padded, sel[0])
-            fill[slot] = sel
-            cand_fill = np.full(padded, -1, np.int32)
-            cand_fill[slot] = cand[sel]
-            # host arrays go straight to their devices' slices (no staging copy on one device)
-            batched = (np.ascontiguousarray(image[scene[fill], :sizes[0], :sizes[0]]),
-                       n_i[scene[fill]].astype(np.int32), cand_fill)
-            res = map_batch(kernel, batched, tuple(tables),
-                            static={**static, **dict(zip(size_names, sizes, strict=True))})
-            pending.append((sel, slot, res if isinstance(res, tuple) else (res,)))
-    outs = None
-    for sel, slot, res in pending:
-        res = [np.asarray(r) for r in res]
-        if outs is None:
-            outs = [np.full((scene.size,) + tuple(t), -1, r.dtype)
-                    for r, t in zip(res, out_tails, strict=True)]
-        for o, r in zip(outs, res, strict=True):
-            r = r[slot]
-            o[(sel,) + tuple(slice(0, d) for d in r.shape[1:])] = r
-    return outs
+            # the real pairs are dealt round-robin to the devices' equal slices so each gets its share
+            calls.append(Call(rows=members[lo:hi], size=padded, slots=_spread(hi - lo, padded, n_dev),
+                              static=tuple(zip(size_names, sizes, strict=True))))
+
+    def args(call):
+        # padding pairs repeat the call's first scene with candidate −1 (the kernels skip them)
+        k = dict(call.static)[size_names[0]]
+        fill = np.full(call.size, call.rows[0])
+        fill[call.slots] = call.rows
+        cand_fill = np.full(call.size, -1, np.int32)
+        cand_fill[call.slots] = cand[call.rows]
+        # host arrays go straight to their devices' slices (no staging copy on one device)
+        return (np.ascontiguousarray(image[scene[fill], :k, :k]), n_i[scene[fill]].astype(np.int32),
+                cand_fill)
+
+    return run_calls(kernel, calls, args, tuple(tables), static=static, n_rows=scene.size,
+                     tails=out_tails, fills=[-1] * len(out_tails))
 
 
 def _spread(n: int, padded: int, n_dev: int) -> np.ndarray:
@@ -285,22 +278,58 @@ def _spread(n: int, padded: int, n_dev: int) -> np.ndarray:
 def database_tables(db, table: str = "adj"):
     """``(db.<table>, n)`` as device arrays on every device (placed once per database and table):
     ``"adj"`` for the spectral matching, ``"rows"`` (``Database.rows``) for the row bound."""
-    return replicate_once(db, table, lambda: (jnp.asarray(getattr(db, table)), jnp.asarray(db.n)))
+    return on_every_device(db, table, lambda: (jnp.asarray(getattr(db, table)), jnp.asarray(db.n)))
 
 
-def image_tables(adj_i, n_i) -> dict:
+class ImageTables(NamedTuple):
+    """The image graphs' tables the bounds read, sorted once per search (NumPy).
+
+    Attributes:
+        rows: (B, K, K) :func:`~.bound.row_table`. edges: (B, K(K − 1)/2) :func:`~.bound.sorted_edges`.
+    """
+
+    rows: np.ndarray
+    edges: np.ndarray
+
+
+class SearchOutcome(NamedTuple):
+    """Algorithm 1's answer per scene (:func:`search_outcome`; NumPy arrays, batch axis first).
+
+    Attributes:
+        ok: (B,) bool, a match with δ ≤ ε_δ was found.
+        best: (B,) int32 database row of J* (−1). rank: (B,) int32 its rank (−1).
+        match: (B, K) int32 database vertex of each image vertex (−1).
+        error: (B,) float32 δ_{I,J*} (deg; for a failed scene the least δ examined, inf when nothing
+            was matched — with pruning, also when every candidate was pruned).
+        n_matched: (B,) int32 candidates whose spectral matching ran.
+        n_pruned: (B,) int32 candidates the bound removed (against ε_δ, or the best δ found).
+        n_rejected: (B,) int32 answers struck out.
+        level: (B,) int32 index of the Δw level that succeeded (−1).
+    """
+
+    ok: np.ndarray
+    best: np.ndarray
+    rank: np.ndarray
+    match: np.ndarray
+    error: np.ndarray
+    n_matched: np.ndarray
+    n_pruned: np.ndarray
+    n_rejected: np.ndarray
+    level: np.ndarray
+
+
+def image_tables(adj_i, n_i) -> ImageTables:
     """Sorted rows and edges of image graphs, the bounds' inputs (:mod:`.bound`), sorted once.
 
     Args:
         adj_i: (B, K, K) image adjacencies (deg). n_i: (B,) vertex counts.
 
     Returns:
-        ``rows``: (B, K, K) :func:`~.bound.row_table`; ``edges``: (B, K(K − 1)/2)
-        :func:`~.bound.sorted_edges` (NumPy).
+        :class:`ImageTables`.
     """
     adj = jnp.asarray(adj_i)
     mask = jnp.arange(adj.shape[-1])[None, :] < jnp.asarray(n_i)[:, None]
-    return {"rows": np.asarray(row_table(adj, mask)), "edges": np.asarray(sorted_edges(adj, mask))}
+    return ImageTables(rows=np.asarray(row_table(adj, mask)), edges=np.asarray(sorted_edges(adj, mask)))
 
 
 def edge_bounds(db, image: dict, n_i, scene, rows, config: Config) -> np.ndarray:
@@ -330,7 +359,7 @@ def edge_bounds(db, image: dict, n_i, scene, rows, config: Config) -> np.ndarray
         padded = max(MIN_CALL_PAIRS, next_pow2(at.size))
         fill = np.concatenate([at, np.full(padded - at.size, at[0])])
         out = map_batch(_edge_bound_pairs,
-                        (jnp.asarray(image["edges"][scene[fill], :width]), jnp.asarray(n_i[scene[fill]]),
+                        (jnp.asarray(image.edges[scene[fill], :width]), jnp.asarray(n_i[scene[fill]]),
                          jnp.asarray(db.edges[rows[fill], :width]), jnp.asarray(n_j[fill])))
         lb[at] = np.asarray(out)[:at.size]
     return lb
@@ -367,7 +396,7 @@ def lower_bounds(db, image: dict, n_i, scene, rows, config: Config):
         sk = np.where(s_diff[at] == 0, 0,
                       1 << np.ceil(np.log2(np.maximum(s_diff[at], 1))).astype(np.int64))
         (lb[at],) = run_pairs(
-            _bound_pairs, np.stack([r, sk], axis=1), image["rows"], n_i, scene[at], rows[at],
+            _bound_pairs, np.stack([r, sk], axis=1), image.rows, n_i, scene[at], rows[at],
             lambda r_, s_: r_ * r_ * (r_ - 1 + 3 * (s_ + 1)) * 4, config.memory_budget_mb * 2**20,
             ("r", "max_skip"), [()], database_tables(db, "rows"))
     return lb, bounded
@@ -448,13 +477,19 @@ class SearchState:
     n_matched: np.ndarray
     n_pruned: np.ndarray
     n_rejected: np.ndarray
-    image: dict | None
+    image: ImageTables | None
+
+    def copy(self) -> SearchState:
+        """A new state with its own arrays and match table (the image tables are shared: read-only)."""
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return SearchState(**{k: (v.copy() if isinstance(v, np.ndarray | dict) else v)
+                              for k, v in fields.items()})
 
 
-def start_search(db, graphs: dict, usable: np.ndarray, config: Config) -> SearchState:
+def start_search(db, graphs: ImageGraph, usable: np.ndarray, config: Config) -> SearchState:
     """Rough search at the widest Δw and the candidate order of every scene; nothing matched yet."""
-    b = graphs["mask"].shape[0]
-    w_i = jnp.asarray(graphs["w"], jnp.float32)
+    b = graphs.mask.shape[0]
+    w_i = jnp.asarray(graphs.w, jnp.float32)
     start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
     width = next_pow2(max(int(count.max(initial=0)), int(config.chunk_size)))
@@ -468,7 +503,7 @@ def start_search(db, graphs: dict, usable: np.ndarray, config: Config) -> Search
                        bound=np.zeros(cand.shape, np.float32), refined=np.zeros(cand.shape, bool),
                        deferred=np.zeros(cand.shape, bool), covered=zeros.copy(), matches={},
                        n_matched=zeros.copy(), n_pruned=zeros.copy(), n_rejected=zeros.copy(),
-                       image=image_tables(graphs["adj"], graphs["n"]) if config.prune else None)
+                       image=image_tables(graphs.adj, graphs.n) if config.prune else None)
 
 
 def _first_success_level(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarray:
@@ -510,18 +545,18 @@ def _finished(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarra
     return _prefix_done(state, config, rows) & ~np.any(_needed(state, config, rows), axis=1)
 
 
-def _match_ranks(db, graphs: dict, state: SearchState, config: Config, scene: np.ndarray,
+def _match_ranks(db, graphs: ImageGraph, state: SearchState, config: Config, scene: np.ndarray,
                  rank: np.ndarray) -> None:
     """Spectral matching of the (scene, rank) pairs (in place: δ, correspondences, counts)."""
     if not scene.size:
         return
-    k = graphs["adj"].shape[1]
-    n_i = graphs["n"].astype(np.int32)
+    k = graphs.adj.shape[1]
+    n_i = graphs.n.astype(np.int32)
     rows = state.cand[scene, rank]
     pq = np.stack([bucket_up(n_i[scene], config.size_bucket),
                    bucket_up(db.n[rows], config.size_bucket)], axis=1)
     match_flat, err_flat = run_pairs(
-        _match_pairs, pq, graphs["adj"], n_i, scene, rows, lambda p, q: (p * q) ** 2 * 4 * 3,
+        _match_pairs, pq, graphs.adj, n_i, scene, rows, lambda p, q: (p * q) ** 2 * 4 * 3,
         config.memory_budget_mb * 2**20, ("p", "q"), [(k,), ()],
         (*database_tables(db), jnp.float32(config.c)),
         n_iter=int(config.power_iterations), tol=float(config.power_tol),
@@ -533,7 +568,7 @@ def _match_ranks(db, graphs: dict, state: SearchState, config: Config, scene: np
         state.matches[(int(scene[i]), int(rank[i]))] = match_flat[i]
 
 
-def _examine_block(db, graphs: dict, state: SearchState, config: Config, act: np.ndarray,
+def _examine_block(db, graphs: ImageGraph, state: SearchState, config: Config, act: np.ndarray,
                    block: int) -> None:
     """Bound the next ``block`` ranks of the l* prefix of each scene in ``act`` (in place).
 
@@ -553,7 +588,7 @@ def _examine_block(db, graphs: dict, state: SearchState, config: Config, act: np
     scene, rank = act[s_idx], ranks[s_idx, c_idx]
     state.refined[scene, rank] = True  # without pruning there is nothing to refine
     if config.prune and scene.size:
-        n_i = graphs["n"].astype(np.int32)
+        n_i = graphs.n.astype(np.int32)
         rows = state.cand[scene, rank]
         lb = edge_bounds(db, state.image, n_i, scene, rows, config)
         keep = ~_exceeds(lb, config.max_error_deg)
@@ -566,7 +601,7 @@ def _examine_block(db, graphs: dict, state: SearchState, config: Config, act: np
     state.covered[act] += np.sum(take, axis=1).astype(np.int32)
 
 
-def _refine(db, graphs: dict, state: SearchState, config: Config, scene: np.ndarray,
+def _refine(db, graphs: ImageGraph, state: SearchState, config: Config, scene: np.ndarray,
             rank: np.ndarray) -> None:
     """Second-stage bound (:func:`~.bound.error_lower_bound`) of the deferred (scene, rank) pairs not
     refined yet (in place); those whose bound now exceeds ε_δ are pruned."""
@@ -574,7 +609,7 @@ def _refine(db, graphs: dict, state: SearchState, config: Config, scene: np.ndar
     scene, rank = scene[todo], rank[todo]
     if not scene.size:
         return
-    lb, _ = lower_bounds(db, state.image, graphs["n"].astype(np.int32), scene,
+    lb, _ = lower_bounds(db, state.image, graphs.n.astype(np.int32), scene,
                          state.cand[scene, rank], config)
     lb = np.maximum(lb, state.bound[scene, rank])
     state.bound[scene, rank] = lb
@@ -584,7 +619,7 @@ def _refine(db, graphs: dict, state: SearchState, config: Config, scene: np.ndar
     np.add.at(state.n_pruned, scene[out], 1)
 
 
-def _probe(db, graphs: dict, state: SearchState, config: Config, act: np.ndarray) -> None:
+def _probe(db, graphs: ImageGraph, state: SearchState, config: Config, act: np.ndarray) -> None:
     """Match each scene's needed rank with the smallest bound (the likeliest J*; in place).
 
     Its bound is refined first (one call for all scenes) and it is matched only if the refined bound
@@ -593,7 +628,7 @@ def _probe(db, graphs: dict, state: SearchState, config: Config, act: np.ndarray
     J*, while a failed probe leaves the scene without δ* and so makes every rank it holds needed.
     """
     need = _needed(state, config, act)
-    far = beyond_row_bound(graphs["n"][act, None], db.n[np.maximum(state.cand[act], 0)], config)
+    far = beyond_row_bound(graphs.n[act, None], db.n[np.maximum(state.cand[act], 0)], config)
     first = np.argmin(np.where(need, state.bound[act] + np.where(far, 1e6, 0.0), np.inf), axis=1)
     probe = np.nonzero(need[np.arange(act.size), first])[0]
     scene, rank = act[probe], first[probe]
@@ -602,9 +637,9 @@ def _probe(db, graphs: dict, state: SearchState, config: Config, act: np.ndarray
     _match_ranks(db, graphs, state, config, scene[live], rank[live])
 
 
-def advance_search(db, graphs: dict, state: SearchState, config: Config,
-                   active: np.ndarray | None = None) -> None:
-    """Run Algorithm 1 on the ``active`` scenes (default: all) until each has stopped (in place).
+def advance_search(db, graphs: ImageGraph, state: SearchState, config: Config,
+                   active: np.ndarray | None = None) -> SearchState:
+    """Run Algorithm 1 on the ``active`` scenes (default: all) until each has stopped.
 
     Each step examines the next block of ranks of every scene whose l* prefix is not covered yet
     (``chunk_size`` ranks, then twice as many at every step up to 512: most scenes finish within
@@ -621,10 +656,14 @@ def advance_search(db, graphs: dict, state: SearchState, config: Config,
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database`.
         graphs: per-scene image graphs as NumPy arrays: ``adj`` (B, K, K) deg, ``n`` (B,).
-        state: :class:`SearchState` from :func:`start_search` (updated in place).
+        state: :class:`SearchState` from :func:`start_search` (left unchanged).
         config: :class:`Config`.
         active: (B,) bool scenes to advance.
+
+    Returns:
+        The new :class:`SearchState`.
     """
+    state = state.copy()  # the steps below update this private copy
     b = state.cand.shape[0]
     todo = np.ones(b, bool) if active is None else np.asarray(active, bool).copy()
     rows_all = np.nonzero(todo)[0]
@@ -647,9 +686,10 @@ def advance_search(db, graphs: dict, state: SearchState, config: Config,
         s_idx, rank = np.nonzero(_needed(state, config, act))
         _match_ranks(db, graphs, state, config, act[s_idx], rank)
         todo[act] = ~_finished(state, config, act)
+    return state
 
 
-def search_outcome(state: SearchState, config: Config, k: int) -> dict:
+def search_outcome(state: SearchState, config: Config, k: int) -> SearchOutcome:
     """Algorithm 1's answer from what has been examined: J* = argmin δ over the l* prefix.
 
     Args:
@@ -676,29 +716,31 @@ def search_outcome(state: SearchState, config: Config, k: int) -> dict:
     match = np.full((b, k), -1, np.int32)
     for s in np.nonzero(ok)[0]:
         match[s] = state.matches[(int(s), int(j[s]))]
-    return {"ok": ok, "best": np.where(ok, state.cand[everyone, j], -1).astype(np.int32),
-            "rank": np.where(ok, j, -1).astype(np.int32), "match": match, "error": best_err,
-            "n_matched_graphs": state.n_matched.copy(),
-            "n_pruned": state.n_pruned + np.sum(state.deferred, axis=1).astype(np.int32),
-            "n_rejected": state.n_rejected.copy(),
-            "level": np.where(ok, lstar, -1).astype(np.int32)}
+    return SearchOutcome(
+        ok=ok, best=np.where(ok, state.cand[everyone, j], -1).astype(np.int32),
+        rank=np.where(ok, j, -1).astype(np.int32), match=match, error=best_err,
+        n_matched=state.n_matched.copy(),
+        n_pruned=state.n_pruned + np.sum(state.deferred, axis=1).astype(np.int32),
+        n_rejected=state.n_rejected.copy(), level=np.where(ok, lstar, -1).astype(np.int32))
 
 
-def reject_best(state: SearchState, outcome: dict, rows: np.ndarray) -> None:
-    """Strike out the answer J* of the scenes ``rows`` (in place), as if its δ exceeded ε_δ.
+def reject_best(state: SearchState, outcome: SearchOutcome, rows: np.ndarray) -> SearchState:
+    """A new state with the answer J* of the scenes ``rows`` struck out, as if its δ exceeded ε_δ.
 
     A later :func:`advance_search` then goes on as Algorithm 1 would have without that candidate:
     the next best of the same l* prefix when another one has δ ≤ ε_δ, else further levels.
     """
+    state = state.copy()
     rows = np.asarray(rows)
-    rows = rows[outcome["ok"][rows]]
-    state.err[rows, outcome["rank"][rows]] = np.inf
+    rows = rows[outcome.ok[rows]]
+    state.err[rows, outcome.rank[rows]] = np.inf
     for s in rows:
-        state.matches.pop((int(s), int(outcome["rank"][s])), None)
+        state.matches.pop((int(s), int(outcome.rank[s])), None)
     state.n_rejected[rows] += 1
+    return state
 
 
-def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict:
+def dynamic_search(db, graphs: ImageGraph, usable: np.ndarray, config: Config) -> SearchOutcome:
     """Algorithm 1 for a batch of image graphs: :func:`start_search`, :func:`advance_search` and
     :func:`search_outcome` in one call.
 
@@ -712,9 +754,8 @@ def dynamic_search(db, graphs: dict, usable: np.ndarray, config: Config) -> dict
     Returns:
         :func:`search_outcome`'s dict.
     """
-    state = start_search(db, graphs, usable, config)
-    advance_search(db, graphs, state, config)
-    return search_outcome(state, config, graphs["mask"].shape[1])
+    state = advance_search(db, graphs, start_search(db, graphs, usable, config), config)
+    return search_outcome(state, config, graphs.mask.shape[1])
 
 
 def bucket_up(x: np.ndarray, m: int) -> np.ndarray:

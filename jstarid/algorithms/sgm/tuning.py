@@ -33,7 +33,7 @@ from jstarid.algorithms.sgm.search import (
     run_pairs,
     skip_padding,
 )
-from jstarid.sweep import replicate
+from jstarid.runtime import replicate
 
 __all__ = ["candidate_errors", "replay_algorithm1", "grid_identifications"]
 
@@ -56,7 +56,7 @@ def _match_pairs_grid(a_i, n_i, cand, db_adj, db_n, cs, *, p, q, n_iter, tol, mi
     return skip_padding(lambda *args: over_c(*args, cs), live, (a_i, mask_i, a_j, mask_j), dead)
 
 
-def candidate_errors(db, graphs: dict, usable: np.ndarray, config: Config, cs, max_error_deg: float,
+def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_error_deg: float,
                      *, block: int = 256):
     """Matching errors of every candidate of the widest Δw window, for every c.
 
@@ -78,8 +78,8 @@ def candidate_errors(db, graphs: dict, usable: np.ndarray, config: Config, cs, m
         pairs with δ ≤ ``max_error_deg`` (only those can be returned by Algorithm 1).
     """
     cs = np.asarray(cs, np.float32)
-    b, k = graphs["mask"].shape
-    w_i = jnp.asarray(graphs["w"], jnp.float32)
+    b, k = graphs.mask.shape
+    w_i = jnp.asarray(graphs.w, jnp.float32)
     start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
     width = next_pow2(max(int(count.max(initial=0)), 1))
@@ -90,7 +90,7 @@ def candidate_errors(db, graphs: dict, usable: np.ndarray, config: Config, cs, m
     cand_all = np.where(np.arange(width)[None, :] < count[:, None], cand_all, -1)
     error = np.full((b, width, cs.size), np.inf, np.float32)
     matches = {}
-    adj_i, n_i = graphs["adj"], graphs["n"].astype(np.int32)
+    adj_i, n_i = graphs.adj, graphs.n.astype(np.int32)
     cs_dev = replicate(jnp.asarray(cs))
     budget = config.memory_budget_mb * 2**20
     for r0 in range(0, width, block):
@@ -142,7 +142,7 @@ def replay_algorithm1(level, error, eps):
     return ok, np.where(ok, rank, -1)
 
 
-def grid_identifications(db, graphs: dict, errors: dict, ok, rank, n_detections: int):
+def grid_identifications(db, graphs, errors: dict, ok, rank, n_detections: int):
     """Catalog ids of every detection for each (scene, c, ε_δ) of a replayed grid.
 
     Args:
@@ -160,5 +160,5 @@ def grid_identifications(db, graphs: dict, errors: dict, ok, rank, n_detections:
         match = errors["match"][(int(s), r, int(ci))].astype(np.int64)
         vert = np.nonzero(match >= 0)[0]
         row = errors["cand"][s, r]
-        ids[s, ci, ei, graphs["members"][s, vert]] = db.members[row, match[vert]]
+        ids[s, ci, ei, graphs.members[s, vert]] = db.members[row, match[vert]]
     return ids

@@ -29,11 +29,9 @@ fixed shapes, masks), checks every named detection against the attitude of the o
    with the wider margin ``partner_k²`` also clears the name (``partner_joint``, on by default; the other
    detection's present cost is then its own kept name's): for a pair 4 σ apart the single test
    keeps a name ≈ 67 % of the time, the joint test ≈ 96 %. Why both conditions: without the
-   nearest-star condition an unnamed detection 0.21° from the rival but 0.09° from its own star
-   was taken for the rival's (σ = 2.5 px), and with the ``amb_k²`` margin a pair 0.067° apart at
-   σ = 1 px whose two detections had both drifted past each other passed the exchange test by
-   6.28 nats, for the wrong names — the two mis-identified scenes of a 4,200-scene run with the
-   first version of the rule. Optionally (``mag_sigma`` > 0, off
+   nearest-star condition a detection nearer its own star can be taken for the rival's, and with
+   the ``amb_k²`` margin a close pair whose two detections both drifted past each other can pass
+   the exchange test with the wrong names (docs/design/sgm.md). Optionally (``mag_sigma`` > 0, off
    by default: SGM is a magnitude-free method) both tests add the magnitude term
    ``(m_obs − V)² / (2 σ_m²)`` to each hypothesis' cost. Every margin of this step is measured
    with a high-side s (:func:`_upper_rms`: the kept residuals' χ² with 2n − 3 degrees of freedom,
@@ -46,12 +44,12 @@ fixed shapes, masks), checks every named detection against the attitude of the o
    is unnamed by the check, when fewer than ``min_matched`` stars stay named, or when fewer than half
    of the named stars stay named (the attitude itself is then not trustworthy).
 5. **Frame coverage.** The neighbor circle holds only part of the frame: a small graph (3–5 stars)
-   matched to the wrong database graph can fit its own stars within the tolerance (seen twice in
-   4,200 noisy scenes, δ just under ε_δ). The attitude must then also explain the rest of the frame:
-   of the catalog stars it projects inside the frame (inset by the tolerance), at least
-   ``min_coverage`` must have a detection within ``cap_deg`` (the widest tolerance: the fitted one
-   is too tight after a fit on 3–4 stars), or the scene fails. On those two
-   scenes 11–12 % did; on correct scenes 97–100 % (one missing star, one false star, σ ≤ 3 px).
+   matched to the wrong database graph can fit its own stars within the tolerance (δ just under
+   ε_δ). The attitude must then also explain the rest of the frame: of the catalog stars it projects
+   inside the frame (inset by ``cap_deg``), at least ``min_coverage`` must have a detection within
+   ``cap_deg`` (the widest tolerance: the fitted one is too tight after a fit on 3–4 stars), or the
+   scene fails. The wrong matches seen covered 11–12 % of the frame, correct scenes 97–100 % (one
+   missing star, one false star, σ ≤ 3 px).
    Catalog stars are taken from a sky index (:mod:`jstarid.sky_index`) cell of the boresight, which
    holds every star that can be in the frame.
 
@@ -96,10 +94,9 @@ def _upper_rms(resid, mask, z: float):
 
     The residuals of n stars fitted by a 3-parameter attitude have ν = 2n − 3 degrees of freedom:
     Σ d² ~ (s²/2) χ²_ν. Dividing by the lower z-quantile of χ²_ν (Wilson–Hilferty) instead of its mean
-    gives an s that is too small only with probability Φ(−z) (16 % at z = 1). Why: an s that came out
-    low by chance inflates every log likelihood ratio by 1/s²; the median-based s of 22 stars once
-    came out 13 % low at σ = 3 px and let a 5.3-nat name pass a 6.25-nat margin (a mis-identification
-    in 4,200 scenes).
+    gives an s that is too small only with probability Φ(−z) (16 % at z = 1). Why: an s that comes out
+    low by chance inflates every log likelihood ratio by 1/s² (a median-based s 13 % low let a
+    5.3-nat name pass a 6.25-nat margin at σ = 3 px).
     """
     n = jnp.sum(mask)
     nu = jnp.maximum(2.0 * n - 3.0, 1.0)
@@ -110,8 +107,8 @@ def _upper_rms(resid, mask, z: float):
 
 def _two_nearest(d):
     """Column and value of the two smallest entries of each row of d (R, N), lowest column first on
-    ties — ``lax.top_k(−d, 2)``, which on a CPU cost ≈ 0.9 ms per scene (R = 112, N = 128: over half
-    of the verification, session 23) against a few µs for two ``argmin`` passes.
+    ties — ``lax.top_k(−d, 2)`` by two ``argmin`` passes (a few µs per scene on a CPU, where
+    ``top_k`` took ≈ 0.9 ms, over half of the verification).
 
     Returns:
         ``(first, d_first, second, d_second)``: (R,) int32, (R,) float, (R,) int32, (R,) float.
@@ -296,7 +293,7 @@ def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, gr
             (:func:`_upper_rms`), too small with probability Φ(−rms_z).
         min_matched: fewest stars a verified scene keeps.
         min_coverage: fewest of the catalog stars projected inside the frame that must have a
-            detection within the tolerance (fraction; 0 = off).
+            detection within ``cap_deg`` (fraction; 0 = off).
         n_near: static count of catalog stars (nearest the main star) searched for rivals; must
             cover the neighbor circle plus the window.
         max_named: static largest number of named detections per scene (default N): the ambiguity

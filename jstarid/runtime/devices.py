@@ -1,10 +1,11 @@
-"""Sharding the batch axis of a sweep over every device.
+"""Sharding the batch axis over every device.
 
 ``map_batch(fn, batched, replicated)`` runs a per-batch function with its leading (batch) axis split
 across a 1-D device mesh (``jax.shard_map``): each device processes its slice of the scenes with the
-same code, and replicated arguments (catalog tables, databases) are copied to every device. The batch
-is padded to a multiple of the device count and the padding dropped afterwards, so the result equals
-the single-device call exactly. On one device it simply calls ``fn``.
+same code, and replicated arguments (catalog tables, databases) are copied to every device (once
+per owner with :class:`~jstarid.runtime.DeviceCache`). The batch is padded to a multiple of the
+device count and the padding dropped afterwards, so the result equals the single-device call
+exactly. On one device it simply calls ``fn``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,9 @@ import jax
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
-__all__ = ["batch_mesh", "shard_batch", "replicate", "replicate_once", "map_batch", "use_cpu_cores"]
+from jstarid.runtime.padding import pad_rows
+
+__all__ = ["batch_mesh", "shard_batch", "replicate", "map_batch", "use_cpu_cores"]
 
 BATCH_AXIS = "batch"
 
@@ -72,40 +75,6 @@ def replicate(tree, mesh=None):
     return jax.tree.map(lambda a: jax.device_put(a, sharding), tree)
 
 
-def replicate_once(owner, name: str, make, mesh=None):
-    """``replicate(make())``, placed once per ``owner``, ``name`` and mesh, and kept on ``owner``.
-
-    A sharded call whose replicated arguments sit on one device copies them to the others on every
-    call (the simulator's sky index is 29 MB, RpNet's weights 15 MB): tables that belong to a
-    long-lived object (a catalog, a sky index, a database) are placed on every device once instead.
-
-    Args:
-        owner: the object the tables belong to; the copies are stored in its ``__dict__`` (frozen
-            dataclasses included), so they live as long as it does.
-        name: which of the owner's tables.
-        make: zero-argument function returning the pytree to place (called once).
-        mesh: a 1-D mesh (default: :func:`batch_mesh`).
-
-    Returns:
-        The pytree, replicated over the mesh.
-    """
-    mesh = batch_mesh() if mesh is None else mesh
-    store = owner.__dict__.setdefault("_replicated_tables", {})
-    key = (name, tuple(d.id for d in mesh.devices.flat), mesh.axis_names)
-    if key not in store:
-        store[key] = replicate(make(), mesh)
-    return store[key]
-
-
-def _pad(tree, total):
-    def pad(a):
-        extra = total - a.shape[0]
-        if extra == 0:
-            return a
-        return jax.numpy.concatenate([a, jax.numpy.broadcast_to(a[-1:], (extra, *a.shape[1:]))])
-    return jax.tree.map(pad, tree)
-
-
 def map_batch(fn, batched, replicated=(), *, static=None, mesh=None):
     """``fn(*batched, *replicated, **static)`` with the batch axis of ``batched`` sharded.
 
@@ -128,7 +97,7 @@ def map_batch(fn, batched, replicated=(), *, static=None, mesh=None):
         return fn(*batched, *replicated, **static)
     b = jax.tree.leaves(batched)[0].shape[0]
     total = -(-b // n_dev) * n_dev
-    batched = _pad(batched, total)
+    batched = pad_rows(batched, total, mode="edge")
     run = _compiled(fn, tuple(sorted(static.items())), mesh)
     out = run(batched, replicated)
     return jax.tree.map(lambda a: a[:b], out) if total != b else out

@@ -1,4 +1,7 @@
-"""Device helpers of jstarid.sweep: host device count, replication, sharded pair kernels."""
+"""The batching runtime (jstarid.runtime): host device count, replication, the device cache,
+sharded pair kernels."""
+
+import gc
 
 import jax
 import jax.numpy as jnp
@@ -21,15 +24,16 @@ def test_use_cpu_cores_reads_an_explicit_count_and_refuses_a_late_change(monkeyp
 
 
 def test_replicate_puts_a_copy_on_every_device():
-    x = js.sweep.replicate(jnp.arange(5))
+    x = js.runtime.replicate(jnp.arange(5))
     assert len(x.sharding.device_set) == jax.device_count()
     np.testing.assert_array_equal(np.asarray(x), np.arange(5))
 
 
-def test_replicate_once_places_an_owners_tables_once_per_name_and_mesh(several_devices):
-    class Owner:  # any object with a __dict__ (catalogs, indexes and databases are frozen dataclasses)
+def test_device_cache_places_an_owners_tables_once_per_name_and_mesh(several_devices):
+    class Owner:  # any object that takes weak references (catalogs, indexes, databases)
         pass
 
+    cache = js.runtime.DeviceCache()
     owner, calls = Owner(), []
 
     def make(value):
@@ -38,14 +42,19 @@ def test_replicate_once_places_an_owners_tables_once_per_name_and_mesh(several_d
             return {"a": jnp.full((3,), value)}
         return fn
 
-    first = js.sweep.replicate_once(owner, "t", make(1.0))
-    assert js.sweep.replicate_once(owner, "t", make(2.0)) is first  # placed once: make not called
-    other = js.sweep.replicate_once(owner, "u", make(3.0))
-    one = js.sweep.replicate_once(owner, "t", make(4.0), mesh=js.sweep.batch_mesh(jax.devices()[:1]))
+    first = cache.replicated(owner, "t", make(1.0))
+    assert cache.replicated(owner, "t", make(2.0)) is first  # placed once: make not called
+    other = cache.replicated(owner, "u", make(3.0))
+    one = cache.replicated(owner, "t", make(4.0), mesh=js.runtime.batch_mesh(jax.devices()[:1]))
     assert calls == [1.0, 3.0, 4.0]
     assert len(first["a"].sharding.device_set) == jax.device_count()
     assert len(one["a"].sharding.device_set) == 1
     np.testing.assert_array_equal(np.asarray(other["a"]), 3.0)
+    assert not hasattr(owner, "_replicated_tables") and vars(owner) == {}  # the owner is untouched
+    assert len(cache) == 3
+    del owner
+    gc.collect()
+    assert len(cache) == 0  # entries live as long as their owner
 
 
 @pytest.mark.parametrize("n, padded, n_dev", [(5, 16, 4), (16, 16, 4), (1, 16, 2), (9, 32, 1), (3, 16, 3)])
