@@ -1,37 +1,31 @@
 """RpNet throughput: identification scenes/s at batch ≥ 4,096 and training samples/s of both stages.
 
-``run(args)`` returns rows like ``experiments/bench_mlv.py`` (``benchmark``, ``scenes_per_s``,
-``compile_s``, ``peak_rss_mb`` and details) so that ``experiments/benchmark.py`` can call it with its
-own namespace (it reads ``batch`` and ``repeats``; a batch below 4,096 is raised to 4,096 for RpNet and
-the row says so), or from the command line::
-
     python experiments/bench_rpnet.py                       # quick checkpoint, batch 4096
-    python experiments/bench_rpnet.py --config paper --batch 8192
+    python experiments/bench_rpnet.py --network table3 --batch 8192
     python experiments/bench_rpnet.py --precision both      # bfloat16 and float32 network, same scenes
 
-Rows:
+Rows (``benchmark``, ``scenes_per_s``, ``compile_s``, ``peak_rss_mb`` and details):
 
 * ``rpnet``: ``rpnet.identify`` on mode-(b) ``rpnet2019`` scenes (guide star at the boresight, position
   σ 0.5 px), median of ``repeats`` timed calls after a first (compiling) call; compile time is the
-  first call minus the steady call. ``network_scenes_per_s`` times the network part alone (three
-  inputs → logits → top-3) for reference. With ``--precision both`` the row is measured twice, as
-  ``rpnet_bf16`` and ``rpnet_f32`` (``Config.network_bf16`` on and off), on the same scenes.
+  first call minus the steady call; a batch below 4,096 is raised to 4,096 and the row says so.
+  ``network_scenes_per_s`` times the network part alone (three inputs → logits → top-3) for
+  reference. With ``--precision both`` the row is measured twice, as ``rpnet_bf16`` and
+  ``rpnet_f32`` (``Config.network_bf16`` on and off), on the same scenes.
 * ``rpnet_train_dae`` / ``rpnet_train_clf``: jit-compiled train steps of stage 1 (denoising
   autoencoder) and stage 2 (classifier on frozen codes) at the config's batch size, on a pre-drawn
   batch (``samples_per_s``) and with a fresh on-the-fly batch per step (``samples_per_s_with_data``,
   the rate a training run sees).
 
-Needs a trained checkpoint for the config (``experiments/train_rpnet.py --config quick``); a missing
-one is trained first (minutes for ``quick``).
+Needs a trained checkpoint for the config (``experiments/train_rpnet.py --network quick``); a missing
+one is trained first (minutes for ``quick``). ``experiments/benchmark.py`` runs it in a subprocess
+and reads its rows from ``--json``. Writes results/bench_rpnet/{config.json, results.json, table.md}.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
-import resource
-import time
 
 import jax
 import jax.numpy as jnp
@@ -39,17 +33,24 @@ import numpy as np
 import optax
 
 import jstarid as js
+from jstarid import experiment as ex
 from jstarid.algorithms import rpnet
 from jstarid.algorithms.rpnet import data as rp_data
 from jstarid.algorithms.rpnet import train as rp_train
+from jstarid.algorithms.rpnet.identify import network_candidates
 from jstarid.algorithms.rpnet.model import use_bf16
 
 MIN_BATCH = 4096
+COLUMNS = [("benchmark", "row", "{}"), ("batch", "B", "{}"), ("scenes_per_s", "scenes (samples)/s", "{}"),
+           ("compile_s", "compile s", "{}"), ("network_scenes_per_s", "network alone /s", "{}"),
+           ("samples_per_s_with_data", "samples/s with data", "{}"),
+           ("identification_rate", "identified", "{:.2%}"), ("misid_rate", "misid", "{:.2%}"),
+           ("peak_rss_mb", "peak RSS MiB", "{}")]
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--config", choices=("quick", "paper"), default="quick")
+    p = ex.parser(__doc__.splitlines()[0], out="results/bench_rpnet", seed=0)
+    p.add_argument("--network", choices=("quick", "table3"), default="quick", help="trained network preset")
     p.add_argument("--batch", type=int, default=MIN_BATCH, help=f"scenes per timed call (≥ {MIN_BATCH})")
     p.add_argument("--repeats", type=int, default=3, help="timed calls after the compile call")
     p.add_argument("--position-sigma", type=float, default=0.5, help="px")
@@ -57,39 +58,25 @@ def parse_args(argv=None):
     p.add_argument("--precision", choices=("config", "both"), default="config",
                    help="network matmuls: the config's (Config.network_bf16), or both bfloat16 and "
                         "float32 side by side on the same scenes (rows rpnet_bf16 and rpnet_f32)")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--devices", type=int, default=None,
                    help="JAX CPU devices (default: one per core; 1 keeps each chunk on one device)")
-    p.add_argument("--json", default=None, help="write the rows here")
+    p.add_argument("--json", default=None, help="also write the rows to this file")
     return p.parse_args(argv)
 
 
-def _rss_mb() -> int:
-    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+def make_config(args) -> rpnet.Config:
+    base = rpnet.Config.quick() if args.network == "quick" else rpnet.Config()
+    return ex.with_overrides(base, args.set)
 
 
-def _timed(fn, repeats):
-    """(first-call seconds, median of ``repeats`` further calls) of ``fn(i)``."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(0))
-    first = time.perf_counter() - t0
-    times = []
-    for i in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(i + 1))
-        times.append(time.perf_counter() - t0)
-    return first, float(np.median(times))
-
-
-def bench_identify(db, catalog, camera, cfg, opt, name: str = "rpnet") -> dict:
-    """One row named ``name``: identify scenes/s at batch ``opt['batch']``."""
-    batch = opt["batch"]
-    rng = np.random.default_rng(opt["seed"])
-    noise = js.NoiseConfig(position_sigma_px=opt["position_sigma"])
+def bench_identify(db, catalog, camera, cfg, args, batch: int, note: str, name: str = "rpnet") -> dict:
+    """One row named ``name``: identify scenes/s at batch ``batch``."""
+    rng = np.random.default_rng(args.seed)
+    noise = js.NoiseConfig(position_sigma_px=args.position_sigma)
     sets = []
-    for i in range(opt["repeats"] + 1):
+    for i in range(args.repeats + 1):
         rows = rng.choice(db.guide_rows, batch)
-        sets.append(js.simulate(jax.random.key(opt["seed"] + i), catalog, camera, noise, capacity=96,
+        sets.append(js.simulate(jax.random.key(args.seed + i), catalog, camera, noise, capacity=96,
                                 boresight_ids=rows))
     jax.block_until_ready(sets[-1].xy)
     results = {}
@@ -98,48 +85,41 @@ def bench_identify(db, catalog, camera, cfg, opt, name: str = "rpnet") -> dict:
         results[i] = rpnet.identify(db, sets[i], cfg)
         return results[i].ids
 
-    first, steady = _timed(call, opt["repeats"])
-    reports = [js.evaluate(sets[i], results[i], "rpnet", camera=camera) for i in range(1, opt["repeats"] + 1)]
+    first, steady = ex.time_call(call, args.repeats)
+    reports = [js.evaluate(sets[i], results[i], "rpnet", camera=camera) for i in range(1, args.repeats + 1)]
 
-    # the network part alone: three central detections → inputs → logits → top-3 (one jit)
-    from jstarid.algorithms.rpnet.identify import network_candidates
-
-    def net(i):
+    def net(i):  # the network part alone: three central detections → inputs → logits → top-3 (one jit)
         s = sets[i]
         return network_candidates(s.xy, s.valid, db.inference_weights, camera=camera, config=cfg,
                                   n_classes=db.n_classes)
 
-    net_first, net_steady = _timed(net, opt["repeats"])
+    net_first, net_steady = ex.time_call(net, args.repeats)
     return {
-        "benchmark": name, "camera": camera.name,
-        "network_bf16": use_bf16(cfg.network_bf16),
-        "config": opt["config"], "batch": batch,
-        "batch_note": opt.get("batch_note", ""),
-        "noise": f"pos {opt['position_sigma']} px, guide at boresight",
+        "benchmark": name, "camera": camera.name, "network_bf16": use_bf16(cfg.network_bf16),
+        "config": args.network, "batch": batch, "batch_note": note,
+        "noise": f"pos {args.position_sigma} px, guide at boresight",
         "scenes_per_s": round(batch / steady), "compile_s": round(max(first - steady, 0.0), 2),
-        "peak_rss_mb": _rss_mb(), "backend": jax.default_backend(), "batch_chunk": cfg.batch_chunk,
-        "seconds_per_batch": round(steady, 3), "first_call_s": round(first, 2),
+        "peak_rss_mb": round(ex.peak_rss_mb()), "backend": jax.default_backend(),
+        "batch_chunk": cfg.batch_chunk, "seconds_per_batch": round(steady, 3),
+        "first_call_s": round(first, 2),
         "network_scenes_per_s": round(batch / net_steady),
-        "network_compile_s": round(net_first - net_steady, 2),
-        "n_classes": db.n_classes,
+        "network_compile_s": round(net_first - net_steady, 2), "n_classes": db.n_classes,
         "identification_rate": float(np.mean([r["identification_rate"] for r in reports])),
         "misid_rate": float(np.mean([r["misid_rate"] for r in reports])),
     }
 
 
-def bench_train(db, catalog, camera, cfg, opt) -> list[dict]:
+def bench_train(db, catalog, camera, cfg, args) -> list[dict]:
     """Two rows: stage-1 and stage-2 train steps per second at the config's batch size."""
     t = cfg.training
     n_classes = db.n_classes
     tables = rp_data.build_tables(catalog, camera, cfg, db.guide_rows)
     bs = t.batch_size
-    key = jax.random.key(opt["seed"])
+    key = jax.random.key(args.seed)
     batches = [rp_data.make_batch(jax.random.fold_in(key, i), catalog, camera, cfg, tables, bs)
                for i in range(2)]
     jax.block_until_ready(batches[-1].noisy)
-    n = opt["train_steps"]
     variables = jax.tree_util.tree_map(jnp.asarray, db.variables)
-    rows = []
 
     # stage 1: DAE
     tx = optax.adam(t.dae_lr)
@@ -153,7 +133,7 @@ def bench_train(db, catalog, camera, cfg, opt) -> list[dict]:
         state[0], state[1], mse = step(state[0], state[1], b.noisy, b.clean)
         return mse
 
-    rows.append(_train_row("rpnet_train_dae", dae, n, bs, opt))
+    rows = [_train_row("rpnet_train_dae", dae, bs, args)]
 
     # stage 2: classifier on frozen generator codes
     lr = optax.cosine_decay_schedule(t.clf_lr, 1000, alpha=0.01) if t.clf_lr_decay else t.clf_lr
@@ -169,76 +149,66 @@ def bench_train(db, catalog, camera, cfg, opt) -> list[dict]:
                                                     b.noisy, b.label)
         return ce
 
-    rows.append(_train_row("rpnet_train_clf", clf_fn, n, bs, opt))
+    rows.append(_train_row("rpnet_train_clf", clf_fn, bs, args))
     return rows
 
 
-def _train_row(name, fn, n, bs, opt) -> dict:
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(0))
-    first = time.perf_counter() - t0
+def _train_row(name, fn, bs, args) -> dict:
+    n = args.train_steps
+    with ex.Stopwatch() as first:
+        jax.block_until_ready(fn(0))
     jax.block_until_ready(fn(1, True))  # compile the data path too
-    t0 = time.perf_counter()
-    for i in range(n):
-        out = fn(i)
-    jax.block_until_ready(out)
-    per_step = (time.perf_counter() - t0) / n
-    t0 = time.perf_counter()
-    for i in range(n):
-        out = fn(i + 2, True)
-    jax.block_until_ready(out)
-    per_step_data = (time.perf_counter() - t0) / n
-    return {"benchmark": name, "config": opt["config"], "batch": bs, "steps_timed": n,
+    with ex.Stopwatch() as fixed:
+        jax.block_until_ready([fn(i) for i in range(n)][-1])
+    with ex.Stopwatch() as fresh:
+        jax.block_until_ready([fn(i + 2, True) for i in range(n)][-1])
+    per_step, per_step_data = fixed.seconds / n, fresh.seconds / n
+    return {"benchmark": name, "config": args.network, "batch": bs, "steps_timed": n,
             "scenes_per_s": round(bs / per_step), "samples_per_s": round(bs / per_step),
             "samples_per_s_with_data": round(bs / per_step_data),
             "steps_per_s": round(1 / per_step, 2), "steps_per_s_with_data": round(1 / per_step_data, 2),
-            "compile_s": round(max(first - per_step, 0.0), 2), "peak_rss_mb": _rss_mb()}
+            "compile_s": round(max(first.seconds - per_step, 0.0), 2), "peak_rss_mb": round(ex.peak_rss_mb())}
 
 
 def run(args) -> list[dict]:
-    """Benchmark RpNet on the rpnet2019 camera; returns the identify row and the two training rows.
-
-    Args:
-        args: namespace; reads ``config``, ``batch``, ``repeats``, ``position_sigma``, ``train_steps``,
-            ``seed`` where present (this file's defaults otherwise). A ``batch`` below 4,096 is raised
-            to 4,096 (RpNet's benchmark batch) and the row notes it.
-
-    Returns:
-        List of row dicts (see the module docstring).
-    """
-    defaults = vars(parse_args([]))
-    opt = {k: getattr(args, k, v) for k, v in defaults.items()}
-    if opt["batch"] < MIN_BATCH:
-        opt["batch_note"] = f"batch {opt['batch']} raised to {MIN_BATCH} for rpnet"
-        print(f"(rpnet: {opt['batch_note']})", flush=True)
-        opt["batch"] = MIN_BATCH
-    cfg = rpnet.Config.quick() if opt["config"] == "quick" else rpnet.Config()
+    """Benchmark RpNet on the rpnet2019 camera: the identify row(s) and the two training rows."""
+    batch, note = args.batch, ""
+    if batch < MIN_BATCH:
+        note = f"batch {batch} raised to {MIN_BATCH} for rpnet"
+        print(f"(rpnet: {note})", flush=True)
+        batch = MIN_BATCH
+    cfg = make_config(args)
     catalog = rpnet.load_guide_catalog(cfg)
     camera = js.camera_preset("rpnet2019")
     db = rpnet.build_database(catalog, camera, cfg, progress=False)
-    if opt["precision"] == "both":
-        rows = []
-        for bf16 in (True, False):
-            rows.append(bench_identify(db, catalog, camera,
-                                       dataclasses.replace(cfg, network_bf16=bf16), opt,
-                                       name="rpnet_bf16" if bf16 else "rpnet_f32"))
-            print(rows[-1], flush=True)
+    if args.precision == "both":
+        variants = [(dataclasses.replace(cfg, network_bf16=bf16), "rpnet_bf16" if bf16 else "rpnet_f32")
+                    for bf16 in (True, False)]
     else:
-        rows = [bench_identify(db, catalog, camera, cfg, opt)]
+        variants = [(cfg, "rpnet")]
+    rows = []
+    for c, name in variants:
+        rows.append(bench_identify(db, catalog, camera, c, args, batch, note, name=name))
         print(rows[-1], flush=True)
-    if opt["train_steps"]:
-        train_rows = bench_train(db, catalog, camera, cfg, opt)
-        for r in train_rows:
+    if args.train_steps:
+        for r in bench_train(db, catalog, camera, cfg, args):
             print(r, flush=True)
-        rows += train_rows
+            rows.append(r)
+    return rows
+
+
+def main(argv=None) -> list[dict]:
+    args = parse_args(argv)
+    rows = run(args)
+    print(json.dumps(rows, indent=1))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(ex.to_json(rows), fh, indent=2)
+    ex.write(args.out, config={"args": vars(args), "rpnet_config": make_config(args)}, results={"rows": rows},
+             table=ex.markdown_table(rows, COLUMNS, title=f"RpNet throughput (`{args.network}` network)"))
     return rows
 
 
 if __name__ == "__main__":
-    a = parse_args()
-    js.use_cpu_cores(a.devices)  # each chunk's scenes split over every core (one JAX device each)
-    out = run(a)
-    print(json.dumps(out, indent=1))
-    if a.json:
-        with open(a.json, "w") as fh:
-            json.dump(out, fh, indent=2)
+    js.use_cpu_cores(parse_args().devices)  # each chunk's scenes split over every core (one JAX device each)
+    main()

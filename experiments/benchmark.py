@@ -1,50 +1,53 @@
 """Throughput benchmarks, side by side in one run.
 
-    python experiments/benchmark.py                       # all available benchmarks
+    python experiments/benchmark.py                       # all benchmarks
     python experiments/benchmark.py --only simulate --batch 10000
     python experiments/benchmark.py --only centroid --images 32
 
-Each benchmark reports compile time (first call) apart from steady-state throughput (best of
-``--repeats`` timed calls after compilation) and the process's peak resident memory. Results are also
-written to ``results/benchmark/results.json``.
+``simulate`` and ``centroid`` run here; ``sgm``, ``mlv`` and ``rpnet`` run
+``experiments/bench_<name>.py`` in a subprocess each (``--batch``, ``--repeats``, ``--devices``,
+``--seed`` and, to MLV, ``--mag-sigma`` passed on; SGM keeps its own batch of 1,000) and their rows
+join the table. Each benchmark reports compile time (first call) apart from steady-state throughput
+(median of ``--repeats`` timed calls after compilation) and the process's peak resident memory.
+
+Writes results/benchmark/{config.json, results.json, table.md}.
 """
 
 from __future__ import annotations
 
-import argparse
-import importlib.util
 import json
-import os
-import platform
-import resource
+import subprocess
 import sys
-import time
+import tempfile
 from pathlib import Path
 
 import jax
 import numpy as np
 
 import jstarid as js
+from jstarid import experiment as ex
 
 HERE = Path(__file__).resolve().parent
+SCRIPTS = ("sgm", "mlv", "rpnet")  # experiments/bench_<name>.py
 
 
-def peak_rss_mb() -> float:
-    """Peak resident set size of this process (MiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def time_call(fn, repeats: int):
-    """(compile + first-call seconds, best steady-state seconds) of ``fn(i)`` (i = call number)."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(0))
-    first = time.perf_counter() - t0
-    best = np.inf
-    for i in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(i + 1))
-        best = min(best, time.perf_counter() - t0)
-    return first, best
+def parse_args(argv=None):
+    p = ex.parser(__doc__.splitlines()[0], out="results/benchmark", seed=0)
+    p.add_argument("--only", default="simulate,centroid,sgm,mlv,rpnet", help="comma-separated benchmarks")
+    p.add_argument("--images", type=int, default=32, help="frames per centroid-extraction call")
+    p.add_argument("--sample-stride", type=int, default=2,
+                   help="CentroidConfig.sample_stride of the centroid benchmark (1: full medians)")
+    p.add_argument("--batch", type=int, default=10_000,
+                   help="scenes per call (simulate, mlv, rpnet; sgm uses bench_sgm.py's 1,000)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--cameras", default="sgm2022,mlv2021,rpnet2019")
+    p.add_argument("--mag-sigma", type=float, default=0.1, help="magnitude noise σ (simulate, mlv)")
+    p.add_argument("--devices", type=int, default=None,
+                   help="JAX CPU devices (default: one per core); 1 keeps the batch on one device")
+    args = p.parse_args(argv)
+    if args.set:
+        p.error("--set: give an algorithm's overrides to its own experiments/bench_<name>.py")
+    return args
 
 
 def bench_simulate(args) -> list[dict]:
@@ -55,21 +58,20 @@ def bench_simulate(args) -> list[dict]:
     """
     cat = js.load_catalog(6.0)
     rows = []
-    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=args.mag_sigma, n_missing=1,
-                           n_false=2)
+    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=args.mag_sigma, n_missing=1, n_false=2)
     layouts = [False, True] if jax.device_count() > 1 else [False]
     for name in args.cameras.split(","):
         cam = js.camera_preset(name)
         for shard in layouts:
             def run(i, cam=cam, shard=shard):
-                return js.simulate(jax.random.key(i), cat, cam, noise, batch_size=args.batch, capacity=64,
-                                   shard=shard)
-            first, best = time_call(run, args.repeats)
+                return js.simulate(jax.random.key(args.seed + i), cat, cam, noise, batch_size=args.batch,
+                                   capacity=64, shard=shard)
+            first, steady = ex.time_call(run, args.repeats)
             rows.append({"benchmark": "simulate", "camera": name, "batch": args.batch,
                          "devices": jax.device_count() if shard else 1,
                          "noise": f"pos 1 px, mag {args.mag_sigma:.2f}, 1 missing, 2 false",
-                         "compile_s": round(first - best, 2), "scenes_per_s": round(args.batch / best),
-                         "peak_rss_mb": round(peak_rss_mb())})
+                         "compile_s": round(first - steady, 2), "scenes_per_s": round(args.batch / steady),
+                         "peak_rss_mb": round(ex.peak_rss_mb())})
             print(rows[-1], flush=True)
     return rows
 
@@ -82,8 +84,8 @@ def bench_centroid(args) -> list[dict]:
     """
     cam = js.camera_preset("tetra3_test")
     cat = js.load_catalog(7.0)
-    scenes = js.simulate(jax.random.key(0), cat, cam, batch_size=args.images, capacity=64)
-    rng = np.random.default_rng(0)
+    scenes = js.simulate(jax.random.key(args.seed), cat, cam, batch_size=args.images, capacity=64)
+    rng = np.random.default_rng(args.seed)
     images = np.empty((args.images, cam.height, cam.width), np.float32)
     yy, xx = np.mgrid[0:15, 0:15]
     for i in range(args.images):
@@ -98,68 +100,56 @@ def bench_centroid(args) -> list[dict]:
     rows = []
     cfg = js.CentroidConfig(sample_stride=args.sample_stride)
     for shard in [False, True] if jax.device_count() > 1 else [False]:
-        first, best = time_call(lambda i, shard=shard: js.extract_centroids(
+        first, steady = ex.time_call(lambda i, shard=shard: js.extract_centroids(
             images, cfg, capacity=64, shard=shard).xy, args.repeats)
         rows.append({"benchmark": "centroid", "camera": "tetra3_test", "batch": args.images,
                      "sample_stride": args.sample_stride, "devices": jax.device_count() if shard else 1,
-                     "compile_s": round(first - best, 2), "scenes_per_s": round(args.images / best, 1),
-                     "peak_rss_mb": round(peak_rss_mb())})
+                     "compile_s": round(first - steady, 2), "scenes_per_s": round(args.images / steady, 1),
+                     "peak_rss_mb": round(ex.peak_rss_mb())})
         print(rows[-1], flush=True)
     return rows
 
 
-def _external(name):
-    """Benchmarks contributed by algorithm modules: experiments/bench_<name>.py with ``run(args)``."""
-    path = HERE / f"bench_{name}.py"
-    if not path.exists():
-        return None
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.run
+def bench_script(name: str, args) -> list[dict]:
+    """The rows of ``experiments/bench_<name>.py``, run in a subprocess of its own."""
+    flags = [] if name == "sgm" else ["--batch", str(args.batch), "--repeats", str(args.repeats)]
+    if name == "mlv":
+        flags += ["--magnitude-sigma", str(args.mag_sigma)]
+    if args.devices is not None and name != "sgm":
+        flags += ["--devices", str(args.devices)]
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = Path(tmp) / "rows.json"
+        command = [sys.executable, str(HERE / f"bench_{name}.py"), *flags, "--seed", str(args.seed),
+                   "--out", tmp, "--json", str(rows)]
+        if subprocess.run(command, check=False).returncode != 0 or not rows.exists():
+            print(f"({name}: bench_{name}.py failed; no rows)", flush=True)
+            return []
+        return json.loads(rows.read_text())
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--only", default="simulate,centroid,sgm,mlv,rpnet",
-                   help="comma-separated benchmarks")
-    p.add_argument("--images", type=int, default=32, help="frames per centroid-extraction call")
-    p.add_argument("--sample-stride", type=int, default=2,
-                   help="CentroidConfig.sample_stride of the centroid benchmark (1: full medians)")
-    p.add_argument("--batch", type=int, default=10_000)
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--cameras", default="sgm2022,mlv2021,rpnet2019")
-    p.add_argument("--mag-sigma", type=float, default=0.1)
-    p.add_argument("--out", default="results/benchmark")
-    p.add_argument("--devices", type=int, default=None,
-                   help="JAX CPU devices (default: one per core); 1 keeps the batch on one device")
-    args = p.parse_args(argv)
+    args = parse_args(argv)
     js.use_cpu_cores(args.devices)  # before the first JAX computation
-    env = {"python": sys.version.split()[0], "jax": jax.__version__, "devices": str(jax.devices()),
-           "cpu_count": os.cpu_count(), "machine": platform.machine()}
-    print(env)
+    print(ex.machine())
     rows = []
     for name in args.only.split(","):
         if name == "simulate":
             rows += bench_simulate(args)
         elif name == "centroid":
             rows += bench_centroid(args)
+        elif name in SCRIPTS:
+            rows += bench_script(name, args)
         else:
-            fn = _external(name)
-            if fn is None:
-                print(f"({name}: no benchmark available yet)")
-                continue
-            rows += fn(args)
-    print("\n| benchmark | setting | scenes/s | compile s | peak RSS MiB |\n|---|---|---|---|---|")
+            print(f"({name}: no such benchmark)")
+    lines = ["| benchmark | setting | scenes/s | compile s | peak RSS MiB |", "|---|---|---|---|---|"]
     for r in rows:
         setting = ", ".join(f"{k}={v}" for k, v in r.items()
                             if k not in ("benchmark", "scenes_per_s", "compile_s", "peak_rss_mb"))
-        print(f"| {r['benchmark']} | {setting} | {r['scenes_per_s']} | {r['compile_s']} | "
-              f"{r['peak_rss_mb']} |")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps({"env": env, "args": vars(args), "rows": rows},
-                                                 indent=1))
+        lines.append(f"| {r['benchmark']} | {setting} | {r['scenes_per_s']} | {r['compile_s']} | "
+                     f"{r['peak_rss_mb']} |")
+    table = "\n".join(lines) + "\n"
+    print("\n" + table)
+    ex.write(args.out, config={"args": vars(args)}, results={"rows": rows}, table=table)
     return 0
 
 

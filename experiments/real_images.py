@@ -17,58 +17,67 @@ and :func:`jstarid.estimate_attitude`. The results are checked against an indepe
   it is unlabelled: a failure is better than a guess);
 - **boresight error**: the angle between our boresight and the reference's RA/Dec (arcsec).
 
-Writes ``results/real_images/{config.json, results.json, table.md}`` and one figure per image
-(``<image>.png``: the frame, the kept detections, the names and whether each is right).
+``--set ALGORITHM.FIELD=VALUE`` changes one algorithm's config (SGM starts at ``radius_deg`` 4°:
+the paper's 6° neighbor circle is wider than this 8.6°-high frame allows; RpNet uses the ``quick``
+network, trained for this camera on first use, ≈ 4 min on 2 cores, then cached).
 
 Usage::
 
     python experiments/real_images.py                       # MLV, RpNet (quick) and SGM
     python experiments/real_images.py --algorithms mlv --mag-limit 6.5
+    python experiments/real_images.py --algorithms sgm --set sgm.radius_deg=5
+
+Writes results/real_images/{config.json, results.json, table.md} and one figure per image
+(``<image>.png``: the frame, the kept detections, the names and whether each is right).
 """
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
+import functools
 import json
 import math
-import time
 from pathlib import Path
 
 import numpy as np
 
 import jstarid as js
+from jstarid import experiment as ex
 from jstarid.centroid import CentroidConfig, extract_centroids, read_image
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 IMAGE_EPOCH = 2019.57  # 2019-07-29, the date in the file names (Julian years)
 TRUTH_MAG_LIMIT = 9.0  # truth labels from Hipparcos to V 9 (the images reach V ≈ 7.5–8)
 REFERENCE_ORIGIN_PX = -0.5  # cedar-solve's pixel origin (a corner) → ours (a pixel centre)
+SGM_RADIUS_DEG = 4.0  # the paper's 6° neighbor circle is wider than this 8.6°-high frame allows
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = ex.parser(__doc__.splitlines()[0], out="results/real_images")
+    p.epilog = "--set takes ALGORITHM.FIELD=VALUE here, e.g. sgm.radius_deg=5 (SGM starts at 4)."
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder of images + reference.json")
     p.add_argument("--algorithms", nargs="+", default=["mlv", "rpnet", "sgm"])
     p.add_argument("--mag-limit", type=float, default=7.0, help="catalog depth (V)")
     p.add_argument("--capacity", type=int, default=24, help="brightest detections kept per image")
-    p.add_argument("--sgm-radius", type=float, default=4.0,
-                   help="SGM neighbor-circle radius r (deg): the paper's 6° is wider than this "
-                        "8.6°-high frame allows")
     p.add_argument("--truth-px", type=float, default=2.0, help="ground-truth matching radius (px)")
     p.add_argument("--tol-px", type=float, default=2.0,
                    help="js.name_from_attitude tolerance (px) for the 'all' columns")
-    p.add_argument("--out", type=Path, default=Path("results/real_images"))
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    unknown = [item for item in args.set if item.split(".", 1)[0] not in args.algorithms]
+    if unknown:
+        p.error(f"--set {' '.join(unknown)}: write ALGORITHM.FIELD=VALUE, ALGORITHM one of --algorithms")
+    return args
 
 
-def algorithm_config(name: str, args):
+def algorithm_config(name: str, overrides):
+    """``name``'s config for these images, with the ``--set`` items that start with ``name.``."""
     algo = js.algorithms.get(name)
     if name == "sgm":
-        return algo.Config(radius_deg=args.sgm_radius)
-    if name == "rpnet":  # trained for this camera on first use (≈ 4 min on 2 cores), then cached
-        return algo.Config.quick()
-    return algo.Config()
+        base = algo.Config(radius_deg=SGM_RADIUS_DEG)
+    elif name == "rpnet":  # trained for this camera on first use (≈ 4 min on 2 cores), then cached
+        base = algo.Config.quick()
+    else:
+        base = algo.Config()
+    return ex.with_overrides(base, [i.split(".", 1)[1] for i in overrides if i.startswith(name + ".")])
 
 
 def reference_truth(ref, catalog, camera, xy, valid, truth_px):
@@ -106,10 +115,9 @@ def main(argv=None):
     catalog = js.load_catalog(mag_limit=args.mag_limit, epoch=IMAGE_EPOCH)
     truth_catalog = js.load_catalog(mag_limit=TRUTH_MAG_LIMIT, epoch=IMAGE_EPOCH)
     centroid_cfg = CentroidConfig()
-    t0 = time.perf_counter()
-    scenes = extract_centroids(images, centroid_cfg, capacity=args.capacity)
-    xy, valid = np.asarray(scenes.xy), np.asarray(scenes.valid)
-    t_centroid = time.perf_counter() - t0
+    with ex.Stopwatch() as t_centroid:
+        scenes = extract_centroids(images, centroid_cfg, capacity=args.capacity)
+        xy, valid = np.asarray(scenes.xy), np.asarray(scenes.valid)
     # every detection, for the statistics
     deep = extract_centroids(images, centroid_cfg, capacity=centroid_cfg.max_peaks)
 
@@ -146,17 +154,16 @@ def main(argv=None):
                 c_ref, reference[name]["boresight_ra_deg"], reference[name]["boresight_dec_deg"]), 1),
             truth=truth.tolist(), algorithms={}))
 
-    timings = {}
-    for algo_name in args.algorithms:
+    timings, configs = {}, {a: algorithm_config(a, args.set) for a in args.algorithms}
+    for algo_name, cfg in configs.items():
         algo = js.algorithms.get(algo_name)
-        cfg = algorithm_config(algo_name, args)
         db = algo.build_database(catalog, camera, cfg)
-        t0 = time.perf_counter()
-        if algo_name == "sgm":  # with the diagnostics of why a scene failed
-            result, info = algo.identify(db, scenes, cfg, diagnostics=True)
-        else:
-            result, info = algo.identify(db, scenes, cfg), None
-        timings[algo_name] = time.perf_counter() - t0
+        with ex.Stopwatch() as clock:
+            if algo_name == "sgm":  # with the diagnostics of why a scene failed
+                result, info = algo.identify(db, scenes, cfg, diagnostics=True)
+            else:
+                result, info = algo.identify(db, scenes, cfg), None
+        timings[algo_name] = clock.seconds
         full = js.name_from_attitude(catalog, camera, scenes, result, tol_px=args.tol_px)
         fits = {key: [np.asarray(a) for a in js.estimate_attitude(catalog, camera, scenes, res)]
                 for key, res in (("own", result), ("all", full))}
@@ -187,31 +194,26 @@ def main(argv=None):
                     main_star_database_graph_vertices=[int(db.n[g]) for g in graphs])
             per_image[i]["algorithms"][algo_name] = entry
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    config = dict(vars(args), data=str(args.data), out=str(args.out), epoch=IMAGE_EPOCH,
-                  centroid=dataclasses.asdict(centroid_cfg),
-                  algorithm_configs={a: dataclasses.asdict(algorithm_config(a, args))
-                                     for a in args.algorithms})
-    (args.out / "config.json").write_text(json.dumps(config, indent=2, default=str))
-    results = dict(images=per_image, centroid_seconds=t_centroid, identify_seconds=timings)
-    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+    config = dict(vars(args), epoch=IMAGE_EPOCH, centroid=centroid_cfg, algorithm_configs=configs)
+    results = dict(images=per_image, centroid_seconds=t_centroid.seconds, identify_seconds=timings)
     table = format_table(results, args)
-    (args.out / "table.md").write_text(table)
-    plot(args.out / "results.json", args.out, args.data)
+    figures = {Path(n).stem + ".png": functools.partial(plot, n, args.data) for n in names}
+    ex.write(args.out, config=config, results=results, table=table, figures=figures)
     print(table)
 
 
-def plot(results_path: Path, out: Path, data: Path):
-    """One figure per image from the saved results: the frame, every kept detection, and the names
-    of the first algorithm that solved it after ``name_from_attitude`` (green: the ground truth's,
-    red: not). Reads results.json and the image files; never recomputes."""
+def plot(image: str, data: Path, results, path):
+    """The figure of ``image`` from the saved results: the frame, every kept detection, and the
+    names of the first algorithm that solved it after ``name_from_attitude`` (green: the ground
+    truth's, red: not). Reads the image file and the results; never recomputes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    results = json.loads(Path(results_path).read_text())
     for im in results["images"]:
+        if im["image"] != image:
+            continue
         solved = [(a, e) for a, e in im["algorithms"].items() if e["ok"]]
         labels, correct, title = None, None, "not solved"
         if solved:
@@ -224,7 +226,7 @@ def plot(results_path: Path, out: Path, data: Path):
                                     correct=correct)
         ax.set_title(f"{im['image']}\n{title}", fontsize=8)
         ax.figure.tight_layout()
-        ax.figure.savefig(out / (Path(im["image"]).stem + ".png"), dpi=110)
+        ax.figure.savefig(path, dpi=110)
         plt.close(ax.figure)
 
 

@@ -1,14 +1,14 @@
 """Reproduce the SGM paper's three simulation experiments (You et al. 2022, Table 2, Figs. 6–8).
 
-Scenes in mode (b): each selected database star is the boresight ("main star") with a random roll, on
-the sgm2022 camera (1024², 20°×20°, V ≤ 6). Experiments: position noise σ = 0 … 3 px (step 0.5);
-the same plus 1 lost star; the same plus 1 fake star (uniform over the image, SPEC §7 pitfall 3 —
-we report how many fakes land inside the neighbor circle). Per level: accuracy (eq. 9),
-identification, failure and mis-identification rates; per experiment: MA, stdA, RA (max − min) and
-ALN (accuracy at 3 px) next to the paper's Table 2, and the *naming ceiling* (``jstarid.ceiling``):
-the share of scenes in which an oracle that knows the attitude and the stars present would name every
-star of the neighbor circle correctly from positions alone — no position-only identifier does better,
-so with at most 2 % failures no accuracy can exceed ceiling / 0.98.
+The scenes and levels are :mod:`jstarid.papers.sgm`'s: each database star is the boresight ("main
+star") of a scene in mode (b) on the sgm2022 camera; position noise σ = 0 … 3 px, the same plus 1
+lost star, the same plus 1 fake star (uniform over the image, conventions §7 pitfall 3 — we report
+how many fakes land inside the neighbor circle). Per level: accuracy (eq. 9), identification,
+failure and mis-identification rates; per experiment: MA, stdA, RA (max − min) and ALN (accuracy at
+3 px) next to the paper's Table 2, and the *naming ceiling* (``jstarid.ceiling``): the share of
+scenes in which an oracle that knows the attitude and the stars present would name every star of
+the neighbor circle correctly from positions alone — no position-only identifier does better, so
+with at most 2 % failures no accuracy can exceed ceiling / 0.98.
 
 Each finished level is written to ``<out>/levels/`` and a rerun with the same settings and the same
 jstarid code picks it up instead of recomputing it, so a full-size run (hours on a CPU) can be stopped
@@ -16,57 +16,47 @@ and resumed.
 
     python experiments/reproduce_sgm.py --quick          # a few stars per level, minutes on a CPU
     python experiments/reproduce_sgm.py                  # every database star (≈5,070 per level)
+    python experiments/reproduce_sgm.py --n-stars 200 --set verify_retries=0
+    python experiments/reproduce_sgm.py --quick --paper  # the paper's algorithm alone
 
 Writes results/reproduce_sgm/{config.json, results.json, table.md, accuracy.png}.
 """
 
 from __future__ import annotations
 
-import argparse
 import ast
-import dataclasses
 import hashlib
 import json
-import time
 from pathlib import Path
 
-import jax
 import numpy as np
 
 import jstarid as js
+from jstarid import experiment as ex
 from jstarid.algorithms import sgm
 from jstarid.ceiling import accuracy_bound, naming_ceiling
+from jstarid.papers import sgm as paper
 
-PAPER = {  # Table 2, "Ours" (%)
-    "position": {"MA": 99.71, "stdA": 0.22, "RA": 0.60, "ALN": 99.69},
-    "lost": {"MA": 99.26, "stdA": 0.38, "RA": 0.97, "ALN": 99.05},
-    "fake": {"MA": 99.42, "stdA": 0.28, "RA": 0.85, "ALN": 99.16},
-}
-EXPERIMENTS = ("position", "lost", "fake")
-MAX_FAILURE = 0.02  # the issue's failure budget, used for the accuracy ceiling
+MAX_FAILURE = 0.02  # the failure budget, used for the accuracy ceiling
+OTHER_ALGORITHMS = ("mlv", "rpnet")  # packages under jstarid/algorithms/ that SGM never imports
 
 
-@dataclasses.dataclass
-class ExpConfig:
-    mag_limit: float = 6.0
-    camera: str = "sgm2022"
-    sigmas: tuple = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
-    experiments: tuple = ("position", "lost", "fake")
-    n_stars: int | None = None  # main stars per level (None: every database star)
-    capacity: int = 128  # scenes: a 20°×20° field holds > 64 V ≤ 6 stars in dense regions
-    batch: int = 256
-    seed: int = 0
-    out: str = "results/reproduce_sgm"
-    sgm: dict = dataclasses.field(default_factory=dict)  # Config overrides
+def parse_args(argv=None):
+    p = ex.parser(__doc__.splitlines()[0], out="results/reproduce_sgm", seed=0,
+                  quick="20 main stars per level, σ ∈ {0, 1.5, 3}")
+    p.add_argument("--paper", action="store_true",
+                   help="start from Config.paper(): the paper's algorithm alone")
+    p.add_argument("--n-stars", type=int, default=None, help="main stars per level (default all)")
+    p.add_argument("--sigmas", type=float, nargs="+", default=None, help="position σ (px), default 0 … 3")
+    p.add_argument("--experiments", nargs="+", default=list(paper.EXPERIMENTS), choices=paper.EXPERIMENTS)
+    p.add_argument("--batch", type=int, default=paper.BATCH, help="scenes per identify call")
+    return p.parse_args(argv)
 
 
 def _fake_inside(scenes, cam, radius_deg):
     """(B,) bool: a false star lies inside the main star's neighbor circle."""
     inside = np.asarray(js.metrics.in_neighbor_circle(scenes, cam, radius_deg))
     return np.any(inside & (np.asarray(scenes.truth) < 0), axis=1)
-
-
-OTHER_ALGORITHMS = ("mlv", "rpnet")  # packages under jstarid/algorithms/ that SGM never imports
 
 
 def _code_fingerprint(package: Path | None = None) -> str:
@@ -76,11 +66,13 @@ def _code_fingerprint(package: Path | None = None) -> str:
     Each module is hashed as its syntax tree without docstrings (comments never reach the tree), so
     an edit to the documentation alone keeps an hour of stored levels valid, while any change to
     the code itself, a constant included, invalidates them. The other algorithms' packages
-    (:data:`OTHER_ALGORITHMS`) are left out: the SGM pipeline does not run them.
+    (:data:`OTHER_ALGORITHMS`) and their papers' definitions (``jstarid/papers/<name>.py``) are left
+    out: the SGM pipeline does not run them.
     """
     digest = hashlib.sha256()
     root = Path(js.__file__).parent if package is None else package
-    skip = tuple(root / "algorithms" / name for name in OTHER_ALGORITHMS)
+    skip = [root / "algorithms" / name for name in OTHER_ALGORITHMS]
+    skip += [root / "papers" / f"{name}.py" for name in OTHER_ALGORITHMS]
     for path in sorted(root.rglob("*.py")):
         if any(path.is_relative_to(d) for d in skip):
             continue
@@ -97,58 +89,19 @@ def _code_fingerprint(package: Path | None = None) -> str:
     return digest.hexdigest()[:16]
 
 
-def _level_settings(cfg, scfg, cat, rows, exp, sigma, code) -> dict:
-    """Everything a level's numbers depend on; a stored level is reused only when this matches."""
-    return {"code": code, "experiment": exp, "sigma_px": float(sigma),
-            "seed": cfg.seed, "batch": cfg.batch, "capacity": cfg.capacity, "camera": cfg.camera,
-            "catalog": cat.fingerprint,
-            "sgm_config": dataclasses.asdict(scfg), "rows": rows.tolist()}
-
-
-def _level_key(seed: int, exp: str, sigma: float):
-    """The level's PRNG key: a function of (seed, experiment, σ) alone, so any subset of levels, run
-    in any order or resumed, draws the same scenes."""
-    key = jax.random.fold_in(jax.random.key(seed), EXPERIMENTS.index(exp))
-    return jax.random.fold_in(key, round(sigma * 100))
-
-
-def main_star_rows(cfg, cat) -> np.ndarray:
-    """(R,) catalog rows used as main stars: every star, or ``cfg.n_stars`` drawn with ``cfg.seed``."""
-    rng = np.random.default_rng(cfg.seed)
-    return (np.arange(len(cat)) if cfg.n_stars is None
-            else np.sort(rng.choice(len(cat), cfg.n_stars, replace=False)))
-
-
-def level_scenes(cfg, cat, cam, rows, exp, sigma, batches=None):
-    """Yield ``(start, scenes)`` for the batches of a level: the scenes of main stars
-    ``rows[start:start + cfg.batch]``, drawn as every run of this script draws them.
-
-    ``batches``: optional set of batch indices to simulate (the others are skipped, their keys
-    still drawn), so a diagnosis can look at one batch of a full-size level.
-    """
-    noise = js.NoiseConfig(position_sigma_px=float(sigma), n_missing=int(exp == "lost"),
-                           n_false=int(exp == "fake"))
-    key = _level_key(cfg.seed, exp, sigma)
-    for i, s in enumerate(range(0, rows.size, cfg.batch)):
-        key, k2 = jax.random.split(key)
-        if batches is None or i in batches:
-            yield s, js.simulate(k2, cat, cam, noise, capacity=cfg.capacity,
-                                 boresight_ids=rows[s:s + cfg.batch])
-
-
-def _run_level(cfg, scfg, cat, cam, db, rows, exp, sigma) -> dict:
+def _run_level(args, scfg, cat, cam, db, rows, exp, sigma) -> dict:
     """One (experiment, σ) level: simulate, identify, score; the per-level row of the tables."""
     outcomes, fake_in, ceiling, confident, n_graphs = [], [], [], [], []
-    t0 = time.perf_counter()
-    for _, scenes in level_scenes(cfg, cat, cam, rows, exp, sigma):
-        res, info = sgm.identify(db, scenes, scfg, diagnostics=True)
-        out_s = js.scene_outcomes(scenes, res, "sgm", camera=cam, radius_deg=scfg.radius_deg)
-        outcomes.append(np.asarray(out_s["outcome"]))
-        fake_in.append(_fake_inside(scenes, cam, scfg.radius_deg))
-        ceiling.append(naming_ceiling(scenes, cat, cam, radius_deg=scfg.radius_deg))
-        confident.append(naming_ceiling(scenes, cat, cam, radius_deg=scfg.radius_deg,
-                                        margin_nats=scfg.verify_ambiguity_k ** 2, sigma_px=sigma))
-        n_graphs.append(info.n_matched)
+    with ex.Stopwatch() as clock:
+        for _, scenes in paper.level_scenes(cat, cam, rows, exp, sigma, seed=args.seed, batch=args.batch):
+            res, info = sgm.identify(db, scenes, scfg, diagnostics=True)
+            out_s = js.scene_outcomes(scenes, res, "sgm", camera=cam, radius_deg=scfg.radius_deg)
+            outcomes.append(np.asarray(out_s["outcome"]))
+            fake_in.append(_fake_inside(scenes, cam, scfg.radius_deg))
+            ceiling.append(naming_ceiling(scenes, cat, cam, radius_deg=scfg.radius_deg))
+            confident.append(naming_ceiling(scenes, cat, cam, radius_deg=scfg.radius_deg,
+                                            margin_nats=scfg.verify_ambiguity_k ** 2, sigma_px=sigma))
+            n_graphs.append(info.n_matched)
     code = np.concatenate(outcomes)
     total, fail = code.size, int(np.sum(code == js.metrics.FAIL))
     correct, wrong = int(np.sum(code == js.metrics.CORRECT)), int(np.sum(code == js.metrics.WRONG))
@@ -162,31 +115,44 @@ def _run_level(cfg, scfg, cat, cam, db, rows, exp, sigma) -> dict:
         "ceiling_at_margin_rate": float(np.mean(np.concatenate(confident))),
         "fake_inside_circle_rate": float(np.mean(np.concatenate(fake_in))),
         "mean_graphs_matched": float(np.mean(np.concatenate(n_graphs))),
-        "seconds": time.perf_counter() - t0,
+        "seconds": clock.seconds,
     }
 
 
-def run(cfg: ExpConfig) -> dict:
-    out = Path(cfg.out)
-    (out / "levels").mkdir(parents=True, exist_ok=True)
-    cat = js.load_catalog(cfg.mag_limit)
-    cam = js.camera_preset(cfg.camera)
-    scfg = sgm.Config(**cfg.sgm)
+def _summary(levels) -> dict:
+    """Table 2's MA, stdA, RA, ALN (%) of one experiment's levels, and the same for the ceiling."""
+    acc = np.array([lv["accuracy"] for lv in levels]) * 100
+    bound = accuracy_bound([lv["ceiling_rate"] for lv in levels], MAX_FAILURE) * 100
+    return {"MA": float(np.mean(acc)), "stdA": float(np.std(acc)), "RA": float(np.max(acc) - np.min(acc)),
+            "ALN": float(acc[-1]), "ALN_sigma_px": levels[-1]["sigma_px"],
+            "MA_ceiling": float(np.mean(bound)), "ALN_ceiling": float(bound[-1])}
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    n_stars = 20 if args.quick and args.n_stars is None else args.n_stars
+    sigmas = args.sigmas or ((0.0, 1.5, 3.0) if args.quick else paper.SIGMAS)
+    (args.out / "levels").mkdir(parents=True, exist_ok=True)
+    cat = js.load_catalog(paper.MAG_LIMIT)
+    cam = js.camera_preset(paper.CAMERA)
+    scfg = ex.with_overrides(sgm.Config.paper() if args.paper else sgm.Config(), args.set)
     db = sgm.build_database(cat, cam, scfg)
-    rows = main_star_rows(cfg, cat)
+    rows = paper.main_star_rows(len(cat), n_stars, args.seed)
     code = _code_fingerprint()
     results = {"levels": [], "database": {"stars": len(db), "capacity": db.capacity,
                                           "bytes": db.nbytes, "seconds": db.build_seconds}}
-    for exp in cfg.experiments:
-        for sigma in cfg.sigmas:
-            settings = _level_settings(cfg, scfg, cat, rows, exp, sigma, code)
-            path = out / "levels" / f"{exp}_{sigma:.2f}.json"
+    for exp in args.experiments:
+        for sigma in sigmas:
+            # everything a level's numbers depend on; a stored level is reused only when this matches
+            settings = {"code": code, "experiment": exp, "sigma_px": float(sigma), "seed": args.seed,
+                        "batch": args.batch, "capacity": paper.CAPACITY, "camera": paper.CAMERA,
+                        "catalog": cat.fingerprint, "sgm_config": ex.to_json(scfg), "rows": rows.tolist()}
+            path = args.out / "levels" / f"{exp}_{sigma:.2f}.json"
             stored = json.loads(path.read_text()) if path.exists() else None
             if stored is not None and stored["settings"] == settings:
-                level = stored["level"]
-                note = "stored"
+                level, note = stored["level"], "stored"
             else:
-                level = _run_level(cfg, scfg, cat, cam, db, rows, exp, sigma)
+                level = _run_level(args, scfg, cat, cam, db, rows, exp, sigma)
                 path.write_text(json.dumps({"settings": settings, "level": level}))
                 note = f"{level['seconds']:.1f}s"
             results["levels"].append(level)
@@ -194,28 +160,20 @@ def run(cfg: ExpConfig) -> dict:
                   f"id={level['identification_rate']:.4f} fail={level['failure_rate']:.4f} "
                   f"misid={level['misid_rate']:.4f} ceiling={level['ceiling_rate']:.4f}  ({note})",
                   flush=True)
-    summary = {}
-    for exp in cfg.experiments:
-        levels = [lv for lv in results["levels"] if lv["experiment"] == exp]
-        acc = np.array([lv["accuracy"] for lv in levels]) * 100
-        bound = accuracy_bound([lv["ceiling_rate"] for lv in levels], MAX_FAILURE) * 100
-        summary[exp] = {"MA": float(np.mean(acc)), "stdA": float(np.std(acc)),
-                        "RA": float(np.max(acc) - np.min(acc)), "ALN": float(acc[-1]),
-                        "ALN_sigma_px": levels[-1]["sigma_px"],
-                        "MA_ceiling": float(np.mean(bound)), "ALN_ceiling": float(bound[-1])}
-    results["summary"] = summary
-    config = {**dataclasses.asdict(cfg), "sgm_config": dataclasses.asdict(scfg),
-              "catalog": cat.fingerprint, "rows": rows.tolist() if cfg.n_stars else "all"}
-    (out / "config.json").write_text(json.dumps(config, indent=2))
-    (out / "results.json").write_text(json.dumps(results, indent=2))
-    (out / "table.md").write_text(_table(results, cfg))
-    _plot(results, out / "accuracy.png")
+    results["summary"] = {exp: _summary([lv for lv in results["levels"] if lv["experiment"] == exp])
+                          for exp in args.experiments}
+    table = _table(results, args.seed)
+    config = {"seed": args.seed, "n_stars": n_stars, "sigmas": sigmas, "experiments": args.experiments,
+              "batch": args.batch, "capacity": paper.CAPACITY, "camera": paper.CAMERA,
+              "mag_limit": paper.MAG_LIMIT, "paper": args.paper, "sgm_config": scfg,
+              "catalog": cat.fingerprint, "rows": rows.tolist() if n_stars else "all"}
+    ex.write(args.out, config=config, results=results, table=table, figures={"accuracy.png": _plot})
+    print(table)
     return results
 
 
-def _table(results, cfg) -> str:
-    lines = [f"# SGM reproduction ({results['levels'][0]['n_scenes']} scenes per level, seed "
-             f"{cfg.seed})", "",
+def _table(results, seed) -> str:
+    lines = [f"# SGM reproduction ({results['levels'][0]['n_scenes']} scenes per level, seed {seed})", "",
              f"Ceiling: the best any position-only identifier could reach with ≤ {MAX_FAILURE:.0%} "
              "failures (`jstarid.ceiling`); per level, the ceiling of the identification rate and, "
              "at margin, the same for a namer that withholds names below the verification's "
@@ -224,7 +182,7 @@ def _table(results, cfg) -> str:
     for exp, s in results["summary"].items():
         for m in ("MA", "stdA", "RA", "ALN"):
             bound = f"{s[m + '_ceiling']:.2f}" if m + "_ceiling" in s else "–"
-            lines.append(f"| {exp} | {m} | {s[m]:.2f} | {PAPER[exp][m]:.2f} | {bound} |")
+            lines.append(f"| {exp} | {m} | {s[m]:.2f} | {paper.PAPER[exp][m]:.2f} | {bound} |")
     lines += ["", "| experiment | σ (px) | accuracy | identification | failure | misid | incomplete |"
               " ceiling | ceiling at margin | fake in circle |", "|---|---|---|---|---|---|---|---|---|---|"]
     for lv in results["levels"]:
@@ -237,16 +195,17 @@ def _table(results, cfg) -> str:
 
 
 def _plot(results, path):
+    """Accuracy per level and, dashed, its ceiling; from the saved results."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(6, 4))
     for exp in results["summary"]:
         lv = [x for x in results["levels"] if x["experiment"] == exp]
-        line, = ax.plot([x["sigma_px"] for x in lv], [100 * x["accuracy"] for x in lv], "o-",
-                        label=exp)
-        ax.plot([x["sigma_px"] for x in lv],
-                100 * accuracy_bound([x["ceiling_rate"] for x in lv], MAX_FAILURE), "--",
+        sigma = [x["sigma_px"] for x in lv]
+        accuracy = [np.nan if x["accuracy"] is None else 100 * x["accuracy"] for x in lv]
+        line, = ax.plot(sigma, accuracy, "o-", label=exp)
+        ax.plot(sigma, 100 * accuracy_bound([x["ceiling_rate"] for x in lv], MAX_FAILURE), "--",
                 color=line.get_color(), alpha=0.6)
     ax.set_xlabel("position noise σ (px)")
     ax.set_ylabel("accuracy, eq. 9 (%)")
@@ -255,45 +214,6 @@ def _plot(results, path):
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
-
-
-def config_overrides(items) -> dict:
-    """``["field=json", …]`` → SGM :class:`Config` overrides (``SystemExit`` on an unknown field)."""
-    fields = {f.name for f in dataclasses.fields(sgm.Config)}
-    out = {}
-    for item in items:
-        name, value = item.split("=", 1)
-        if name not in fields:
-            raise SystemExit(f"unknown SGM config field {name!r}")
-        out[name] = json.loads(value)
-    return out
-
-
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="20 main stars per level, σ ∈ {0, 1.5, 3}")
-    p.add_argument("--n-stars", type=int, default=None, help="main stars per level (default all)")
-    p.add_argument("--sigmas", type=float, nargs="+", default=None)
-    p.add_argument("--experiments", nargs="+", default=None, choices=EXPERIMENTS)
-    p.add_argument("--batch", type=int, default=256)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="results/reproduce_sgm")
-    p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                   help="SGM Config overrides, e.g. max_error_deg=0.2")
-    a = p.parse_args(argv)
-    cfg = ExpConfig(batch=a.batch, seed=a.seed, out=a.out)
-    if a.quick:
-        cfg.n_stars, cfg.sigmas = 20, (0.0, 1.5, 3.0)
-    if a.n_stars is not None:
-        cfg.n_stars = a.n_stars
-    if a.sigmas is not None:
-        cfg.sigmas = tuple(a.sigmas)
-    if a.experiments is not None:
-        cfg.experiments = tuple(a.experiments)
-    cfg.sgm.update(config_overrides(a.set))
-    results = run(cfg)
-    print(Path(cfg.out, "table.md").read_text())
-    return results
 
 
 if __name__ == "__main__":

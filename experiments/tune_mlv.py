@@ -1,16 +1,17 @@
 """MLV parameter tuning (Sensors 2021, 21, 3084, §3.1 and Fig. 5) with vectorized sweeps.
 
 Camera ``mlv2021`` (25°×25°, 1024², V ≤ 5.5, simulation list to 6.5), random attitudes, the mlv
-success criterion (≥ 3 correct and none wrong; SPEC §5), identification and mis-identification rates
-per level. Three parts:
+success criterion (≥ 3 correct and none wrong; conventions §5), identification and
+mis-identification rates per level. Three parts:
 
 - ``fig5``: identification rate vs position noise σ ∈ {0, 0.5, …, 2.5} px with magnitude σ 0.3 (the
-  paper's Fig. 5 conditions) for Δv1/Δv2 ∈ {3e-5/3e-4, 5e-5/5e-4, 6e-5/6e-4}, for our algorithm
-  (``mlv``: all extensions on) and the paper's voting alone (``paper``: ``vertex_match``,
-  ``attitude_check``, ``field_check`` off). All noise levels are ONE batched ``js.simulate`` call
-  over ``js.noise_grid``; the same scenes serve every Δv and variant (a paired comparison). Δv changes
-  the discretization, so the lookup tables are built once per Δv pair (the triangle table is cached
-  on disk and shared by all Δv) and reused for every noise level.
+  paper's Fig. 5 conditions, :mod:`jstarid.papers.mlv`) for Δv1/Δv2 ∈ {3e-5/3e-4, 5e-5/5e-4,
+  6e-5/6e-4}, for our algorithm (``mlv``: all extensions on) and the paper's voting alone
+  (``paper``: ``Config.paper()``, no vertex match, attitude or field check). All noise levels are
+  ONE batched ``js.simulate`` call over ``js.noise_grid``; the same scenes serve every Δv and
+  variant (a paired comparison). Δv changes the discretization, so the lookup tables are built once
+  per Δv pair (the triangle table is cached on disk and shared by all Δv) and reused for every
+  noise level.
 - ``grid``: Th1 = Th2 ∈ ``--th`` × ε ∈ ``--eps`` (deg; the vertex-match side tolerance is set to ε
   too) at the ``--grid-levels`` position-noise levels, default Δv, extensions on. Th and ε are
   traced per-scene values (``identify(..., tuning=mlv.Tuning(th1, th2, eps_rad, side_tol_rad))``), so
@@ -22,49 +23,42 @@ per level. Three parts:
 
 Scenes per level: ``--quick`` 300, else ``--scenes`` (default 2,000). The full mode (2,000 per level)
 simulates 12,000 scenes and identifies 72,000 (fig5) + 48,000 (grid) + 12,000 per N value.
-
-Writes ``results/tune_mlv/{config.json, results.json, table.md, fig5.png}``; the figure is drawn from
-the saved results only.
+``--set`` changes the settings every part starts from (both variants of fig5).
 
 Usage::
 
     python experiments/tune_mlv.py --quick
     python experiments/tune_mlv.py                    # 2,000 scenes per level
     python experiments/tune_mlv.py --parts fig5 --variants mlv,paper --scenes 1000
+
+Writes results/tune_mlv/{config.json, results.json, table.md, fig5.png}.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import itertools
-import json
-import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jstarid as js
+from jstarid import experiment as ex
 from jstarid.algorithms import mlv
-
-PAPER_FIG5 = ("Fig. 5 (curves, no values quoted): with Δv = 3e-5/3e-4 the rate degrades quickly above "
-              "1.5 px; 5e-5/5e-4 and 6e-5/6e-4 stay high; run time 35.3 ms (5e-5) vs 43.9 ms (6e-5) "
-              "per image; the paper chooses 5e-5/5e-4")
+from jstarid.papers import mlv as paper
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--quick", action="store_true", help="300 scenes per level")
+    p = ex.parser(__doc__.splitlines()[0], out="results/tune_mlv", seed=5, quick="300 scenes per level")
     p.add_argument("--scenes", type=int, default=2000, help="scenes per noise level")
-    p.add_argument("--seed", type=int, default=5)
     p.add_argument("--parts", default="fig5,grid,nstars")
-    p.add_argument("--out", default="results/tune_mlv")
     p.add_argument("--capacity", type=int, default=64, help="scene capacity")
-    p.add_argument("--dv", default="3e-5/3e-4,5e-5/5e-4,6e-5/6e-4", help="Δv1/Δv2 pairs (fig5)")
-    p.add_argument("--levels", default="0,0.5,1,1.5,2,2.5", help="position σ (px), fig5")
-    p.add_argument("--magnitude-sigma", type=float, default=0.3, help="mag (paper Fig. 5: 0.3)")
+    p.add_argument("--dv", default=",".join(paper.FIG5_DV), help="Δv1/Δv2 pairs (fig5)")
+    p.add_argument("--levels", default=",".join(f"{v:g}" for v in paper.FIG5_LEVELS),
+                   help="position σ (px), fig5")
+    p.add_argument("--magnitude-sigma", type=float, default=paper.FIG5_MAGNITUDE_SIGMA,
+                   help="mag (paper Fig. 5: 0.3)")
     p.add_argument("--variants", default="mlv,paper", help="fig5: mlv (ours), paper (voting only)")
     p.add_argument("--grid-levels", default="1,2.5", help="position σ (px) of grid and nstars")
     p.add_argument("--th", default="0,1,2", help="Th1 = Th2 values (bins), grid")
@@ -86,10 +80,10 @@ def _rates(scenes, result, diag, lo, hi):
 
 
 def _identify_timed(db, scenes, cfg, tuning=None):
-    t0 = time.perf_counter()
-    result, diag = mlv.identify(db, scenes, cfg, diagnostics=True, tuning=tuning)
-    result.ids.block_until_ready()
-    return result, diag, time.perf_counter() - t0
+    with ex.Stopwatch() as clock:
+        result, diag = mlv.identify(db, scenes, cfg, diagnostics=True, tuning=tuning)
+        result.ids.block_until_ready()
+    return result, diag, clock.seconds
 
 
 def _tile(scenes, times: int):
@@ -100,18 +94,16 @@ def _tile(scenes, times: int):
 def run_fig5(args, catalog, camera, scenes, levels, n, databases):
     out = {}
     for variant in args.variants.split(","):
+        if variant not in ("mlv", "paper"):
+            raise ValueError(f"unknown variant {variant!r}")
+        base = ex.with_overrides(mlv.Config.paper() if variant == "paper" else mlv.Config(), args.set)
         out[variant] = {}
         for pair in args.dv.split(","):
             dv1, dv2 = (float(v) for v in pair.split("/"))
-            cfg = dataclasses.replace(mlv.Config(), dv1=dv1, dv2=dv2)
-            if variant == "paper":
-                cfg = dataclasses.replace(cfg, vertex_match=False, attitude_check=False,
-                                          field_check=False)
-            elif variant != "mlv":
-                raise ValueError(f"unknown variant {variant!r}")
-            t0 = time.perf_counter()
-            db = mlv.build_database(catalog, camera, cfg, progress=False)  # once per Δv
-            databases[pair] = {**db.info_dict(), "seconds": time.perf_counter() - t0}
+            cfg = dataclasses.replace(base, dv1=dv1, dv2=dv2)
+            with ex.Stopwatch() as clock:
+                db = mlv.build_database(catalog, camera, cfg, progress=False)  # once per Δv
+            databases[pair] = {**db.info_dict(), "seconds": clock.seconds}
             result, diag, seconds = _identify_timed(db, scenes, cfg)
             rows = [{"position_sigma_px": lv, **_rates(scenes, result, diag, i * n, (i + 1) * n)}
                     for i, lv in enumerate(levels)]
@@ -126,7 +118,7 @@ def run_fig5(args, catalog, camera, scenes, levels, n, databases):
 
 def run_grid(args, catalog, camera, scenes, levels, n):
     """One identify call over the Cartesian grid (Th × ε) × noise levels × scenes."""
-    cfg = mlv.Config()
+    cfg = ex.with_overrides(mlv.Config(), args.set)
     db = mlv.build_database(catalog, camera, cfg, progress=False)
     grid = list(itertools.product([int(v) for v in _floats(args.th)], _floats(args.eps)))
     s = scenes.batch_size
@@ -151,10 +143,10 @@ def run_grid(args, catalog, camera, scenes, levels, n):
 def run_nstars(args, catalog, camera, scenes, levels, n, databases):
     rows, timing = [], {}
     for n_stars in (int(v) for v in _floats(args.n_stars)):
-        cfg = dataclasses.replace(mlv.Config(), n_stars=n_stars)
-        t0 = time.perf_counter()
-        db = mlv.build_database(catalog, camera, cfg, progress=False)
-        databases[f"N={n_stars}"] = {**db.info_dict(), "seconds": time.perf_counter() - t0}
+        cfg = dataclasses.replace(ex.with_overrides(mlv.Config(), args.set), n_stars=n_stars)
+        with ex.Stopwatch() as clock:
+            db = mlv.build_database(catalog, camera, cfg, progress=False)
+        databases[f"N={n_stars}"] = {**db.info_dict(), "seconds": clock.seconds}
         result, diag, seconds = _identify_timed(db, scenes, cfg)
         timing[str(n_stars)] = {"identify_seconds": seconds,
                            "scenes_per_second": scenes.batch_size / seconds}
@@ -169,14 +161,13 @@ def run_nstars(args, catalog, camera, scenes, levels, n, databases):
     return {"rows": rows, "timing": timing}
 
 
-def write_table(results, config, path: Path):
-    n = config["scenes_per_level"]
+def table(results, n, magnitude_sigma, seed) -> str:
     lines = ["# MLV tuning (mlv criterion: ≥ 3 correct, none wrong)", "",
-             f"{n} scenes per level, magnitude σ {config['args']['magnitude_sigma']}, seed "
-             f"{config['seed']}; cells are identification % / mis-identification %.", ""]
+             f"{n} scenes per level, magnitude σ {magnitude_sigma}, seed "
+             f"{seed}; cells are identification % / mis-identification %.", ""]
     if "fig5" in results:
         lines += ["## Fig. 5: identification vs position noise for Δv1/Δv2", "",
-                  f"Paper: {PAPER_FIG5}.", ""]
+                  f"Paper: {paper.FIG5_NOTE}.", ""]
         for variant, by_dv in results["fig5"].items():
             name = ("ours (all extensions)" if variant == "mlv"
                     else "paper's voting and verification only")
@@ -218,20 +209,17 @@ def write_table(results, config, path: Path):
                 f"{100 * by[lv]['identification_rate']:.2f} / {100 * by[lv]['misid_rate']:.2f}"
                 for lv in levels) + f" | {sps:.0f} |")
         lines.append("")
-    lines += ["scenes/s: identify only, compile included (2-core CPU).", ""]
-    path.write_text("\n".join(lines))
+    lines += ["scenes/s: identify only, compile included.", ""]
+    return "\n".join(lines)
 
 
-def plot(results_path: Path, out_dir: Path):
-    """Fig. 5 from the saved results.json (never recomputes)."""
+def plot(results, path):
+    """Fig. 5 from the saved results."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    results = json.loads(results_path.read_text())
-    if "fig5" not in results:
-        return
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
     styles = {"mlv": "-", "paper": "--"}
     for variant, by_dv in results["fig5"].items():
@@ -251,51 +239,48 @@ def plot(results_path: Path, out_dir: Path):
     ax1.set_title("MLV Fig. 5: identification vs Δv1/Δv2")
     ax2.set_title("mis-identification")
     fig.tight_layout()
-    fig.savefig(out_dir / "fig5.png", dpi=120)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def main(argv=None):
+def main(argv=None) -> dict:
     args = parse_args(argv)
     n = 300 if args.quick else args.scenes
     parts = args.parts.split(",")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    catalog = js.load_catalog(5.5)
-    camera = js.camera_preset("mlv2021")
+    catalog = js.load_catalog(paper.MAG_LIMIT)
+    camera = js.camera_preset(paper.CAMERA)
     key_fig5, key_grid = jax.random.split(jax.random.key(args.seed))
     levels = _floats(args.levels)
     grid_levels = _floats(args.grid_levels)
     databases, results, timing = {}, {}, {}
     if "fig5" in parts:  # all noise levels: one batched simulate call
-        t0 = time.perf_counter()
-        scenes = js.simulate(key_fig5, catalog, camera,
-                             js.noise_grid(n, position_sigma_px=levels,
-                                           magnitude_sigma=args.magnitude_sigma),
-                             batch_size=n * len(levels), capacity=args.capacity)
-        timing["simulate_fig5_seconds"] = time.perf_counter() - t0
+        with ex.Stopwatch() as clock:
+            scenes = js.simulate(key_fig5, catalog, camera,
+                                 js.noise_grid(n, position_sigma_px=levels,
+                                               magnitude_sigma=args.magnitude_sigma),
+                                 batch_size=n * len(levels), capacity=args.capacity)
+        timing["simulate_fig5_seconds"] = clock.seconds
         results["fig5"] = run_fig5(args, catalog, camera, scenes, levels, n, databases)
     if "grid" in parts or "nstars" in parts:
-        t0 = time.perf_counter()
-        scenes = js.simulate(key_grid, catalog, camera,
-                             js.noise_grid(n, position_sigma_px=grid_levels,
-                                           magnitude_sigma=args.magnitude_sigma),
-                             batch_size=n * len(grid_levels), capacity=args.capacity)
-        timing["simulate_grid_seconds"] = time.perf_counter() - t0
+        with ex.Stopwatch() as clock:
+            scenes = js.simulate(key_grid, catalog, camera,
+                                 js.noise_grid(n, position_sigma_px=grid_levels,
+                                               magnitude_sigma=args.magnitude_sigma),
+                                 batch_size=n * len(grid_levels), capacity=args.capacity)
+        timing["simulate_grid_seconds"] = clock.seconds
         if "grid" in parts:
             results["grid"] = run_grid(args, catalog, camera, scenes, grid_levels, n)
         if "nstars" in parts:
-            results["nstars"] = run_nstars(args, catalog, camera, scenes, grid_levels, n,
-                                           databases)
+            results["nstars"] = run_nstars(args, catalog, camera, scenes, grid_levels, n, databases)
     config = {"args": vars(args), "scenes_per_level": n, "seed": args.seed,
-              "mlv_config": dataclasses.asdict(mlv.Config()), "catalog": catalog.fingerprint,
-              "catalog_settings": catalog.settings, "camera": dataclasses.asdict(camera),
-              "databases": databases, "timing": timing, "jax_backend": jax.default_backend()}
-    (out / "config.json").write_text(json.dumps(config, indent=2, default=str))
-    (out / "results.json").write_text(json.dumps(results, indent=2))
-    write_table(json.loads((out / "results.json").read_text()), config, out / "table.md")
-    plot(out / "results.json", out)
-    print((out / "table.md").read_text())
+              "mlv_config": ex.with_overrides(mlv.Config(), args.set), "catalog": catalog.fingerprint,
+              "catalog_settings": catalog.settings, "camera": camera, "databases": databases,
+              "timing": timing}
+    text = table(results, n, args.magnitude_sigma, args.seed)
+    ex.write(args.out, config=config, results=results, table=text,
+             figures={"fig5.png": plot} if "fig5" in results else None)
+    print(text)
+    return results
 
 
 if __name__ == "__main__":

@@ -5,7 +5,8 @@ under position noise (σ = 0 … 3 px) — the Δw the rough search must reach. 
 (eq. 9) and failure rate against the matching-error threshold ε_δ at σ = 3 px, for several values
 of the affinity adjustor c. The grid is one computation: the spectral matching runs once per
 (candidate, c) with c as a ``vmap`` axis, and Algorithm 1's stop rule is replayed for every ε_δ on the
-stored errors (``jstarid.algorithms.sgm.tuning``). The paper's algorithm alone (no verification).
+stored errors (``jstarid.algorithms.sgm.tuning``). The paper's algorithm alone (``Config.paper()``,
+no verification; ``--set`` changes it).
 
     python experiments/tune_sgm.py --quick        # 30 main stars, minutes on a CPU
     python experiments/tune_sgm.py --scenes 300   # default 200 main stars
@@ -15,31 +16,25 @@ Writes results/tune_sgm/{config.json, results.json, table.md, fig11_dw.png, fig1
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
-import json
-import time
-from pathlib import Path
-
 import jax
 import numpy as np
 
 import jstarid as js
+from jstarid import experiment as ex
 from jstarid.algorithms import sgm
 from jstarid.algorithms.sgm import tuning
 from jstarid.algorithms.sgm.identify import scene_graphs
+from jstarid.papers import sgm as paper
 
 
-@dataclasses.dataclass
-class TuneConfig:
-    scenes: int = 200
-    sigma_px: float = 3.0
-    cs: tuple = (0.5, 1.0, 1.74, 3.0, 5.0)
-    eps: tuple = (0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
-    dw_sigmas: tuple = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
-    capacity: int = 128
-    seed: int = 11
-    out: str = "results/tune_sgm"
+def parse_args(argv=None):
+    p = ex.parser(__doc__.splitlines()[0], out="results/tune_sgm", seed=11, quick="30 main stars")
+    p.add_argument("--scenes", type=int, default=None, help="main stars (default 200)")
+    p.add_argument("--sigma", type=float, default=3.0, help="noise of the ε_δ sweep (px)")
+    p.add_argument("--cs", type=float, nargs="+", default=[0.5, 1.0, 1.74, 3.0, 5.0], help="values of c")
+    p.add_argument("--eps", type=float, nargs="+", default=[0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6],
+                   help="values of ε_δ (deg)")
+    return p.parse_args(argv)
 
 
 def _graphs(scenes, db, cfg):
@@ -50,94 +45,99 @@ def _graphs(scenes, db, cfg):
     return g, usable
 
 
-def delta_w(cat, cam, db, rows, sigmas, capacity, key):
+def delta_w(cat, cam, db, cfg, rows, sigmas, key):
     """Fig. 11: w_I − w_J(true main star) per σ, one batched simulation over every level (deg)."""
     noise = js.noise_grid(rows.size, position_sigma_px=list(sigmas))
-    scenes = js.simulate(key, cat, cam, noise, capacity=capacity, boresight_ids=np.tile(rows, len(sigmas)))
-    g, usable = _graphs(scenes, db, sgm.Config())
+    scenes = js.simulate(key, cat, cam, noise, capacity=paper.CAPACITY,
+                         boresight_ids=np.tile(rows, len(sigmas)))
+    g, usable = _graphs(scenes, db, cfg)
     w_true = np.empty(len(cat), np.float32)
     w_true[db.main] = db.w
     dw = (g.w - w_true[np.tile(rows, len(sigmas))]).reshape(len(sigmas), rows.size)
     return dw, usable.reshape(len(sigmas), rows.size)
 
 
-def run(cfg: TuneConfig) -> dict:
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    cat = js.load_catalog(6.0)
-    cam = js.camera_preset("sgm2022")
-    base = sgm.Config.paper()
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    n = args.scenes or (30 if args.quick else 200)
+    cat = js.load_catalog(paper.MAG_LIMIT)
+    cam = js.camera_preset(paper.CAMERA)
+    base = ex.with_overrides(sgm.Config.paper(), args.set)
     db = sgm.build_database(cat, cam, base)
-    rng = np.random.default_rng(cfg.seed)
-    rows = np.sort(rng.choice(len(cat), cfg.scenes, replace=False))
-    k1, k2 = jax.random.split(jax.random.key(cfg.seed))
+    rows = np.sort(np.random.default_rng(args.seed).choice(len(cat), n, replace=False))
+    k1, k2 = jax.random.split(jax.random.key(args.seed))
 
-    dw, dw_ok = delta_w(cat, cam, db, rows, cfg.dw_sigmas, cfg.capacity, k1)
+    dw, dw_ok = delta_w(cat, cam, db, base, rows, paper.SIGMAS, k1)
     fig11 = []
-    for s, d, ok in zip(cfg.dw_sigmas, dw, dw_ok, strict=True):
+    for s, d, ok in zip(paper.SIGMAS, dw, dw_ok, strict=True):
         a = np.abs(d[ok])
         fig11.append({"sigma_px": float(s), "mean_abs_dw": float(a.mean()),
                       "median_abs_dw": float(np.median(a)), "p90_abs_dw": float(np.percentile(a, 90)),
                       "within_dw0": float(np.mean(a <= base.dw0_deg)),
                       "within_1deg": float(np.mean(a <= 1.0))})
 
-    scenes = js.simulate(k2, cat, cam, js.NoiseConfig(position_sigma_px=cfg.sigma_px),
-                         capacity=cfg.capacity, boresight_ids=rows)
+    scenes = js.simulate(k2, cat, cam, js.NoiseConfig(position_sigma_px=args.sigma),
+                         capacity=paper.CAPACITY, boresight_ids=rows)
     g, usable = _graphs(scenes, db, base)
-    t0 = time.perf_counter()
-    errors = tuning.candidate_errors(db, g, usable, base, cfg.cs, max(cfg.eps))
-    ok, rank = tuning.replay_algorithm1(errors["level"], errors["error"], cfg.eps)
-    ids = tuning.grid_identifications(db, g, errors, ok, rank, scenes.xy.shape[1])
-    seconds = time.perf_counter() - t0
+    with ex.Stopwatch() as clock:
+        errors = tuning.candidate_errors(db, g, usable, base, args.cs, max(args.eps))
+        ok, rank = tuning.replay_algorithm1(errors["level"], errors["error"], args.eps)
+        ids = tuning.grid_identifications(db, g, errors, ok, rank, scenes.xy.shape[1])
     grid = []
-    for ci, c in enumerate(cfg.cs):
-        for ei, e in enumerate(cfg.eps):
+    for ci, c in enumerate(args.cs):
+        for ei, e in enumerate(args.eps):
             res = js.Identification(ids=ids[:, ci, ei], ok=ok[:, ci, ei] & usable, attitude=None)
             ev = js.evaluate(scenes, res, "sgm", camera=cam, radius_deg=base.radius_deg)
             grid.append({"c": float(c), "eps_deg": float(e), "accuracy": ev["accuracy"],
                          "failure_rate": ev["failure_rate"], "misid_rate": ev["misid_rate"],
                          "identification_rate": ev["identification_rate"]})
-    n_cand = int(np.sum(errors["cand"] >= 0))
-    results = {"fig11": fig11, "grid": grid, "grid_seconds": seconds, "candidates": n_cand,
+    results = {"sigma_px": args.sigma, "fig11": fig11, "grid": grid, "grid_seconds": clock.seconds,
+               "candidates": int(np.sum(errors["cand"] >= 0)),
                "matched_pairs": int(np.sum(np.isfinite(errors["error"][..., 0])))}
-    (out / "config.json").write_text(json.dumps({**dataclasses.asdict(cfg),
-                                                 "sgm_config": dataclasses.asdict(base),
-                                                 "catalog": cat.fingerprint}, indent=2))
-    (out / "results.json").write_text(json.dumps(results, indent=2))
-    (out / "table.md").write_text(_table(results, cfg))
-    _plot(results, cfg, out)
+    text = table(results, n, args.seed)
+    ex.write(args.out, config={"scenes": n, "seed": args.seed, "sigma_px": args.sigma, "cs": args.cs,
+                               "eps": args.eps, "dw_sigmas": paper.SIGMAS, "capacity": paper.CAPACITY,
+                               "sgm_config": base, "catalog": cat.fingerprint},
+             results=results, table=text, figures={"fig11_dw.png": plot_dw, "fig12_13_eps.png": plot_eps})
+    print(text)
     return results
 
 
-def _table(results, cfg) -> str:
-    lines = [f"# SGM parameter sweeps ({cfg.scenes} main stars, seed {cfg.seed})", "",
+def _cs(results) -> list[float]:
+    return list(dict.fromkeys(r["c"] for r in results["grid"]))
+
+
+def table(results, n, seed) -> str:
+    eps = list(dict.fromkeys(r["eps_deg"] for r in results["grid"]))
+    lines = [f"# SGM parameter sweeps ({n} main stars, seed {seed})", "",
              "## Fig. 11: |w_I − w_J| of the true main star under position noise (deg)", "",
              "| σ (px) | mean | median | 90th pct | ≤ Δw₀ = 0.1° | ≤ 1° |", "|---|---|---|---|---|---|"]
     for r in results["fig11"]:
         lines.append(f"| {r['sigma_px']:.1f} | {r['mean_abs_dw']:.3f} | {r['median_abs_dw']:.3f} | "
                      f"{r['p90_abs_dw']:.3f} | {100 * r['within_dw0']:.1f} % | "
                      f"{100 * r['within_1deg']:.1f} % |")
-    lines += ["", f"## Figs. 12–13: accuracy / failure / misid (%) vs ε_δ at σ = {cfg.sigma_px} px", "",
-              "| c \\ ε_δ (deg) | " + " | ".join(f"{e:g}" for e in cfg.eps) + " |",
-              "|---|" + "---|" * len(cfg.eps)]
-    for c in cfg.cs:
-        cells = [r for r in results["grid"] if r["c"] == float(c)]
+    lines += ["", f"## Figs. 12–13: accuracy / failure / misid (%) vs ε_δ at σ = {results['sigma_px']} px",
+              "",
+              "| c \\ ε_δ (deg) | " + " | ".join(f"{e:g}" for e in eps) + " |",
+              "|---|" + "---|" * len(eps)]
+    for c in _cs(results):
+        cells = [r for r in results["grid"] if r["c"] == c]
         lines.append(f"| {c:g} | " + " | ".join(
             f"{_pct(r['accuracy'])} / {_pct(r['failure_rate'])} / {_pct(r['misid_rate'])}"
             for r in cells) + " |")
-    lines += ["", f"Grid of {len(cfg.cs)} c × {len(cfg.eps)} ε_δ evaluated in "
+    lines += ["", f"Grid of {len(_cs(results))} c × {len(eps)} ε_δ evaluated in "
               f"{results['grid_seconds']:.0f} s ({results['matched_pairs']} of {results['candidates']} "
-              "candidate graphs matched, the rest "
-              "pruned by the exact bound)."]
+              "candidate graphs matched, the rest pruned by the exact bound)."]
     return "\n".join(lines) + "\n"
 
 
-def _pct(x: float) -> str:
+def _pct(x) -> str:
     """A rate as a percentage; accuracy (eq. 9) is undefined when every scene failed → "—"."""
-    return "—" if not np.isfinite(x) else f"{100 * x:.1f}"
+    return "—" if x is None or not np.isfinite(x) else f"{100 * x:.1f}"
 
 
-def _plot(results, cfg, out):
+def plot_dw(results, path):
+    """Fig. 11 from the saved results."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -152,49 +152,31 @@ def _plot(results, cfg, out):
     ax.set_title("Fig. 11: MST weight shift under noise")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(out / "fig11_dw.png", dpi=120)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot_eps(results, path):
+    """Figs. 12–13 from the saved results."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for c in cfg.cs:
-        cells = [r for r in results["grid"] if r["c"] == float(c)]
+    for c in _cs(results):
+        cells = [r for r in results["grid"] if r["c"] == c]
         e = [r["eps_deg"] for r in cells]
-        axes[0].plot(e, [100 * r["accuracy"] for r in cells], "o-", label=f"c = {c:g}")
+        axes[0].plot(e, [np.nan if r["accuracy"] is None else 100 * r["accuracy"] for r in cells], "o-",
+                     label=f"c = {c:g}")
         axes[1].plot(e, [100 * r["failure_rate"] for r in cells], "o-", label=f"c = {c:g}")
     axes[0].set_ylabel("accuracy, eq. 9 (%)")
     axes[1].set_ylabel("failure rate (%)")
     for ax in axes:
         ax.set_xlabel("ε_δ (deg)")
         ax.legend()
-    fig.suptitle(f"Figs. 12–13: σ = {cfg.sigma_px} px")
+    fig.suptitle(f"Figs. 12–13: σ = {results['sigma_px']} px")
     fig.tight_layout()
-    fig.savefig(out / "fig12_13_eps.png", dpi=120)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
-
-
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="30 main stars")
-    p.add_argument("--scenes", type=int, default=None, help="main stars (default 200)")
-    p.add_argument("--sigma", type=float, default=None, help="noise of the ε_δ sweep (px, default 3)")
-    p.add_argument("--cs", type=float, nargs="+", default=None)
-    p.add_argument("--eps", type=float, nargs="+", default=None)
-    p.add_argument("--seed", type=int, default=11)
-    p.add_argument("--out", default="results/tune_sgm")
-    a = p.parse_args(argv)
-    cfg = TuneConfig(seed=a.seed, out=a.out)
-    if a.quick:
-        cfg.scenes = 30
-    if a.scenes is not None:
-        cfg.scenes = a.scenes
-    if a.sigma is not None:
-        cfg.sigma_px = a.sigma
-    if a.cs is not None:
-        cfg.cs = tuple(a.cs)
-    if a.eps is not None:
-        cfg.eps = tuple(a.eps)
-    results = run(cfg)
-    print(Path(cfg.out, "table.md").read_text())
-    return results
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
-"""jstarid: lost-in-space star identification in JAX (SPEC §9 public API)."""
+"""jstarid: lost-in-space star identification in JAX (public API, docs/conventions.md §9)."""
 
-from jstarid import algorithms, plotting, runtime
+from jstarid import algorithms, experiment, plotting, runtime
 from jstarid.attitude import (
     attitude_errors_arcsec,
     estimate_attitude,
@@ -26,6 +26,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Camera", "Catalog", "CentroidConfig", "Identification", "NoiseConfig", "Scene", "algorithms",
+    "experiment",
     "plotting", "runtime", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
     "estimate_attitude", "evaluate", "extract_centroids", "load_catalog", "name_from_attitude",
     "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation", "read_image",

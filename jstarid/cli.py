@@ -119,7 +119,7 @@ def _solve(args) -> int:
     scenes = js.extract_centroids(np.stack(images), capacity=args.capacity, shard=True)
     algo = js.algorithms.get(args.algorithm)
     # RpNet trains a network per camera on first use: the quick preset takes minutes, the paper's hours
-    cfg = ((algo.Config.quick() if args.rpnet_preset == "quick" else algo.Config())
+    cfg = ((algo.Config.quick() if args.rpnet_network == "quick" else algo.Config())
            if args.algorithm == "rpnet" else algo.Config())
     result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)
     if args.name_all:
@@ -214,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="name every detection the solved attitude explains (js.name_from_attitude); "
                         "--no-name-all keeps the algorithm's own names")
     s.add_argument("--tol-px", type=float, default=2.0, help="tolerance of --name-all (px)")
-    s.add_argument("--rpnet-preset", choices=("quick", "paper"), default="quick",
+    s.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet network (trained for the camera on first use, then cached)")
     s.add_argument("--out", default="results/solve")
     s.set_defaults(func=_solve)

@@ -1,4 +1,4 @@
-"""Batched star-tracker scene simulation with the four noise models of SPEC §3.
+"""Batched star-tracker scene simulation with the four noise models of conventions §3.
 
 ``simulate`` is a thin host wrapper (validation, static sizes, the sky index) around one jit-compiled
 pure function of the PRNG key: a per-scene simulator written once and batched with ``vmap``. Every
@@ -11,7 +11,7 @@ Per scene:
    projected (pinhole);
 3. magnitude noise (Gaussian σ_m) is added to V *before* the camera's detection limit, using the deeper
    simulation list, so dim stars can appear and stars near the limit vanish;
-4. a star is in the field when its true position is (SPEC §1); position noise (Gaussian σ px,
+4. a star is in the field when its true position is (conventions §1); position noise (Gaussian σ px,
    independent in x and y) is added to the centroids of the detections kept in step 7, so a centroid
    within a few σ of the border may fall just outside ``[0, W−1] × [0, H−1]``, as in the papers'
    simulations (noise added to the image coordinates of the stars in view);
@@ -55,7 +55,7 @@ __all__ = ["NoiseConfig", "simulate", "noise_grid"]
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class NoiseConfig:
-    """Noise settings (SPEC §3). Each field is a scalar or a (B,) array (one value per scene).
+    """Noise settings (conventions §3). Each field is a scalar or a (B,) array (one value per scene).
 
     Attributes:
         position_sigma_px: centroid noise σ (px), independent in x and y.
@@ -149,7 +149,7 @@ def _false_capacity(noise: NoiseConfig, capacity: int) -> int:
 
 def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_size: int | None = None,
              capacity: int = 64, boresight_ids=None, shard: bool = False) -> Scene:
-    """Simulate a batch of scenes (SPEC §3). A pure function of ``key`` and the settings.
+    """Simulate a batch of scenes (conventions §3). A pure function of ``key`` and the settings.
 
     Args:
         key: PRNG key (``jax.random.key`` or a legacy uint32 key).

@@ -1,6 +1,7 @@
 """Tests of the experiment scripts and the NumPy SGM reference at tiny sizes (the heavy ones are
 marked slow: run with ``pytest -m slow``)."""
 
+import ast
 import dataclasses
 import importlib.util
 import json
@@ -13,12 +14,31 @@ import pytest
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 
 
+SCRIPTS = sorted(p.stem for p in EXPERIMENTS.glob("*.py"))
+
+
 def _load(name):
     spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module  # dataclasses look their module up while the class is created
     spec.loader.exec_module(module)
     return module
+
+
+def test_scripts_never_import_each_other():
+    for name in SCRIPTS:
+        for node in ast.walk(ast.parse((EXPERIMENTS / f"{name}.py").read_text())):
+            if isinstance(node, ast.Import | ast.ImportFrom):
+                names = [a.name for a in node.names] + [getattr(node, "module", None) or ""]
+                assert not set(names) & set(SCRIPTS), (name, names)
+                assert "importlib" not in names, name
+
+
+@pytest.mark.parametrize("name", SCRIPTS)
+def test_scripts_share_the_harness_options(name, tmp_path):
+    """Every script's parser comes from ``experiment.parser``: --out, --seed and --set."""
+    args = _load(name).parse_args(["--out", str(tmp_path), "--seed", "3"])
+    assert args.out == tmp_path and args.seed == 3 and args.set == []
 
 
 @pytest.mark.slow
@@ -67,6 +87,9 @@ def test_code_fingerprint_ignores_documentation_not_code(tmp_path):
     (package / "algorithms" / "rpnet").mkdir(parents=True)
     (package / "algorithms" / "rpnet" / "model.py").write_text("Z = 1\n")
     assert fingerprint(package) == base  # another algorithm's code does not count
+    (package / "papers").mkdir()
+    (package / "papers" / "mlv.py").write_text("SWEEPS = {}\n")
+    assert fingerprint(package) == base  # nor its paper's definitions
     (package / "other.py").write_text("Y = 1\n")
     assert fingerprint(package) != base  # a new module counts
 
@@ -94,10 +117,10 @@ def test_sgm_code_never_imports_the_fingerprint_s_left_out_algorithms():
 
 
 @pytest.mark.slow
-def test_diagnose_sgm_tiny():
+def test_diagnose_sgm_tiny(tmp_path):
     """The diagnosis sees the reproduction's scenes and accounts for every one of them."""
-    _load("reproduce_sgm")  # diagnose_sgm imports it by name, as when run from experiments/
-    out = _load("diagnose_sgm").main(["--experiment", "lost", "--sigma", "3", "--n-stars", "6"])
+    out = _load("diagnose_sgm").main(["--experiment", "lost", "--sigma", "3", "--n-stars", "6",
+                                      "--out", str(tmp_path)])
     assert sum(out["outcomes"].values()) == 6
     assert sum(out["failure_causes"].values()) == out["outcomes"].get("fail", 0)
     assert len(out["mis_identified"]) == out["outcomes"].get("wrong", 0)
@@ -105,19 +128,18 @@ def test_diagnose_sgm_tiny():
 
 def test_bench_sgm_tiny_with_overrides():
     """``--set`` reaches the SGM config; noise-free scenes are all named, as by the NumPy version."""
-    _load("reproduce_sgm")  # bench_sgm imports config_overrides by name, as when run from experiments/
     bench = _load("bench_sgm")
-    args = bench._parser().parse_args(["--batch", "64", "--sigmas", "0", "--numpy-scenes", "2",
-                                       "--set", "size_bucket=16"])
+    args = bench.parse_args(["--batch", "64", "--sigmas", "0", "--numpy-scenes", "2",
+                             "--set", "size_bucket=16"])
     (row,) = bench.run(args)
     assert row["batch"] == 64 and row["scenes_per_s"] > 0
     assert row["accuracy"] == 1.0 and row["misid_rate"] == 0.0 and row["numpy_ids_agree"] == 1.0
     # an override that changes the outcome: no main star has 1,000 neighbours, so every scene fails
-    (starved,) = bench.run(bench._parser().parse_args(["--batch", "64", "--sigmas", "0", "--numpy-scenes",
-                                                       "0", "--set", "min_stars=1000"]))
+    (starved,) = bench.run(bench.parse_args(["--batch", "64", "--sigmas", "0", "--numpy-scenes", "0",
+                                             "--set", "min_stars=1000"]))
     assert starved["failure_rate"] == 1.0 and starved["misid_rate"] == 0.0
-    with pytest.raises(SystemExit, match="unknown SGM config field"):
-        bench.run(bench._parser().parse_args(["--batch", "64", "--set", "no_such_field=1"]))
+    with pytest.raises(ValueError, match="no field 'no_such_field'"):
+        bench.run(bench.parse_args(["--batch", "64", "--set", "no_such_field=1"]))
 
 
 def test_sgm_paper_equals_the_numpy_reference_on_noisy_scenes():
@@ -127,7 +149,7 @@ def test_sgm_paper_equals_the_numpy_reference_on_noisy_scenes():
 
     import jstarid as js
     from jstarid.algorithms import sgm
-    ref = _load("sgm_numpy_reference")
+    from jstarid.algorithms.sgm import reference as ref
     cat = js.load_catalog(5.0)  # small graphs: the reference's per-candidate eig stays cheap
     cam = js.camera_preset("sgm2022", mag_limit=5.0)
     cfg = sgm.Config()

@@ -195,3 +195,23 @@ def test_bad_inputs_give_clear_errors(name):
     with pytest.raises(ValueError, match="NaN"):
         w.algo.identify(w.database, dataclasses.replace(scenes, xy=scenes.xy.at[0, 0, 0].set(jnp.nan)),
                         w.config)
+
+
+# op-by-op execution of a whole identification takes 1–2 min per scene for the real algorithms on
+# 2 cores: those run with the slow tests (`pytest -m slow`)
+_EAGER_FAST = {"oracle"}
+
+
+@pytest.mark.parametrize("name", [n if n in _EAGER_FAST else pytest.param(n, marks=pytest.mark.slow)
+                                  for n in NAMES])
+def test_jit_equals_no_jit(name):
+    """The compiled kernels give what the same code gives run op by op (``jax.disable_jit``)."""
+    w = world(name)
+    scenes = _clean_scenes(w, 1, seed=6)
+    compiled = w.algo.identify(w.database, scenes, w.config)
+    with jax.disable_jit():
+        eager = w.algo.identify(w.database, scenes, w.config)
+    np.testing.assert_array_equal(np.asarray(eager.ids), np.asarray(compiled.ids))
+    np.testing.assert_array_equal(np.asarray(eager.ok), np.asarray(compiled.ok))
+    if compiled.attitude is not None and bool(np.asarray(compiled.ok)[0]):
+        np.testing.assert_allclose(np.asarray(eager.attitude), np.asarray(compiled.attitude), atol=1e-5)

@@ -18,7 +18,7 @@ import pytest
 
 import jstarid as js
 from jstarid.algorithms import rpnet
-from jstarid.algorithms.rpnet import data, inference, model, pattern, train
+from jstarid.algorithms.rpnet import checkpoint, data, inference, model, pattern, train
 from jstarid.algorithms.rpnet.identify import (
     PAIRS,
     anchor_names,
@@ -243,7 +243,7 @@ def test_training_lowers_losses_and_classifies(tiny):
 def test_checkpoint_round_trip_and_wrong_catalog(tiny, tmp_path):
     cat, cam, cfg, db, tables = tiny
     meta = train.checkpoint_meta(cat, cam, cfg, db.guide_rows)
-    path = train.save_checkpoint(tmp_path / "ck.msgpack", db.variables, meta)
+    path = checkpoint.save_checkpoint(tmp_path / "ck.msgpack", db.variables, meta)
     loaded = rpnet.load_database(path, cat, cam, cfg)
     jax.tree_util.tree_map(np.testing.assert_array_equal, loaded.variables, db.variables)
     a = train.predict_logits(loaded.variables, tables.clean[:8], config=cfg, n_classes=db.n_classes)

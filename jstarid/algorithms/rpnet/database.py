@@ -17,14 +17,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms.base import cache_key
+from jstarid.algorithms.rpnet.checkpoint import load_checkpoint, save_checkpoint
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.guide_catalog import guide_rows
 from jstarid.algorithms.rpnet.inference import InferenceWeights, fold_networks
 from jstarid.algorithms.rpnet.train import (
     checkpoint_meta,
     init_variables,
-    load_checkpoint,
-    save_checkpoint,
     train,
 )
 from jstarid.catalog import cache_dir
@@ -116,7 +115,7 @@ def build_database(catalog, camera, config: Config | None = None, *, cache: bool
     path = checkpoint_path(catalog, camera, config)
     history = None
     if cache and path.exists():
-        variables = load_checkpoint(path, config, meta)
+        variables = load_checkpoint(path, meta, _template(config, len(rows)))
     elif not train_if_missing:
         raise FileNotFoundError(f"no RpNet checkpoint at {path}; train with experiments/train_rpnet.py")
     else:
@@ -135,7 +134,8 @@ def load_database(path, catalog, camera, config: Config | None = None) -> Databa
     """A :class:`Database` from an explicit checkpoint file (``ValueError`` if built for another setup)."""
     config = Config() if config is None else config
     rows = guide_rows(catalog, config)
-    variables = load_checkpoint(path, config, checkpoint_meta(catalog, camera, config, rows))
+    variables = load_checkpoint(path, checkpoint_meta(catalog, camera, config, rows),
+                                _template(config, len(rows)))
     return _database(catalog, camera, config, rows, variables, None, Path(path))
 
 
@@ -147,6 +147,11 @@ def database_from_variables(catalog, camera, config: Config, variables: dict) ->
     if jax.tree.map(jnp.shape, variables) != jax.tree.map(lambda a: a.shape, expected):
         raise ValueError("variables do not have the shapes of this config's networks and guide catalog")
     return _database(catalog, camera, config, rows, variables, None, None)
+
+
+def _template(config: Config, n_classes: int) -> dict:
+    """Variables of the right structure for reading a checkpoint."""
+    return init_variables(jax.random.key(0), config, n_classes)
 
 
 def _database(catalog, camera, config, rows, variables, history, path) -> Database:

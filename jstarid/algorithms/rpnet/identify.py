@@ -48,7 +48,7 @@ reductions (:func:`jstarid.completion.first_argmax`), and scenes are sorted by t
 detection columns so that each chunk is cut to the width it needs (:data:`WIDTH_STEP`); each chunk's
 scenes are split over every JAX device (:func:`jstarid.runtime.map_batch`; the results equal the
 one-device call); every chunk of a pass is dispatched before any result is read back, so the devices
-do not idle while the host collects a chunk (+15–20 % scenes/s on 2 cores, README); the
+do not idle while the host collects a chunk; the
 verification's 3-term products are written out (:func:`jstarid.geometry.precise.small_matmul`).
 The kernels compile for :meth:`Config.compiled` (the config with its thresholds and host-loop
 settings reset) and read the tolerances, counts and weights as traced values

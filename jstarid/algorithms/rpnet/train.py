@@ -1,4 +1,4 @@
-"""RpNet training in two stages (§II-D, Fig. 5) and checkpoints tied to catalog, camera and config.
+"""RpNet training in two stages (§II-D, Fig. 5).
 
 Stage 1 trains the pattern generation network, a denoising autoencoder (generator + decoder), on
 (noisy input → clean input) with the MSE loss of eq. 5. Stage 2 freezes the generator and trains the
@@ -8,9 +8,8 @@ samples per guide star become an endless stream of them); a held-out batch from 
 the progress-bar metrics and the classifier's early stopping.
 
 The model variables are one dict ``{"generator": …, "decoder": …, "classifier": {"params": …,
-"batch_stats": …}}`` of arrays. Checkpoints are msgpack files (``flax.serialization``) that carry the
-fingerprints of the catalog, the camera and the network-shaping config; loading one for another
-catalog, camera or config raises ``ValueError``.
+"batch_stats": …}}`` of arrays. :func:`checkpoint_meta` gives the fingerprints (catalog, camera,
+network-shaping config, guide list) that every checkpoint and snapshot carries (:mod:`.checkpoint`).
 """
 
 from __future__ import annotations
@@ -21,13 +20,13 @@ import hashlib
 import json
 from pathlib import Path
 
-import flax.serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 from tqdm.auto import tqdm
 
+from jstarid.algorithms.rpnet.checkpoint import Snapshot, load_snapshot, save_snapshot
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.data import FAMILIES, build_tables, make_batch
 from jstarid.algorithms.rpnet.model import (
@@ -39,10 +38,9 @@ from jstarid.algorithms.rpnet.model import (
     l2_penalty,
     mse_loss,
 )
-from jstarid.algorithms.rpnet.snapshot import Snapshot, load_snapshot, save_snapshot
 
 __all__ = ["batch_source", "checkpoint_meta", "clf_learning_rate", "clf_loss_fn", "dae_loss_fn",
-           "init_variables", "load_checkpoint", "predict_logits", "save_checkpoint", "train"]
+           "init_variables", "predict_logits", "train"]
 
 
 def _modules(config: Config, n_classes: int, dot_general=None):
@@ -176,7 +174,7 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
         guide_rows: (K,) catalog rows of the classes.
         progress: show tqdm progress bars (loss, held-out metrics).
         variables: start from these variables instead of a fresh initialisation.
-        snapshot_path: optional file for training snapshots (:mod:`.snapshot`): written every
+        snapshot_path: optional file for training snapshots (:mod:`.checkpoint`): written every
             ``snapshot_every`` steps of each stage and at the end of stage 1; when it exists at
             the start, training resumes from it (same result as an uninterrupted run). The caller
             deletes it once the final checkpoint is safe.
@@ -283,33 +281,3 @@ def checkpoint_meta(catalog, camera, config: Config, guide_rows) -> dict[str, st
         "guides": hashlib.sha256(rows.tobytes()).hexdigest()[:16],
         "n_classes": str(len(rows)),
     }
-
-
-def save_checkpoint(path, variables: dict, meta: dict[str, str]) -> Path:
-    """Write ``variables`` and ``meta`` (from :func:`checkpoint_meta`) as msgpack (atomic rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    state = flax.serialization.to_state_dict(jax.tree_util.tree_map(np.asarray, variables))
-    data = flax.serialization.msgpack_serialize({"meta": dict(meta), "variables": state})
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
-    return path
-
-
-def load_checkpoint(path, config: Config, meta: dict[str, str]) -> dict:
-    """Read a checkpoint and check that it was built for ``meta`` (catalog, camera, config, guides).
-
-    Raises:
-        ValueError: the checkpoint belongs to another catalog, camera, config or guide list.
-        FileNotFoundError: no such file.
-    """
-    raw = flax.serialization.msgpack_restore(Path(path).read_bytes())
-    saved = raw.get("meta", {})
-    for name in ("catalog", "camera", "config", "guides", "n_classes"):
-        if saved.get(name) != meta[name]:
-            raise ValueError(f"RpNet checkpoint {path} was built for another {name} "
-                             f"({saved.get(name)!r}, expected {meta[name]!r}); rebuild the database")
-    template = init_variables(jax.random.key(0), config, int(meta["n_classes"]))
-    restored = flax.serialization.from_state_dict(template, raw["variables"])
-    return jax.tree_util.tree_map(jnp.asarray, restored)

@@ -180,7 +180,7 @@ class Config:
     def paper(cls, **overrides) -> Config:
         """The paper's algorithm alone: Table 1 parameters, no ``verify``, no ``leftover_tol_deg``
         (``prune`` stays: it changes only the work). Returns, id for id, what a plain
-        re-implementation of the paper (``experiments/sgm_numpy_reference.py``) returns."""
+        re-implementation of the paper (:mod:`~jstarid.algorithms.sgm.reference`) returns."""
         return cls(**{"verify": False, "leftover_tol_deg": None, **overrides})
 
     def tuning(self) -> Tuning:

@@ -4,7 +4,7 @@ Per scene: main star I = the valid detection nearest the principal point; its ne
 the unprojected centroids within r; w_I by the same Prim MST as the database; the dynamic Δw search
 (:mod:`.search`) over database graphs; and every detection of G_I — the main star included — is named
 through the vertex correspondence of the best match, never through the candidate's main-star label
-(≈7 % of main stars have a twin graph holding the same stars, SPEC §7 pitfall 2). Detections outside
+(≈7 % of main stars have a twin graph holding the same stars, conventions §7 pitfall 2). Detections outside
 the neighbor circle, and vertices left unmatched (e.g. a false star when n_I > n_J), get −1.
 
 Two optional steps that are not in the paper (see :class:`Config`; the second is on by default):

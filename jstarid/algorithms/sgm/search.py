@@ -27,20 +27,12 @@ candidate whose bound exceeds ε_δ can never succeed and is pruned. Once a succ
 at level l*, a candidate below l* is still matched (it could succeed and lower l*), but one at l*
 whose bound exceeds δ* can neither be the argmin nor change l*: it is *deferred* (left unmatched).
 To find a small δ* early, each step first matches every scene's candidate with the smallest bound.
-The outcome is the loop's; only the work shrinks (``experiments/bench_sgm.py --batch 300``
-prints the spectral matchings per scene: 7.23 / 29.27 / 68.62 at σ = 0 / 1 / 3 px without the
-branch and bound, 2.34 / 19.33 / 52.22 with the row bound alone, 1.12 / 18.52 / 52.07 with both
-stages; the ids and J* were identical).
+The outcome is the loop's; only the work shrinks (``experiments/bench_sgm.py`` prints the spectral
+matchings per scene; ``docs/design/sgm.md`` compares the stages).
 
-Why the search keeps Algorithm 1's order instead of matching by bound. A best-first search (match
-each scene's candidates in ascending bound order over the whole Δw_max window and accept the first
-δ ≤ ε_δ) is not the paper's, and was tried to see whether it would pay (one-off scratch run,
-session 26, 300 scenes at σ = 1 px, default Config, before the post-match verification, at most
-400 matchings per scene): it ran 55.0 spectral matchings per scene (median 15, 99th percentile
-375) against Algorithm 1's 17.2, and named the wrong main star in 20.7 % of the scenes against
-8.7 % (at σ = 3 px: 145.5 matchings, median 107, against 51.4, and 22.3 % wrong against 10.0 %).
-The bound ranks candidates worse than |w_J − w_I| does (a window held 2,247 candidates per scene,
-658 of them with a bound ≤ ε_δ), so it serves to prune, not to order.
+Why the search keeps Algorithm 1's order instead of matching by bound: ordering by the bound
+(best-first) needed about three times the matchings and named the wrong main star about twice as
+often before the verification (``docs/design/sgm.md``); the bound serves to prune, not to order.
 
 Resumption. The search keeps δ of every candidate it has matched and the bound of every deferred
 one (:class:`SearchState`). When the post-match verification rejects the answer J*

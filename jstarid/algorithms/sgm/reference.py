@@ -1,10 +1,12 @@
-"""A straightforward NumPy SGM, as a researcher would first write it — the baseline of bench_sgm.py.
+"""A straightforward NumPy SGM, as a researcher would first write it: the paper's algorithm alone,
+independent of the JAX code, and the baseline of ``experiments/bench_sgm.py``.
 
 One scene at a time, Python loops: main star nearest the image centre, neighbor graph and Prim MST in
 NumPy, Algorithm 1's Δw loop over the sorted database weights, and for every candidate the affinity
 matrix of eq. 2, its principal eigenvector by ``np.linalg.eig`` (as in the authors' code), greedy
 binarization and the error of eq. 5. It reads the same database arrays (``adj``, ``n``, ``w``,
-``members``) as ``jstarid.algorithms.sgm``; no pruning, no verification.
+``members``) as :mod:`jstarid.algorithms.sgm` and gives, id for id, the names ``sgm.identify``
+gives with ``Config.paper()``; no pruning, no verification. Host NumPy in float64 throughout.
 """
 
 from __future__ import annotations
@@ -20,10 +22,10 @@ def neighbor_graph(xy, valid, camera, radius_deg):
     v = np.stack([(xy[:, 0] - camera.cx) / camera.f_px, (xy[:, 1] - camera.cy) / camera.f_px,
                   np.ones(xy.shape[0])], axis=1)
     v /= np.linalg.norm(v, axis=1, keepdims=True)
-    ang = np.degrees(np.arccos(np.clip(v[idx] @ v[main], -1, 1)))
+    ang = np.degrees(np.arccos(np.clip(np.matmul(v[idx], v[main]), -1, 1)))
     members = np.concatenate([[main], idx[(ang <= radius_deg) & (idx != main)]])
     u = v[members]
-    adj = np.degrees(np.arccos(np.clip(u @ u.T, -1, 1)))
+    adj = np.degrees(np.arccos(np.clip(np.matmul(u, u.T), -1, 1)))
     np.fill_diagonal(adj, 0.0)
     return members, adj
 

@@ -1,0 +1,241 @@
+"""The experiment harness: one results layout, one config style, timing, memory and provenance.
+
+Every experiment (the scripts in ``experiments/``, the CLI, a notebook) writes the same directory::
+
+    results/<name>/
+        config.json    the settings, the seed, and where the figures come from (commit, machine,
+                       command line, date)
+        results.json   the measured values (rows of a table, per-level rates, timings)
+        table.md       the human-readable table
+        *.png          figures, drawn from results.json only (never recomputed)
+
+Algorithm settings are changed with one style everywhere: ``--set FIELD=VALUE`` (VALUE is JSON,
+e.g. ``--set max_error_deg=0.2 verify=false``), checked against the config's fields
+(:func:`with_overrides`).
+
+Usage::
+
+    from jstarid import experiment as ex
+
+    parser = ex.parser("Reproduce Fig. 6", out="results/fig6")   # --out --seed --quick --set
+    args = parser.parse_args()
+    config = ex.with_overrides(mlv.Config(), args.set)
+    with ex.Stopwatch() as clock:
+        ...
+    ex.write(args.out, config={"algorithm": config, "seed": args.seed}, results=results,
+             table=ex.markdown_table(rows, [("level", "σ (px)", "{:g}"), ...]))
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+__all__ = ["Stopwatch", "load", "machine", "markdown_table", "parser", "peak_rss_mb", "provenance",
+           "time_call", "to_json", "with_overrides", "write"]
+
+
+def parser(description: str, *, out: str, seed: int = 0, quick: str | None = None) -> argparse.ArgumentParser:
+    """An ``argparse`` parser with the options every experiment shares.
+
+    Args:
+        description: first line of ``--help``.
+        out: default results directory (``--out``).
+        seed: default PRNG seed (``--seed``).
+        quick: help text of ``--quick`` (a smaller run); ``None``: no ``--quick``.
+
+    Returns:
+        The parser; add the experiment's own options to it.
+    """
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--out", type=Path, default=Path(out), help=f"results directory (default {out})")
+    p.add_argument("--seed", type=int, default=seed, help=f"PRNG seed (default {seed})")
+    if quick is not None:
+        p.add_argument("--quick", action="store_true", help=quick)
+    p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="algorithm Config overrides, VALUE in JSON (e.g. max_error_deg=0.2 verify=false)")
+    return p
+
+
+def with_overrides(config, items: Sequence[str] | Mapping[str, Any] | None):
+    """``config`` with fields replaced from ``["field=json", …]`` (or a mapping).
+
+    Raises:
+        ValueError: an item without ``=``, a value that is not JSON, or an unknown field (the
+            message lists the config's fields).
+    """
+    if not items:
+        return config
+    fields = {f.name for f in dataclasses.fields(config)}
+    changes = {}
+    for name, value in (items.items() if isinstance(items, Mapping) else map(_split, items)):
+        if name not in fields:
+            raise ValueError(f"{type(config).__name__} has no field {name!r}; "
+                             f"fields: {', '.join(sorted(fields))}")
+        current = getattr(config, name)
+        changes[name] = tuple(value) if isinstance(current, tuple) and isinstance(value, list) else value
+    return dataclasses.replace(config, **changes)
+
+
+def _split(item: str) -> tuple[str, Any]:
+    if "=" not in item:
+        raise ValueError(f"override {item!r} is not FIELD=VALUE")
+    name, text = item.split("=", 1)
+    try:
+        return name.strip(), json.loads(text)
+    except json.JSONDecodeError:
+        raise ValueError(f"override {item!r}: VALUE must be JSON (e.g. 0.2, true, null, [1, 2])") from None
+
+
+class Stopwatch:
+    """Wall-clock seconds of a ``with`` block (``seconds`` after it closes).
+
+    Block on the arrays a timed block produces (``jax.block_until_ready``) inside it: JAX dispatches
+    asynchronously.
+    """
+
+    def __enter__(self) -> Stopwatch:
+        self.seconds = float("nan")
+        self._start = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.seconds = time.perf_counter() - self._start
+
+
+def time_call(fn: Callable[[int], Any], repeats: int = 3) -> tuple[float, float]:
+    """``(first, steady)`` seconds of ``fn(i)`` (i = call number, to vary the input): the first call
+    (compilation included) and the median of ``repeats`` further calls, each blocked until ready."""
+    with Stopwatch() as first:
+        jax.block_until_ready(fn(0))
+    steady = []
+    for i in range(repeats):
+        with Stopwatch() as clock:
+            jax.block_until_ready(fn(i + 1))
+        steady.append(clock.seconds)
+    return first.seconds, float(np.median(steady)) if steady else float("nan")
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far (MiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def machine() -> dict:
+    """What the figures were measured on: host, CPU count, JAX backend, devices and versions."""
+    devices = jax.devices()
+    return {"host": platform.node(), "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(), "backend": jax.default_backend(),
+            "devices": f"{len(devices)} × {devices[0].device_kind}", "jax": jax.__version__,
+            "python": platform.python_version()}
+
+
+def _git_commit() -> str | None:
+    root = Path(__file__).resolve().parent.parent
+    try:
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                             text=True, timeout=5, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "jstarid"],
+                               capture_output=True, text=True, timeout=5, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return f"{out}+changes" if dirty else out
+
+
+def provenance() -> dict:
+    """Commit (``+changes`` when the package has uncommitted edits), machine, command line, date."""
+    return {"commit": _git_commit(), "machine": machine(), "command": " ".join(sys.argv),
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
+
+
+def to_json(value):
+    """A JSON-ready copy of ``value``: dataclasses (configs, cameras) as dicts, NumPy/JAX arrays
+    and scalars as lists and numbers, non-finite floats as ``None``, paths as strings."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_json(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, Mapping):
+        return {str(k): to_json(v) for k, v in value.items()}
+    if isinstance(value, tuple | list):
+        return [to_json(v) for v in value]
+    if isinstance(value, np.ndarray | jax.Array):
+        return to_json(np.asarray(value).tolist())
+    if isinstance(value, np.generic):
+        return to_json(value.item())
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def write(out: str | Path, *, config: Mapping, results: Mapping, table: str | None = None,
+          figures: Mapping[str, Callable[[dict, Path], None]] | None = None) -> Path:
+    """Write an experiment's directory (see the module docstring).
+
+    Args:
+        out: the results directory (created).
+        config: the settings (configs, seed, sizes); :func:`provenance` is added under
+            ``"provenance"``.
+        results: the measured values.
+        table: markdown for ``table.md`` (:func:`markdown_table`).
+        figures: ``{"name.png": draw}``; each ``draw(results, path)`` is called with the results
+            as read back from ``results.json``, so a figure shows only what was saved.
+
+    Returns:
+        The directory.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(to_json({**config, "provenance": provenance()}), indent=2))
+    (out / "results.json").write_text(json.dumps(to_json(results), indent=2))
+    if table is not None:
+        (out / "table.md").write_text(table.rstrip() + "\n")
+    if figures:
+        _, saved = load(out)
+        for name, draw in figures.items():
+            draw(saved, out / name)
+    return out
+
+
+def load(out: str | Path) -> tuple[dict, dict]:
+    """``(config, results)`` as written by :func:`write`."""
+    out = Path(out)
+    return json.loads((out / "config.json").read_text()), json.loads((out / "results.json").read_text())
+
+
+def markdown_table(rows: Sequence[Mapping], columns: Sequence[tuple[str, str, str]], *,
+                   title: str | None = None, note: str | None = None) -> str:
+    """A markdown table of ``rows``.
+
+    Args:
+        rows: dicts holding the columns' keys.
+        columns: ``(key, header, format)`` per column, e.g. ``("misid_rate", "misid %", "{:.2%}")``;
+            a missing or ``None`` value prints as ``–``.
+        title: a ``#`` heading above the table. note: a paragraph below it.
+    """
+    lines = [f"# {title}", ""] if title else []
+    lines += ["| " + " | ".join(h for _, h, _ in columns) + " |",
+              "|" + "|".join("---" for _ in columns) + "|"]
+    for row in rows:
+        cells = []
+        for key, _, fmt in columns:
+            value = row.get(key)
+            cells.append("–" if value is None else fmt.format(value))
+        lines.append("| " + " | ".join(cells) + " |")
+    if note:
+        lines += ["", note]
+    return "\n".join(lines) + "\n"
