@@ -81,7 +81,7 @@ def main(argv=None) -> dict:
     g, usable = _graphs(scenes, db, base)
     with ex.Stopwatch() as clock:
         errors = tuning.candidate_errors(db, g, usable, base, args.cs, max(args.eps))
-        ok, rank = tuning.replay_algorithm1(errors["level"], errors["error"], args.eps)
+        ok, rank = tuning.replay_algorithm1(errors.level, errors.error, args.eps)
         ids = tuning.grid_identifications(db, g, errors, ok, rank, scenes.xy.shape[1])
     grid = []
     for ci, c in enumerate(args.cs):
@@ -92,8 +92,8 @@ def main(argv=None) -> dict:
                          "failure_rate": ev["failure_rate"], "misid_rate": ev["misid_rate"],
                          "identification_rate": ev["identification_rate"]})
     results = {"sigma_px": args.sigma, "fig11": fig11, "grid": grid, "grid_seconds": clock.seconds,
-               "candidates": int(np.sum(errors["cand"] >= 0)),
-               "matched_pairs": int(np.sum(np.isfinite(errors["error"][..., 0])))}
+               "candidates": int(np.sum(errors.cand >= 0)),
+               "matched_pairs": int(np.sum(np.isfinite(errors.error[..., 0])))}
     text = table(results, n, args.seed)
     ex.write(args.out, config={"scenes": n, "seed": args.seed, "sigma_px": args.sigma, "cs": args.cs,
                                "eps": args.eps, "dw_sigmas": paper.SIGMAS, "capacity": paper.CAPACITY,

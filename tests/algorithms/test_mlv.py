@@ -310,8 +310,8 @@ def test_batched_matches_per_scene_and_capacity(catalog, database):
     for i in range(4):  # the per-scene core, without vmap
         out = one(scenes.xy[i, :n], scenes.valid[i, :n], database, CFG, diag.capacity,
                   scenes.xy[i], scenes.valid[i])
-        np.testing.assert_array_equal(np.asarray(out["ids"]), np.asarray(batched.ids[i, :n]))
-        assert bool(out["ok"]) == bool(batched.ok[i])
+        np.testing.assert_array_equal(np.asarray(out.ids), np.asarray(batched.ids[i, :n]))
+        assert bool(out.ok) == bool(batched.ok[i])
     # capacity 32 vs 64: the same answer
     small = js.Scene(xy=scenes.xy[:, :32], mag=scenes.mag[:, :32], truth=scenes.truth[:, :32],
                      valid=scenes.valid[:, :32], attitude=scenes.attitude,

@@ -280,8 +280,13 @@ def test_search_resumed_after_a_rejection_equals_algorithm1_without_that_candida
         for s in redo:
             struck[s].add(int(out.best[s]))
         work, was_deferred = state.covered.copy(), state.deferred.copy()
+        previous, err_before, matches_before = state, state.err.copy(), dict(state.matches)
         state = search.advance_search(db, g, search.reject_best(state, out, redo), cfg,
                                       np.isin(np.arange(rows.size), redo))
+        # updates return a new state: the one passed in is left as it was
+        np.testing.assert_array_equal(previous.err, err_before)
+        np.testing.assert_array_equal(previous.covered, work)
+        assert previous.matches.keys() == matches_before.keys()
         recalled += int(np.sum(was_deferred & ~state.deferred))
         out = search.search_outcome(state, cfg, g.mask.shape[1])
         for s in range(rows.size):
@@ -593,7 +598,7 @@ def test_grid_replay_equals_separate_searches(setup5):
     rows, scenes, g, usable = _noisy_graphs(setup5, base, n=6, seed=3, key=9)
     cs, eps = [1.0, 1.74], [0.05, 0.1, 0.4]
     errors = tuning.candidate_errors(db, g, usable, base, cs, max(eps))
-    ok, rank = tuning.replay_algorithm1(errors["level"], errors["error"], eps)
+    ok, rank = tuning.replay_algorithm1(errors.level, errors.error, eps)
     ids = tuning.grid_identifications(db, g, errors, ok, rank, scenes.xy.shape[1])
     # each separate search compiles anew (c and ε_δ are static config), so three of the six grid
     # points are replayed: both c, all three ε_δ
@@ -602,7 +607,7 @@ def test_grid_replay_equals_separate_searches(setup5):
         res, info = sgm.identify(db, scenes, dataclasses.replace(base, c=c, max_error_deg=e),
                                  with_attitude=False, diagnostics=True)
         np.testing.assert_array_equal(ok[:, ci, ei], np.asarray(res.ok))
-        best = np.where(ok[:, ci, ei], errors["cand"][np.arange(rows.size), rank[:, ci, ei]], -1)
+        best = np.where(ok[:, ci, ei], errors.cand[np.arange(rows.size), rank[:, ci, ei]], -1)
         np.testing.assert_array_equal(best, info.best)
         np.testing.assert_array_equal(ids[:, ci, ei], np.asarray(res.ids))
     assert ok.any() and not ok.all()  # the grid has successes and failures

@@ -60,7 +60,37 @@ from jstarid.algorithms.mlv.voting import (
 from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, take_rows
 from jstarid.scene import Identification, Scene
 
-__all__ = ["Diagnostics", "default_pool", "identify", "identify_scene"]
+__all__ = ["Diagnostics", "SceneResult", "default_pool", "identify", "identify_scene"]
+
+
+class SceneResult(NamedTuple):
+    """What :func:`identify_scene` returns for one scene (a leading batch axis when batched).
+
+    Attributes:
+        ids: (N,) int32 catalog rows of the N brightest detections (−1 = not identified).
+        ok: () bool. overflow: () bool, some triangle had more than K candidates.
+        attitude: (3, 3) float32 C fitted to the named stars (Wahba; NaN when not ``ok``).
+        n_overflow: () int32 such triangles. n_candidates: (T,) int32 candidates per triangle.
+        candidates: (N,) int32 catalog row voted for each detection (−1 none). votes: (N,) int32.
+        cluster_size: () int32 largest verified cluster.
+        field_predicted, field_seen: () int32 the field check's counts (0 when off).
+        pool_total: () int32 candidates of the voting triangles.
+        pool_overflow: () bool, the shared buffer P (or the side-checked buffer Q) overflowed.
+    """
+
+    ids: jax.Array
+    ok: jax.Array
+    overflow: jax.Array
+    attitude: jax.Array
+    n_overflow: jax.Array
+    n_candidates: jax.Array
+    candidates: jax.Array
+    votes: jax.Array
+    cluster_size: jax.Array
+    field_predicted: jax.Array
+    field_seen: jax.Array
+    pool_total: jax.Array
+    pool_overflow: jax.Array
 
 
 class Diagnostics(NamedTuple):
@@ -157,10 +187,7 @@ def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_x
             ``None``: ``config.th1``.
 
     Returns:
-        dict of per-scene arrays: ``ids`` (N,) int32 catalog rows (−1 = not identified), ``ok``,
-        ``attitude`` (3, 3) C fitted to the named stars (Wahba; NaN when not ``ok``),
-        ``overflow``, ``n_overflow``, ``n_candidates`` (T,), ``candidates`` (N,), ``votes`` (N,),
-        ``cluster_size``, ``pool_total`` (candidates of the voting triangles), ``pool_overflow``.
+        :class:`SceneResult`.
     """
     n = xy.shape[0]
     n_ref = db.star_rows.shape[0]
@@ -232,15 +259,12 @@ def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_x
     else:
         n_pred = n_seen = jnp.int32(0)
     ids = jnp.where(ok & members, db.star_rows[cand], -1)
-    return {
-        "ids": ids.astype(jnp.int32), "ok": ok, "overflow": jnp.any(overflow),
-        "attitude": jnp.where(ok, att, jnp.nan).astype(jnp.float32),
-        "n_overflow": jnp.sum(overflow, dtype=jnp.int32),
-        "n_candidates": jnp.where(tri_valid, total, 0),
-        "candidates": jnp.where(has_cand, db.star_rows[cand], -1), "votes": n_votes,
-        "cluster_size": size, "field_predicted": n_pred, "field_seen": n_seen,
-        "pool_total": pool_total, "pool_overflow": pool_overflow,
-    }
+    return SceneResult(
+        ids=ids.astype(jnp.int32), ok=ok, overflow=jnp.any(overflow),
+        attitude=jnp.where(ok, att, jnp.nan).astype(jnp.float32),
+        n_overflow=jnp.sum(overflow, dtype=jnp.int32), n_candidates=jnp.where(tri_valid, total, 0),
+        candidates=jnp.where(has_cand, db.star_rows[cand], -1), votes=n_votes, cluster_size=size,
+        field_predicted=n_pred, field_seen=n_seen, pool_total=pool_total, pool_overflow=pool_overflow)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "capacity", "pool", "th1_max"))
@@ -255,17 +279,6 @@ def _identify_batch(xy, valid, all_xy, all_valid, tuning, db, config, capacity, 
         return jax.vmap(one)(args)
     # vmapped groups of map_batch scenes in a loop: the (group, P) candidate arrays stay in cache
     return jax.lax.map(one, args, batch_size=config.map_batch)
-
-
-# the outputs of identify_scene, in the order the batched kernel returns them
-_KEYS = ("ids", "ok", "overflow", "attitude", "n_overflow", "n_candidates", "candidates", "votes",
-         "cluster_size", "field_predicted", "field_seen", "pool_total", "pool_overflow")
-
-
-def _identify_rows(xy, valid, all_xy, all_valid, tuning, db, **static):
-    """:func:`_identify_batch` with its outputs as a tuple in :data:`_KEYS` order."""
-    out = _identify_batch(xy, valid, all_xy, all_valid, tuning, db, **static)
-    return tuple(out[key] for key in _KEYS)
 
 
 def _kernel_config(config: Config) -> Config:
@@ -363,11 +376,11 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     def run(rows, k, pool, size):
         nonlocal out
         # the scenes split over every device (one per CPU core after js.use_cpu_cores())
-        out = run_calls(_identify_rows, chunk_calls(rows, size), lambda c: take_rows(batched, c),
+        out = run_calls(_identify_batch, chunk_calls(rows, size), lambda c: take_rows(batched, c),
                         (database,), static=dict(static, capacity=k, pool=pool), n_rows=b,
                         tails=tails, fills=[0] * len(tails), out=out)
         capacity_of[rows], pool_of[rows] = k, pool
-        return out[_KEYS.index("overflow")][rows]
+        return out[SceneResult._fields.index("overflow")][rows]
 
     # a triangle with more than K candidates is flagged: those scenes run again with a doubled K,
     # up to max_candidate_capacity (K changes nothing for scenes that never overflow it)
@@ -378,7 +391,8 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     # rare (≈ 0.2 % of scenes): candidates beyond the shared buffer P; those scenes run again with a
     # doubled P, up to P = T·K (which cannot overflow), _REDO scenes per call
     while True:
-        redo = np.flatnonzero(out[_KEYS.index("pool_overflow")] & (pool_of < t * capacity_of))
+        redo = np.flatnonzero(out[SceneResult._fields.index("pool_overflow")]
+                              & (pool_of < t * capacity_of))
         if not redo.size:
             break
         for k in np.unique(capacity_of[redo]):
@@ -386,22 +400,22 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
             for pool in np.unique(pool_of[rows]):
                 sub = rows[pool_of[rows] == pool]
                 run(sub, int(k), int(min(2 * pool, t * k)), _REDO)
-    out = {key: jnp.asarray(value) for key, value in zip(_KEYS, out, strict=True)}
-    if bool(jnp.any(out["overflow"])):
-        warnings.warn(f"MLV: {int(jnp.sum(out['overflow']))} scenes had triangles with more than "
+    out = SceneResult(*(jnp.asarray(value) for value in out))
+    if bool(jnp.any(out.overflow)):
+        warnings.warn(f"MLV: {int(jnp.sum(out.overflow))} scenes had triangles with more than "
                       f"{config.max_candidate_capacity} candidates (those triangles cast no vote)",
                       stacklevel=2)
     n = config.n_stars
-    ids = jnp.full((b, cap), -1, jnp.int32).at[:, : min(n, cap)].set(out["ids"][:, :cap])
-    result = Identification(ids=ids, ok=out["ok"], attitude=out["attitude"])
+    ids = jnp.full((b, cap), -1, jnp.int32).at[:, : min(n, cap)].set(out.ids[:, :cap])
+    result = Identification(ids=ids, ok=out.ok, attitude=out.attitude)
     if not diagnostics:
         return result
-    diag = Diagnostics(n_candidates=jnp.sum(out["n_candidates"], axis=1, dtype=jnp.int32),
-                       overflow=out["overflow"] | scenes.overflow,
-                       candidate_overflow=out["overflow"], n_overflow_triangles=out["n_overflow"],
-                       triangle_candidates=out["n_candidates"], candidates=out["candidates"],
-                       votes=out["votes"], cluster_size=out["cluster_size"],
-                       field_predicted=out["field_predicted"], field_seen=out["field_seen"],
+    diag = Diagnostics(n_candidates=jnp.sum(out.n_candidates, axis=1, dtype=jnp.int32),
+                       overflow=out.overflow | scenes.overflow,
+                       candidate_overflow=out.overflow, n_overflow_triangles=out.n_overflow,
+                       triangle_candidates=out.n_candidates, candidates=out.candidates,
+                       votes=out.votes, cluster_size=out.cluster_size,
+                       field_predicted=out.field_predicted, field_seen=out.field_seen,
                        capacity=k_used)
     return result, diag
 

@@ -471,11 +471,12 @@ class SearchState:
     n_rejected: np.ndarray
     image: ImageTables | None
 
-    def copy(self) -> SearchState:
-        """A new state with its own arrays and match table (the image tables are shared: read-only)."""
-        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        return SearchState(**{k: (v.copy() if isinstance(v, np.ndarray | dict) else v)
-                              for k, v in fields.items()})
+    def copy(self, fields: tuple[str, ...] | None = None) -> SearchState:
+        """A new state whose ``fields`` (default: every array and the match table) are copies; the
+        other fields are shared with this one (the caller must not write to those)."""
+        names = [f.name for f in dataclasses.fields(self)] if fields is None else fields
+        return dataclasses.replace(self, **{n: getattr(self, n).copy() for n in names
+                                            if isinstance(getattr(self, n), np.ndarray | dict)})
 
 
 def start_search(db, graphs: ImageGraph, usable: np.ndarray, config: Config) -> SearchState:
@@ -655,7 +656,9 @@ def advance_search(db, graphs: ImageGraph, state: SearchState, config: Config,
     Returns:
         The new :class:`SearchState`.
     """
-    state = state.copy()  # the steps below update this private copy
+    # the steps below write to these fields of a private copy (the candidate order is shared)
+    state = state.copy(("err", "bound", "refined", "deferred", "covered", "matches", "n_matched",
+                        "n_pruned"))
     b = state.cand.shape[0]
     todo = np.ones(b, bool) if active is None else np.asarray(active, bool).copy()
     rows_all = np.nonzero(todo)[0]
@@ -722,7 +725,7 @@ def reject_best(state: SearchState, outcome: SearchOutcome, rows: np.ndarray) ->
     A later :func:`advance_search` then goes on as Algorithm 1 would have without that candidate:
     the next best of the same l* prefix when another one has δ ≤ ε_δ, else further levels.
     """
-    state = state.copy()
+    state = state.copy(("err", "matches", "n_rejected"))
     rows = np.asarray(rows)
     rows = rows[outcome.ok[rows]]
     state.err[rows, outcome.rank[rows]] = np.inf

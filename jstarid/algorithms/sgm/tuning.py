@@ -16,6 +16,7 @@ paper's algorithm.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +36,24 @@ from jstarid.algorithms.sgm.search import (
 )
 from jstarid.runtime import replicate
 
-__all__ = ["candidate_errors", "replay_algorithm1", "grid_identifications"]
+__all__ = ["CandidateErrors", "candidate_errors", "replay_algorithm1", "grid_identifications"]
+
+
+class CandidateErrors(NamedTuple):
+    """Matching errors of every candidate of the widest Δw window (:func:`candidate_errors`).
+
+    Attributes:
+        cand: (B, W) int32 database rows by rank (−1 past the window).
+        level: (B, W) int32 Δw level of each rank.
+        error: (B, W, C) float32 δ (deg; +inf when not a candidate or pruned), one column per c.
+        match: ``{(scene, rank, c index): (K,) int16}`` correspondences of the pairs with δ ≤ the
+            largest ε_δ (only those can be returned by Algorithm 1).
+    """
+
+    cand: np.ndarray
+    level: np.ndarray
+    error: np.ndarray
+    match: dict
 
 
 @functools.partial(jax.jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
@@ -57,7 +75,7 @@ def _match_pairs_grid(a_i, n_i, cand, db_adj, db_n, cs, *, p, q, n_iter, tol, mi
 
 
 def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_error_deg: float,
-                     *, block: int = 256):
+                     *, block: int = 256) -> CandidateErrors:
     """Matching errors of every candidate of the widest Δw window, for every c.
 
     Args:
@@ -72,10 +90,7 @@ def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_err
         block: candidate ranks handled per step.
 
     Returns:
-        dict: ``cand`` (B, W) int32 database rows by rank (−1 past the window), ``level`` (B, W)
-        int32 Δw level of each rank, ``error`` (B, W, C) float32 δ (deg; +inf when not a candidate
-        or pruned), ``match`` dict ``(scene, rank, c index) → (K,) int16`` correspondences of the
-        pairs with δ ≤ ``max_error_deg`` (only those can be returned by Algorithm 1).
+        :class:`CandidateErrors` (``match`` holds the pairs with δ ≤ ``max_error_deg``).
     """
     cs = np.asarray(cs, np.float32)
     b, k = graphs.mask.shape
@@ -113,8 +128,8 @@ def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_err
         error[s_idx, r_idx] = e
         for pair, ci in zip(*np.nonzero(e <= max_error_deg), strict=True):
             matches[(int(s_idx[pair]), int(r_idx[pair]), int(ci))] = m[pair, ci].astype(np.int16)
-    return {"cand": cand_all.astype(np.int32), "level": level_all.astype(np.int32), "error": error,
-            "match": matches}
+    return CandidateErrors(cand=cand_all.astype(np.int32), level=level_all.astype(np.int32), error=error,
+                           match=matches)
 
 
 def replay_algorithm1(level, error, eps):
@@ -157,8 +172,8 @@ def grid_identifications(db, graphs, errors: dict, ok, rank, n_detections: int):
     ids = np.full((b, n_c, n_e, n_detections), -1, np.int32)
     for s, ci, ei in zip(*np.nonzero(ok), strict=True):
         r = int(rank[s, ci, ei])
-        match = errors["match"][(int(s), r, int(ci))].astype(np.int64)
+        match = errors.match[(int(s), r, int(ci))].astype(np.int64)
         vert = np.nonzero(match >= 0)[0]
-        row = errors["cand"][s, r]
+        row = errors.cand[s, r]
         ids[s, ci, ei, graphs.members[s, vert]] = db.members[row, match[vert]]
     return ids
