@@ -79,9 +79,7 @@ def main(argv=None) -> list[dict]:
     args = parse_args(argv)
     rows = run(args)
     print(json.dumps(rows, indent=1))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(ex.to_json(rows), fh, indent=2)
+    ex.dump_json(args.json, rows)
     cfg = ex.with_overrides(mlv.Config.paper() if args.paper else mlv.Config(), args.set)
     ex.write(args.out, config={"args": vars(args), "mlv_config": cfg}, results={"rows": rows},
              table=ex.markdown_table(rows, COLUMNS, title="MLV throughput (mlv2021)"))

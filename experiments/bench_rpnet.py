@@ -201,9 +201,7 @@ def main(argv=None) -> list[dict]:
     args = parse_args(argv)
     rows = run(args)
     print(json.dumps(rows, indent=1))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(ex.to_json(rows), fh, indent=2)
+    ex.dump_json(args.json, rows)
     ex.write(args.out, config={"args": vars(args), "rpnet_config": make_config(args)}, results={"rows": rows},
              table=ex.markdown_table(rows, COLUMNS, title=f"RpNet throughput (`{args.network}` network)"))
     return rows

@@ -18,7 +18,6 @@ Writes results/bench_sgm/{config.json, results.json, table.md} (and the rows to 
 
 from __future__ import annotations
 
-import json
 import math
 
 import jax
@@ -147,9 +146,7 @@ def matching_tail(n_matched) -> dict:
 def main(argv=None) -> list[dict]:
     args = parse_args(argv)
     rows = run(args)
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(ex.to_json(rows), f, indent=2)
+    ex.dump_json(args.json, rows)
     ex.write(args.out, config={"args": vars(args), "sgm_config": ex.with_overrides(sgm.Config(), args.set)},
              results={"rows": rows}, table=ex.markdown_table(rows, COLUMNS, title="SGM throughput"))
     return rows

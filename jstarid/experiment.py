@@ -45,8 +45,8 @@ from typing import Any
 import jax
 import numpy as np
 
-__all__ = ["Stopwatch", "load", "machine", "markdown_table", "parser", "peak_rss_mb", "provenance",
-           "time_call", "to_json", "with_overrides", "write"]
+__all__ = ["Stopwatch", "dump_json", "load", "machine", "markdown_table", "parser", "peak_rss_mb",
+           "provenance", "time_call", "to_json", "with_overrides", "write"]
 
 
 def parser(description: str, *, out: str, seed: int = 0, quick: str | None = None) -> argparse.ArgumentParser:
@@ -209,6 +209,12 @@ def write(out: str | Path, *, config: Mapping, results: Mapping, table: str | No
         for name, draw in figures.items():
             draw(saved, out / name)
     return out
+
+
+def dump_json(path: str | Path | None, value) -> None:
+    """Write ``value`` (:func:`to_json`) to ``path``; nothing when ``path`` is ``None``."""
+    if path is not None:
+        Path(path).write_text(json.dumps(to_json(value), indent=2))
 
 
 def load(out: str | Path) -> tuple[dict, dict]:

@@ -38,7 +38,6 @@ checks over every registered name. ``docs/adding_an_algorithm.md`` walks through
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import inspect
 import json
@@ -49,6 +48,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import jax
 import numpy as np
 
+from jstarid.experiment import to_json
 from jstarid.scene import Identification, Scene
 
 __all__ = ["Algorithm", "DiagnosticsFields", "REQUIRED", "cache_key", "check_algorithm",
@@ -122,18 +122,6 @@ def check_algorithm(module: ModuleType, name: str | None = None) -> ModuleType:
     return module
 
 
-def _jsonable(value):
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, tuple | list):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
 def cache_key(algorithm: str, version: int, catalog, camera, fields: Mapping) -> str:
     """The one cache-key rule of every algorithm's database.
 
@@ -150,7 +138,7 @@ def cache_key(algorithm: str, version: int, catalog, camera, fields: Mapping) ->
     """
     payload = {"algorithm": algorithm, "version": int(version),
                "catalog": None if catalog is None else catalog.fingerprint,
-               "camera": _jsonable(camera), "fields": _jsonable(dict(fields))}
+               "camera": to_json(camera), "fields": to_json(dict(fields))}
     text = json.dumps(payload, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
 
