@@ -45,7 +45,7 @@ import numpy as np
 
 from jstarid import random_streams as streams
 from jstarid.attitude import random_rotation, rotation_from_boresight
-from jstarid.runtime import device_cache, map_batch, on_every_device, pad_rows
+from jstarid.runtime import device_cache, map_batch, map_by_width, on_every_device
 from jstarid.scene import Scene
 from jstarid.sky_index import build_sky_index, cell_of
 
@@ -259,16 +259,8 @@ def _candidate_widths(k: int) -> tuple[int, ...]:
     "camera", "capacity", "false_capacity", "max_missing", "false_disk", "widths"))
 def _scenes_chunked(seeds, noise, att, cell, cells, counts, star_vec, star_mag, star_row, *, camera,
                     capacity, false_capacity, max_missing, false_disk, widths):
-    """Steps 2–7 for a large batch: sort by candidate count, chunk, pick a width per chunk."""
-    b = cell.shape[0]
-    n_chunks = -(-b // _CHUNK)
-    order = jnp.argsort(counts[cell])
-    order = pad_rows(order, n_chunks * _CHUNK, mode="edge")
-    chunked = jax.tree.map(lambda a: a[order].reshape(n_chunks, _CHUNK, *a.shape[1:]),
-                           (seeds, noise, att, cell))
-    need = counts[cell][order].reshape(n_chunks, _CHUNK).max(axis=1)
-    branch = jnp.searchsorted(jnp.asarray(widths), need)  # first width ≥ the chunk's need
-
+    """Steps 2–7 for a large batch, in chunks sorted by candidate count, each with the narrowest
+    candidate list that holds it (:func:`jstarid.runtime.map_by_width`)."""
     def run(width):
         def fn(args):
             k, nz, a, c = args
@@ -278,11 +270,7 @@ def _scenes_chunked(seeds, noise, att, cell, cells, counts, star_vec, star_mag, 
                 n_candidates=width, adaptive=True)
         return fn
 
-    branches = [run(w) for w in widths]
-    out = jax.lax.map(lambda args: jax.lax.switch(args[0], branches, args[1]), (branch, chunked))
-    flat = jax.tree.map(lambda a: a.reshape(n_chunks * _CHUNK, *a.shape[2:]), out)
-    inverse = jnp.argsort(order[:b])
-    return jax.tree.map(lambda a: a[:b][inverse], flat)
+    return map_by_width(run, (seeds, noise, att, cell), counts[cell], widths, _CHUNK)
 
 
 def _device_tables(catalog):

@@ -72,3 +72,62 @@ def test_skip_padding_runs_live_entries_only():
     out = skip_padding(lambda x: (x * 2.0, x + 1.0), live, (calls,), (jnp.float32(-1), jnp.float32(-2)))
     np.testing.assert_array_equal(np.asarray(out[0]), [0, -1, 4, 6, -1, -1])
     np.testing.assert_array_equal(np.asarray(out[1]), [1, -2, 3, 4, -2, -2])
+
+
+def _square_rows(x, valid, scale):  # module level: map_batch caches the compiled call on the function
+    return jnp.where(valid, x * x * scale, -1.0), jnp.sum(valid, axis=-1)
+
+
+def test_run_calls_computes_every_row_once_whatever_the_plan():
+    """Sorted, padded, ragged-width calls give each row what one whole-batch call gives."""
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(23, 8)).astype(np.float32)
+    n = rng.integers(1, 9, 23)
+    valid = np.arange(8)[None, :] < n[:, None]
+    want = _square_rows(x, valid, 2.0)
+    order = np.argsort(n, kind="stable")
+    calls = js.runtime.chunk_calls(order, 5)
+    assert [c.rows.size for c in calls] == [5, 5, 5, 5, 3] and all(c.size == 5 for c in calls)
+
+    def args(call):  # each call cut to the widest of its rows
+        width = int(n[call.rows].max())
+        return js.runtime.take_rows((x[:, :width], valid[:, :width]), call)
+
+    got = js.runtime.run_calls(_square_rows, calls, args, (np.float32(2.0),), n_rows=23,
+                               tails=[(8,), ()], fills=[-1.0, 0])
+    np.testing.assert_array_equal(got[0], np.asarray(want[0]))
+    np.testing.assert_array_equal(got[1], np.asarray(want[1]))
+    # a plan of a subset leaves the other rows as they were in ``out``
+    part = js.runtime.run_calls(_square_rows, js.runtime.chunk_calls(np.array([3, 7]), 4), args,
+                                (np.float32(3.0),), n_rows=23, tails=[(8,), ()], fills=[-1.0, 0],
+                                out=[g.copy() for g in got])
+    changed = np.flatnonzero(np.any(part[0] != got[0], axis=1))
+    assert set(changed) <= {3, 7} and changed.size
+
+
+def test_grow_until_retries_only_flagged_rows():
+    need = np.array([3, 40, 9, 100, 1])
+    seen = []
+
+    def run(capacity, rows):
+        seen.append((capacity, rows.tolist()))
+        return need[rows] > capacity
+
+    assert js.runtime.grow_until(run, np.arange(5), 8, 64) == 64
+    assert seen == [(8, [0, 1, 2, 3, 4]), (16, [1, 2, 3]), (32, [1, 3]), (64, [1, 3])]
+
+
+def test_map_by_width_equals_the_full_width_map():
+    rng = np.random.default_rng(1)
+    x = jnp.asarray(rng.normal(size=(37, 16)).astype(np.float32))
+    need = jnp.asarray(rng.integers(1, 17, 37))
+
+    def make(width):  # a row's sum over its first `need` entries, read from `width` columns
+        def fn(args):
+            xs, ns = args
+            cols = jnp.arange(width)[None, :]
+            return jnp.sum(jnp.where(cols < ns[:, None], xs[:, :width], 0.0), axis=1)
+        return fn
+
+    got = jax.jit(lambda a, nd: js.runtime.map_by_width(make, (a, nd), nd, (4, 8, 16), 8))(x, need)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(make(16)((x, need))), rtol=1e-6)

@@ -3,16 +3,18 @@
 - :mod:`.devices`: split a batch over a 1-D device mesh (``map_batch``: pad to a multiple of the
   device count, ``shard_map``, unpad) and expose CPU cores as devices (``use_cpu_cores``);
 - :mod:`.batching`: run a kernel over a batch in calls of a few static sizes (``chunk_calls``,
-  ``run_calls``), retry flagged rows with a larger buffer (``grow_until``);
+  ``run_calls``), retry flagged rows with a larger buffer (``grow_until``), and inside one compiled
+  call run rows of different sizes in chunks of the narrowest width that holds them
+  (``map_by_width``);
 - :mod:`.padding`: the padding rule (``pad_rows``);
 - :mod:`.cache`: device copies and derived tables of long-lived objects (``DeviceCache``).
 """
 
-from jstarid.runtime.batching import Call, chunk_calls, grow_until, run_calls, take_rows
+from jstarid.runtime.batching import Call, chunk_calls, grow_until, map_by_width, run_calls, take_rows
 from jstarid.runtime.cache import DeviceCache, device_cache, on_every_device
 from jstarid.runtime.devices import batch_mesh, map_batch, replicate, shard_batch, use_cpu_cores
 from jstarid.runtime.padding import pad_rows
 
 __all__ = ["Call", "DeviceCache", "batch_mesh", "chunk_calls", "device_cache", "grow_until",
-           "map_batch", "on_every_device", "pad_rows", "replicate", "run_calls", "shard_batch",
-           "take_rows", "use_cpu_cores"]
+           "map_batch", "map_by_width", "on_every_device", "pad_rows", "replicate", "run_calls",
+           "shard_batch", "take_rows", "use_cpu_cores"]

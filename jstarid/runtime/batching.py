@@ -9,6 +9,10 @@ back to the rows they belong to. A kernel that flags an overflow of one of its f
 again on the flagged rows with a larger buffer (:func:`grow_until`). This module is that shell,
 written once.
 
+Inside one compiled call the same idea applies to rows of very different sizes:
+:func:`map_by_width` sorts the rows by the size they need, cuts them into chunks and runs each
+chunk with the smallest of a few widths that holds it.
+
 A :class:`Call` names the batch rows it computes, its padded size, where in the call each real row
 sits (``slots``; padding fills the rest) and its own static arguments (e.g. a column width).
 """
@@ -19,11 +23,13 @@ from collections.abc import Callable, Iterable, Sequence
 from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jstarid.runtime.devices import map_batch
+from jstarid.runtime.padding import pad_rows
 
-__all__ = ["Call", "chunk_calls", "grow_until", "run_calls", "take_rows"]
+__all__ = ["Call", "chunk_calls", "grow_until", "map_by_width", "run_calls", "take_rows"]
 
 
 class Call(NamedTuple):
@@ -145,3 +151,35 @@ def grow_until(run: Callable[[int, np.ndarray], np.ndarray], rows: np.ndarray, s
         if not flagged.any() or capacity >= limit:
             return capacity
         rows, capacity = rows[flagged], min(2 * capacity, limit)
+
+
+def map_by_width(make_fn: Callable[[int], Callable], args, need, widths: Sequence[int], chunk: int):
+    """``fn(args)`` over a batch whose rows need different widths, inside jit (traceable).
+
+    The rows are sorted by ``need``, cut into chunks of ``chunk`` rows (the last padded with copies
+    of the last row), and each chunk runs ``make_fn(w)`` for the smallest ``w`` in ``widths`` that
+    is ≥ its largest need (``lax.switch`` inside ``lax.map``); the results come back in the input
+    order. A row in a sparse chunk does not pay for the widest row of the batch.
+
+    Args:
+        make_fn: ``width → fn``; ``fn(chunk_args)`` maps a pytree of (chunk, …) arrays to a pytree
+            of (chunk, …) arrays, row by row (a row's result must not depend on the other rows).
+        args: pytree of (B, …) arrays.
+        need: (B,) int width each row needs.
+        widths: static ascending widths, the last ≥ every need.
+        chunk: static rows per chunk.
+
+    Returns:
+        The pytree of (B, …) results.
+    """
+    b = need.shape[0]
+    n_chunks = -(-b // chunk)
+    order = pad_rows(jnp.argsort(need), n_chunks * chunk, mode="edge")
+    chunked = jax.tree.map(lambda a: a[order].reshape(n_chunks, chunk, *a.shape[1:]), args)
+    most = need[order].reshape(n_chunks, chunk).max(axis=1)
+    branch = jnp.searchsorted(jnp.asarray(widths), most)  # first width ≥ the chunk's need
+    branches = [make_fn(w) for w in widths]
+    out = jax.lax.map(lambda a: jax.lax.switch(a[0], branches, a[1]), (branch, chunked))
+    flat = jax.tree.map(lambda a: a.reshape(n_chunks * chunk, *a.shape[2:]), out)
+    inverse = jnp.argsort(order[:b])
+    return jax.tree.map(lambda a: a[:b][inverse], flat)
