@@ -22,7 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.algorithms.sgm.config import Config
+from jstarid.algorithms.sgm.config import Config, Tuning
+from jstarid.algorithms.sgm.identify import scene_graphs
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.algorithms.sgm.search import (
     bucket_up,
@@ -36,7 +37,8 @@ from jstarid.algorithms.sgm.search import (
 )
 from jstarid.runtime import replicate
 
-__all__ = ["CandidateErrors", "candidate_errors", "replay_algorithm1", "grid_identifications"]
+__all__ = ["CandidateErrors", "candidate_errors", "grid_identifications", "identify_grid",
+           "replay_algorithm1"]
 
 
 class CandidateErrors(NamedTuple):
@@ -177,3 +179,32 @@ def grid_identifications(db, graphs, errors: dict, ok, rank, n_detections: int):
         row = errors.cand[s, r]
         ids[s, ci, ei, graphs.members[s, vert]] = db.members[row, match[vert]]
     return ids
+
+
+def identify_grid(db, scenes, config: Config, tuning: Tuning):
+    """The paper's Algorithm 1 for every (c, ε_δ) of a grid, on one batch of scenes.
+
+    One spectral matching per (candidate, c) — c is a ``vmap`` axis — and the stop rule replayed for
+    every ε_δ on the stored errors: the grid costs about one search per c, not one per grid point.
+    The post-match verification is not applied (the grid studies the paper's algorithm).
+
+    Args:
+        db: :class:`~jstarid.algorithms.sgm.database.Database`.
+        scenes: (B, N) :class:`~jstarid.scene.Scene` from ``db.camera``.
+        config: :class:`Config` (window, schedule, power iteration, pruning); its ``c`` and
+            ``max_error_deg`` are not used.
+        tuning: :class:`~jstarid.algorithms.sgm.Tuning` whose ``c`` (C,) (1/deg) and
+            ``max_error_deg`` (E,) (deg) are the grid's axes (scalars count as one value).
+
+    Returns:
+        ``(ids, ok)``: (B, C, E, N) int32 catalog rows (−1 unnamed) and (B, C, E) bool.
+    """
+    g = jax.tree.map(np.asarray, scene_graphs(scenes.xy, scenes.valid, camera=db.camera,
+                                              radius_deg=float(db.radius_deg), capacity=int(db.capacity)))
+    usable = g.any & ~g.overflow & (g.n >= config.min_stars)
+    cs = np.atleast_1d(np.asarray(tuning.c, np.float32))
+    eps = np.atleast_1d(np.asarray(tuning.max_error_deg, np.float64))
+    errors = candidate_errors(db, g, usable, config, cs, float(eps.max()))
+    ok, rank = replay_algorithm1(errors.level, errors.error, eps)
+    ok = ok & usable[:, None, None]
+    return grid_identifications(db, g, errors, ok, rank, scenes.xy.shape[1]), ok
