@@ -1,12 +1,10 @@
 """Pinhole camera model and the camera presets of docs/conventions.md §6.
 
-Frames (docs/conventions.md §1): the camera frame has +z along the boresight, +x along increasing pixel
-column and +y along increasing pixel row. Pixel coordinates are ``(x, y) = (column, row)`` with the
-origin at the centre of pixel (0, 0), so the image spans ``0 ≤ x ≤ W−1``, ``0 ≤ y ≤ H−1`` and the
-default principal point is the image centre ``((W−1)/2, (H−1)/2)``.
-
-A :class:`Camera` is a frozen, hashable dataclass: it is passed to jit-compiled functions as a static
-argument, and its ``project`` / ``unproject`` methods are pure ``jnp`` functions.
+Frames (docs/conventions.md §1): camera +z along the boresight, +x along increasing pixel column, +y
+along increasing row. Pixels ``(x, y) = (column, row)``, origin at the centre of pixel (0, 0): the
+image spans ``0 ≤ x ≤ W−1``, ``0 ≤ y ≤ H−1``; the default principal point is ``((W−1)/2, (H−1)/2)``.
+A :class:`Camera` is frozen and hashable (a static jit argument); ``project`` / ``unproject`` are pure
+``jnp`` functions.
 """
 
 from __future__ import annotations
@@ -86,10 +84,8 @@ class Camera:
 
     @property
     def half_diagonal_rad(self) -> float:
-        """Largest angle (rad) between the boresight and any pixel of the frame.
-
-        Measured to the pixel-grid corner farthest from the principal point, so it also bounds an
-        off-centre principal point. Used to pre-select catalog stars that may fall in the frame.
+        """Largest angle (rad) between the boresight and any pixel of the frame (to the pixel-grid corner
+        farthest from the principal point); bounds the catalog stars that may fall in the frame.
         """
         dx = max(self.cx, self.width - 1 - self.cx)
         dy = max(self.cy, self.height - 1 - self.cy)
@@ -111,10 +107,8 @@ class Camera:
         return jnp.stack([x, y], axis=-1), in_field
 
     def project_components(self, vx, vy, vz):
-        """:meth:`project` on separate x, y, z component arrays → ``(x, y, in_field)``.
-
-        The structure-of-arrays form lets XLA fuse rotation and projection into one elementwise loop
-        (the simulator's hot path).
+        """:meth:`project` on separate x, y, z component arrays → ``(x, y, in_field)`` (structure of arrays:
+        XLA fuses rotation and projection into one elementwise loop, the simulator's hot path).
         """
         front = vz > 0
         safe_vz = jnp.where(front, vz, 1.0)  # double-where: no inf/NaN behind the camera
@@ -124,10 +118,8 @@ class Camera:
         return x, y, front & inside
 
     def contains(self, xy, inset_px=0.0):
-        """(...,) bool: pixel coordinates ``xy`` (..., 2) lie inside the frame.
-
-        ``inset_px`` shrinks the frame by that margin on every side (e.g. a match tolerance, so that a
-        star predicted just inside the edge is not expected when its detection may fall outside).
+        """(...,) bool: pixel coordinates ``xy`` (..., 2) inside the frame shrunk by ``inset_px`` on every
+        side (e.g. a match tolerance: a star predicted just inside the edge is not expected).
         """
         xy = jnp.asarray(xy)
         x, y = xy[..., 0], xy[..., 1]

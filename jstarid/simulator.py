@@ -1,34 +1,31 @@
 """Batched star-tracker scene simulation with the four noise models of conventions §3.
 
-``simulate`` is a thin host wrapper (validation, static sizes, the sky index) around one jit-compiled
-pure function of the PRNG key: a per-scene simulator written once and batched with ``vmap``. Every
-noise level is a per-scene array inside the compiled function, so a sweep over σ (or over any mix of
-noise settings) is one call with ``NoiseConfig`` fields of shape (B,), not a Python loop.
+``simulate`` is a host wrapper (validation, static sizes, the sky index) around one jit-compiled pure
+function of the PRNG key, written per scene and batched with ``vmap``. Every noise level is a
+per-scene array, so a sweep over σ (or any mix of settings) is one call with (B,) ``NoiseConfig``
+fields.
 
 Per scene:
 1. attitude: uniform over SO(3) (mode a), or boresight on a catalog star with uniform roll (mode b);
 2. the K simulation stars of the boresight's sky-index cell are rotated into the camera frame and
    projected (pinhole);
-3. magnitude noise (Gaussian σ_m) is added to V *before* the camera's detection limit, using the deeper
+3. magnitude noise (Gaussian σ_m) is added to V *before* the detection limit, using the deeper
    simulation list, so dim stars can appear and stars near the limit vanish;
-4. a star is in the field when its true position is (conventions §1); position noise (Gaussian σ px,
-   independent in x and y) is added to the centroids of the detections kept in step 7, so a centroid
-   within a few σ of the border may fall just outside ``[0, W−1] × [0, H−1]``, as in the papers'
-   simulations (noise added to the image coordinates of the stars in view);
+4. a star is in the field when its true position is (conventions §1); position noise (Gaussian σ px
+   per axis) is added to the kept detections' centroids, so a centroid near the border may fall just
+   outside ``[0, W−1] × [0, H−1]``, as in the papers' simulations;
 5. missing stars: k of the detected true stars, chosen uniformly, are removed;
 6. false stars: ``n_false`` plus ``round(p N_t / (1 − p))`` for a ratio p (RpNet eq. 12, N_t the true
-   stars left), placed uniformly over the frame or over the part of a disk of radius
-   ``false_radius_px`` about the principal point that lies inside the frame; magnitude uniform in
-   ``[false_mag_min, false_mag_max]``; position noise does not apply (their position is random anyway);
-7. all detections are ordered by observed magnitude and the brightest ``capacity`` kept; ``overflow``
-   says more were present. False stars beyond the false-star buffer also set ``overflow``. Each
-   chunk of a large batch selects with the smallest of a few ``top_k`` sizes that holds its scenes'
-   detections (the selection costs about k, and most scenes hold far fewer stars than the
-   capacity); the scenes do not depend on that choice.
+   stars left), uniform over the frame or over the part inside it of a disk of radius
+   ``false_radius_px`` about the principal point; magnitude uniform in ``[false_mag_min,
+   false_mag_max]``; no position noise (their position is random anyway);
+7. detections are ordered by observed magnitude and the brightest ``capacity`` kept; ``overflow``
+   says more were present (or false stars exceeded their buffer). Scenes do not depend on how a
+   large batch is chunked.
 
-Randomness: step 1 uses ``jax.random`` on the scene key; steps 2–7 draw from Threefry-2x32 (the same
-hash) written out in ``jnp`` on a per-scene seed, one counter stream per kind of draw, so the draws
-fuse into vectorised loops on CPU and candidate i's draws do not depend on the list width.
+Randomness: step 1 uses ``jax.random`` on the scene key; steps 2–7 draw from Threefry-2x32 written
+out in ``jnp`` on a per-scene seed, one counter stream per kind of draw, so the draws fuse into
+vectorised loops on CPU and candidate i's draws do not depend on the list width.
 """
 
 from __future__ import annotations
@@ -123,11 +120,10 @@ class NoiseConfig:
 
 
 def noise_grid(repeats: int, **levels) -> NoiseConfig:
-    """A :class:`NoiseConfig` whose fields sweep levels, each level repeated ``repeats`` times.
-
+    """A :class:`NoiseConfig` whose fields sweep levels, each level repeated ``repeats`` times:
     ``noise_grid(1000, position_sigma_px=[0, 0.5, 1])`` gives B = 3000 scenes, the first 1000 at σ = 0.
-    Several swept fields form the Cartesian product (first field slowest); unnamed fields keep their
-    defaults or may be given as scalars.
+    Several swept fields form the Cartesian product (first field slowest); others keep their defaults or
+    may be given as scalars.
     """
     swept = {k: np.atleast_1d(np.asarray(v)) for k, v in levels.items() if np.ndim(v) > 0}
     fixed = {k: v for k, v in levels.items() if np.ndim(v) == 0}
@@ -244,12 +240,8 @@ _WIDTH_STEP = 64  # candidate-list widths are multiples of this
 
 
 def _candidate_widths(k: int) -> tuple[int, ...]:
-    """List widths up to the index capacity k: every multiple of ``_WIDTH_STEP``, then k.
-
-    Every step rather than a few fractions of k: the work per chunk (the candidates' projection and
-    noise, step 7's selection over them) grows with the width it reads. With the ``sgm2022`` camera
-    (k = 448) this measured 8 % more scenes/s than widths at k/4, k/2, 3k/4 and k, for 2–3 s more
-    compilation.
+    """List widths up to the index capacity k: every multiple of ``_WIDTH_STEP``, then k (a chunk's work
+    grows with the width it reads, so fine steps pay for their extra compilations).
     """
     widths = list(range(_WIDTH_STEP, k + 1, _WIDTH_STEP))
     return tuple(widths if widths and widths[-1] == k else [*widths, k])
@@ -311,11 +303,8 @@ def _scene_keys(key, batch_size):
 
 
 def _attitudes_of(keys, rows, cat_vec, *, grid, mode_b):
-    """Per-scene seeds (B, 2) uint32 (:func:`~jstarid.random_streams.scene_seed`), attitudes
-    (B, 3, 3), sky cells (B,).
-
-    The seeds are materialised here, in their own computation, so that stage 2 reads them instead of
-    re-deriving them inside every fused per-candidate loop.
+    """Per-scene seeds (B, 2) uint32 (:func:`~jstarid.random_streams.scene_seed`), attitudes (B, 3, 3) and
+    sky cells (B,); the seeds are materialised here so that stage 2 reads rather than re-derives them.
     """
     att = jax.vmap(lambda k, r: _attitude_one(k, r, cat_vec, mode_b))(keys, rows)
     return jax.vmap(streams.scene_seed)(keys), att, cell_of(att[:, 2], grid)
@@ -327,12 +316,10 @@ def _scenes_batch(seeds, noise, att, cell, cells, star_vec, star_mag, star_row, 
                   false_capacity, max_missing, false_disk, n_candidates, adaptive=False):
     """Steps 2–7 for a batch, given attitudes and sky cells; ``cells[:, :n_candidates]`` is used.
 
-    ``adaptive`` (the large-batch path's chunks): step 7 selects with the smallest k of
-    :func:`_keep_sizes` that holds every scene's detections (``lax.switch`` on the batch maximum):
-    ``top_k``'s cost grows with k, most scenes hold far fewer detections than the capacity, and the
-    chunks are sorted by candidate count, so a chunk's scenes have similar counts. The scenes are the
-    same for every k (see :func:`_brightest`). Small batches use k = capacity alone: their cost is
-    mostly compilation, which the extra branches would lengthen.
+    ``adaptive`` (the large-batch chunks, sorted by candidate count): step 7 selects with the smallest k
+    of :func:`_keep_sizes` that holds every scene's detections (``lax.switch`` on the batch maximum;
+    ``top_k``'s cost grows with k). The scenes are the same for every k (:func:`_brightest`). Small
+    batches use k = capacity alone (extra branches would lengthen compilation, their main cost).
     """
     def detections(seed, noise_i, att_i, cell_i):
         return _detections(seed, noise_i, att_i, cells[cell_i, :n_candidates], star_vec=star_vec,
@@ -358,10 +345,8 @@ def _scenes_batch(seeds, noise, att, cell, cells, star_vec, star_mag, star_row, 
 
 
 def _keep_sizes(k_max: int) -> tuple[int, ...]:
-    """The k values step 7 compiles for: powers of two from 16 below ``k_max``, then ``k_max``.
-
-    Doubling keeps the branch count logarithmic in the capacity. (At capacity 64, batch 10,000,
-    steps of 16 measured slower than 16 / 32 / 64, and compiled longer.)
+    """The k values step 7 compiles for: powers of two from 16 below ``k_max``, then ``k_max`` (a branch
+    count logarithmic in the capacity).
     """
     sizes = []
     k = 16
@@ -382,11 +367,9 @@ def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_v
 
 
 def _drop_missing(seed, detected, n_missing, max_missing):
-    """Step 5: remove ``n_missing`` of the ``detected`` stars, a uniform random subset.
-
-    Drawn without replacement one at a time: the i-th removal takes the ⌊u_i (N − i)⌋-th remaining
-    detection, N detected. One uniform per removal instead of one per candidate, and a scene's choice
-    does not depend on the batch's ``max_missing``.
+    """Step 5: remove ``n_missing`` of the ``detected`` stars, a uniform random subset, drawn without
+    replacement (the i-th removal takes the ⌊u_i (N − i)⌋-th remaining detection): one uniform per
+    removal, independent of the batch's ``max_missing``.
 
     Args:
         seed: the scene's Threefry key pair (:func:`~jstarid.random_streams.scene_seed`).
@@ -414,18 +397,16 @@ def _drop_missing(seed, detected, n_missing, max_missing):
 
 def _scene_from_attitude(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, capacity,
                          false_capacity, max_missing, false_disk=True):
-    """Steps 2–7 for one scene (see the module docstring); ``noise`` fields are scalars here.
+    """Steps 2–7 for one scene (module docstring); ``noise`` fields are scalars here.
 
     Args:
-        seed: (2,) uint32, the scene's Threefry key pair for steps 2–7
-            (:func:`~jstarid.random_streams.scene_seed` of the scene key, whose own draws gave the
-            attitude in step 1).
+        seed: (2,) uint32 Threefry key pair for steps 2–7 (:func:`~jstarid.random_streams.scene_seed`
+            of the scene key, whose own draws gave the attitude).
         noise: per-scene :class:`NoiseConfig`.
         att: (3, 3) attitude.
         idx: (K,) candidate simulation-star indices (a prefix of the cell's list, padded with the
-            sentinel row); the random draws of candidate i do not depend on K.
-        false_disk: static; False when no scene of the batch has a finite ``false_radius_px``, so
-            the disk draws (which would all be discarded) are skipped.
+            sentinel row); the draws of candidate i do not depend on K.
+        false_disk: static; False when no scene has a finite ``false_radius_px`` (disk draws skipped).
     """
     det = _detections(seed, noise, att, idx, star_vec=star_vec, star_mag=star_mag, star_row=star_row,
                       camera=camera, false_capacity=false_capacity, max_missing=max_missing,
@@ -502,19 +483,16 @@ def _detections(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, 
 def _brightest(det, k):
     """Step 7's order: indices (k,) of the k brightest detections, ascending magnitude.
 
-    ``lax.top_k`` breaks ties by the lower index, so equal magnitudes keep candidate order; slots
-    past the detections hold undetected candidates (masked by the caller). The first k of a larger
-    k' are the same indices, which lets a batch use the smallest k that holds its detections.
+    ``lax.top_k`` breaks ties by the lower index (candidate order); slots past the detections hold
+    undetected candidates (masked by the caller). The first k of a larger k' are the same indices.
     """
     _, keep = jax.lax.top_k(-jnp.where(det.detected, det.mag, jnp.inf), k)
     return keep
 
 
 def _keep_brightest(seed, noise, att, det, keep, *, capacity, n_cand):
-    """Step 7 (and 4): the detections at ``keep`` (k,) as a capacity-N :class:`Scene`.
-
-    ``keep`` may be shorter than the capacity (fewer candidates, or a batch with fewer detections
-    per scene); the slots after it are empty.
+    """Step 7 (and 4): the detections at ``keep`` (k,) as a capacity-N :class:`Scene`; ``keep`` may be
+    shorter than the capacity (the slots after it are empty).
     """
     k = keep.shape[0]
     valid = det.detected[keep]
@@ -541,10 +519,8 @@ def _keep_brightest(seed, noise, att, det, keep, *, capacity, n_cand):
 
 
 def _false_positions(seed, n, radius_px, camera, *, disk: bool, tries: int = 8):
-    """n uniform positions in the frame, or in (disk of ``radius_px`` about (cx, cy)) ∩ frame.
-
-    Uniform in the disk by rejection against the frame: ``tries`` candidates each, the first inside
-    is used (a disk mostly outside the frame is rare; the last candidate is clipped in as a fallback).
+    """n uniform positions in the frame, or in (disk of ``radius_px`` about (cx, cy)) ∩ frame by
+    rejection: ``tries`` candidates each, the first inside is used (the last, clipped in, as fallback).
     """
     w, h = camera.width - 1.0, camera.height - 1.0
     frame = streams.uniforms(seed, streams.FALSE_XY, (n, 2)) * jnp.array([[w, h]])

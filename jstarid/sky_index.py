@@ -1,10 +1,9 @@
 """A cube-map index of the sky: for any boresight, the few hundred stars that can be in the field.
 
-Projecting every catalog star for every scene costs O(catalog) per scene; instead the sphere is cut
-into ``6 × G × G`` gnomonic cube-face cells, and each cell stores (padded to a static capacity K) the
-simulation stars within ``R = field radius + cell radius + margin`` of its centre. A boresight anywhere
-in the cell sees only stars from that list, so a jit-compiled simulator gathers K stars per scene in
-O(1) (``cell_of`` is arithmetic, no search). Built on the host once per (catalog, field radius) and
+The sphere is cut into ``6 × G × G`` gnomonic cube-face cells; each stores (padded to a static
+capacity K) the stars within ``R = field radius + cell radius + margin`` of its centre, so a
+boresight anywhere in the cell sees only stars of that list and a jit-compiled caller gathers K
+stars per scene in O(1) (``cell_of`` is arithmetic). Built on the host once per (catalog, radius),
 memoised.
 """
 
@@ -52,10 +51,8 @@ class SkyIndex:
 
 
 def cell_of(direction, grid: int):
-    """Cube-map cell of unit vectors (..., 3) → (...,) int32 cell index in ``[0, 6·G·G)``.
-
-    The face is the axis of the largest |component| and its sign; (u, v) ∈ [−1, 1] are the other two
-    components over the major one (gnomonic coordinates on that face).
+    """Cube-map cell of unit vectors (..., 3) → (...,) int32 cell index in ``[0, 6·G·G)``: the face is the
+    axis of the largest |component| and its sign; (u, v) ∈ [−1, 1] are the other two components over it.
     """
     a = jnp.abs(direction)
     axis = jnp.argmax(a, axis=-1)

@@ -13,11 +13,9 @@ __all__ = ["Config", "Tuning"]
 
 
 class Tuning(NamedTuple):
-    """Per-scene values of the tolerances that do not change array shapes (traced, not static).
-
-    Passing them as arrays lets one compilation serve a whole grid of Th1/Th2/ε values: the grid is
-    a batch axis (:func:`~jstarid.algorithms.mlv.identify` takes scalars or (B,) arrays;
-    :meth:`Config.tuning` gives the config's scalars).
+    """Per-scene tolerances that do not change array shapes (traced, not static): one compilation serves
+    a grid of Th1/Th2/ε as a batch axis (:func:`~jstarid.algorithms.mlv.identify` takes scalars or (B,)
+    arrays; :meth:`Config.tuning` gives the config's scalars).
 
     Attributes:
         th1, th2: int32 tolerances Th1, Th2 of eq. 7 (bins).
@@ -33,79 +31,61 @@ class Tuning(NamedTuple):
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """Multilayer-voting parameters (Sensors 2021, 21, 3084; docs/conventions.md §7).
-
-    The evidence behind the defaults of the choices the paper leaves open is in docs/design/mlv.md
-    (mlv2021 scenes with random attitudes; ``experiments/reproduce_mlv.py`` has the full sweeps).
+    """Multilayer-voting parameters (Sensors 2021, 21, 3084; docs/conventions.md §7). Evidence for the
+    defaults the paper leaves open: docs/design/mlv.md.
 
     Paper parameters (Table 1):
         n_stars: N, the brightest detections (and, in the database, the brightest catalog stars per
-            boresight) that form the C(N, 3) triangle units. Paper: 10 (6–12 in its Table 4
-            discussion). At most 12: verification tests all 2^N subsets per scene.
+            boresight) that form the C(N, 3) triangle units. Paper: 10. At most 12: verification tests
+            all 2^N subsets per scene.
         dv1: Δv1, discretization unit of the largest singular value v1 (eq. 4). Paper: 5e-5.
         dv2: Δv2, discretization unit of the second singular value v2 (eq. 4). Paper: 5e-4.
         ver_min: smallest verified cluster that counts as a success. Paper: 3.
-        n_boresights: database boresights, evenly on the sphere (Fibonacci lattice; the paper cites
-            [26] for its even distribution). Paper: 100,000.
+        n_boresights: database boresights, evenly on the sphere (Fibonacci lattice). Paper: 100,000.
 
     Choices the paper leaves open:
-        th1, th2: tolerances Th1, Th2 of eq. 7 on the *discretized* features (bins). A centroid
-            error of σ px moves a true triangle's v̂1 by ≈ 1 bin and v̂2 by < 1 bin per px; 1 keeps
-            enough true triangles for the 120-triangle vote while a 3 × 3-bin window already returns
-            a median of 23 database triangles (Th = 2: 61).
-        eps_deg: verification tolerance ε on pair angles (eq. 8), degrees. One pixel is 0.0244°
-            here and a pair angle's error is ≈ √2·σ px, 0.086° at σ = 2.5 px; 0.2° keeps true pairs
-            up to the Fig. 6 noise, and the attitude check below pays back the looseness.
-        candidate_capacity: K, the most candidates a triangle may have and still vote; 256 covers
-            the largest count seen with Th = 1 (159). A triangle with more than K is flagged
-            (``Diagnostics.candidate_overflow``) and casts no vote;
-            :func:`~jstarid.algorithms.mlv.identify` then recomputes the chunk with a doubled K up
-            to ``max_candidate_capacity`` (host-side), so nothing is silently dropped below that
-            bound. (The candidates themselves go to one shared buffer per scene, ``candidate_pool``.)
+        th1, th2: tolerances Th1, Th2 of eq. 7 on the *discretized* features (bins); a centroid error
+            of σ px moves v̂1 by ≈ 1 bin and v̂2 by < 1 bin per px.
+        eps_deg: verification tolerance ε on pair angles (eq. 8, deg); a pair angle's error is
+            ≈ √2·σ px, and the attitude check pays back the looseness of 0.2°.
+        candidate_capacity: K, the most candidates a triangle may have and still vote. A triangle with
+            more is flagged (``Diagnostics.candidate_overflow``) and casts no vote;
+            :func:`~jstarid.algorithms.mlv.identify` recomputes the chunk with a doubled K up to
+            ``max_candidate_capacity``, so nothing is silently dropped below that bound.
         max_candidate_capacity: the largest K the host retry may reach.
         candidate_pool: P, one shared candidate buffer per scene for all its triangles (``None``:
-            :func:`~jstarid.algorithms.mlv.identify.default_pool`, ≈ 7 slots per triangle per
-            window cell, 8,192 at the defaults). Scenes with more candidates are recomputed with
-            a doubled P, up to T·K, so P changes the speed, never the result.
-        batch_chunk: scenes per compiled call (one host synchronisation each, for the buffer
-            checks).
-        map_batch: scenes vmapped together inside a call (``jax.lax.map`` over groups of this
-            size), so that the (group, P) candidate arrays stay in the CPU cache. Speed only.
-        require_unique_cluster: when different largest clusters tie, name only the detections
-            common to all of them (failing below ``ver_min``) instead of taking the first one; a
-            mis-identification is much worse than a failure.
-        database_roll_deg: camera roll (deg) of every database boresight; ``None`` gives boresight
-            k the roll k·(golden angle), so neighbouring boresights see the square field in many
-            orientations, as scenes with random roll do.
+            :func:`~jstarid.algorithms.mlv.identify.default_pool`). Scenes with more candidates are
+            recomputed with a doubled P, up to T·K: P changes the speed, never the result.
+        batch_chunk: scenes per compiled call (one host synchronisation each, for the buffer checks).
+        map_batch: scenes vmapped together inside a call (``jax.lax.map`` over groups), so the
+            (group, P) candidate arrays stay in the CPU cache. Speed only.
+        require_unique_cluster: when different largest clusters tie, name only the detections common
+            to all (failing below ``ver_min``) instead of taking the first.
+        database_roll_deg: camera roll (deg) of every database boresight; ``None``: boresight k gets
+            the roll k·(golden angle), so neighbouring boresights see the field in many orientations.
 
-    Extensions (``vertex_match=False, attitude_check=False, field_check=False`` is the paper's
-    algorithm, :meth:`paper`; the defaults turn all three on):
+    Extensions (all on; off in :meth:`paper`):
         vertex_match: check each candidate triangle's three side angles against the observed ones
-            within ``side_tol_deg`` and vote for the *corresponding* star only (the paper votes for
-            all three stars at each vertex, Fig. 3). Singular values fix only two of a triangle's
-            three shape parameters; the third removes most wrong candidates.
+            within ``side_tol_deg`` and vote for the *corresponding* star only (the paper votes for all
+            three at each vertex, Fig. 3); the third shape parameter removes most wrong candidates.
         side_tol_deg: side tolerance of ``vertex_match`` (deg), as ε.
         min_votes: a detection needs this many votes to have a candidate.
-        attitude_check: after verification, predict every cluster member from the attitude of
-            the others (leave-one-out Wahba fit) and keep it only when its candidate is the
-            nearest catalog star within ``residual_sigmas`` × (the scene's estimated centroid
-            noise), clipped to [``residual_min_deg``, ``residual_max_deg``], and no other catalog
-            star is within ``ambiguity_deg``, and it is the scene detection nearest to its
-            star's predicted position. Why: close pairs swapping ids and false stars next to
-            catalog stars caused every mis-identification left after vertex matching.
+        attitude_check: after verification, predict every member from the attitude of the others
+            (leave-one-out) and keep it only when its candidate is the nearest catalog star within
+            ``residual_sigmas`` × (the scene's estimated centroid noise), clipped to
+            [``residual_min_deg``, ``residual_max_deg``], no other catalog star is within
+            ``ambiguity_deg``, and it is the detection nearest its star's predicted position. Why: close
+            pairs swapping ids and false stars next to catalog stars.
         residual_sigmas, residual_min_deg, residual_max_deg: the attitude-check tolerance.
         outlier_sigmas, outlier_min_others: the attitude check's outlier test
             (:func:`~jstarid.algorithms.mlv.verify.attitude_check`): a member with at least
-            ``outlier_min_others`` other members must also lie within ``outlier_sigmas`` × the
-            noise scale of the *other* members (from the fit without it, so a wrong member
-            cannot inflate its own tolerance); 0 turns it off.
-        ambiguity_deg: a second catalog star this close to a member's predicted position makes
-            the member ambiguous (dropped).
-        field_check: under the attitude of the final cluster, at least
-            ``field_check_fraction`` of the N brightest catalog stars predicted in the frame must
-            have a detection within ``residual_max_deg``. Why: with vertex matching, a
-            three-member cluster can be one chance triangle match (its pair angles were already
-            checked by the match).
+            ``outlier_min_others`` others must also lie within ``outlier_sigmas`` × the noise scale of
+            the *other* members (so it cannot inflate its own tolerance); 0 turns it off.
+        ambiguity_deg: a second catalog star this close to a member's predicted position makes it
+            ambiguous (dropped).
+        field_check: under the final cluster's attitude, at least ``field_check_fraction`` of the N
+            brightest catalog stars predicted in the frame need a detection within
+            ``residual_max_deg``. Why: a three-member cluster can be one chance triangle match.
     """
 
     n_stars: int = 10
@@ -166,14 +146,14 @@ class Config:
 
     @classmethod
     def paper(cls, **overrides) -> Config:
-        """The paper's algorithm alone (Table 1 parameters, none of our extensions): no vertex
-        matching, no leave-one-out attitude check, no field check."""
+        """The paper's algorithm alone (Table 1): no vertex matching, attitude check or field check."""
         return cls(**{"vertex_match": False, "attitude_check": False, "field_check": False,
                       **overrides})
 
     def tuning(self) -> Tuning:
-        """This config's traced tolerances as a :class:`Tuning` of scalars (Th1, Th2 in bins;
-        ε and the side tolerance in rad)."""
+        """This config's traced tolerances as a :class:`Tuning` of scalars (Th1, Th2 in bins; ε and the side
+        tolerance in rad).
+        """
         # float32 degrees → radians in float32, as a (B,) grid of degrees would be converted
         def rad(deg):
             return float(np.deg2rad(np.float32(deg)))
@@ -182,8 +162,9 @@ class Config:
                       side_tol_rad=rad(self.side_tol_deg))
 
     def database_fields(self) -> dict:
-        """The settings that shape the database (its cache key: all but Δv1, Δv2, which only shape
-        the lookup keys computed when the cached triangle table is loaded)."""
+        """The settings that shape the database, its cache key (not Δv1, Δv2: they only shape the lookup
+        keys computed when the cached triangle table is loaded).
+        """
         return {"n_stars": int(self.n_stars), "dv1": float(self.dv1), "dv2": float(self.dv2),
                 "n_boresights": int(self.n_boresights),
                 "database_roll_deg": self.database_roll_deg}

@@ -1,20 +1,17 @@
 """The MLV onboard database (paper §2.2, Fig. 2): reference catalog, index table, feature lookup.
 
 Build (host, once, cached on disk):
-
 1. ``n_boresights`` boresights evenly on the sphere (Fibonacci lattice), each a simulated image of
-   the camera (square field, roll fixed or varied — :class:`~jstarid.algorithms.mlv.Config`);
-2. the brightest N catalog stars in each image (catalog rows are sorted brightest first, so these
-   are the first N in-field rows of the boresight's sky-index cell list) → C(N, 3) triangles;
+   the camera (square field, roll fixed or varied: :class:`~jstarid.algorithms.mlv.Config`);
+2. the brightest N catalog stars in each image (the first N in-field rows of the boresight's
+   sky-index cell list: rows are sorted brightest first) → C(N, 3) triangles;
 3. triangles de-duplicated as sorted triples of catalog rows (the index table ``ID``); the reference
    catalog ``C`` is the set of stars used by at least one triangle;
 4. each triangle's discretized features (v̂1, v̂2) (eqs. 1–4, float64).
 
-Lookup tables: the paper keeps two tables LT_v1, LT_v2 (triangle lists per discretized value) and
-intersects the matches of both. We store the same information as one array of composite keys
-``(v̂1 − v̂1_min)·stride + v̂2`` sorted ascending, with the triangles in the same order. The
-rectangle query of eq. 7 is then 2·Th1 + 1 contiguous ranges (one per v̂1 value), each found with two
-``jnp.searchsorted`` calls — exact, jit-able, and O(log T) per range.
+Instead of the paper's two lookup tables LT_v1, LT_v2, one array of composite keys
+``(v̂1 − v̂1_min)·stride + v̂2`` sorted ascending (triangles in the same order): eq. 7's rectangle is
+2·Th1 + 1 contiguous ranges, each found by ``jnp.searchsorted`` (exact, jit-able, O(log T)).
 """
 
 from __future__ import annotations
@@ -50,21 +47,18 @@ class Database:
 
     Attributes:
         keys: (T,) int32 composite feature keys ``(v̂1 − v1_offset)·stride + v̂2``, ascending.
-        triangles: (T, 3) int32 reference-catalog indices of each triangle's stars, ordered so
-            that star m is opposite the m-th shortest side.
-        sides: (T, 3) float32 the triangle's side angles (rad), ascending: ``sides[t, m]`` is the
-            side opposite ``triangles[t, m]``. Used by the vertex-matching extension; derivable
-            from the stars, so not counted in :attr:`nbytes`.
+        triangles: (T, 3) int32 reference-catalog indices of each triangle's stars, star m opposite the
+            m-th shortest side.
+        sides: (T, 3) float32 side angles (rad), ascending: ``sides[t, m]`` is opposite
+            ``triangles[t, m]`` (vertex matching; derivable, so not in :attr:`nbytes`).
         star_rows: (S,) int32 catalog row of each reference-catalog star.
         star_vectors: (S, 3) float32 ICRS unit vectors of the reference stars.
-        catalog_vectors: (M, 3) float32 ICRS unit vectors of the whole catalog (final check of the
-            nearest star under the fitted attitude).
+        catalog_vectors: (M, 3) float32 ICRS unit vectors of the whole catalog (attitude check).
         v1_offset: smallest v̂1 in the table (static int).
         stride: max v̂2 + 1 (static int); v̂2 ∈ [0, stride).
         n_rows: number of v̂1 rows, max v̂1 − v1_offset + 1 (static int).
-        camera: the :class:`~jstarid.camera.Camera` the database was built for (static); the
-            identifier needs it to turn centroids into directions.
-        dv1, dv2: the discretization units Δv1, Δv2 the keys were made with (static).
+        camera: the static :class:`~jstarid.camera.Camera` it was built for (centroids → directions).
+        dv1, dv2: the discretization units Δv1, Δv2 of the keys (static).
         info: build statistics (static): triangles, stars, bytes, build seconds, cache path.
         key: :meth:`cache_key` (static; empty when built from a given triangle table).
     """
@@ -116,10 +110,8 @@ class Database:
 
 
 def fibonacci_sphere(n: int) -> np.ndarray:
-    """(n, 3) float64 unit vectors evenly spread on the sphere (Fibonacci lattice).
-
-    Point k has z = 1 − (2k + 1)/n and longitude k·(golden angle), so every point covers an equal
-    area 4π/n to within a few per cent and no two points coincide.
+    """(n, 3) float64 unit vectors evenly spread on the sphere (Fibonacci lattice): point k has
+    z = 1 − (2k + 1)/n and longitude k·(golden angle); equal areas 4π/n within a few per cent.
     """
     k = np.arange(n, dtype=np.float64)
     z = 1.0 - (2.0 * k + 1.0) / n

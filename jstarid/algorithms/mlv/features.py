@@ -1,24 +1,17 @@
 """Triangle-unit features: the singular values of M = [p_i p_j p_k] (paper eqs. 1–4).
 
-The singular values of ``M`` are the square roots of the eigenvalues μ of the Gram matrix
-``MᵀM``, whose diagonal is 1 and whose off-diagonal entries are the pair cosines. Solving the 3×3
-eigenproblem naively (e.g. the trigonometric cubic formula on the cosines) loses most float32 digits
-of the two small singular values of a star triangle — the cosines are all ≈ 1 — so we use the
-characteristic polynomial written in well-conditioned invariants instead:
+The singular values are the square roots of the eigenvalues μ of ``MᵀM`` (unit diagonal, pair
+cosines off it). A naive 3×3 eigensolver loses most float32 digits of the two small values of a star
+triangle (all cosines ≈ 1), so the characteristic polynomial is written in well-conditioned
+invariants, each from cross products and differences of unit vectors (no cancellation):
 
     μ³ − S1 μ² + S2 μ − S3 = 0,   S1 = tr MᵀM = 3,
     S2 = Σ_{pairs} sin²θ_ij = Σ |p_i × p_j|²,
-    S3 = det(M)² = (p_i · ((p_j − p_i) × (p_k − p_i)))²,
+    S3 = det(M)² = (p_i · ((p_j − p_i) × (p_k − p_i)))².
 
-where every invariant is computed from small, exactly-formed quantities (cross products and
-differences of unit vectors) without cancellation. The largest root μ1 ∈ (1, 3] is found by Newton's
-method from μ = 3 (monotone, since the cubic is convex and increasing to the right of μ1); the two
-small roots follow from Vieta without cancellation:
-
-    μ2 + μ3 = (S2 − S3/μ1)/μ1,   μ2 μ3 = S3/μ1.
-
-The same code runs on NumPy float64 (database build) and on jax.numpy float32 (identification), and
-is tested against ``np.linalg.svd``.
+The largest root μ1 ∈ (1, 3] by Newton from μ = 3 (monotone: the cubic is convex and increasing right
+of μ1); the small roots by Vieta, μ2 + μ3 = (S2 − S3/μ1)/μ1, μ2 μ3 = S3/μ1. The same code runs in
+NumPy float64 (database) and jax.numpy float32 (identification); tested against ``np.linalg.svd``.
 """
 
 from __future__ import annotations
@@ -75,7 +68,8 @@ def singular_values(p_i, p_j, p_k, xp=jnp):
 
 
 def discretize(v1, v2, dv1: float, dv2: float, xp=jnp):
-    """Discretized features v̂1 = ceil(v1/Δv1), v̂2 = ceil(v2/Δv2) (eq. 4).
+    """Discretized features v̂1 = ceil(v1/Δv1), v̂2 = ceil(v2/Δv2) (eq. 4; the paper's second worked
+    example matches ``floor`` instead, docs/design/mlv.md).
 
     Args:
         v1, v2: (...,) singular values (dimensionless).
@@ -84,11 +78,6 @@ def discretize(v1, v2, dv1: float, dv2: float, xp=jnp):
 
     Returns:
         ``(v̂1, v̂2)``, (...,) int32 (jax) or int64 (numpy).
-
-    Note:
-        The paper's first worked example, v1 = 1.7081 at Δv1 = 5e-5 → 34,162, is reproduced. Its
-        second, v2 = 0.1272 at Δv2 = 5e-4 → 254, is not what eq. 4's ``ceil`` gives
-        (0.1272/5e-4 = 254.4 → 255); it matches ``floor``/``round``. We follow the equation.
     """
     dtype = xp.int64 if xp is np else xp.int32
     return xp.ceil(v1 / dv1).astype(dtype), xp.ceil(v2 / dv2).astype(dtype)

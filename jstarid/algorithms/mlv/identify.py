@@ -1,29 +1,24 @@
 """MLV identification: initial match by triangle voting, then pair-angle verification (paper §2.3).
 
-``identify`` is the thin host shell (chunking over the batch, candidate-buffer reallocation); the
-core ``identify_scene`` is a pure per-scene function of arrays, vmapped over groups of scenes
-(``Config.map_batch``, looped with ``lax.map`` inside one jit call per ``batch_chunk``) and
-jit-compiled with the config, buffer sizes and camera static. The tolerances Th1, Th2, ε and the
-side tolerance are traced per-scene values (:class:`Tuning`), so a grid of them is a batch axis.
+``identify`` is the host shell (chunks, buffer regrowth); ``identify_scene`` is a pure per-scene
+function, vmapped over groups of ``Config.map_batch`` scenes (``lax.map`` inside one jit call per
+``batch_chunk``) with config, buffer sizes and camera static. Th1, Th2, ε and the side tolerance are
+traced per-scene values (:class:`Tuning`), so a grid of them is a batch axis.
 
 Per scene (Algorithm 1):
-1. the N brightest valid detections (scenes are sorted brightest first) → camera-frame unit
-   vectors (eqs. 5–6, via the camera's pinhole model);
+1. the N brightest valid detections → camera-frame unit vectors (eqs. 5–6);
 2. their C(N, 3) triangles → singular values → v̂1, v̂2 (eqs. 1–4);
-3. candidate database triangles with |v̂1ˢ − v̂1ᶜ| ≤ Th1, |v̂2ˢ − v̂2ᶜ| ≤ Th2 (eq. 7), all triangles'
-   candidates in one shared buffer of P slots per scene; a triangle with more than K candidates is
-   flagged and casts no vote (K = ``candidate_capacity``, grown by the host retry); a scene with
-   more than P candidates is recomputed with a larger P (P never changes the result);
-4. vote counters per detection over the reference catalog (one scatter-add); candidate = most
-   votes (``argmax``);
-5. verification (eq. 8): largest cluster of pairwise-agreeing candidates; success when it has at
-   least ``ver_min`` members; only its members get ids.
+3. candidate database triangles with |v̂1ˢ − v̂1ᶜ| ≤ Th1, |v̂2ˢ − v̂2ᶜ| ≤ Th2 (eq. 7) in one shared
+   buffer of P slots; a triangle with more than K = ``candidate_capacity`` candidates casts no vote
+   (flagged; the host retries with a larger K), a scene with more than P is recomputed with a larger
+   P (P never changes the result);
+4. votes per detection over the reference catalog (one scatter-add); candidate = ``argmax``;
+5. verification (eq. 8): the largest cluster of pairwise-agreeing candidates; success with at least
+   ``ver_min`` members; only members get ids.
 
-Extensions (on by default, see :class:`~jstarid.algorithms.mlv.Config`): in step 3 a side-angle
-check and vertex correspondence (each detection votes only for its corresponding star); after step 5
-a leave-one-out attitude check of every member and a check that the brightest catalog stars the
-attitude puts in the frame are seen. ``vertex_match=False, attitude_check=False,
-field_check=False`` runs the paper's algorithm alone.
+Extensions (on by default, :class:`~jstarid.algorithms.mlv.Config`): side-angle check and vertex
+correspondence in step 3; after step 5 a leave-one-out attitude check and a field check.
+``vertex_match=False, attitude_check=False, field_check=False`` is the paper's algorithm.
 """
 
 from __future__ import annotations
@@ -97,20 +92,17 @@ class Diagnostics(NamedTuple):
     """Per-scene internals of :func:`identify` (batch axis first).
 
     Attributes:
-        n_candidates: (B,) int32 database triangles matched by the scene's triangles (eq. 7), summed
-            over its C(N, 3) triangles.
-        overflow: (B,) bool, the scene overflowed its capacity or some triangle had more candidates
-            than the buffer held (``candidate_overflow``).
-        candidate_overflow: (B,) bool, some triangle had more candidates than the buffer held (it
-            cast no votes).
+        n_candidates: (B,) int32 database triangles matched (eq. 7), summed over the C(N, 3) triangles.
+        overflow: (B,) bool, the scene overflowed its capacity or ``candidate_overflow``.
+        candidate_overflow: (B,) bool, some triangle had more candidates than the buffer (no votes).
         n_overflow_triangles: (B,) int32 such triangles.
-        triangle_candidates: (B, T) int32 candidate count of each of the T = C(N, 3) triangles (before
-            the buffer), 0 for triangles with a padding vertex.
+        triangle_candidates: (B, T) int32 candidates of each of the T = C(N, 3) triangles (before the
+            buffer), 0 for triangles with a padding vertex.
         candidates: (B, N) int32 catalog row voted for each of the N brightest detections (−1 none).
         votes: (B, N) int32 votes of that candidate.
         cluster_size: (B,) int32 size of the largest verified cluster.
-        field_predicted, field_seen: (B,) int32 catalog stars the field check predicted in the
-            frame (≤ N) and how many of them a detection confirmed (0 when the check is off).
+        field_predicted, field_seen: (B,) int32 catalog stars the field check predicted in the frame
+            (≤ N) and how many a detection confirmed (0 when off).
         capacity: the candidate buffer K finally used (host int).
     """
 
@@ -132,13 +124,12 @@ _REDO = 8  # scenes per recomputation with the full candidate buffer
 
 def default_pool(config: Config, th1_max: int | None = None, th2_max: int | None = None,
                  capacity: int | None = None, n_db_triangles: int | None = None) -> int:
-    """Default P of the shared per-scene candidate buffer (see :func:`~.voting.gather_pool`).
+    """Default P of the shared per-scene candidate buffer (:func:`~.voting.gather_pool`).
 
-    About 7 slots per query triangle per feature-window cell ((2·Th1 + 1)(2·Th2 + 1) cells): the
-    default database returns a median of 4 (4,300 candidates per scene at N = 10, Th = 1; 9,373 the
-    most in 1,500 noisy scenes), so P = 8,192 there; scaled by Δv1·Δv2 (the cell's area) for other
-    units and by the database's triangle count (``n_db_triangles``, relative to the 167,655 of the
-    default mlv2021 database; ``None``: no scaling); never more than T·K, which always suffices.
+    About 7 slots per query triangle per feature-window cell ((2·Th1 + 1)(2·Th2 + 1) cells; P = 8,192
+    for the default database at N = 10, Th = 1, docs/design/mlv.md), scaled by Δv1·Δv2 (the cell's area)
+    and by ``n_db_triangles`` relative to the default mlv2021 database's 167,655 (``None``: no scaling);
+    never more than T·K, which always suffices.
 
     Args:
         config: the :class:`Config` (``n_stars``, ``dv1``, ``dv2``, ``th1``, ``th2``,
@@ -174,17 +165,15 @@ def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_x
         db: :class:`~jstarid.algorithms.mlv.Database` (its camera turns pixels into directions).
         config: :class:`~jstarid.algorithms.mlv.Config` (static).
         capacity: K, the most candidates a triangle may have and still vote (static).
-        all_xy, all_valid: (M, 2), (M,) every detection of the scene (the first N being ``xy``),
-            for the attitude check's nearest-detection test; ``None``: the N brightest only.
+        all_xy, all_valid: (M, 2), (M,) every detection of the scene (the first N being ``xy``), for the
+            attitude check's nearest-detection test; ``None``: the N brightest only.
         tuning: traced :class:`Tuning` scalars; ``None``: the config's values.
-        pool: P, the scene's shared candidate buffer (static); ``None``: T·K, which never
-            overflows. With vertex matching, the candidates that pass the side check are moved to a
-            second buffer of Q = max(1024, P/8) slots (Q = P when P = T·K). A scene whose candidates
-            exceed P, or whose side-checked ones exceed Q, sets ``pool_overflow`` (its votes are
-            then incomplete: :func:`identify` recomputes it with a doubled P,
-            up to T·K).
-        th1_max: static bound of ``tuning.th1`` (the window has 2·th1_max + 1 v̂1 rows);
-            ``None``: ``config.th1``.
+        pool: static P, the shared candidate buffer; ``None``: T·K (never overflows). With vertex
+            matching the side-checked candidates move to a buffer of Q = max(1024, P/8) slots (Q = P
+            when P = T·K). Exceeding P or Q sets ``pool_overflow`` (votes incomplete; :func:`identify`
+            recomputes with a doubled P, up to T·K).
+        th1_max: static bound of ``tuning.th1`` (the window has 2·th1_max + 1 v̂1 rows); ``None``:
+            ``config.th1``.
 
     Returns:
         :class:`SceneResult`.
@@ -282,9 +271,9 @@ def _identify_batch(xy, valid, all_xy, all_valid, tuning, db, config, capacity, 
 
 
 def _kernel_config(config: Config) -> Config:
-    """The config with the fields the compiled kernel does not read as static values set to their
-    defaults, so that configs differing only in buffers, chunking, database settings or the traced
-    tolerances (:class:`Tuning`) share one compilation."""
+    """The config with the fields the kernel does not read as static (buffers, chunking, database
+    settings, traced :class:`Tuning` tolerances) reset to defaults, so such configs share a compilation.
+    """
     d = Config()
     return dataclasses.replace(config, candidate_capacity=d.candidate_capacity,
                                max_candidate_capacity=d.max_candidate_capacity,
@@ -318,30 +307,26 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
              diagnostics: bool = False, tuning: Tuning | None = None):
     """Identify a batch of scenes with the multilayer voting algorithm.
 
-    Scenes are processed in chunks of ``config.batch_chunk`` (the last chunk padded, so one
-    compilation serves any batch size above it). When a chunk flags a candidate overflow (a
-    triangle with more than K candidates), it is recomputed with a doubled K, up to
-    ``config.max_candidate_capacity``; overflow remaining at that bound is reported in the
-    diagnostics and with a warning. Scenes whose candidates exceed the shared buffer P
-    (:func:`default_pool`) are recomputed with a doubled P, up to T·K (which always suffices),
-    so the result never depends on P.
+    Chunks of ``config.batch_chunk`` scenes (the last padded: one compilation for any larger batch).
+    A chunk with a candidate overflow (a triangle with more than K candidates) is recomputed with a
+    doubled K up to ``config.max_candidate_capacity`` (what remains is reported in the diagnostics and
+    warned about); scenes that exceed the shared buffer P (:func:`default_pool`) are recomputed with a
+    doubled P up to T·K, so the result never depends on P.
 
     Args:
         database: from :func:`~jstarid.algorithms.mlv.build_database` (same camera as the scenes).
         scenes: :class:`~jstarid.scene.Scene` batch (B, capacity).
         config: :class:`~jstarid.algorithms.mlv.Config`; ``None``: ``Config()``.
         diagnostics: also return the :class:`Diagnostics`.
-        tuning: :class:`~jstarid.algorithms.mlv.Tuning` whose leaves are scalars or (B,) arrays
-            (Th1, Th2 in bins; ε, side tolerance in rad); ``None``: ``config.tuning()``. Traced:
-            a grid of values is a batch axis served by one compilation (one per max Th1, which
-            sets the window's shape).
+        tuning: :class:`~jstarid.algorithms.mlv.Tuning` whose leaves are scalars or (B,) arrays (Th1,
+            Th2 in bins; ε, side tolerance in rad); ``None``: ``config.tuning()``. Traced: one
+            compilation per max Th1 (which sets the window's shape) serves a grid.
 
     Returns:
-        :class:`~jstarid.scene.Identification` with ``ids`` (B, capacity) aligned with the scene's
-        detections (only verified cluster members among the N brightest are named, others −1),
-        ``ok`` (B,) and ``attitude`` (B, 3, 3): the rotation C (ICRS → camera) fitted to the named
-        stars (Wahba / SVD, equal weights), NaN where not ``ok``; with ``diagnostics``, the tuple
-        ``(Identification, Diagnostics)``.
+        :class:`~jstarid.scene.Identification`: ``ids`` (B, capacity) aligned with the detections (only
+        verified cluster members among the N brightest are named, others −1), ``ok`` (B,) and
+        ``attitude`` (B, 3, 3) C (ICRS → camera) fitted to the named stars (Wahba, equal weights), NaN
+        where not ``ok``; with ``diagnostics``, ``(Identification, Diagnostics)``.
     """
     config = Config() if config is None else config
     check_scenes(scenes)

@@ -1,14 +1,11 @@
 """Verification (paper §2.3.2): pair-angle voting and the largest mutually consistent cluster.
 
-Two detections (s_i, s_j) with candidates (c_i, c_j) agree when their angular distances match,
-|θˢ_ij − θᶜ_ij| ≤ ε (eq. 8). The paper counts, per candidate, the pairs it agrees with and keeps
-"the largest cluster group". We make that precise as the largest set of candidates that agree
-*pairwise* (a maximum clique of the agreement graph), found exactly by testing all 2^N subsets of
-the N ≤ 12 detections with one small matrix product — fixed work, no data-dependent loop. A scene
-succeeds when that cluster has at least ``ver_min`` members; only its members are named. When
-several different clusters share the largest size, only the detections common to all of them are
-named (and the scene fails if fewer than ``ver_min`` remain): a tie means some candidates are
-ambiguous, and a mis-identification is much worse than a failure.
+Detections (s_i, s_j) with candidates (c_i, c_j) agree when |θˢ_ij − θᶜ_ij| ≤ ε (eq. 8). The paper's
+"largest cluster group" is read as the largest set of candidates that agree *pairwise* (a maximum
+clique), found exactly by testing all 2^N subsets of the N ≤ 12 detections (fixed work). A scene
+succeeds when it has at least ``ver_min`` members; only members are named. When several clusters
+share the largest size, only the detections common to all are named (the scene fails below
+``ver_min``): a tie means ambiguous candidates, and a mis-identification is worse than a failure.
 """
 
 from __future__ import annotations
@@ -67,10 +64,9 @@ def largest_cluster(agree):
         agree: (n, n) bool symmetric agreement matrix (False on the diagonal).
 
     Returns:
-        ``(first, common, size)``: (n,) bool members of the first largest cluster in subset order,
-        (n,) bool detections that belong to *every* largest cluster (equal to ``first`` when the
-        largest cluster is unique), and the scalar int32 largest size (≥ 1: a single detection is a
-        trivial cluster; callers compare with ``ver_min`` ≥ 2).
+        ``(first, common, size)``: (n,) bool members of the first largest cluster in subset order, (n,)
+        bool detections in *every* largest cluster (= ``first`` when it is unique), and the scalar int32
+        largest size (≥ 1: a single detection is a trivial cluster; callers compare with ``ver_min`` ≥ 2).
     """
     n = agree.shape[0]
     masks_np = subset_masks(n)
@@ -102,30 +98,22 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
                    outlier_min_others: int = 5):
     """Final check of a verified cluster against the attitude it implies (extension).
 
-    Every member is predicted from an attitude fitted (Wahba / SVD) to the *other* members
-    (leave-one-out, so a wrong member cannot pull the fit towards itself). It keeps its id only when
-    its candidate is then the catalog star nearest to the detection, within a tolerance, and no
-    other catalog star lies within ``ambiguity_rad``: close pairs (0.05°–0.2° apart) can swap ids
-    under position noise while every pair angle still agrees within ε. The tolerance adapts to the
-    scene's noise: ``sigmas`` × σ̂, σ̂ = median member residual under the all-member fit / 1.1774
-    (the median of a 2-D Gaussian's radius is 1.1774σ), clipped to [``min_tol_rad``,
-    ``max_tol_rad``]. A false star that happens to lie 0.13° from an undetected catalog star is
-    thus rejected in a 1-px scene, where true stars sit within ≈ 0.03°. Finally, the member must be
-    the scene detection nearest to where its star is predicted, and the only one within
-    ``ambiguity_rad`` of it (all detections, not only the N brightest): a false star next to a
-    catalog star whose own detection ranked below the N brightest is then refused.
+    Each member is predicted from a Wahba fit to the *other* members (leave-one-out: a wrong member
+    cannot pull the fit). It keeps its id only when its candidate is then the catalog star nearest the
+    detection, within a tolerance, with no other catalog star within ``ambiguity_rad`` (close pairs,
+    0.05°–0.2° apart, can swap ids while every pair angle agrees within ε). Tolerance ``sigmas`` × σ̂,
+    σ̂ = median member residual under the all-member fit / 1.1774 (median radius of a 2-D Gaussian),
+    clipped to [``min_tol_rad``, ``max_tol_rad``]. The member must also be the scene detection nearest
+    its star's predicted position and the only one within ``ambiguity_rad`` of it (all detections, not
+    only the N brightest), which refuses a false star next to a catalog star detected below the N
+    brightest.
 
-    Outlier test (``outlier_sigmas``): σ̂ above comes from a fit that includes every member, so a
-    wrong member inflates the very tolerance it is tested against (it pulls the fit and adds its
-    own residual to the median); a false star a few px from an undetected catalog star, in a scene
-    with several false stars, can then pass. So each member is also tested against a *clean*
-    scale, σ̂ᵢ from the other members' residuals under the fit without it: median radius / 1.1774 /
-    √(1 − 1.5/n'), n' = the other members (the fit of 3 parameters to 2n' coordinates shrinks
-    in-sample residuals), and must lie within ``outlier_sigmas`` × σ̂ᵢ (same clipping). The test is
-    tighter than the first one, so it also drops some true stars; it applies only when
-    n' ≥ ``outlier_min_others``, where a dropped star still leaves a cluster of
-    ≥ ``outlier_min_others`` (in small clusters σ̂ᵢ rests on 2–4 residuals and the extra losses fail
-    scenes). The cases behind it: docs/design/mlv.md.
+    Outlier test (``outlier_sigmas``): the all-member σ̂ is inflated by a wrong member itself, so each
+    member is also tested against a *clean* scale σ̂ᵢ from the other members' residuals under the fit
+    without it: median radius / 1.1774 / √(1 − 1.5/n') (n' other members; a 3-parameter fit to 2n'
+    coordinates shrinks in-sample residuals), within ``outlier_sigmas`` × σ̂ᵢ (same clipping). Being
+    tighter, it also drops true stars, so it applies only when n' ≥ ``outlier_min_others``
+    (docs/design/mlv.md).
 
     Args:
         det_vectors: (n, 3) detection directions (camera frame).
@@ -138,10 +126,8 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
         scene_vectors: (m, 3) all detections of the scene (camera frame), the first n being
             ``det_vectors``; ``None``: ``det_vectors`` only.
         scene_valid: (m,) bool, real detections among ``scene_vectors``.
-        outlier_sigmas: the outlier test's tolerance in units of the clean scale σ̂ᵢ; ``None``:
-            no outlier test.
-        outlier_min_others: the outlier test applies to a member with at least this many other
-            members.
+        outlier_sigmas: the outlier test's tolerance in units of σ̂ᵢ; ``None``: no outlier test.
+        outlier_min_others: the outlier test applies to a member with at least this many others.
 
     Returns:
         (n,) bool members that pass.
@@ -196,10 +182,9 @@ def fit_attitude(det_vectors, members, cand_rows, catalog_vectors):
 def field_check(att, scene_vectors, scene_valid, catalog_vectors, camera, n: int, tol_rad: float):
     """How many of the n brightest catalog stars predicted in the field are seen (extension).
 
-    With the right attitude, the brightest catalog stars that fall in the frame are nearly all
-    detected (they are far above the detection limit); with a wrong one — a chance match of one
-    triangle of false or unlisted stars, which a three-member cluster cannot exclude because its
-    pair angles were already checked by the triangle match — only the cluster's own stars are.
+    Under the right attitude the brightest catalog stars in the frame are nearly all detected; under a
+    wrong one (a chance match of one triangle, which a three-member cluster cannot exclude) only the
+    cluster's own stars are.
 
     Args:
         att: (3, 3) attitude C (v = C r).

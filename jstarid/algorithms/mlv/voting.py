@@ -1,6 +1,5 @@
-"""Initial match (paper §2.3.1): candidate triangles within Th1/Th2 (eq. 7) and triangle voting.
-
-Everything here is per scene and jit-able; :mod:`jstarid.algorithms.mlv.identify` vmaps it.
+"""Initial match (paper §2.3.1): candidate triangles within Th1/Th2 (eq. 7) and triangle voting; per
+scene and jit-able (:mod:`jstarid.algorithms.mlv.identify` vmaps it).
 """
 
 from __future__ import annotations
@@ -15,8 +14,8 @@ def candidate_ranges(keys, v1h, v2h, *, th1, th2, v1_offset: int, stride: int, n
                      th1_max: int | None = None):
     """Database ranges holding the triangles with |v̂1ˢ − v̂1ᶜ| ≤ Th1 and |v̂2ˢ − v̂2ᶜ| ≤ Th2 (eq. 7).
 
-    The keys are ``(v̂1 − v1_offset)·stride + v̂2`` sorted ascending, so for each of the 2·Th1 + 1
-    values of v̂1 in the window the matching v̂2 values form one contiguous key range.
+    Keys ``(v̂1 − v1_offset)·stride + v̂2`` are sorted ascending, so each of the 2·Th1 + 1 v̂1 values of
+    the window gives one contiguous key range.
 
     Args:
         keys: (T,) int32 sorted database keys.
@@ -58,9 +57,8 @@ def gather_candidates(start, count, capacity: int):
         capacity: K, static buffer size.
 
     Returns:
-        ``(index, valid, overflow, total)``: (K,) int32 database rows (0 where not valid), (K,)
-        bool, scalar bool (more than K candidates: the buffer holds only the first K), scalar int32
-        number of candidates.
+        ``(index, valid, overflow, total)``: (K,) int32 database rows (0 where not valid), (K,) bool,
+        scalar bool (more than K candidates: only the first K are held), scalar int32 candidates.
     """
     incl = jnp.cumsum(count)
     excl = incl - count
@@ -74,22 +72,18 @@ def gather_candidates(start, count, capacity: int):
 
 
 def gather_pool(start, count, pool: int):
-    """Pack the candidate ranges of all query triangles of one scene into one flat buffer.
-
-    Per-triangle buffers of K slots (:func:`gather_candidates`) are mostly empty (a median of ≈ 36
-    candidates per triangle at Th = 1 against K = 256); one shared buffer of ``pool`` slots holds
-    the same candidates with a fraction of the work. Candidates are laid out range by range, in
-    the order of ``start`` / ``count``.
+    """Pack the candidate ranges of all query triangles of one scene into one flat buffer, range by
+    range in the order of ``start`` / ``count`` (per-triangle buffers of K slots are mostly empty).
 
     Args:
-        start, count: (T, R) int32 ranges of each query triangle (:func:`candidate_ranges`), the
-            counts of triangles that must not vote already set to 0.
+        start, count: (T, R) int32 ranges of each query triangle (:func:`candidate_ranges`), the counts
+            of triangles that must not vote already set to 0.
         pool: P, static buffer size.
 
     Returns:
-        ``(index, tri, valid, total)``: (P,) int32 database rows (0 where not valid), (P,) int32
-        query triangle of each slot, (P,) bool, and the scalar int32 number of candidates (more
-        than P: the buffer holds only the first P; the caller must retry with a larger pool).
+        ``(index, tri, valid, total)``: (P,) int32 database rows (0 where not valid), (P,) int32 query
+        triangle of each slot, (P,) bool, and the scalar int32 number of candidates (more than P: only
+        the first P are held; the caller must retry with a larger pool).
     """
     r = count.shape[-1]
     start, count = start.reshape(-1), count.reshape(-1)
@@ -108,21 +102,18 @@ def gather_pool(start, count, pool: int):
 
 
 def cast_votes(tri_det, cand_stars, cand_valid, n_det: int, n_ref: int):
-    """Triangle voting (Fig. 3): every candidate triangle votes for its three catalog stars at each
-    of the three detections of the query triangle.
+    """Triangle voting (Fig. 3): every candidate votes for its three catalog stars at each of the three
+    detections of the query triangle (singular values do not tell which vertex is which).
 
-    Singular values do not tell which vertex is which, so — as in the paper — each detection of the
-    query gets a vote for each star of each candidate. A detection's true star collects one vote
-    from every true triangle through it (C(N−1, 2) = 36 at N = 10) while any other star collects
-    only those of triangles through both (N − 2 = 8).
+    A detection's true star collects a vote from every true triangle through it (C(N−1, 2) = 36 at
+    N = 10), any other star only from triangles through both (N − 2 = 8).
 
     Args:
         tri_det: (T, 3) int32 detection index of each query triangle's vertices.
         cand_stars: (T, K, 3) int32 reference-catalog stars of each candidate triangle.
-        cand_valid: (T, K) bool, the candidate counts (it exists, its query triangle is valid and
-            did not overflow).
-        n_det: number of detections N.
-        n_ref: reference-catalog size S.
+        cand_valid: (T, K) bool, the candidate counts (it exists, its query triangle is valid and did
+            not overflow).
+        n_det: number of detections N. n_ref: reference-catalog size S.
 
     Returns:
         (N, S) int32 vote counters.
@@ -136,14 +127,14 @@ def cast_votes(tri_det, cand_stars, cand_valid, n_det: int, n_ref: int):
 
 
 def best_candidates(votes):
-    """Candidate per detection: the star with the most votes (ties → smallest index).
+    """Candidate per detection: the star with the most votes (ties → smallest index; ``argmax``, far
+    cheaper than ``top_k`` on CPU).
 
     Args:
         votes: (N, S) int32 counters.
 
     Returns:
-        ``(star, n_votes)``: (N,) int32 best star and its votes. (``argmax``: an order of
-        magnitude cheaper than ``top_k`` on CPU, same tie rule.)
+        ``(star, n_votes)``: (N,) int32 best star and its votes.
     """
     star = jnp.argmax(votes, axis=1).astype(jnp.int32)
     return star, jnp.take_along_axis(votes, star[:, None], axis=1)[:, 0]
@@ -177,13 +168,11 @@ def observed_sides(obs_vectors):
 def match_vertices(obs_vectors, cand_sides, tol_rad: float):
     """Vertex correspondence of each candidate triangle and a side-length check (extension).
 
-    The singular values fix two of a triangle's three shape parameters; its three side angles fix
-    all three and, through which side is opposite which vertex, which candidate star belongs to
-    which detection. Matching the observed sides to the candidate's in sorted order minimises the
-    largest side error over the six vertex permutations (sorted matching is the optimal bottleneck
-    assignment on a line), so the database stores each triangle's stars ordered by their opposite
-    side and no permutation search is needed. A candidate is accepted when every side agrees
-    within ``tol_rad``.
+    Singular values fix two of a triangle's three shape parameters; its side angles fix all three and,
+    by which side is opposite which vertex, which candidate star belongs to which detection. Sorted
+    matching of the sides minimises the largest side error over the six permutations (optimal
+    bottleneck assignment on a line), so the database stores each triangle's stars ordered by their
+    opposite side. A candidate is accepted when every side agrees within ``tol_rad``.
 
     Args:
         obs_vectors: (T, 3, 3) detection directions of each query triangle (camera frame).
@@ -191,8 +180,8 @@ def match_vertices(obs_vectors, cand_sides, tol_rad: float):
         tol_rad: side tolerance (rad).
 
     Returns:
-        ``(vertex, ok)``: (T, 3) int32 query vertex (0–2) opposite the observed sides in
-        ascending order — it corresponds to candidate star m = 0, 1, 2 — and (T, K) bool.
+        ``(vertex, ok)``: (T, 3) int32 query vertex (0–2) opposite the observed sides in ascending
+        order (↔ candidate star m = 0, 1, 2), and (T, K) bool.
     """
     vertex, obs_sorted = observed_sides(obs_vectors)
     err = jnp.max(jnp.abs(cand_sides - obs_sorted[:, None, :]), axis=-1)  # (T, K)

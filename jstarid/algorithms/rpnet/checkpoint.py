@@ -1,19 +1,13 @@
 """RpNet checkpoints: one file format for trained networks and for resumable training snapshots.
 
-Every file is a msgpack payload (``flax.serialization``) ``{"meta", "variables"[, "training"]}``:
-``meta`` holds the fingerprints it was written for (:func:`~jstarid.algorithms.rpnet.train.checkpoint_meta`:
-catalog, camera, network config, guide list; a snapshot adds the training schedule), checked on
-every read — a file written for another setup is an error, never used silently. A trained network
-(:func:`save_checkpoint`) has ``variables`` only; a training snapshot (:func:`save_snapshot`) adds
-``training``: what is needed to go on.
-
-A ``paper``-scale training takes hours on a CPU; a crash or a killed job must not lose it.
-:func:`~jstarid.algorithms.rpnet.train.train` writes a snapshot every few hundred steps (the stage,
-the next step, the variables, the optimizer state, the classifier kept by early stopping and the
-history), and a later call with the same snapshot file continues from it. Training batches depend
-only on (key, step) (``make_batch(fold_in(key, step))``, or the pool cycled by step), so a resumed
-run draws the same batches as an uninterrupted one and ends with the same variables.
-
+Every file is a msgpack payload (``flax.serialization``) ``{"meta", "variables"[, "training"]}``.
+``meta`` holds the fingerprints it was written for (catalog, camera, network config, guide list;
+:func:`~jstarid.algorithms.rpnet.train.checkpoint_meta`; a snapshot adds the training schedule) and
+is checked on every read: a file for another setup is an error, never used silently. A trained
+network (:func:`save_checkpoint`) has ``variables`` only; a snapshot (:func:`save_snapshot`) adds
+``training`` (stage, next step, optimizer state, early-stopping classifier, history), so a killed
+long training resumes. Batches depend only on (key, step), so a resumed run draws the same batches
+as an uninterrupted one and ends with the same variables.
 """
 
 from __future__ import annotations

@@ -1,9 +1,8 @@
 """RpNet settings: frozen, hashable dataclasses with the paper's defaults (Xu et al. 2019; conventions §7).
 
-Two groups: :class:`Training` (what shapes the trained network: Table 3 hyper-parameters, the noise
-families of §II-C) and :class:`Config` (initial input, guide catalog, network widths, training, and the
-identification-time settings of §II-E). Everything that shapes the trained network enters
-:meth:`Config.database_fields`, the key of the cached checkpoint; identification-time settings do not.
+:class:`Training` (Table 3 hyper-parameters, the noise families of §II-C) and :class:`Config` (input,
+guide catalog, network, training, identification of §II-E). What shapes the trained network enters
+:meth:`Config.database_fields`, the key of the cached checkpoint; identification settings do not.
 """
 
 from __future__ import annotations
@@ -22,12 +21,9 @@ __all__ = ["Config", "Training", "Tuning"]
 
 
 class Tuning(NamedTuple):
-    """The identification settings that compiled identification reads as traced values.
-
-    A change of any of them (a tolerance sweep, another coverage threshold, a weight grid) reuses the
-    compiled identification instead of compiling it again (≈ 30 s per configuration on 2 CPU cores).
-    Built by :meth:`Config.tuning`; the fields mean what the :class:`Config` fields of the same
-    name mean.
+    """The identification settings that compiled identification reads as traced values: changing any of
+    them (a sweep, a weight grid) reuses the compilation. Built by :meth:`Config.tuning`; the fields mean
+    what the :class:`Config` fields of the same name mean.
 
     Attributes:
         pair_tol_px: () float32 px; ``inf`` when ``Config.pair_tol_px`` is None (test off).
@@ -60,17 +56,12 @@ _NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk")
 class Training:
     """Training hyper-parameters (paper Table 3) and the on-the-fly noise families (§II-C).
 
-    Table 3 gives, for the pattern generation network (PGN, the denoising autoencoder) and the
-    pattern classification network (PCN): learning rate, epochs, batch size 512, L2 = 1e-4, weight
-    decay (PGN: no, PCN: yes) and early stopping (PGN: no, PCN: yes). Interpretation used here (the
-    paper names neither optimizer nor schedule): Adam; "L2" is a penalty ``l2 · ½‖W‖²`` on the kernels
-    added to the loss; "weight decay: yes" is read as a learning-rate decay (cosine to 1 % of the
-    initial rate), since the L2 column already covers decay of the weights; "early stop" keeps the
-    classifier with the best held-out accuracy.
-
-    Data are drawn on the fly (no sample database on disk), so an "epoch" is the paper's data-set size,
-    ``K × 320`` noise samples (320 per guide star), and ``*_steps = None`` means ``epochs × K × 320 /
-    batch``.
+    Table 3 (PGN = denoising autoencoder, PCN = classifier): learning rate, epochs, batch 512,
+    L2 = 1e-4, weight decay (PGN no, PCN yes), early stop (PGN no, PCN yes). The paper names neither
+    optimizer nor schedule; read as: Adam, a penalty ``l2 · ½‖W‖²`` on the kernels, "weight decay" =
+    cosine learning-rate decay to 1 %, "early stop" = keep the classifier with the best held-out
+    accuracy (docs/design/rpnet.md). Data are drawn on the fly: an "epoch" is ``K × 320`` samples, and
+    ``*_steps = None`` means ``epochs × K × 320 / batch``.
 
     Attributes:
         dae_lr, dae_epochs, dae_steps: PGN learning rate (1e-4), epochs (15), explicit step count.
@@ -87,9 +78,8 @@ class Training:
         max_false: false-star family, 1..max_false stars within ρ of the guide star (§II-C.4).
         false_mag_range: false-star magnitudes, uniform (0–6 mag in the paper).
         sim_capacity: detections kept per simulated training scene (brightest first).
-        pool_batches: ``None``: a fresh batch at every step (the paper-like stream). An integer n:
-            draw n batches once (in memory) and cycle through them — for CPU runs and tests, where
-            simulation, not the network, would dominate the time.
+        pool_batches: ``None``: a fresh batch every step (the paper-like stream); n: draw n batches once
+            and cycle through them (CPU runs and tests, where simulation would dominate).
         seed: PRNG seed of the training run (data, initialisation).
     """
 
@@ -127,17 +117,14 @@ class Training:
 
     @classmethod
     def paper(cls) -> Training:
-        """Table 3 scale: 15 + 10 epochs of K × 320 samples, batch 512 (GPU work; hours on a CPU)."""
+        """Table 3 scale: 15 + 10 epochs of K × 320 samples, batch 512."""
         return cls()
 
     @classmethod
     def quick(cls) -> Training:
-        """A smoke-scale run, minutes on 2 CPU cores for the full V ≤ 6 guide catalog (K = 5,044).
-
-        Same losses, noise families and optimiser as the paper; less data: 3,000 DAE steps and 3,000
-        classifier steps of 256 fresh samples (≈ 1.5 M samples in all, vs 41 M in the paper), and a
-        10× higher DAE learning rate (1e-3) so that the short run gets somewhere. Not expected to
-        reach paper accuracy (experiments/RESULTS.md has its figures).
+        """A smoke-scale run (minutes on a CPU for K = 5,044 guides): the paper's losses, families and
+        optimiser; 3,000 + 3,000 steps of 256 samples (≈ 1.5 M samples vs 41 M) and a 10× higher DAE
+        learning rate (1e-3) so that the short run gets somewhere. Not expected to reach paper accuracy.
         """
         return cls(dae_lr=1e-3, dae_steps=3000, clf_steps=3000, batch_size=256, eval_every=250,
                    eval_size=1024)
@@ -145,7 +132,8 @@ class Training:
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """RpNet parameters (Xu et al. 2019, IEEE Access 7, 92 193; docs/conventions.md §7).
+    """RpNet parameters (Xu et al. 2019, IEEE Access 7, 92 193; docs/conventions.md §7). Evidence for the
+    defaults of the extensions: docs/design/rpnet.md.
 
     Initial input (§II-A, eq. 3):
         rho_deg: pattern radius ρ (6°).
@@ -169,72 +157,54 @@ class Config:
         n_candidates: candidates per guide (3 in the paper: 27 candidate pairs).
         position_weights: po_i of the three detections nearest the centre (0.45, 0.30, 0.25).
         probability_weights: pr_j of the three candidates by rank (0.60, 0.25, 0.15).
-        pair_tol_px: extension: a candidate pair is kept only when its catalog angle agrees with the
-            observed angle of the two detections within this many pixels (converted with f_px); the
-            paper only rejects pairs farther apart than the field of view (eq. 10), which is also
-            applied. ``None`` = the paper's test only.
-        match_tol_px: a detection is named, after the confident pair fixes the attitude, when a
-            catalog star projects within this distance (px) and neither a second catalog star nor
-            another detection competes for it (first pass; also the upper bound of the second, and
-            the tolerance of the pair's own two detections). 6.5 px: at σ = 1.6 px, 5 px (a 3.1 σ
-            radius) left the main star unnamed in 0.74 % of scenes, 6.5 px in 0.08 %.
-        anchor_radius_px: first naming pass, from the pair: a detection is named by its angular
-            distances to the two pair stars (roll-free, within ``match_tol_px``), searching catalog
-            stars within this radius (px) of where the pair attitude puts it (the pair's roll
-            error times the distance from the pair must stay below it).
-        n_refine: naming / Wahba refit passes at ``match_tol_px`` (a close pair fixes the roll
-            poorly; each pass reaches farther stars).
-        match_sigmas, match_tol_min_px: last pass, after the attitude is refined on every named
-            star: the centroid noise σ̂ is estimated from the residuals (RMS per axis) and the
-            tolerance becomes ``match_sigmas · σ̂`` clipped to [``match_tol_min_px``,
-            ``match_tol_px``] — 3.5 σ keeps 99.8 % of true stars, while a tight radius at low noise
-            keeps false stars from being named after an undetected catalog star.
-        trim_sigmas, outlier_ratio: the robust refit before the last pass (one step of least
-            trimmed squares): the attitude is fitted on the better half of the names, then on every
-            name within ``trim_sigmas`` × that fit's median-based σ̂ (:func:`.identify.noise_sigma`);
-            it replaces the fit on all names when its RMS σ̂ is ``outlier_ratio`` times smaller,
-            i.e. when a few wrong names inflate the residuals (with clean Gaussian noise the two σ̂
-            agree, so the plain fit is kept). 6 σ̂ keeps every true star at high noise and still
-            drops a false star a few px off at low noise (the clip to ``match_tol_min_px`` applies).
-        pair_sigmas: the confident pair's two detections keep their names (given by the network,
-            not by proximity) out to ``pair_sigmas · σ̂`` (clipped like the last pass) rather than
-            ``match_sigmas · σ̂`` but no further: a false star beside an undetected guide star,
-            classified as that star from its neighbours, lies many σ̂ away at low noise, while 5 σ̂
-            cost true main stars where σ̂ from a few stars came out low.
-        min_verified: fewest named detections (the pair included) for the scene to count as
-            identified; below it the scene fails (ok = False, ids = −1). 5: the pair plus three
-            confirmations; with 4, a swapped pair (rotated attitude, the pair angle matching
-            exactly) was confirmed by two coincidences on a wide test camera.
-        min_coverage: extension: the named detections must also be at least this fraction of the
-            catalog stars (V ≤ the catalog limit) that the final attitude projects inside the frame
-            (inset by ``match_tol_px``); 0 = off. 0.4: correct scenes name ≥ 0.5 of them, the
-            mis-identified ones seen (a wrong roll, a swapped close pair) ≤ 0.31. A scene flagged
-            ``overflow`` (more detections than its capacity, the brightest kept) counts at most as
-            many catalog stars as it kept detections, so a dense real frame is not failed.
-        n_pair_trials: extension: the admissible pairs tried, by decreasing score, until one is
-            confirmed (1 = the paper's single confident pair). The next pairs are only tried on the
-            scenes the best one did not confirm (a second pass), so the cost grows with the failure
-            rate, not with n. 3 instead of 1 cuts failures at σ = 1 px from 0.2 % to 0.01 %.
-        n_guide_triples: extension: when no pair of S1–S3 is confirmed, the next three
-            detections by distance from the centre (ranks 4–6, then 7–9, …) go through steps 2–5
-            in turn, up to this many triples (1 = the paper's S1–S3 only). Run only on the scenes
-            still unconfirmed, so the cost grows with the failure rate. 12 covers the ≈ 30–38
-            detections of a typical ``rpnet2019`` scene (at σ_m = 0.969 mag: 72.0 → 97.6 %).
-        n_pool_pairs: extension: after the triples, on the scenes still unconfirmed, the pairs of
-            candidates of any two of the 3 · ``n_guide_triples`` nearest detections are scored
-            (eq. 11 without the position weights) and this many of the best are verified in score
-            order (0 = off). 8: 97.6 → 99.6 % at σ_m = 0.969 mag, 81.8 → 99.1 % at 50 % false.
+        pair_tol_px: extension: keep a candidate pair only when its catalog angle agrees with the
+            observed angle within this many px (via f_px), besides the paper's field-of-view test
+            (eq. 10). ``None`` = the paper's test only.
+        match_tol_px: after the confident pair fixes the attitude, a detection is named when a catalog
+            star projects within this distance (px) and neither a second star nor another detection
+            competes (first pass; also the bound of the last pass and of the pair's own detections).
+        anchor_radius_px: first naming pass: a detection is named by its angular distances to the two
+            pair stars (roll-free, within ``match_tol_px``) among catalog stars within this radius (px)
+            of where the pair attitude puts it (must exceed the roll error × distance from the pair).
+        n_refine: naming / Wahba refit passes at ``match_tol_px`` (a close pair fixes the roll poorly;
+            each pass reaches farther stars).
+        match_sigmas, match_tol_min_px: last pass: tolerance ``match_sigmas · σ̂`` (σ̂ = residual RMS per
+            axis of the fit on every name) clipped to [``match_tol_min_px``, ``match_tol_px``]; the
+            floor keeps a tight radius at low noise, so a false star is not named after an undetected
+            catalog star.
+        trim_sigmas, outlier_ratio: robust refit before the last pass (one step of least trimmed
+            squares): fit the better half of the names, then every name within ``trim_sigmas`` × that
+            fit's median-based σ̂ (:func:`.identify.noise_sigma`); it replaces the fit on all names when
+            its RMS σ̂ is ``outlier_ratio`` times smaller (wrong names inflate the residuals; with clean
+            noise the two agree and the plain fit is kept).
+        pair_sigmas: the confident pair's two detections (named by the network, not by proximity) keep
+            their names out to ``pair_sigmas · σ̂`` (clipped like the last pass), no further: a false
+            star classified as an undetected guide star lies many σ̂ away at low noise.
+        min_verified: fewest named detections (the pair included) for the scene to count as identified;
+            below it the scene fails (ok = False, ids = −1). 5: the pair plus three confirmations.
+        min_coverage: extension: the named detections must be at least this fraction of the catalog
+            stars (V ≤ the catalog limit) the final attitude projects inside the frame (inset by
+            ``match_tol_px``); 0 = off. 0.4: separates correct scenes (≥ 0.5) from wrong matches
+            (≤ 0.31). A scene flagged ``overflow`` (brightest detections kept) counts at most as many
+            catalog stars as it kept detections.
+        n_pair_trials: extension: admissible pairs tried by decreasing score until one is confirmed
+            (1 = the paper's single pair); later pairs only on the unconfirmed scenes, so the cost grows
+            with the failure rate.
+        n_guide_triples: extension: when no pair of S1–S3 is confirmed, the next three detections by
+            distance from the centre (ranks 4–6, 7–9, …) go through steps 2–5, up to this many triples
+            (1 = S1–S3 only), on the unconfirmed scenes only. 12 covers the ≈ 30–38 detections of a
+            typical ``rpnet2019`` scene.
+        n_pool_pairs: extension: after the triples, on the scenes still unconfirmed, this many of the
+            best pairs of candidates of any two of the 3 · ``n_guide_triples`` nearest detections (eq. 11
+            without position weights) are verified in score order (0 = off).
         network_bf16: run the network's matmuls on bfloat16 operands with float32 accumulation
-            (parameters stay float32): ≈ 2× the matmul rate on CPUs with AVX512-BF16 and on GPUs,
-            but slower than float32 on CPUs without native bfloat16. ``None`` (default): bfloat16
-            where the hardware has it (:func:`.model.native_bf16`: a GPU or TPU backend, or
-            AVX512-BF16 / AMX-BF16 in the CPU flags), float32 elsewhere; ``True`` / ``False`` force
-            one. The two give the same ids in 99.93–99.98 % of scenes.
-        batch_chunk: scenes per compiled identification call; the network runs on all of them at
-            once (3 × chunk inputs per matmul: large matrices run near the CPU's matmul peak).
-        name_chunk: scenes vmapped together in the naming steps inside a call (``lax.map`` groups;
-            memory ≈ name_chunk × n_pair_trials × N × local stars floats per intermediate, kept
-            small so that it stays in cache).
+            (parameters stay float32). ``None``: bfloat16 where the hardware has it
+            (:func:`.model.native_bf16`: GPU or TPU, or AVX512-BF16 / AMX-BF16 CPU flags), else
+            float32 (emulated bfloat16 is slower); ``True`` / ``False`` force one.
+        batch_chunk: scenes per compiled identification call; the network runs on all of them at once
+            (3 × chunk inputs per matmul).
+        name_chunk: scenes vmapped together in the naming steps (``lax.map`` groups; memory
+            ≈ name_chunk × n_pair_trials × N × local stars floats per intermediate, kept in cache).
     """
 
     rho_deg: float = 6.0
@@ -297,9 +267,10 @@ class Config:
             position_weights=f32(self.position_weights), probability_weights=f32(self.probability_weights))
 
     def compiled(self) -> Config:
-        """This config with every field compiled identification does not read statically reset to
-        its default: the static argument of the identification kernels, so that configs differing
-        only in :class:`Tuning` (or the host loop's settings) share one compilation."""
+        """This config with every field compiled identification does not read statically reset to its
+        default: the kernels' static argument, so configs differing only in :class:`Tuning` (or host-loop
+        settings) share one compilation.
+        """
         defaults = {f.name: f.default for f in dataclasses.fields(self) if f.name in _NOT_COMPILED}
         return dataclasses.replace(self, **defaults)
 
@@ -320,9 +291,9 @@ class Config:
 
     @classmethod
     def paper(cls, **overrides) -> Config:
-        """The paper's algorithm alone: paper network, input and Table 3 training, and none of our
-        identification extensions (no pair-angle test, the single most confident pair, the
-        detections S1–S3 only, no pool of pairs, no coverage test)."""
+        """The paper's algorithm alone: paper network, input and Table 3 training, none of our extensions
+        (no pair-angle test, one confident pair, S1–S3 only, no pool of pairs, no coverage test).
+        """
         return cls(**{"pair_tol_px": None, "n_pair_trials": 1, "n_guide_triples": 1,
                       "n_pool_pairs": 0, "min_coverage": 0.0, **overrides})
 

@@ -1,27 +1,24 @@
 """RpNet training data, drawn on the fly from a PRNG key (§II-C); nothing is stored on disk.
 
 A batch of B samples: B guide stars drawn uniformly from the guide catalog, one simulated scene each
-(:func:`jstarid.simulate` mode (b): boresight on the guide star, random roll), with one of the paper's
-four noise families per sample. The families take fixed quarters of the batch (sample i has family
-i mod 4) and cycle through their levels with j = i // 4, so every batch of a given size has the same
-noise layout — and :func:`jstarid.simulate` compiles once:
+(:func:`jstarid.simulate` mode (b): boresight on the guide, random roll). The paper's four noise
+families take fixed quarters of the batch (sample i has family i mod 4, level index j = i // 4), so
+every batch of a size has the same layout and the simulator compiles once:
 
 * 0, position: σ = 0.2, 0.4, …, 1.6 px on every detection (§II-C.1);
 * 1, magnitude: σ ∈ {0.323, 0.484, 0.646, 0.807, 0.969} mag before the V 6.0 limit, from the V 7.0
   simulation list (§II-C.2; needs a catalog loaded with ``sim_margin = 1``);
 * 2, missing: 1–5 detected true stars removed (§II-C.3);
 * 3, false: 1–5 false stars uniform in the disk of radius f_px·tan ρ about the image centre (the
-  guide star), magnitude uniform 0–6 (§II-C.4).
+  guide), magnitude uniform 0–6 (§II-C.4).
 
-The paper leaves the guide star S itself noise-free. Here it sits exactly at the principal point
-(mode b), its own detection (identified by ``truth``) is left out of the neighbours, and the guide
-vector is the boresight, so S is noise-free as in the paper whatever the simulator did to its
-detection. One departure: the missing-star family may remove S's own detection, which then removes
-one neighbour fewer than asked.
+The guide S is noise-free as in the paper: the guide vector is the boresight and S's own detection
+(by ``truth``) is left out of the neighbours. Departure: the missing-star family may remove S's own
+detection, which then removes one neighbour fewer than asked.
 
-The clean input of a guide star (the DAE target) is built once per catalog from catalog vectors: the
-catalog stars within ρ of it with V ≤ the camera's limit — what a noise-free scene shows (ρ = 6° <
-the half side 7.1° of the rpnet2019 field, so the whole pattern circle is in view at any roll).
+The clean input (the DAE target) is built once per catalog from catalog vectors: the stars within ρ
+of the guide with V ≤ the camera's limit (ρ = 6° < the 7.1° half side of the rpnet2019 field, so
+the whole pattern circle is in view at any roll).
 """
 
 from __future__ import annotations
@@ -134,9 +131,8 @@ def scene_training_inputs(xy, valid, truth, guide_row, *, camera, rho_rad, e_rad
 
 
 def make_batch(key, catalog, camera, config: Config, tables: Tables, batch_size: int) -> Batch:
-    """Draw one batch: random guide stars, random roll, the four noise families (module docstring).
-
-    A pure function of ``key`` and the settings (same key → same batch).
+    """Draw one batch: random guide stars, random roll, the four noise families (module docstring); a pure
+    function of ``key`` and the settings.
 
     Args:
         key: PRNG key.

@@ -1,21 +1,17 @@
 """Training grids: G RpNet models of one architecture trained side by side in one vmapped step.
 
-Each member g has its own initialisation seed and its own stage-1 (DAE) and stage-2 (classifier)
-learning rates. Their parameters and Adam moments carry a leading member axis, and one jit-compiled,
-``vmap``-ped step updates all G on the same batch — drawn once per step, so the on-the-fly data
-(about half of a CPU training step, most of a GPU one) is shared by the whole grid, and the
-G small networks become batched matrix products. Widths change the shapes, so a width grid is a loop
-over architectures, each a vmapped group (``experiments/tune_rpnet_training.py``).
+Each member g has its own initialisation seed and stage-1 (DAE) and stage-2 (classifier) learning
+rates; parameters and Adam moments carry a leading member axis, and one jit-compiled ``vmap`` step
+updates all G on the same batch, drawn once per step (the data is shared by the grid; the small
+networks become batched matrix products). A width grid is a loop over architectures.
 
-Member g follows :func:`~jstarid.algorithms.rpnet.train.train` for
-``Training(seed=seeds[g], dae_lr=dae_lrs[g], clf_lr=clf_lrs[g])``, with one difference: the data
-keys (training batches and the held-out batch) come from ``config.training.seed`` for every member,
-so that all members are compared on the same samples. A member whose seed is that seed is therefore
-the single run of :func:`train` at its rates (tested, to float32 rounding of the batched products).
-The optimiser is ``optax.inject_hyperparams(optax.adam)``: the learning rate lives in the optimiser
-state, so each member carries its own rate (stage 2 sets it to lr_g · the cosine factor every
-step). Each member keeps its best held-out classifier (``Training.early_stop``), as :func:`train`
-does.
+Member g follows :func:`~jstarid.algorithms.rpnet.train.train` for ``Training(seed=seeds[g],
+dae_lr=dae_lrs[g], clf_lr=clf_lrs[g])``, except that the data keys (training and held-out batches)
+come from ``config.training.seed`` for every member, so all are compared on the same samples: a
+member whose seed is that seed is the single :func:`train` run at its rates (tested, to float32
+rounding). ``optax.inject_hyperparams(optax.adam)`` keeps each member's learning rate in its
+optimiser state (stage 2 sets lr_g · the cosine factor every step). Each member keeps its best
+held-out classifier (``Training.early_stop``).
 """
 
 from __future__ import annotations

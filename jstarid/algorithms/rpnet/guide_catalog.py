@@ -1,16 +1,14 @@
 """Guide reference stars (GRSs) of RpNet (§II-A): the classes the network tells apart.
 
-The paper starts from SAO, keeps V ≤ 6.0, keeps one star of each close ("double") pair at random and
-deletes "some stars in dense areas" selectively, ending with 5,045 guides. Here:
+The paper keeps SAO stars with V ≤ 6.0, one star of each close pair at random, and deletes "some
+stars in dense areas" (5,045 guides). Here (docs/design/rpnet.md):
 
 * the catalog is :func:`jstarid.load_catalog` with its close-pair removal (``double_sep_deg``; the
-  brighter star of a pair is kept, deterministic rather than random); ``load_catalog(6.0,
-  double_sep_deg=0.1)`` gives 5,044 stars, one fewer than the paper;
+  brighter star kept, deterministic): ``load_catalog(6.0, double_sep_deg=0.1)`` has 5,044 stars;
 * guides are the catalog rows with V ≤ ``Config.guide_mag_limit``;
 * optional thinning: a guide closer than ``Config.guide_min_sep_deg`` to a brighter guide is dropped
-  (default 0: none). The paper's dense-area deletion is not specified and is not reproduced; every
-  catalog star still appears as a *neighbour* in the inputs (it is what the camera sees), only the
-  class list shrinks.
+  (default 0). The dense-area deletion is not reproduced; every catalog star still appears as a
+  *neighbour* in the inputs, only the class list shrinks.
 
 Class k of the network is catalog row ``guide_rows[k]``.
 """

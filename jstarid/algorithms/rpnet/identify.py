@@ -6,53 +6,34 @@ Per scene (written once, batched with ``vmap``):
 2. their initial inputs (eq. 3) → generator → classifier → softmax (eq. 4); the three most probable
    guide stars of each are its candidates, p_i1 > p_i2 > p_i3 (eq. 8);
 3. weight search over the 27 candidate pairs S_ij ↔ S_kl (i < k; eqs. 9–11, Table 5 weights): a pair
-   is rejected when its catalog angle (eq. 10) exceeds the field's diagonal (the paper's test), when both
-   candidates are the same star, or — an extension, ``Config.pair_tol_px`` — when the catalog angle
-   differs from the observed angle between S_i and S_k by more than the tolerance; the remaining pair
-   with the highest score W = po_i·pr_j·p_ij + po_k·pr_l·p_kl is the "confident" pair;
-4. the attitude from the confident pair (Wahba with two vectors, ≡ TRIAD); a first naming pass by
-   the angular distances to the two pair stars (:func:`anchor_names`, independent of the roll that a
-   close pair fixes poorly) and a Wahba fit on those; then every detection is rotated
-   into ICRS and named after the nearest catalog star when it lies within ``match_tol_px`` and no
-   second catalog star or other detection competes for it; the attitude is refined on every named
-   star (Wahba) and the naming repeated (``n_refine`` passes); where the residuals show wrong
-   names (a trimmed refit — the better half of the names, then every name within ``trim_sigmas``
-   σ̂ of that fit — has an RMS ``outlier_ratio`` times smaller) the trimmed fit replaces it; then
-   the naming runs once more with a tolerance of ``match_sigmas`` × the centroid noise σ̂ (RMS per
-   axis of the fit's residuals; clipped to [``match_tol_min_px``, ``match_tol_px``]; the pair's own
-   two detections: ``pair_sigmas`` × σ̂) and a last refit;
-5. the scene is identified (``ok``) when at least ``min_verified`` detections are named and they are
-   at least ``min_coverage`` of the catalog stars that the final attitude puts inside the frame (a
-   wrong or badly rolled attitude names a few stars by coincidence, a right one nearly all; in a
-   scene flagged ``overflow``, of at most as many stars as it kept detections); otherwise
-   (extension, ``n_pair_trials`` > 1) the next-best admissible pairs are tried in score order, then
-   (extension, ``n_guide_triples`` > 1) steps 2–5 run again on the next three detections by distance
-   from the centre (ranks 4–6, 7–9, …), then (extension, ``n_pool_pairs`` > 0) the best pairs of
-   candidates of any two of those detections (:func:`_name_pool`), and when none is confirmed the
-   scene fails with every id −1 (a mis-identification is worse than a failure).
-   ``n_pair_trials = n_guide_triples = 1, n_pool_pairs = 0`` is the paper's single confident pair of
-   S1–S3; the later pairs, triples and the pool are only tried, in later passes, on the scenes still
-   unconfirmed.
+   is rejected when its catalog angle (eq. 10) exceeds the field's diagonal, when both candidates are
+   one star, or (extension, ``Config.pair_tol_px``) when it differs from the observed angle of S_i,
+   S_k by more than the tolerance; the best remaining W = po_i·pr_j·p_ij + po_k·pr_l·p_kl is the
+   "confident" pair;
+4. naming (the paper's unstated "GNSs are identified easily"): attitude from the pair (two-vector
+   Wahba ≡ TRIAD); a roll-free first pass by the distances to the pair stars (:func:`anchor_names`)
+   and a fit on those; then ``n_refine`` passes of nearest-star naming within ``match_tol_px`` (no
+   competing star or detection) and a refit on every name; a trimmed refit (the better half of the
+   names, then all within ``trim_sigmas`` σ̂ of it) replaces the fit when its RMS is
+   ``outlier_ratio`` times smaller (wrong names present); a last pass with the tolerance
+   ``match_sigmas`` × σ̂ (clipped to [``match_tol_min_px``, ``match_tol_px``]; the pair's own
+   detections ``pair_sigmas`` × σ̂) and a last refit;
+5. verification: ``ok`` when at least ``min_verified`` detections are named and they are at least
+   ``min_coverage`` of the catalog stars the final attitude puts inside the frame (in a scene flagged
+   ``overflow``, of at most as many as it kept detections). Otherwise, on the unconfirmed scenes
+   only, in later passes (extensions): the next-best pairs (``n_pair_trials``), the next triples by
+   distance from the centre (``n_guide_triples``), then pairs across those detections
+   (``n_pool_pairs``, :func:`_name_pool`); if nothing is confirmed every id is −1.
+   ``n_pair_trials = n_guide_triples = 1, n_pool_pairs = 0`` is the paper's single confident pair.
 
-The paper does not say how the "GNSs are identified easily" once the pair is known; step 4 is that
-step made explicit, and its count threshold is the verification.
-
-Implementation (CPU throughput, same results): the generator's output layer, FC3 and BatchNorm are
-folded into one affine map (:mod:`~jstarid.algorithms.rpnet.inference`: the same function, 20 % fewer
-multiply-adds); one jit per chunk of ``Config.batch_chunk`` scenes runs
-the network on all 3 × chunk inputs at once (:func:`network_candidates`), then the naming steps in
-``lax.map`` groups of ``Config.name_chunk`` scenes; naming compares detections only with the catalog
-stars of the sky-index cell of the pair's boresight (≈ 200 instead of the whole catalog; every star
-that could be named is in it), the refinement passes are unrolled, argmax/argmin are two plain
-reductions (:func:`jstarid.completion.first_argmax`), and scenes are sorted by their number of
-detection columns so that each chunk is cut to the width it needs (:data:`WIDTH_STEP`); each chunk's
-scenes are split over every JAX device (:func:`jstarid.runtime.map_batch`; the results equal the
-one-device call); every chunk of a pass is dispatched before any result is read back, so the devices
-do not idle while the host collects a chunk; the
-verification's 3-term products are written out (:func:`jstarid.geometry.precise.small_matmul`).
-The kernels compile for :meth:`Config.compiled` (the config with its thresholds and host-loop
-settings reset) and read the tolerances, counts and weights as traced values
-(:class:`~jstarid.algorithms.rpnet.config.Tuning`): a sweep over them compiles once.
+Implementation (same results; docs/design/rpnet.md): the network runs folded
+(:mod:`~jstarid.algorithms.rpnet.inference`) on all 3 × chunk inputs of a ``Config.batch_chunk``
+chunk at once (:func:`network_candidates`), the naming in ``lax.map`` groups of ``Config.name_chunk``
+scenes against the catalog stars of the sky-index cell of the pair's boresight (every nameable star
+is in it); scenes are sorted by detection count and each chunk cut to the width it needs
+(:data:`WIDTH_STEP`) and split over every JAX device. Kernels compile for :meth:`Config.compiled` and
+read tolerances, counts and weights as traced :class:`~jstarid.algorithms.rpnet.config.Tuning`
+values: a sweep compiles once.
 """
 
 from __future__ import annotations
@@ -96,12 +77,12 @@ def weight_search(probs, pair_ok, position_weights, probability_weights):
     Args:
         probs: (3, 3) p_ij, probability of detection i's j-th candidate (j by decreasing probability).
         pair_ok: (27,) bool, pair :data:`PAIRS`[q] passed the angle checks (eq. 10 and extensions).
-        position_weights: (3,) po_i (Table 5), nearest detection first.
-        probability_weights: (3,) pr_j (Table 5), most probable candidate first.
+        position_weights: (3,) po_i (Table 5), nearest detection first. probability_weights: (3,) pr_j
+            (Table 5), most probable candidate first.
 
     Returns:
-        ``(best, score, found)``: index into :data:`PAIRS` of the highest-scoring admissible pair,
-        (27,) scores (−inf where not admissible), and whether any pair is admissible.
+        ``(best, score, found)``: index into :data:`PAIRS` of the highest-scoring admissible pair, (27,)
+        scores (−inf where not admissible), and whether any pair is admissible.
     """
     po = jnp.asarray(position_weights, jnp.float32)
     pr = jnp.asarray(probability_weights, jnp.float32)
@@ -112,18 +93,16 @@ def weight_search(probs, pair_ok, position_weights, probability_weights):
 
 
 def pair_checks(body, valid, near, cand_rows, star_vectors, pair_tol_px, *, camera):
-    """Admissibility of the 27 candidate pairs of one scene (eq. 10 and the extensions).
-
-    A pair S_ij ↔ S_kl is admissible when both detections exist, the candidates are two different
-    stars, their catalog angle (eq. 10) is within the field's largest angle, and (extension,
-    ``Config.pair_tol_px``) it agrees with the observed angle between S_i and S_k.
+    """Admissibility of the 27 candidate pairs of one scene: both detections exist, two different stars,
+    catalog angle (eq. 10) within the field's largest angle, and (extension, ``Config.pair_tol_px``) it
+    agrees with the observed angle between S_i and S_k.
 
     Args:
         body: (N, 3) camera-frame unit vectors of the detections; valid: (N,) bool.
         near: (3,) int32 detection index of S1, S2, S3.
         cand_rows: (3, 3) int32 catalog row of detection i's j-th candidate.
         star_vectors: (M, 3) ICRS catalog unit vectors.
-        pair_tol_px: () tolerance on the angle difference (px; ``inf`` = off), a float or traced.
+        pair_tol_px: () tolerance on the angle difference (px; ``inf`` = off), float or traced.
         camera: static.
 
     Returns:
@@ -148,16 +127,13 @@ def _admissible(row_a, row_b, ref_a, ref_b, obs_a, obs_b, pair_tol_px, *, camera
 
 
 def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_rad, radius_rad):
-    """Name detections by their angular distances to an identified pair (independent of the roll).
-
-    Detection j is named after catalog star s when both |∠(j, a) − ∠(s, A)| and |∠(j, b) − ∠(s, B)|
-    are within ``tol_rad`` (a, b the pair's detections, A, B their catalog stars), s lies within
-    ``radius_rad`` of where the attitude ``c`` puts j (which resolves the mirror solution across the
-    pair axis), and no second catalog star passes the same test.
+    """Name detections by their angular distances to an identified pair (roll-free): j is named after
+    catalog star s when |∠(j, a) − ∠(s, A)| and |∠(j, b) − ∠(s, B)| are within ``tol_rad`` (a, b the pair's
+    detections, A, B their stars), s lies within ``radius_rad`` of where ``c`` puts j (resolving the
+    mirror solution), and no second catalog star passes.
 
     Args:
-        c: (3, 3) attitude from the pair.
-        body: (N, 3) camera-frame unit vectors; valid: (N,) bool.
+        c: (3, 3) attitude from the pair. body: (N, 3) camera-frame unit vectors; valid: (N,) bool.
         obs_a, obs_b: (3,) camera-frame vectors of the pair's detections.
         ref_a, ref_b: (3,) ICRS vectors of their catalog stars.
         star_vectors: (M, 3) ICRS catalog unit vectors.
@@ -183,13 +159,11 @@ def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_r
 def _candidates(xy, valid, weights, *, camera, config: Config, n_classes: int, triple=0, count: int = 3):
     """Steps 1–2 for a batch: S1–S3 (eq. 7), their inputs (eq. 3), network, top-3 (eqs. 4, 8).
 
-    One matmul chain over all ``3 B`` inputs (large matrices run near the CPU's matmul peak), through
-    the networks folded into three dense layers (:mod:`~jstarid.algorithms.rpnet.inference`); the
-    softmax's top 3 are taken on the logits (same order) and normalised by the softmax's sum.
-    ``triple = t`` (an int32 scalar, traced: one compilation serves every t) takes the detections of
-    distance rank 3t … 3t + 2 instead (t = 0: the paper's S1–S3; later triples are the fallback of
-    ``Config.n_guide_triples``). ``count`` (static) detections from there on (the pool pass of
-    ``Config.n_pool_pairs`` takes all 3 · ``n_guide_triples``).
+    One matmul chain over all ``3 B`` inputs through the folded network
+    (:mod:`~jstarid.algorithms.rpnet.inference`). ``triple = t`` (traced int32: one compilation for
+    every t) takes the detections of distance rank 3t … 3t + 2 (t = 0: S1–S3; later triples:
+    ``Config.n_guide_triples``); ``count`` (static) detections from there on (the pool pass takes all
+    3 · ``n_guide_triples``).
 
     Returns:
         ``(near, probs, classes)``: (B, C) int32, (B, C, 3) float32, (B, C, 3) int32, C = count.
@@ -203,7 +177,7 @@ def _candidates(xy, valid, weights, *, camera, config: Config, n_classes: int, t
         d2 = jnp.where(valid_s, jnp.sum((xy_s - centre[None, :]) ** 2, -1), jnp.inf)
         # S1, S2, S3 (eq. 7) for triple 0; invalid detections come last (an invalid S_i makes its
         # pairs inadmissible). A static top-k over every triple's ranks, not an argsort: XLA's sort
-        # is slow on CPU (network part 3,970 → 3,170 scenes/s with argsort).
+        # is slow on CPU (docs/design/rpnet.md).
         _, order = jax.lax.top_k(-d2, min(n, 3 * config.n_guide_triples))
         near = jax.lax.dynamic_slice(order, (3 * triple,), (min(count, order.shape[0]),))
         inputs = jax.vmap(lambda g: initial_input(body[g], body, valid_s & (jnp.arange(n) != g), **kw))(near)
@@ -218,9 +192,8 @@ def _candidates(xy, valid, weights, *, camera, config: Config, n_classes: int, t
 
 
 def softmax_top3(logits):
-    """The three most probable classes and their softmax probabilities (eqs. 4, 8).
-
-    The top 3 are taken on the logits (softmax is monotonic) and normalised by the softmax's sum.
+    """The three most probable classes and their softmax probabilities (eqs. 4, 8): top 3 of the logits
+    (softmax is monotonic), normalised by the softmax's sum.
 
     Args:
         logits: (..., K) float32.
@@ -241,15 +214,13 @@ def softmax_top3(logits):
 
 
 def top3_blocked(x):
-    """``jax.lax.top_k(x, 3)`` along the last axis through block maxima (≈ 10× faster on CPU for K ≈ 5,000).
+    """``jax.lax.top_k(x, 3)`` along the last axis through block maxima (far faster on CPU for large K).
 
-    The last axis is cut into blocks of ⌊√K⌋ entries plus a shorter tail; the three largest entries lie
-    in the tail or in the three blocks with the largest maxima (an entry's block maximum is ≥ the
-    entry, and at most two entries are larger), so a top-3 over the block maxima, then over those three
-    blocks and the tail, is exact. Values are identical to ``lax.top_k``; with exactly tied values the
-    index chosen may differ. The block maxima come from a strided ``reduce_window`` and the three
-    blocks from a gather of their columns: a reshape of the first n·⌊√K⌋ columns into blocks made a
-    copy of the whole array first (0.118 against 0.012 s for the maxima of (4,096, 3, 5,044)).
+    The axis is cut into blocks of ⌊√K⌋ entries plus a shorter tail; the three largest entries lie in
+    the tail or in the three blocks with the largest maxima (at most two entries exceed an entry's
+    block maximum), so a top-3 over the block maxima, then over those blocks and the tail, is exact.
+    Values equal ``lax.top_k``'s; with exact ties the index may differ. Block maxima by a strided
+    ``reduce_window`` and a gather of the three blocks (a reshape into blocks copies the whole array).
 
     Args:
         x: (..., K) float scores (no NaN).
@@ -279,18 +250,12 @@ def top3_blocked(x):
 
 
 def noise_sigma(resid, named):
-    """Centroid noise σ̂ (px per axis) from the residuals of an attitude fit, robust to wrong names.
-
-    The median of the named detections' residuals, not their RMS: a false star named after an
-    undetected catalog star sits several σ from it and would inflate an RMS (used for the robust
-    refit's inlier radius in :func:`_verify_pair`). For isotropic Gaussian centroid noise of σ per
-    axis the residual distance is Rayleigh-distributed with median σ·√(2 ln 2); the factor
-    √(2n / (2n − 3)) accounts for the three degrees of freedom of the fitted attitude (as an RMS
-    over 2n − 3 would).
+    """Centroid noise σ̂ (px per axis) from the residuals of an attitude fit, robust to wrong names: the
+    median of the named residuals (a false star named after an undetected catalog star would inflate
+    an RMS) / √(2 ln 2) (Rayleigh median), × √(2n / (2n − 3)) for the fit's three degrees of freedom.
 
     Args:
-        resid: (N,) residual distances (px).
-        named: (N,) bool, the detections the fit used.
+        resid: (N,) residual distances (px). named: (N,) bool, the detections the fit used.
 
     Returns:
         () float32 σ̂ (px); 0 when nothing is named.
@@ -353,8 +318,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Tunin
     # without them; the names within ``trim_sigmas`` × its median-based σ̂ refit it on all their
     # stars again. It replaces the plain fit only when its σ̂ is ``outlier_ratio`` times smaller
     # (wrong names present): with clean noise both fits agree and the plain one, on every star,
-    # is kept (always using the trimmed fit cost the main star in 9 of 80,000 Fig. 8 scenes and
-    # mis-named a dense cluster once).
+    # is kept (docs/design/rpnet.md).
     better = named0 & (resid <= masked_median(resid, named0))
     c_t = solve_wahba(body, loc_vec[rows0], better.astype(jnp.float32))
     c_t = jnp.where(jnp.sum(better) >= 3, c_t, c1)
@@ -422,10 +386,9 @@ def _name_pool(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cell
     """Pool pass for one scene (extension, ``Config.n_pool_pairs``): pairs across all triples.
 
     Every pair of candidates of two different detections among ``near`` (the 3 · n_guide_triples
-    nearest the centre) is scored like eq. 11 without the position weights (Table 5 gives them for
-    S1–S3 only): W = pr_j·p_ij + pr_l·p_kl, subject to the checks of :func:`pair_checks`; the
-    ``n_pool_pairs`` best are verified in score order. Where every triple failed, two correctly
-    classified detections often sit in different triples.
+    nearest the centre) is scored like eq. 11 without position weights (Table 5 has them for S1–S3
+    only), W = pr_j·p_ij + pr_l·p_kl, under the checks of :func:`pair_checks`; the ``n_pool_pairs`` best
+    are verified in score order (two correct detections often sit in different triples).
     """
     body = camera.unproject(xy)
     t = near.shape[0]
@@ -446,11 +409,8 @@ def _name_pool(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cell
 
 def _name_one(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells, th: Tuning, *, camera,
               config: Config, grid, trials=(0, 1)):
-    """Steps 3–5 for one scene, from the network's candidates (module docstring).
-
-    ``trials = (first, count)``: verify the admissible pairs of score rank first … first + count − 1
-    and keep the first confirmed one (``identify`` runs (0, 1), then later passes on the scenes the
-    best pair did not confirm).
+    """Steps 3–5 for one scene from the network's candidates: verify the admissible pairs of score rank
+    ``trials[0]`` … ``trials[0] + trials[1] − 1`` and keep the first confirmed one.
     """
     body = camera.unproject(xy)  # (N, 3) camera frame
     cand_rows = guide_rows[cls]  # (3, 3) catalog rows
@@ -511,10 +471,9 @@ def _identify_pool_chunk(xy, valid, overflow, weights, guide_rows, star_vectors,
 def _local_index(database, config: Config):
     """Sky index of the catalog stars a pair attitude can name (memoised per catalog and reach).
 
-    Reach about the pair's boresight: the field's half diagonal + the anchor radius + the match
-    tolerance + 1° for the pair attitude's error (a correct pair is off by far less; the refinement
-    only moves it closer). Every star within ``match_tol_px`` or ``anchor_radius_px`` of a detection
-    is in the list, so naming against it gives what naming against the whole catalog gives.
+    Reach about the pair's boresight: half diagonal + anchor radius + match tolerance + 1° for the pair
+    attitude's error; every star within ``match_tol_px`` or ``anchor_radius_px`` of a detection is in
+    the list, so naming against it equals naming against the whole catalog.
     """
     cam = database.camera
     margin = (config.anchor_radius_px + config.match_tol_px) / cam.f_px + np.radians(1.0)
@@ -531,11 +490,10 @@ class Diagnostics(NamedTuple):
     """Per-scene internals of :func:`identify` (host NumPy arrays, batch axis first).
 
     Attributes:
-        n_candidates: (B,) int32 candidate pairs submitted to verification over all passes (an
-            upper bound: a pass stops at its first confirmed pair).
-        overflow: (B,) bool, ``Scene.overflow`` (the identifier itself has no buffer to overflow).
-        n_passes: (B,) int32 identification passes run on the scene (1 + the later passes it
-            needed: next pairs, further triples, the pool of pairs).
+        n_candidates: (B,) int32 candidate pairs submitted to verification over all passes (an upper
+            bound: a pass stops at its first confirmed pair).
+        overflow: (B,) bool, ``Scene.overflow`` (the identifier has no buffer of its own).
+        n_passes: (B,) int32 identification passes run (1 + the later passes it needed).
     """
 
     n_candidates: np.ndarray
@@ -553,12 +511,12 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
         config: identification settings; ``None`` uses ``database.config``. Its network-shaping
             settings must match the database's.
         diagnostics: also return the :class:`Diagnostics`.
-        tuning: the traced settings (:class:`~jstarid.algorithms.rpnet.Tuning`, scalars shared by
-            the batch); ``None``: ``config.tuning()``. Another value reuses the compilation.
+        tuning: the traced settings (:class:`~jstarid.algorithms.rpnet.Tuning`, scalars shared by the
+            batch); ``None``: ``config.tuning()``. Another value reuses the compilation.
 
     Returns:
-        :class:`~jstarid.scene.Identification` with ids (B, N), ok (B,), attitude (B, 3, 3) (NaN
-        where not ok); with ``diagnostics``, the tuple ``(Identification, Diagnostics)``.
+        :class:`~jstarid.scene.Identification` with ids (B, N), ok (B,), attitude (B, 3, 3) (NaN where
+        not ok); with ``diagnostics``, the tuple ``(Identification, Diagnostics)``.
 
     Raises:
         ValueError: ``config`` describes another network than the database holds.

@@ -1,18 +1,16 @@
 """The trained networks folded into three dense layers for identification.
 
-At inference the generator's output layer and the classifier's first layer are consecutive affine
-maps: the pattern RP_S = W₂·relu(W₁x + b₁) + b₂ has no activation (Table 2) and FC3 takes it directly
-(Table 1), and BatchNorm with its running statistics is affine as well. So
+At inference the generator's output layer (no activation, Table 2), FC3 (Table 1) and BatchNorm with
+its running statistics are consecutive affine maps, so
 
     FC4 ∘ relu ∘ BN ∘ FC3 ∘ FC2 ∘ relu ∘ FC1  =  FC4 ∘ relu ∘ F ∘ relu ∘ FC1,
 
-    F(h) = (h W₂ W₃ + b₂ W₃ + b₃ − μ) · s + β,   s = γ / √(σ² + ε),
+    F(h) = (h W₂ W₃ + b₂ W₃ + b₃ − μ) · s + β,   s = γ / √(σ² + ε):
 
-one 512 × 512 layer instead of 512 × 1024 and 1024 × 512 — 20 % fewer multiply-adds per input
-(3.05 M instead of 3.84 M at K = 5,044), the same function. The fold is computed once, in float64,
-so the folded logits differ from the layer-by-layer float32 ones only by float32 rounding (≈ 1e-6
-relative; tests compare both). Training, its held-out metrics and the checkpoints keep the layers as
-the paper has them (:func:`jstarid.algorithms.rpnet.train.predict_logits`).
+one 512 × 512 layer instead of 512 × 1024 and 1024 × 512 (20 % fewer multiply-adds), the same
+function. The fold is computed once in float64 (folded logits differ from the layered float32 ones
+by float32 rounding; tested). Training and checkpoints keep the paper's layers
+(:func:`jstarid.algorithms.rpnet.train.predict_logits`).
 """
 
 from __future__ import annotations

@@ -1,20 +1,17 @@
 """RpNet networks (Tables 1–2) and losses (eqs. 5–6), in ``flax.linen``.
 
-Why linen rather than nnx: linen modules are stateless descriptions whose parameters are plain
-pytrees, so the whole model is a pure function ``apply(variables, x)`` that jits, vmaps and serialises
-(``flax.serialization``) without any object state; the two-stage training (generator frozen in stage 2)
-is then just "pass the generator's parameters as a constant". That matches the package's pure-core style.
+Linen, not nnx: stateless modules with plain-pytree parameters make the model a pure function
+``apply(variables, x)`` that jits, vmaps and serialises, and freezing the generator in stage 2 is
+passing its parameters as a constant.
 
 * :class:`Generator` — star pattern generator SPG: FC1 400→512, ReLU, FC2 512→1024 (the pattern RP_S).
 * :class:`Decoder` — star pattern decoder SPD: 1024→512, ReLU, 512→400 (denoising autoencoder, §II-D).
 * :class:`Classifier` — star pattern classifier SPC: FC3 1024→512, BatchNorm, ReLU, FC4 512→K (logits;
   the softmax of eq. 4 is applied in the loss / at inference).
 
-Every dense layer takes an optional ``dot_general``: inference may run its matmuls on bfloat16 operands
-with float32 accumulation (:func:`bf16_dot_general`), which doubles the CPU matmul rate on machines
-with AVX512-BF16 but is slower than float32 on CPUs without native bfloat16 (AVX2 only), so by
-default it is used only where the hardware has it (:func:`native_bf16`); the parameters themselves
-stay float32.
+Every dense layer takes an optional ``dot_general``: inference may multiply bfloat16 operands with
+float32 accumulation (:func:`bf16_dot_general`), by default only where the hardware has bfloat16
+(:func:`native_bf16`); parameters stay float32.
 """
 
 from __future__ import annotations
@@ -51,9 +48,9 @@ def cpu_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> frozenset[str]:
 
 @functools.cache
 def native_bf16() -> bool:
-    """Whether the default JAX backend multiplies bfloat16 natively: any GPU or TPU backend, or a
-    CPU with AVX512-BF16 or AMX-BF16. Elsewhere bfloat16 operands are converted in software and
-    the network runs slower than in float32 (docs/design/rpnet.md)."""
+    """Whether the default JAX backend multiplies bfloat16 natively: any GPU or TPU backend, or a CPU with
+    AVX512-BF16 or AMX-BF16 (elsewhere emulated bfloat16 is slower than float32; docs/design/rpnet.md).
+    """
     if jax.default_backend() != "cpu":
         return True
     return bool(cpu_flags() & _BF16_CPU_FLAGS)
@@ -67,9 +64,8 @@ def use_bf16(setting: bool | None) -> bool:
 def bf16_dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):
     """``lax.dot_general`` on bfloat16 operands with a float32 result (float32 accumulation).
 
-    Operands keep 8 mantissa bits (relative rounding ≤ 2⁻⁹ per entry); the sums are exact float32
-    accumulations, so a logit moves by ≈ 2⁻⁹·√n·(typical |w·x|) — far below the gaps that decide the
-    top-3 candidates in practice (the two precisions give the same ids in 99.93–99.98 % of scenes).
+    Operands keep 8 mantissa bits (relative rounding ≤ 2⁻⁹ per entry), so a logit moves by
+    ≈ 2⁻⁹·√n·(typical |w·x|), far below the gaps that decide the top-3 candidates in practice.
     """
     del precision, preferred_element_type
     return jax.lax.dot_general(lhs.astype(jnp.bfloat16), rhs.astype(jnp.bfloat16), dimension_numbers,

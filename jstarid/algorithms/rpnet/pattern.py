@@ -1,18 +1,16 @@
 """RpNet initial input S_ori (§II-A, steps 1–4 and eq. 3), for one guide star; batch with ``vmap``.
 
-For a guide star S and the other stars (unit vectors in any common frame, usually the camera frame):
+For a guide star S and the other stars (unit vectors in any common frame):
 
-1. the guiding neighbour stars (GNSs) are the other stars with angular distance d_sn < ρ to S (eq. 2);
+1. the guiding neighbour stars (GNSs) are those with angular distance d_sn < ρ to S (eq. 2);
 2. only the m nearest are kept (s-GNSs; fewer when fewer exist);
-3. the guide–neighbour distances d_sn are discretized with bin e and the pair-wise neighbour–neighbour
-   distances d_nn (each unordered pair once, m(m−1)/2 at most) with bin 2e (eq. 3); each distance
-   adds 1 to its bin of D_sn or D_nn, both ⌊ρ/e⌋ long (d_sn < ρ and d_nn < 2ρ, so every distance
-   has a bin; rounding at the top edge is clipped into the last bin);
+3. d_sn is binned with e, the neighbour–neighbour distances d_nn (each unordered pair once) with 2e
+   (eq. 3); each adds 1 to its bin of D_sn or D_nn, both ⌊ρ/e⌋ long (rounding at the top edge is
+   clipped into the last bin);
 4. S_ori = [D_sn, D_nn] (2⌊ρ/e⌋ counts, no normalisation, as in the paper).
 
-The input depends only on angles, so it is invariant to any rotation of the frame (roll, attitude).
-The same function serves training (catalog vectors of a simulated scene) and inference (unprojected
-centroids): the caller passes the guide vector and the others with a mask that excludes the guide.
+Rotation invariant (angles only). Serves training (catalog vectors) and inference (unprojected
+centroids); the caller masks the guide out of the others.
 """
 
 from __future__ import annotations

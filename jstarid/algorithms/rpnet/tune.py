@@ -1,14 +1,10 @@
 """Vectorized search of the weight-searching strategy's weights (§II-E, eqs. 9–11, Table 5).
 
-The paper picks the position weights po_i and the probability weights pr_j by a grid search. Only the
-choice of the confident pair depends on them, so the network runs once: :func:`pair_tables` stores,
-per scene, the top-3 probabilities p_ij, the admissibility of the 27 candidate pairs and whether each
-pair is the true one; :func:`weight_grid_search` then scores every (po, pr) of a grid in one
-``vmap`` over the stored tables (no network call, no simulation per grid point).
-
-The figure of merit is the pair level: the scene's chosen pair (the highest eq. 11 score among the
-admissible ones) names both detections correctly. A correct pair is what the naming step needs to
-identify the scene; a wrong one is a failure (or, rarely, a mis-identification) after verification.
+Only the choice of the confident pair depends on the weights po_i, pr_j, so the network runs once:
+:func:`pair_tables` stores per scene the top-3 probabilities p_ij, the admissibility of the 27 pairs
+and which pair is true; :func:`weight_grid_search` scores every (po, pr) of a grid in one ``vmap``.
+Figure of merit: the chosen pair (highest eq. 11 score among the admissible) names both detections
+correctly, which is what the naming step needs.
 """
 
 from __future__ import annotations
@@ -27,11 +23,9 @@ __all__ = ["mixed_noise", "pair_tables", "simplex_grid", "weight_grid_search"]
 
 
 def mixed_noise(n: int):
-    """The tuning scripts' test set: n scenes' noise, one quarter per family of the paper's Figs. 8–11.
-
-    Scene i has family i mod 4 and level j = i // 4, cycling through that family's levels: position
-    σ 0.2–1.6 px (step 0.2), magnitude σ ∈ {0.323, …, 0.969}, 1–5 missing stars, false-star ratio
-    5–50 % (false V 0–6).
+    """The tuning scripts' test set: n scenes' noise, one quarter per family of the paper's Figs. 8–11
+    (scene i: family i mod 4, level j = i // 4): position σ 0.2–1.6 px (step 0.2), magnitude
+    σ ∈ {0.323, …, 0.969}, 1–5 missing stars, false-star ratio 5–50 % (false V 0–6).
 
     Returns:
         ``(noise, family)``: a :class:`jstarid.NoiseConfig` of (n,) fields and the (n,) int family.

@@ -1,37 +1,20 @@
-"""A cheap lower bound on the matching error δ (eq. 5) that holds for every vertex correspondence.
+"""Exact lower bounds on the matching error δ (eq. 5) that hold for every vertex correspondence.
 
-Algorithm 1 only ever returns a candidate J with δ_{I,J} ≤ ε_δ (otherwise the scene fails), and a
-candidate with δ_{I,J} > ε_δ can neither be the first success of a level nor the argmin of a level
-that succeeds. So a candidate whose δ is *provably* above ε_δ, whatever correspondence the spectral
-step would return, can be skipped without changing the outcome. Not in the paper; it replaces the
-(n_I·n_J)² affinity matrix and its power iteration by O(n_I·n_J·n·s) work for most candidates.
+Not in the paper. Algorithm 1 only returns a candidate with δ ≤ ε_δ, and one with δ > ε_δ is neither
+a level's first success nor the argmin of a successful level, so a candidate whose δ *provably*
+exceeds ε_δ is skipped without changing the outcome (:mod:`.search`, branch and bound).
 
-The bound. Let m = min(n_I, n_J) and call S the graph with m vertices, L the other one
-(s = n_L − m ≥ 0 extra vertices). Greedy binarization matches m pairs, so every vertex of S is matched
-to a distinct vertex π(i) of L, and eq. 5 reads
+Row bound (:func:`error_lower_bound`): with m = min(n_I, n_J), S the smaller graph, L the other
+(s = n_L − m extra vertices) and π the one-to-one map of S into L,
 
-    (m·δ)² = Σ_{i ∈ S} Σ_{k ∈ S, k ≠ i} (A_S(i,k) − A_L(π(i), π(k)))².
+    (m·δ)² = Σ_{i ∈ S} Σ_{k ∈ S, k ≠ i} (A_S(i,k) − A_L(π(i), π(k)))²  ≥  min_π Σ_i C(i, π(i)),
 
-For one i the inner sum compares the m − 1 entries of row i of A_S with m − 1 distinct entries of row
-π(i) of A_L (whose n_L − 1 entries include s that are not used). On a line with a convex cost, the
-cheapest injective assignment of a sorted short list into a sorted long list is order preserving, so
-the inner sum is at least ``C(i, π(i))``, the cheapest monotone assignment of the sorted rows, which a
-small dynamic programme over "how many long-row entries were skipped so far" (0 … s) computes in
-O(n·s). So ``(m·δ)² ≥ min over one-to-one π of Σ_{i ∈ S} C(i, π(i))``, an assignment problem whose
-Lagrangian dual gives a lower bound for any column prices: the prices start at 0 (the row minima,
-``Σ_i min_j C(i, j)``) and a few subgradient steps raise it (on real scenes they raise the share of
-candidates pruned at ε_δ = 0.4° from 71 % to 84 %). When n_I = n_J every vertex of L is matched as
-well and ``Σ_{j ∈ L} min_i C(i, j)`` bounds it too.
-
-With s = 0 (same vertex count, e.g. noise-free scenes) the bound is the sorted-row distance. For
-s > ``max_skip`` the bound is set to 0 (no pruning): the programme's cost grows with s.
-
-A second, looser bound (:func:`edge_lower_bound`) compares sorted edge lengths instead of sorted
-rows: no dynamic programme, no assignment, any s, about a tenth of the cost per pair (both read from
-tables sorted once: :func:`row_table`, :func:`sorted_edges`). The search computes it for every
-candidate and the row bound only where the edge bound is not enough (:mod:`.search`, branch and
-bound). What the bounds leave to the spectral matching, and the other exact bounds tried, are in
-docs/design/sgm.md.
+C(i, j) the cheapest monotone assignment of sorted row i of A_S into sorted row j of A_L (a dynamic
+programme over the skips 0 … s); the assignment problem is bounded by its Lagrangian dual
+(:func:`_assignment_bound`), and when n_I = n_J also by ``Σ_{j ∈ L} min_i C(i, j)``. s = 0 gives
+the sorted-row distance; s > ``max_skip`` gives 0. Edge bound (:func:`edge_lower_bound`): sorted
+edge lengths; looser, any s, about a tenth of the cost. Both read tables sorted once
+(:func:`row_table`, :func:`sorted_edges`). Derivation, yield and the bounds tried: docs/design/sgm.md.
 """
 
 from __future__ import annotations
@@ -64,12 +47,10 @@ def sorted_rows(adj, mask):
 def row_table(adj, mask):
     """:func:`sorted_rows` padded with one more +inf column to a square (..., K, K) table.
 
-    Sorting is the dearest part of the row bound on a CPU (XLA's sort is not vectorized: about half
-    the cost per pair when both graphs' rows are sorted), and a graph's sorted rows do not depend on
-    the candidate it is compared with: the search sorts every
-    database graph once (``Database.rows``) and every image graph once per search, and the row bound
-    reads the table. Square like the adjacency, so that the ``r × r`` corner of a graph of ≤ r
-    vertices holds its rows whole (the first r − 1 columns are :func:`sorted_rows` at size r).
+    Sorting is the dearest part of the row bound on a CPU and does not depend on the candidate, so the
+    search sorts every graph once and reads this table. Square like the adjacency: the ``r × r`` corner
+    of a graph of ≤ r vertices holds its rows whole (the first r − 1 columns are :func:`sorted_rows` at
+    size r).
 
     Args:
         adj: (..., K, K) adjacency (deg). mask: (..., K) bool vertices.
@@ -119,15 +100,12 @@ def _row_cost(short, long, n_short, max_skip: int):
 def _assignment_bound(cost, rows, cols, square, n_iter: int):
     """Lower bound on min Σ_i cost(i, π(i)) over one-to-one π from ``rows`` into ``cols``.
 
-    Lagrangian relaxation of the column constraints: for any prices w (w ≥ 0 when some columns may
-    stay unused; free when every column is used, ``square``),
-    ``Σ_i min_j (cost(i, j) + w_j) − Σ_j w_j`` is a lower bound (weak duality). w = 0 gives the row
-    minima; ``n_iter`` subgradient steps (price up for columns chosen by several rows, down for
-    unchosen ones) tighten it, and the best value seen is returned — every iterate is a valid bound,
-    so the step rule only affects how tight it gets. The rule: step ``s₀/√(t + 1)`` with s₀ half the
-    mean row minimum, and a row "chooses" every column at its minimum (ties are rare; an argmin and a
-    one-hot cost three times as much per step). 20 steps prune about as many candidates as the exact
-    assignment optimum would (the dual cannot exceed it; docs/design/sgm.md).
+    Lagrangian relaxation of the column constraints: for any prices w (w ≥ 0 when columns may stay
+    unused; free when all are used, ``square``), ``Σ_i min_j (cost(i, j) + w_j) − Σ_j w_j`` is a lower
+    bound (weak duality). w = 0 gives the row minima; ``n_iter`` subgradient steps ``s₀/√(t + 1)``
+    (s₀ = half the mean row minimum; a row "chooses" every column at its minimum) tighten it, and the
+    best iterate is returned (every iterate is valid). 20 steps prune about as much as the exact
+    optimum would (docs/design/sgm.md).
 
     Args:
         cost: (P, Q) non-negative costs (+inf allowed off ``cols``). rows: (P,) bool rows to assign.
@@ -207,15 +185,11 @@ def sorted_edges(adj, mask):
 def edge_lower_bound(edges_i, n_i, edges_j, n_j):
     """A looser, much cheaper lower bound on δ_{I,J} of eq. 5 than :func:`error_lower_bound`.
 
-    Eq. 5 sums over ordered vertex pairs, so ``(m·δ)² = 2 Σ_{e ∈ E_S} (a_e − b_{π(e)})²``: every edge
-    e of the smaller graph S is compared with the edge π(e) of L between the images of its ends, and
-    distinct edges of S go to distinct edges of L. Dropping that last condition, each term is at
-    least the squared distance from a_e to the nearest edge length of L (a binary search in L's sorted
-    list). When n_I = n_J every edge of L is used once, the two edge multisets are matched one to
-    one, and the sorted order is the cheapest such matching (convex cost on a line), which is
-    tighter. O(E log E) per pair with E = n(n − 1)/2 edges, no dynamic programme and no limit on
-    |n_I − n_J|; it is used as the first stage of the search's branch and bound
-    (:func:`~.search.advance_search`).
+    Eq. 5 sums over ordered pairs: ``(m·δ)² = 2 Σ_{e ∈ E_S} (a_e − b_{π(e)})²`` with distinct edges of S
+    on distinct edges of L. Dropping distinctness, each term is ≥ the squared distance from a_e to the
+    nearest edge length of L (binary search). When n_I = n_J the edge multisets match one to one and
+    the sorted order is the cheapest matching (tighter). O(E log E), E = n(n − 1)/2, any |n_I − n_J|;
+    the search's first stage (:func:`~.search.advance_search`).
 
     Args:
         edges_i: (E,) :func:`sorted_edges` of the image graph. n_i: () int its vertex count.

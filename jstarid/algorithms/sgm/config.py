@@ -12,8 +12,8 @@ __all__ = ["Config", "Tuning"]
 
 
 class Tuning(NamedTuple):
-    """SGM's sweepable tolerances (:func:`~jstarid.algorithms.sgm.tuning.grid_identifications`
-    takes a grid of each as an array axis; scalars here by default).
+    """SGM's sweepable tolerances (:func:`~jstarid.algorithms.sgm.tuning.grid_identifications` takes a
+    grid of each as an array axis; scalars by default).
 
     Attributes:
         c: edge-similarity adjustor of eq. 2 (1/deg).
@@ -28,84 +28,72 @@ class Tuning(NamedTuple):
 class Config:
     """Frozen, hashable SGM configuration. Angles in degrees, as in the paper (conventions §7).
 
-    Fields marked *extension* are not in the paper; :meth:`paper` turns off those that change the
-    outcome. docs/design/sgm.md gives the evidence behind the defaults.
+    *Extension* fields are not in the paper; :meth:`paper` turns off those that change the outcome.
+    Evidence for the defaults: docs/design/sgm.md.
 
     Attributes:
         radius_deg: r, radius of the neighbor circle (deg).
-        dw0_deg: Δw₀, initial half-width of the rough-search window on w (deg).
-        dw_step_deg: h_Δw, growth of Δw per step of Algorithm 1 (deg).
-        dw_max_deg: Δw_max, largest Δw searched (deg).
+        dw0_deg, dw_step_deg, dw_max_deg: Δw₀ (initial half-width of the rough-search window on w),
+            h_Δw (its growth per step of Algorithm 1) and Δw_max (largest Δw searched), deg.
         c: edge-similarity adjustor of eq. 2 (1/deg).
         max_error_deg: ε_δ, matching-error threshold of Algorithm 1 (deg, eq. 5).
-        neighbor_capacity: static vertex capacity of the database and image neighbor graphs (main
-            star included); ``None``: the largest database graph, rounded up to ``size_bucket``. A
-            scene with more detections in its neighbor circle fails (flagged, never truncated).
-        chunk_size: candidate ranks per scene in the first step of the batched search (each later
-            step takes twice as many, up to 512).
-        power_iterations: largest number of power-iteration steps for the principal eigenvector;
-            30 gave the same correspondences as 400 on every noisy pair tested.
-        power_tol: stop a pair's power iteration once no entry of its unit vector moves more than
-            this in a step (0: never early); 1e-4 kept every id, J* and δ tested, ≈ 1.9× faster.
-        prune: extension that changes only the work: skip the spectral matching of candidates whose
-            δ provably exceeds ε_δ, or a δ* ≤ ε_δ already found (:mod:`.bound`,
-            :func:`.search.advance_search`). ``False`` matches every candidate (diagnostics).
-        prune_max_skip: candidates whose vertex count differs from the image graph's by more than
-            this are not bounded (always matched); the bound's cost grows with it.
-        min_stars: fewest vertices (main star included) an image neighbor graph needs; fewer → fail.
-            Not in the paper (which never meets tiny graphs): a 1- or 2-vertex graph matches anything.
+        neighbor_capacity: static vertex capacity of the database and image graphs (main star
+            included); ``None``: the largest database graph rounded up to ``size_bucket``. A scene with
+            more detections in its circle fails (flagged, never truncated).
+        chunk_size: candidate ranks per scene in the search's first step (doubling per step, ≤ 512).
+        power_iterations: largest number of power-iteration steps (30: the same correspondences as 400).
+        power_tol: stop a pair's power iteration once no entry of its unit vector moves more than this
+            in a step (0: never early).
+        prune: extension that changes only the work: skip matching candidates whose δ provably exceeds
+            ε_δ or a δ* ≤ ε_δ already found (:mod:`.bound`); ``False`` matches every candidate.
+        prune_max_skip: candidates whose vertex count differs from the image graph's by more than this
+            get only the edge bound (the row bound's cost grows with it).
+        min_stars: fewest vertices (main star included) an image graph needs; fewer → fail (a 1- or
+            2-vertex graph matches anything).
         min_matched: fewest matched vertex pairs for a candidate to count; fewer → infinite error
-            (eq. 5 divides by min(n_I, n_J): a 1-vertex graph would match any image with error 0).
+            (eq. 5 divides by min(n_I, n_J): a 1-vertex graph would match with error 0).
         memory_budget_mb: bound on the affinity matrices held at once by one matching call (MiB).
-        size_bucket: graph sizes are padded up to a multiple of this, to bound recompilation. A
-            pair's matching costs ∝ (p·q)² in the padded sizes: 8 suits interactive batches; 4 runs
-            faster but compiles more kernels, which pays off over thousands of noisy scenes.
-        vertex_check_deg: extension, off (``None``). When set, a matched image vertex whose median
-            edge residual ``|A_I(i,k) − A_J(π(i),π(k))|`` over the other matched vertices exceeds
-            this (deg) is unnamed (−1); the scene fails if fewer than ``min_matched`` stay named.
-            Why: greedy binarization pairs even a star that crossed the circle boundary.
-        leftover_tol_deg: extension, 0.3° (``None`` = off). Detections in the image neighbor circle
-            that the match left unnamed (typically a star that crossed the circle boundary, so it is
-            not in G_J) are named after the nearest unused catalog star within this angle (deg)
-            under the attitude of the matched stars; the verification then checks them too.
-        verify: extension, on (``False`` = the paper). Every named star is checked against the
-            attitude fitted from the named stars (:mod:`.verify`: noise-tied residual tolerance,
-            close-pair ambiguity guard, frame coverage); the scene fails (rather than risk a
-            mis-identification) when the main star is unnamed or < ``min_matched`` or half remain.
-        verify_k: residual tolerance in robust-RMS units (3.5: a true star exceeds it with
-            probability exp(−3.5²) ≈ 5·10⁻⁶).
-        verify_floor_deg: smallest tolerance (deg); 0.02° ≈ 1 px of the sgm2022 camera.
-        verify_cap_deg: largest tolerance (deg); 0.3° ≈ 3.5 × the residual RMS at σ = 3 px (the
-            paper's largest noise), so a wrong attitude cannot widen the tolerance further.
-        verify_ambiguity_k: margin k of the ambiguity guard (robust-RMS units s): a star with a
-            rival catalog star within ``max(3·tol, verify_ambiguity_deg)`` keeps its name only when
-            ``d_alt² − d_own² ≥ (k·s)²``: e^{k²} times likelier (3.0: ≈ 8,100×; a near-tie errs with
-            probability ≤ Φ(−√(2k²)) ≈ 1.1·10⁻⁵). Costs names of nearly indistinguishable pairs.
+        size_bucket: graph sizes are padded to a multiple of this, to bound recompilation (a pair costs
+            ∝ (p·q)² in padded sizes; 4 runs faster but compiles more kernels).
+        vertex_check_deg: extension, off (``None``): a matched vertex whose median edge residual
+            ``|A_I(i,k) − A_J(π(i),π(k))|`` over the other matched vertices exceeds this (deg) is
+            unnamed; the scene fails below ``min_matched``. Why: greedy binarization pairs even a star
+            that crossed the circle boundary.
+        leftover_tol_deg: extension, 0.3° (``None`` = off): members of the image circle the match left
+            unnamed (typically a star that crossed the boundary, not in G_J) are named after the nearest
+            unused catalog star within this angle (deg) under the matched stars' attitude; verified too.
+        verify: extension, on (``False`` = the paper): check every named star against the attitude of
+            the named stars (:mod:`.verify`); the scene fails when the main star is unnamed or fewer
+            than ``min_matched`` or half remain.
+        verify_k: residual tolerance in robust-RMS units (3.5: a true star exceeds it with probability
+            exp(−3.5²) ≈ 5·10⁻⁶).
+        verify_floor_deg, verify_cap_deg: bounds of the tolerance (deg): 0.02° ≈ 1 px of the sgm2022
+            camera; 0.3° ≈ 3.5 × the residual RMS at the paper's largest noise, σ = 3 px.
+        verify_ambiguity_k: margin k of the ambiguity guard (robust-RMS units s): a star with a rival
+            catalog star within ``max(3·tol, verify_ambiguity_deg)`` keeps its name only when
+            ``d_alt² − d_own² ≥ (k·s)²``, e^{k²} times likelier (3.0: a near-tie errs with probability
+            ≤ Φ(−√(2k²)) ≈ 1.1·10⁻⁵).
         verify_ambiguity_deg: smallest window of the ambiguity guard (deg).
-        verify_partner_joint: a name whose rival star has a detection of its own (within the
-            tolerance, nearest to the rival, named after it or unnamed) is also kept by passing the
-            joint exchange test alone, with margin ``verify_partner_k`` (:mod:`.verify` step 3);
-            ``False``: the single and the joint test must both pass.
-        verify_partner_k: margin of the partner rule's exchange test (robust-RMS units); one test
-            instead of two, so it asks for more: at 3.5 the wrong names of a close pair pass with
-            probability ≤ Φ(−√24.5) ≈ 4·10⁻⁷ per decision (tens of thousands in a full-size run).
-        verify_rms_z: the ambiguity margins' s (:func:`.verify._upper_rms`) is the kept residuals'
-            RMS over the lower Φ(−z) quantile of their χ² (2n − 3 degrees of freedom): too small
-            with probability Φ(−z), 16 % at 1.0.
+        verify_partner_joint: the partner rule (:mod:`.verify` step 3): a name whose rival has a
+            detection of its own is also kept by the joint exchange test alone, with margin
+            ``verify_partner_k``; ``False``: both tests.
+        verify_partner_k: margin of the partner rule (robust-RMS units); one test instead of two, so
+            larger: at 3.5 wrong names pass with probability ≤ Φ(−√24.5) ≈ 4·10⁻⁷ per decision.
+        verify_rms_z: the ambiguity margins' s (:func:`.verify._upper_rms`) is too small with
+            probability Φ(−z) (16 % at 1.0).
         verify_magnitude_sigma: ``None`` (SGM is magnitude-free); when set, the ambiguity tests add
             each hypothesis' magnitude cost ``(m_obs − V)² / (2σ²)`` with this σ (mag).
-        verify_rename: extension, on (needs ``verify`` and ``leftover_tol_deg``): image-graph
-            detections the verification unnamed are named again from the verified attitude (the
-            ``leftover_tol_deg`` rule) and the scene is verified again, keeping the first result if
-            that fails. Why: a wrongly paired detection is unnamed only after the leftover naming.
-        verify_retries: extension (needs ``verify``; 0 = fail at the first rejection). A rejected
-            match strikes out J* as if δ > ε_δ and Algorithm 1 goes on where it stopped, matching
-            nothing twice (:class:`.search.SearchState`), at most this many times per scene; not
-            when only a close rival contests the main star (no other graph settles that). Why:
-            ε_δ = 0.4° admits wrong graphs at small Δw before the right one is reached.
-        verify_min_coverage: fraction of the catalog stars the verified attitude projects inside
-            the frame (inset by ``verify_cap_deg``) that need a detection within ``verify_cap_deg``
-            (0 = off). 0.4 as in RpNet: wrong small-graph matches cover ≈ 10 %, correct ones ≥ 97 %.
+        verify_rename: extension, on (needs ``verify`` and ``leftover_tol_deg``): detections the
+            verification unnamed are named again from the verified attitude and the scene verified
+            again, keeping the first result if that fails. Why: a wrongly paired detection is unnamed
+            only after the leftover naming.
+        verify_retries: extension (needs ``verify``; 0 = fail at the first rejection): a rejected match
+            is struck out and Algorithm 1 resumes (:class:`.search.SearchState`), at most this many
+            times per scene; not when only a close rival contests the main star. Why: ε_δ = 0.4° admits
+            wrong graphs at small Δw before the right one.
+        verify_min_coverage: fraction of the catalog stars the verified attitude projects inside the
+            frame (inset by ``verify_cap_deg``) that need a detection within ``verify_cap_deg``
+            (0 = off); 0.4 as in RpNet.
     """
 
     radius_deg: float = 6.0
@@ -178,9 +166,9 @@ class Config:
 
     @classmethod
     def paper(cls, **overrides) -> Config:
-        """The paper's algorithm alone: Table 1 parameters, no ``verify``, no ``leftover_tol_deg``
-        (``prune`` stays: it changes only the work). Returns, id for id, what a plain
-        re-implementation of the paper (:mod:`~jstarid.algorithms.sgm.reference`) returns."""
+        """The paper's algorithm alone: no ``verify``, no ``leftover_tol_deg`` (``prune`` stays: it changes
+        only the work); returns, id for id, what :mod:`~jstarid.algorithms.sgm.reference` returns.
+        """
         return cls(**{"verify": False, "leftover_tol_deg": None, **overrides})
 
     def tuning(self) -> Tuning:

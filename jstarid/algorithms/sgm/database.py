@@ -1,13 +1,10 @@
 """The SGM database: one neighbor graph per catalog star, sorted by MST weight, with a k-vector.
 
 You et al. 2022, "Database generation": every catalog star J is a main star; its neighbor graph G_J
-holds J and every star within r of it (a complete graph, edge weight = angular separation, deg), and
-two features: the adjacency matrix A_J (for graph matching) and w_J, the total MST edge weight (for
-the rough search, eq. 1). Rows are sorted by w_J so that a k-vector finds the window
-``|w_J − w_I| ≤ Δw`` in O(1).
-
-Built on the host once, cached on disk (``np.savez`` under :func:`jstarid.catalog.cache_dir`, keyed by
-the catalog fingerprint and the config fields that shape it).
+(J and every star within r; edge weight = angular separation, deg) gives the adjacency A_J (graph
+matching) and w_J, the total MST edge weight (rough search, eq. 1). Rows are sorted by w_J so that a
+k-vector finds ``|w_J − w_I| ≤ Δw`` in O(1). Built on the host once, cached on disk (``np.savez``
+under :func:`jstarid.catalog.cache_dir`, keyed by the catalog fingerprint and the shaping fields).
 """
 
 from __future__ import annotations
@@ -84,9 +81,10 @@ class Database:
 
     @property
     def edges(self) -> np.ndarray:
-        """(D, K(K − 1)/2) float32 edge lengths of each graph sorted ascending, +inf padded (deg;
-        :func:`~.bound.sorted_edges`, computed on first use): the first n(n − 1)/2 entries of a row
-        are its graph's edges, so a graph of ≤ r vertices is read whole from the first r(r − 1)/2."""
+        """(D, K(K − 1)/2) float32 sorted edge lengths of each graph, +inf padded (deg;
+        :func:`~.bound.sorted_edges`, computed on first use); a graph of ≤ r vertices is read whole from
+        the first r(r − 1)/2 entries.
+        """
         return self._per_graph("_edges", sorted_edges)
 
     @property
@@ -96,8 +94,9 @@ class Database:
         return self._per_graph("_rows", row_table)
 
     def _per_graph(self, name: str, fn) -> np.ndarray:
-        """``fn(adj, mask)`` of every graph, in blocks of 512, computed once per database
-        (kept in :data:`jstarid.runtime.device_cache`)."""
+        """``fn(adj, mask)`` of every graph, in blocks of 512, once per database
+        (:data:`jstarid.runtime.device_cache`).
+        """
         def make():
             mask = np.arange(self.capacity)[None, :] < self.n[:, None]
             return np.concatenate([np.asarray(fn(self.adj[lo:lo + 512], mask[lo:lo + 512]))
@@ -156,7 +155,7 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
     Args:
         catalog: :class:`~jstarid.catalog.Catalog`; every star is a database main star.
         camera: :class:`~jstarid.camera.Camera` of the scenes (kept for ``identify``; the database
-            itself does not depend on it, the paper projects each main star to the image centre).
+            itself does not depend on it: the paper projects each main star to the image centre).
         config: :class:`Config` (``None`` → defaults); ``radius_deg``, ``neighbor_capacity`` and
             ``size_bucket`` shape it.
         use_cache: read/write ``sgm-db-*.npz`` under :func:`jstarid.catalog.cache_dir`.

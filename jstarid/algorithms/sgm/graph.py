@@ -1,9 +1,8 @@
-"""Neighbor graphs (complete graphs of angular separations, in degrees) and their MST weight.
+"""Neighbor graphs (You et al. 2022, "Database generation", Fig. 3) and their MST weight.
 
-A neighbor graph (You et al. 2022, "Database generation", Fig. 3) has the main star and every star
-within the neighbor-circle radius r of it as vertices and the angular separations as edge weights.
-Here a graph of at most K vertices is stored padded: vertices first (the main star is vertex 0), a
-(K,) mask, and a (K, K) adjacency in degrees that is 0 on the padding.
+Vertices: the main star and every star within the neighbor-circle radius r of it; edge weights:
+angular separations (deg). Stored padded to K vertices: vertices first (main star = vertex 0), a
+(K,) mask, and a (K, K) adjacency that is 0 on the padding.
 """
 
 from __future__ import annotations
@@ -20,10 +19,8 @@ __all__ = ["separation_deg", "adjacency_deg", "mst_weight", "image_graph"]
 
 
 def separation_deg(u, v):
-    """Angle between unit vectors ``u`` (..., 3) and ``v`` (..., 3) in degrees.
-
-    Uses the shared :func:`jstarid.geometry.angle_between` (atan2 of cross and dot products, written
-    out by component): float32 ``arccos`` near 1 is coarse to ~0.02°.
+    """Angle (deg) between unit vectors ``u`` (..., 3) and ``v`` (..., 3) by
+    :func:`jstarid.geometry.angle_between` (float32 ``arccos`` near 1 is coarse to ~0.02°).
     """
     return jnp.degrees(angle_between(u, v))
 
@@ -38,8 +35,8 @@ def adjacency_deg(vecs, mask):
 def mst_weight(adj, mask):
     """Total edge weight of the minimum spanning tree of a padded complete graph (Prim).
 
-    Prim's algorithm on the dense matrix: K − 1 fixed steps (masked once the tree is complete), so it
-    jits and vmaps. The paper uses Kruskal; both give the same (unique-weight) total.
+    Dense Prim in K − 1 fixed steps (masked once the tree is complete), so it jits and vmaps; the
+    paper's Kruskal gives the same total.
 
     Args:
         adj: (K, K) symmetric edge weights (deg); only entries between masked-in vertices are read.
@@ -95,16 +92,14 @@ def image_graph(vecs, valid, main, radius_deg: float, capacity: int):
     """The neighbor graph of detection ``main`` in one scene (You et al. 2022, "Rough search").
 
     Args:
-        vecs: (N, 3) camera-frame unit vectors of the detections.
-        valid: (N,) bool real detections.
+        vecs: (N, 3) camera-frame unit vectors of the detections. valid: (N,) bool real detections.
         main: () int index of the main star (a valid detection).
-        radius_deg: neighbor-circle radius r (deg).
-        capacity: static K, vertex capacity.
+        radius_deg: neighbor-circle radius r (deg). capacity: static K, vertex capacity.
 
     Returns:
-        :class:`ImageGraph` of one scene (``members`` (K,), ``mask`` (K,), ``adj`` (K, K) deg,
-        ``n``, ``w`` deg, ``overflow``): vertices are the main star first, then the others in scene
-        order (brightest first); an overflowing graph is unusable.
+        :class:`ImageGraph` of one scene (``members`` (K,), ``mask`` (K,), ``adj`` (K, K) deg, ``n``,
+        ``w`` deg, ``overflow``): the main star first, then the others in scene order (brightest
+        first); an overflowing graph is unusable.
     """
     n_det = vecs.shape[0]
     ang = separation_deg(vecs, vecs[main][None, :])

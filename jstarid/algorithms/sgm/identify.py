@@ -1,30 +1,17 @@
 """SGM identification of a batch of scenes (You et al. 2022, Algorithm 1).
 
-Per scene: main star I = the valid detection nearest the principal point; its neighbor graph G_I from
-the unprojected centroids within r; w_I by the same Prim MST as the database; the dynamic Δw search
-(:mod:`.search`) over database graphs; and every detection of G_I — the main star included — is named
-through the vertex correspondence of the best match, never through the candidate's main-star label
-(≈7 % of main stars have a twin graph holding the same stars, conventions §7 pitfall 2). Detections outside
-the neighbor circle, and vertices left unmatched (e.g. a false star when n_I > n_J), get −1.
+Per scene: main star I = the valid detection nearest the principal point; its neighbor graph G_I
+(detections within r) and w_I by the database's Prim MST; the dynamic Δw search (:mod:`.search`);
+every detection of G_I, the main star included, is named through the vertex correspondence of the
+best match, never through the candidate's main-star label (≈ 7 % of main stars have a twin graph,
+conventions §7 pitfall 2). Detections outside the circle and unmatched vertices get −1.
 
-Two optional steps that are not in the paper (see :class:`Config`; the second is on by default):
-``vertex_check_deg`` unnames matched vertices whose edges disagree with the database graph, and
-``leftover_tol_deg`` names the detections of G_I the match left unnamed (stars that crossed the
-circle boundary under position noise) by the attitude of the matched stars.
-
-Post-match verification (our addition, not the paper's; on by default, ``Config.verify``): the
-attitude is fitted from the named stars, stars whose residual exceeds a noise-tied tolerance or that
-have a close rival catalog star they do not clearly beat are unnamed, and the scene fails when its
-main star is unnamed, too few stars remain, or the attitude does not explain the rest of the frame
-(too few of the catalog stars it puts in the frame have a detection there; :mod:`.verify`) — a
-failure rather than a mis-identification. What the verification left unnamed (e.g. a detection the
-match paired with the wrong database vertex) is then named from the verified attitude and the scene
-verified again (``Config.verify_rename``). A match the verification rejects is struck out and the
-dynamic search goes on to the next candidate that passes ε_δ, up to ``Config.verify_retries`` times
-(the verification joins Algorithm 1's acceptance test; :mod:`.search`, "Resumption").
-
-The search and the bookkeeping run as a host loop over jit-compiled, vmapped kernels (graphs,
-candidate ordering, chunked spectral matching); see :mod:`.search` for why it equals Algorithm 1.
+Not in the paper (:class:`Config`): ``vertex_check_deg`` (off) unnames vertices whose edges disagree
+with the database graph; ``leftover_tol_deg`` (on) names the members of G_I the match left unnamed
+from the attitude of the matched stars; ``verify`` (on, :mod:`.verify`) fails a scene rather than
+mis-identify it; ``verify_rename`` names what the verification left unnamed and verifies again;
+``verify_retries`` strikes out a rejected match and resumes the search (:mod:`.search`,
+"Resumption"), so the verification joins Algorithm 1's acceptance test.
 """
 
 from __future__ import annotations
@@ -61,11 +48,9 @@ class Diagnostics(NamedTuple):
     """Per-scene internals of :func:`identify` (host NumPy arrays, batch axis first).
 
     Attributes:
-        n_candidates: (B,) int32 database graphs examined: spectrally matched or excluded by the
-            bound (``n_matched + n_pruned``).
+        n_candidates: (B,) int32 database graphs examined (``n_matched + n_pruned``).
         overflow: (B,) bool, the scene or its neighbor graph exceeded its capacity.
-        n_matched: (B,) spectral matchings run.
-        n_pruned: (B,) candidates the branch and bound excluded without matching.
+        n_matched: (B,) spectral matchings run. n_pruned: (B,) candidates excluded by the bound.
         n_rejected: (B,) matches the post-match verification rejected.
         n_i: (B,) vertices of the image neighbor graph. w_i: (B,) its MST weight (deg).
         main: (B,) detection index of the main star.
@@ -119,16 +104,15 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database` (built with the same ``radius_deg``).
         scenes: (B, N) :class:`~jstarid.scene.Scene` from ``db.camera``.
-        config: :class:`Config` (search parameters; its database fields must match ``db``);
-            ``None`` → the paper defaults (plus the post-match verification, ``Config.verify``).
+        config: :class:`Config` (its database fields must match ``db``); ``None`` → the paper's
+            defaults plus the extensions that are on by default.
         diagnostics: also return the per-scene :class:`Diagnostics`.
         with_attitude: also solve Wahba from the identified stars (``Identification.attitude``).
 
     Returns:
-        :class:`~jstarid.scene.Identification` — ``ids`` (B, N) int32 catalog rows for the matched
-        detections in the neighbor circle that survive the post-match verification (−1 elsewhere;
-        a scene the verification rejects has ``ok`` False and every id −1), ``ok`` (B,) — or, with
-        ``diagnostics``, a ``(result, Diagnostics)`` tuple.
+        :class:`~jstarid.scene.Identification`: ``ids`` (B, N) int32 catalog rows of the verified
+        detections of the neighbor circle (−1 elsewhere; every id −1 where ``ok`` (B,) is False), or
+        with ``diagnostics`` a ``(result, Diagnostics)`` tuple.
 
     Raises:
         ValueError: ``config.radius_deg`` differs from the database's.
@@ -179,18 +163,16 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
 
 def _names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
                       rows: np.ndarray | None = None) -> Identification:
-    """Every step after the search: names from the correspondence, the optional vertex check and
-    leftover naming, the verification and the renaming (``Config``).
+    """Every step after the search: names from the correspondence, vertex check, leftover naming,
+    verification and renaming (``Config``).
 
     Args:
-        rows: optional (R,) scene rows to process (the others are not looked at); the result then
-            has R rows. The rows are padded to a power of two (repeating the first) so that the
-            compiled verification serves every retry of a batch with a few shapes.
+        rows: optional (R,) scene rows to process (the result then has R rows), padded to a power of
+            two so that the compiled verification serves every retry with a few shapes.
 
     Returns:
-        ``(result, main_ambiguous)``: :class:`~jstarid.scene.Identification` and (B,) bool, the
-        scenes the verification failed only because their main star's name is contested
-        (:func:`~jstarid.algorithms.sgm.verify.verify_ids`).
+        ``(result, main_ambiguous)``: :class:`~jstarid.scene.Identification` and (B,) bool, the scenes
+        failed only because their main star's name is contested (:func:`.verify.verify_ids`).
     """
     if rows is not None:
         padded = np.concatenate([rows, np.full(next_pow2(rows.size) - rows.size, rows[0])])
@@ -225,11 +207,8 @@ def _merge(result: Identification, sub: Identification, rows: np.ndarray) -> Ide
 
 
 def _verify(db, scenes: Scene, result: Identification, main, config: Config):
-    """Run :func:`~jstarid.algorithms.sgm.verify.verify_ids` with the settings of ``config``.
-
-    Returns:
-        ``(Identification, main_ambiguous)``: the verified ids and ok, and (B,) NumPy bool for
-        the scenes failed only because their main star's name is contested.
+    """:func:`.verify.verify_ids` with the settings of ``config`` → ``(Identification,
+    main_ambiguous)``, the latter (B,) NumPy bool.
     """
     tables, settings = _verify_inputs(db, config)
     # identify names only the neighbor graph's members (at most its capacity K): the ambiguity tests
@@ -243,12 +222,8 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config):
 
 
 def _verify_inputs(db, config: Config):
-    """The catalog tables and the static settings of :func:`~jstarid.algorithms.sgm.verify.verify_ids`
-    for a database and a config (``max_named`` excepted).
-
-    Returns:
-        ``(tables, settings)``: ``(cat, cat_mag, cells)`` placed on every device once per database
-        (the scenes are split over the devices), and a dict of the keyword arguments.
+    """``(tables, settings)`` of :func:`.verify.verify_ids` (``max_named`` excepted): ``(cat, cat_mag,
+    cells)`` placed on every device once per database, and a dict of the keyword arguments.
     """
     cat_np = np.asarray(db.catalog.unit_vectors, np.float64)
     # every catalog star within the field's half diagonal of any boresight in a cell (frame coverage)
@@ -273,22 +248,14 @@ def _verify_inputs(db, config: Config):
 
 
 def _verify_scenes(xy, mag, valid, ids, ok, main, cat, cat_mag, cells, **settings):
-    """:func:`~jstarid.algorithms.sgm.verify.verify_ids` with the scenes first and the tables after,
-    the argument order of :func:`jstarid.runtime.map_batch` (which splits the scenes over the devices:
-    the verification works on each scene alone)."""
+    """:func:`.verify.verify_ids` with the scenes first, as :func:`jstarid.runtime.map_batch` splits them."""
     return verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, **settings)
 
 
 def _rename_and_reverify(db, scenes: Scene, verified: Identification, g, config: Config):
-    """Name what the verification left unnamed from the verified attitude, then verify again.
-
-    ``Config.verify_rename``: the leftover rule (:func:`_name_leftovers`) runs on the verified names,
-    and the scenes it changes go through :func:`_verify` once more, so a new name faces the same
-    residual, ambiguity and coverage tests as every other. Where the second verification rejects a
-    scene, the first verification's result stands (it passed every test on its own).
-
-    Returns:
-        :class:`~jstarid.scene.Identification` with the same ``ok`` as ``verified``.
+    """``Config.verify_rename``: :func:`_name_leftovers` on the verified names, then :func:`_verify` again
+    on the scenes it changed; where that fails, the first result stands. Returns an
+    :class:`~jstarid.scene.Identification` with the same ``ok`` as ``verified``.
     """
     before = np.asarray(verified.ids)
     ids = _name_leftovers(db, scenes, verified, g, config)
@@ -307,8 +274,7 @@ def _check_vertices(adj_i, db_adj, res, config: Config):
 
     Args:
         adj_i: (B, K, K) image adjacencies (deg). db_adj: (D, K, K) database adjacencies (deg).
-        res: :class:`~jstarid.algorithms.sgm.search.SearchOutcome` (``match``, ``best``, ``ok``).
-        config: :class:`Config`.
+        res: :class:`.search.SearchOutcome` (``match``, ``best``, ``ok``). config: :class:`Config`.
 
     Returns:
         ``(match, ok)``: (B, K) the kept correspondence (−1 elsewhere), (B,) bool.
@@ -337,12 +303,9 @@ def _check_vertices(adj_i, db_adj, res, config: Config):
 
 
 def _name_leftovers(db, scenes: Scene, result: Identification, g: dict, config: Config):
-    """Name unnamed detections inside the neighbor circle by the attitude of the matched stars.
-
-    Returns:
-        (B, N) int32 ids: ``result.ids`` plus, for every successful scene, each unnamed member of the
-        image graph whose ICRS direction (``Cᵀ v``) lies within ``config.leftover_tol_deg`` of a
-        catalog star not yet named in that scene.
+    """(B, N) int32 ids: ``result.ids`` plus, in every successful scene, each unnamed image-graph member
+    whose ICRS direction (``Cᵀ v``, attitude of the matched stars) lies within
+    ``config.leftover_tol_deg`` of a catalog star not yet named in that scene.
     """
     ids = np.array(result.ids)
     att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result, min_stars=3)

@@ -1,20 +1,18 @@
 """Spectral graph matching of two neighbor graphs (You et al. 2022, "Spectral graph matching").
 
-Pipeline for one pair (image graph G_I with P ≥ n_I vertex slots, database graph G_J with Q ≥ n_J):
+For an image graph G_I (P ≥ n_I vertex slots) and a database graph G_J (Q ≥ n_J):
 
-1. affinity matrix K (eq. 2), (P·Q, P·Q): ``K(ij, km) = exp(−c |A_I(i,k) − A_J(j,m)|)`` for
-   i ≠ k and j ≠ m; 0 on the diagonal (vertex similarity is 0 in the paper), 0 for conflicting pairs
-   (i = k xor j = m), 0 on padding. Row/column ``ij`` is ``i·Q + j``.
-2. its unit principal eigenvector γ (Perron vector; power iteration with a fixed step count);
-3. greedy one-to-one binarization of γ into a correspondence (Leordeanu & Hebert 2005): take the
-   largest remaining confidence, fix that pair, drop its row and column; min(n_I, n_J) pairs;
+1. affinity K (eq. 2), (P·Q, P·Q), index ``ij = i·Q + j``: ``K(ij, km) = exp(−c |A_I(i,k) −
+   A_J(j,m)|)`` for i ≠ k and j ≠ m; 0 on the diagonal (vertex similarity 0 in the paper), for
+   conflicting pairs (i = k xor j = m) and on padding;
+2. its unit principal (Perron) eigenvector γ by power iteration;
+3. greedy one-to-one binarization of γ (Leordeanu & Hebert 2005): min(n_I, n_J) pairs;
 4. matching error eq. 5, ``‖A'_I − A_J‖_F / min(n_I, n_J)`` over the matched sub-graphs.
 
-Cost: the affinity matrix holds (P·Q)² entries and every power step reads each once — the n⁴ growth
-the paper reports (docs/conventions.md §7, SGM pitfall 4). :func:`spectral_match` builds the entries
-from e^{±c·a} factors (:func:`affinity_eigenvector`; XLA writes them once per pair and the steps read
-them); :func:`affinity` and :func:`principal_eigenvector` are the written-out reference. Callers
-pad P and Q to small buckets and bound the batch.
+K has (P·Q)² entries, read by every power step: the paper's n⁴ growth (conventions §7, SGM pitfall
+4). :func:`spectral_match` builds them from e^{±c·a} factors (:func:`affinity_eigenvector`);
+:func:`affinity` and :func:`principal_eigenvector` are the written-out reference. Callers pad P, Q
+to small buckets and bound the batch.
 """
 
 from __future__ import annotations
@@ -33,16 +31,13 @@ __all__ = ["affinity", "principal_eigenvector", "affinity_eigenvector", "greedy_
 def affinity(a_i, mask_i, a_j, mask_j, c: float):
     """Affinity matrix of eq. 2.
 
-    ``exp(−c|a − b|) = min(e^{c a}·e^{−c b}, e^{−c a}·e^{c b})`` (the smaller of the two is the one
-    with a non-positive exponent), so the (P·Q)² entries need P² + Q² exponentials and two products
-    each, instead of (P·Q)² exponentials. Exponents are taken about a common centre so that
-    e^{±c·a} stays in float32 range for c·(largest edge) up to ≈ 170.
+    ``exp(−c|a − b|) = min(e^{c a}·e^{−c b}, e^{−c a}·e^{c b})``: P² + Q² exponentials instead of (P·Q)².
+    Exponents are taken about a common centre, so e^{±c·a} stays in float32 range for
+    c·(largest edge) up to ≈ 170.
 
     Args:
-        a_i: (P, P) image adjacency (deg).
-        mask_i: (P,) bool image vertices.
-        a_j: (Q, Q) database adjacency (deg).
-        mask_j: (Q,) bool database vertices.
+        a_i: (P, P) image adjacency (deg). mask_i: (P,) bool image vertices.
+        a_j: (Q, Q) database adjacency (deg). mask_j: (Q,) bool database vertices.
         c: edge-similarity adjustor (1/deg).
 
     Returns:
@@ -68,10 +63,8 @@ def _affinity_factors(a_i, mask_i, a_j, mask_j, c):
 
 
 def _affinity_block(up_i, dn_i, up_j, dn_j):
-    """K as a (P, Q, P, Q) array, entry (i, j, k, m): edge ik of G_I against edge jm of G_J.
-
-    Zero rows/columns for the diagonal, conflicting pairs (i = k or j = m) and padding come from the
-    zeros of up/dn.
+    """K as a (P, Q, P, Q) array, entry (i, j, k, m): edge ik of G_I against edge jm of G_J; the zeros
+    of up/dn give the zero rows/columns (diagonal, conflicting pairs, padding).
     """
     return jnp.minimum(up_i[:, None, :, None] * dn_j[None, :, None, :],
                        dn_i[:, None, :, None] * up_j[None, :, None, :])
@@ -80,15 +73,14 @@ def _affinity_block(up_i, dn_i, up_j, dn_j):
 def principal_eigenvector(k, n_iter: int, tol: float = 0.0):
     """Unit principal eigenvector of a symmetric non-negative matrix by power iteration.
 
-    Starts from the uniform vector, which is not orthogonal to the Perron vector of a non-negative
-    matrix; every step stays non-negative. A zero matrix gives the zero vector.
+    Starts from the uniform vector (not orthogonal to the Perron vector); iterates stay non-negative.
+    A zero matrix gives the zero vector.
 
     Args:
         k: (M, M) symmetric, non-negative.
         n_iter: static largest number of steps.
-        tol: stop early once no entry changed by more than ``tol`` in one step (0: always
-            ``n_iter`` steps). Under ``vmap`` the loop runs until every lane has stopped; a lane that
-            stopped keeps its vector, so batched and single calls agree.
+        tol: stop once no entry changed by more than ``tol`` in a step (0: always ``n_iter``). Under
+            ``vmap`` a lane that stopped keeps its vector, so batched and single calls agree.
 
     Returns:
         (M,) non-negative unit vector (or zeros).
@@ -97,10 +89,8 @@ def principal_eigenvector(k, n_iter: int, tol: float = 0.0):
 
 
 def _power_iteration(apply, shape, n_iter, tol):
-    """Normalised power steps ``x ← K x / ‖K x‖`` from the uniform unit vector of ``shape``.
-
-    ``apply(x)`` computes K x; the early stop and the zero-matrix case are those documented in
-    :func:`principal_eigenvector`.
+    """``x ← K x / ‖K x‖`` from the uniform unit vector of ``shape``; ``apply(x)`` = K x; early stop and
+    zero matrix as in :func:`principal_eigenvector`.
     """
     def cond(carry):
         t, _, change = carry
@@ -121,14 +111,9 @@ def _power_iteration(apply, shape, n_iter, tol):
 def affinity_eigenvector(a_i, mask_i, a_j, mask_j, c: float, n_iter: int, tol: float = 0.0):
     """:func:`principal_eigenvector` of :func:`affinity`, K's entries made from the factors.
 
-    Written as if each power step recomputed the entries it reads inside the reduction
-    ``y(ij) = Σ_km K(ij, km) x(km)``. XLA on CPU hoists the (P, Q, P, Q) block out of the while loop
-    (loop-invariant code motion), so K is written once per pair and each step is one multiply-reduce
-    over it; with the 5–12 steps real pairs take, that costs about as much as recomputing the entries
-    in every step, and less than the written-out reference (:func:`affinity` then
-    :func:`principal_eigenvector`), with the same matches and errors. The steps are those of
-    :func:`principal_eigenvector` (uniform start, normalised products, the same early stop).
-    Timings and the alternatives tried: docs/design/sgm.md.
+    Written as if each step recomputed the entries it sums (``y(ij) = Σ_km K(ij, km) x(km)``); XLA on
+    CPU hoists the (P, Q, P, Q) block out of the loop, so K is written once per pair. Same steps,
+    matches and errors as the reference; cheaper (docs/design/sgm.md).
 
     Args:
         a_i, mask_i, a_j, mask_j, c: as :func:`affinity`.
@@ -146,23 +131,17 @@ def affinity_eigenvector(a_i, mask_i, a_j, mask_j, c: float, n_iter: int, tol: f
 
 
 def greedy_binarize(conf, mask_i, mask_j):
-    """Greedy one-to-one assignment from a confidence matrix.
+    """Greedy one-to-one assignment: take the largest remaining confidence, fix the pair, drop its row
+    and column.
 
-    The greedy rule takes the largest remaining confidence, fixes that pair and drops its row and
-    column. Computed in rounds instead of one pair at a time: in a round every pair that is the
-    largest of both its row and its column among the remaining entries is fixed at once. That is the
-    same assignment. Order the entries strictly by (confidence descending, flat index ``i·Q + j``
-    ascending), the order in which the one-at-a-time rule breaks ties. A pair that is first of its
-    row and of its column is fixed by that rule sooner or later, because only an entry
-    earlier in the order could take its row or column, and there is none (entries are only ever
-    removed). Every round fixes at least the first remaining entry, so at most min(P, Q) rounds run,
-    usually far fewer (about half the time of the one-pair loop on graphs of 14–35 vertices).
-    ``argmax`` returns the first maximum, so ties follow the same order.
+    Computed in rounds: every pair that is the maximum of both its row and its column among the
+    remaining entries is fixed at once — the same assignment, since under the strict order (confidence
+    descending, flat index ``i·Q + j`` ascending; ``argmax`` takes the first maximum) no earlier entry
+    can take such a pair's row or column. Each round fixes at least one pair (≤ min(P, Q) rounds).
 
     Args:
         conf: (P, Q) confidences γ(ij) ≥ 0.
-        mask_i: (P,) bool image vertices.
-        mask_j: (Q,) bool database vertices.
+        mask_i: (P,) bool image vertices. mask_j: (Q,) bool database vertices.
 
     Returns:
         (P,) int32: the database vertex matched to each image vertex, −1 if none. Exactly
@@ -195,8 +174,7 @@ def matching_error(a_i, a_j, match, min_matched: int = 1):
     """Matching error eq. 5 on the matched sub-graphs.
 
     Args:
-        a_i: (P, P) image adjacency (deg).
-        a_j: (Q, Q) database adjacency (deg).
+        a_i: (P, P) image adjacency (deg). a_j: (Q, Q) database adjacency (deg).
         match: (P,) int32 database vertex of each image vertex (−1 unmatched).
         min_matched: fewer matched pairs than this → +inf.
 

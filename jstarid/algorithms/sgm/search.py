@@ -1,47 +1,31 @@
 """Rough search (eq. 1, k-vector) and the dynamic Δw search of Algorithm 1, batched.
 
-Algorithm 1 (You et al. 2022) for one image graph with MST weight w_I visits Δw_l = Δw₀ + l·h_Δw,
+Algorithm 1 (You et al. 2022) for an image graph with MST weight w_I visits Δw_l = Δw₀ + l·h_Δw,
 l = 0, 1, … while Δw_l ≤ Δw_max; at each level it matches every database graph J with
-``|w_J − w_I| ≤ Δw_l`` that was not matched at an earlier level, takes J* = argmin δ (eq. 6) over
-everything matched so far, and stops at the first level where δ_{I,J*} ≤ ε_δ; if no level succeeds,
-the scene fails.
+``|w_J − w_I| ≤ Δw_l`` not matched before, takes J* = argmin δ (eq. 6) over everything matched so
+far, and stops at the first level where δ_{I,J*} ≤ ε_δ; if no level succeeds, the scene fails.
 
-Batched form used here. Sort the candidates of a scene by d_J = |w_J − w_I| (rank 0, 1, …); the
-level at which J is first searched is ``l(J) = ⌈(d_J − Δw₀)/h⌉⁺``, non-decreasing in rank, so the
-set searched up to level l is a prefix of this order. Candidates are matched in fixed-size chunks
-of ranks (all scenes of the batch in lock-step, each with its own ``done`` flag). Let t be the first
-rank with δ ≤ ε_δ and l* = l(t): Algorithm 1 stops at level l* and returns the argmin of δ over the
-prefix ``{J : l(J) ≤ l*}``; the chunked loop keeps matching until it has covered that prefix (and
-ignores ranks beyond it inside the last chunk), then returns the argmin over the same prefix. Ranks
-before t all have δ > ε_δ, so every earlier level fails in both. With no success the whole window
-``d_J ≤ Δw_last`` is covered and the scene fails in both. Hence the outcome equals the sequential
-loop (up to ties in δ); only the order of work differs. Scenes that are done leave the batch, so a
-batch costs about as much as its hardest scenes.
+Batched form. Candidates are ranked by d_J = |w_J − w_I|; J enters at level
+``l(J) = ⌈(d_J − Δw₀)/h⌉⁺``, non-decreasing in rank, so every level searches a prefix of the ranks.
+Ranks are matched in chunks, all scenes of the batch in lock-step (done scenes leave the batch). With
+t the first rank with δ ≤ ε_δ and l* = l(t), a scene stops once it has covered the prefix
+``{J : l(J) ≤ l*}`` and returns the argmin of δ over it; with no success it fails after the whole
+window ``d_J ≤ Δw_last``. Invariant: the outcome is the sequential loop's, up to ties in δ (tested
+against it; the argument is in docs/design/sgm.md).
 
-Branch and bound (``Config.prune``, not in the paper). Before a candidate is matched, lower bounds
-on its δ (:mod:`.bound`) are computed, in two stages: a cheap one for every candidate examined
-(:func:`~.bound.edge_lower_bound`, sorted edge lengths), and the tighter one, ≈ 10× dearer per
-pair (:func:`~.bound.error_lower_bound`, sorted rows and an assignment bound), only for
-a candidate that the first has not excluded and that the search needs (:func:`_refine`). A
-candidate whose bound exceeds ε_δ can never succeed and is pruned. Once a success δ* ≤ ε_δ is known
-at level l*, a candidate below l* is still matched (it could succeed and lower l*), but one at l*
-whose bound exceeds δ* can neither be the argmin nor change l*: it is *deferred* (left unmatched).
-To find a small δ* early, each step first matches every scene's candidate with the smallest bound.
-The outcome is the loop's; only the work shrinks (``experiments/bench_sgm.py`` prints the spectral
-matchings per scene; ``docs/design/sgm.md`` compares the stages).
+Branch and bound (``Config.prune``, not in the paper; changes only the work). Lower bounds on δ
+(:mod:`.bound`) in two stages: :func:`~.bound.edge_lower_bound` for every candidate examined, the
+≈ 10× dearer :func:`~.bound.error_lower_bound` only for a candidate the first keeps and the search
+needs (:func:`_refine`). A bound > ε_δ prunes the candidate. Once a success δ* ≤ ε_δ is known at
+level l*, a candidate below l* is still matched (it could lower l*), one at l* whose bound exceeds
+δ* is *deferred* (left unmatched). Each step first matches every scene's candidate with the smallest
+bound, to find δ* early. The bound prunes but does not order: best-first matching needed more
+matchings and named more wrong main stars (docs/design/sgm.md).
 
-Why the search keeps Algorithm 1's order instead of matching by bound: ordering by the bound
-(best-first) needed about three times the matchings and named the wrong main star about twice as
-often before the verification (``docs/design/sgm.md``); the bound serves to prune, not to order.
-
-Resumption. The search keeps δ of every candidate it has matched and the bound of every deferred
-one (:class:`SearchState`). When the post-match verification rejects the answer J*
-(``Config.verify_retries``), :func:`reject_best` sets its δ to ∞ and :func:`advance_search` goes on:
-l* becomes the level of the first rank whose δ ≤ ε_δ among the rest, J* the argmin over the new
-prefix; ranks not examined yet are matched only when the new prefix reaches them, deferred ones
-when the new δ* no longer excludes them. By the arguments above this is Algorithm 1 run on the
-database without the struck-out graphs (tested against the sequential loop with those graphs
-removed).
+Resumption. :class:`SearchState` keeps δ of every matched candidate and the bound of every deferred
+one. When the post-match verification rejects J* (``Config.verify_retries``), :func:`reject_best`
+sets its δ to ∞ and :func:`advance_search` goes on: Algorithm 1 on the database without the
+struck-out graphs (tested against the sequential loop with those graphs removed).
 """
 
 from __future__ import annotations
@@ -114,13 +98,10 @@ def order_candidates(w_db, start, stop, w_i, *, width: int, dw0: float, step: fl
 def _match_pairs(a_i, n_i, cand, db_adj, db_n, c, *, p, q, n_iter, tol, min_matched):
     """Spectral matching of N (image graph, database graph) pairs → (N, p) match, (N,) δ (deg).
 
-    The pairs run one after the other (``lax.map``), not side by side (``vmap``): each power step
-    reads the pair's whole (p·q)² affinity matrix, which stays in cache for all its steps when only
-    one pair is live, while a vmapped batch streams every matrix from memory at every step (measured
-    ≈ 2× faster for p = q = 16–48). It also lets ``Config.power_tol`` stop each pair on its own, and
-    padding pairs (``cand`` = −1, which fill a call up to its compiled size) are skipped by
-    ``lax.cond`` (match −1, δ = inf) instead of being matched. ``c`` (eq. 2) is a traced scalar: a
-    sweep over c reuses the compiled kernels.
+    Pairs run one after another (``lax.map``), not ``vmap``: a lone pair's (p·q)² affinity matrix stays
+    in cache for all its power steps (docs/design/sgm.md), and each pair stops on its own
+    (``Config.power_tol``). Padding pairs (``cand`` = −1) are skipped (match −1, δ = inf). ``c``
+    (eq. 2) is traced: a sweep over c reuses the compiled kernels.
     """
     live = cand >= 0
     cand = jnp.maximum(cand, 0)
@@ -138,9 +119,8 @@ def _match_pairs(a_i, n_i, cand, db_adj, db_n, c, *, p, q, n_iter, tol, min_matc
 
 
 def skip_padding(fn, live, args, dead):
-    """``lax.map`` of ``fn(*args_n)`` over pairs n, returning ``dead`` for pairs where ``live`` is False.
-
-    On CPU ``lax.cond`` inside a sequential map runs one branch only, so padding costs nothing.
+    """``lax.map`` of ``fn(*args_n)`` over pairs n, returning ``dead`` where ``live`` is False (on CPU the
+    ``lax.cond`` runs one branch only, so padding costs nothing).
     """
     def one(xs):
         return jax.lax.cond(xs[0], lambda a: fn(*a), lambda a: dead, xs[1:])
@@ -153,8 +133,7 @@ def _bound_pairs(rows_i, n_i, cand, db_rows, db_n, *, r, max_skip):
     """:func:`~.bound.error_lower_bound` of N (image graph, database graph) pairs → (N,) (deg).
 
     Reads sorted rows (:func:`~.bound.row_table`: the image's (N, r, r) corner, the database's whole
-    table) instead of sorting per pair. Vectorized over groups of 16 pairs (``vmap``); groups made
-    only of padding pairs (``cand`` = −1) are skipped (bound 0).
+    table); ``vmap`` over groups of 16 pairs; groups of padding pairs only (``cand`` = −1) get bound 0.
     """
     live = cand >= 0
     cand = jnp.maximum(cand, 0)
@@ -176,10 +155,7 @@ def _bound_pairs(rows_i, n_i, cand, db_rows, db_n, *, r, max_skip):
 
 @jax.jit
 def _edge_bound_pairs(e_i, n_i, e_j, n_j):
-    """:func:`~.bound.edge_lower_bound` of N pairs of sorted edge lists (N, E) → (N,) (deg).
-
-    Vectorized over all N pairs at once (``vmap``; a pair's work is a binary search of E entries in E).
-    """
+    """:func:`~.bound.edge_lower_bound` of N pairs of sorted edge lists (N, E) → (N,) (deg); ``vmap``."""
     return jax.vmap(edge_lower_bound)(e_i, n_i, e_j, n_j)
 
 
@@ -187,13 +163,10 @@ MIN_CALL_PAIRS = 64  # smallest compiled pair count of a kernel call
 
 
 def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
-    """Slices of ≤ the budget, each padded to a power of two ≥ :data:`MIN_CALL_PAIRS`.
+    """Slices ``(lo, hi, padded)`` of ≤ the budget, each padded to a power of two ≥ :data:`MIN_CALL_PAIRS`.
 
-    Power-of-two sizes bound the number of compilations per kernel. The floor of 64 (not 16) merges
-    the small sizes that most blocks of a small batch need into one compilation (≈ 1.5 s each on 2
-    cores): ``bench_sgm.py --batch 128`` at σ = 0 / 1 / 3 px took 29 / 21 / 47 s for its first call
-    instead of 61 / 30 / 66 s, at the same steady rate within the machine's run-to-run spread. The
-    padding pairs cost next to nothing: the kernels skip them (:func:`skip_padding`), gathers included.
+    Power-of-two sizes bound the compilations per kernel; the floor of 64 merges the small sizes of a
+    small batch into one compilation (docs/design/sgm.md). Padding pairs are skipped by the kernels.
     """
     cap = max(MIN_CALL_PAIRS,
               1 << int(math.floor(math.log2(max(budget_bytes // max(per_pair_bytes, 1), 16)))))
@@ -204,29 +177,24 @@ def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
 
 def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes, budget, size_names, out_tails,
               tables, **static):
-    """Run a pair kernel over flat (scene, candidate) pairs grouped by padded graph size.
-
-    Each call's pairs are split over every device (:func:`jstarid.runtime.map_batch`): on a CPU with
-    ``--xla_force_host_platform_device_count=n`` the n slices run on n cores at once, where one device
-    leaves the second core of a 2-core machine mostly idle (a pair's small matrix products do not
-    spread over threads: one core measured only 12 % slower than two).
+    """Run a pair kernel over flat (scene, candidate) pairs grouped by padded graph size, each call's
+    pairs split over every device (:func:`jstarid.runtime.map_batch`; with
+    ``--xla_force_host_platform_device_count=n`` that uses n CPU cores).
 
     Args:
-        kernel: :func:`_match_pairs` or :func:`_bound_pairs`; called as
-            ``kernel(image_i, n_i, cand, *tables, **static, **sizes)`` with the image table sliced to
-            the group's size; calls are filled up to a power of two with padding pairs whose
-            ``cand`` is −1 (the kernel must skip them or give them a harmless value).
+        kernel: :func:`_match_pairs` or :func:`_bound_pairs`, called as ``kernel(image_i, n_i, cand,
+            *tables, **static, **sizes)`` with the image table sliced to the group's size; calls are
+            filled to a power of two with padding pairs (``cand`` −1) that the kernel must skip or
+            give a harmless value.
         key_sizes: (N, k) int static sizes of each pair (e.g. (p, q) or (r,)); pairs are grouped by row.
-        image: (B, K, K) per-scene table the kernel reads (NumPy): the image adjacencies, or their
-            sorted rows (:func:`~.bound.row_table`). n_i: (B,) image vertex counts.
+        image: (B, K, K) per-scene NumPy table the kernel reads (adjacencies, or sorted rows
+            :func:`~.bound.row_table`). n_i: (B,) image vertex counts.
         scene, cand: (N,) int scene row and database row of each pair.
         per_pair_bytes: function of the sizes → bytes one pair needs inside the kernel.
-        budget: bytes per call. size_names: the kernel's static keyword for each column of
-            ``key_sizes``.
-        out_tails: trailing shape of each kernel output in the result (a per-vertex axis, which the
-            kernel returns at its group's size, is given as K and padded with −1).
-        tables: tuple of arrays every pair reads (database tables), ideally already on every device
-            (:func:`database_tables`).
+        budget: bytes per call. size_names: the kernel's static keyword for each column of ``key_sizes``.
+        out_tails: trailing shape of each output (a per-vertex axis, returned at the group's size, is
+            given as K and padded with −1).
+        tables: tuple of arrays every pair reads, ideally already on every device (:func:`database_tables`).
         **static: the kernel's other (hashable) keyword arguments.
 
     Returns:
@@ -327,13 +295,11 @@ def image_tables(adj_i, n_i) -> ImageTables:
 def edge_bounds(db, image: dict, n_i, scene, rows, config: Config) -> np.ndarray:
     """:func:`~.bound.edge_lower_bound` of (scene, candidate) pairs: the search's first-stage bound.
 
-    Both sides' sorted edge lists are read from tables sorted once (``Database.edges``,
-    :func:`image_tables`); pairs are grouped by padded vertex count r (a list of r(r − 1)/2 entries)
-    and each group runs as one vectorized call of a power-of-two size (sharded over the devices).
+    Reads tables sorted once (``Database.edges``, :func:`image_tables`); pairs are grouped by padded
+    vertex count r (lists of r(r − 1)/2 entries), one vectorized call of power-of-two size per group.
 
     Args:
-        db: the database. image: :func:`image_tables` of the image graphs. n_i: (B,) image vertex
-            counts.
+        db: the database. image: :func:`image_tables` of the image graphs. n_i: (B,) image vertex counts.
         scene, rows: (N,) scene and database row of each pair.
         config: :class:`Config` (``size_bucket``).
 
@@ -425,35 +391,26 @@ def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float
 class SearchState:
     """Host-side bookkeeping of Algorithm 1 for a batch: what each scene has matched so far.
 
-    Ranks order each scene's candidates by |w_J − w_I| (:func:`order_candidates`); the ranks
-    examined so far are a prefix of that order, ``covered`` long. An examined rank is pruned (its
-    bound on δ exceeds ε_δ), matched (δ known), or *deferred*: its bound does not exclude it yet, but
-    the spectral matching has not been needed (see :func:`advance_search`). Keeping δ of every
-    matched rank and the bound of every deferred one lets a search go on after its answer was struck
-    out (:func:`reject_best`, the post-match verification's rejection) without matching anything
-    twice.
+    Ranks order each scene's candidates by |w_J − w_I| (:func:`order_candidates`); the examined ranks
+    are a prefix. An examined rank is pruned (bound > ε_δ), matched (δ known) or *deferred* (not
+    excluded, not needed yet). Keeping δ and bounds lets a search resume after :func:`reject_best`
+    without matching anything twice.
 
     Attributes:
         cand: (B, W) int32 database rows by rank (−1 past the window). level: (B, W) int32 Δw level
             l(J) of each rank (``n_levels`` past the window). count: (B,) ranks in the window.
-        usable: (B,) bool, scenes searched at all.
-        err: (B, W) float32 δ of each matched rank (deg; inf: pruned, deferred, struck out or not
-            examined).
-        bound: (B, W) float32 lower bound on δ of each examined rank (deg; 0 where unknown):
-            :func:`~.bound.edge_lower_bound` when examined, the larger of it and
-            :func:`~.bound.error_lower_bound` once refined.
-        refined: (B, W) bool, the bound of an examined rank is final (the second stage has run,
-            or cannot help: vertex counts further apart than ``prune_max_skip``, or no pruning).
-        deferred: (B, W) bool, examined and neither pruned nor matched.
-        covered: (B,) int32 ranks examined (a prefix).
-        matches: ``{(scene, rank): (K,) int32}`` correspondences of the matched pairs with δ ≤ ε_δ
-            (the only ones that can be J*).
-        n_matched, n_pruned: (B,) int32 spectral matchings run and candidates the bound removed
-            against ε_δ (the deferred ones that are never matched come on top:
-            :func:`search_outcome`).
-        n_rejected: (B,) int32 answers struck out.
-        image: :func:`image_tables` of the batch's image graphs (sorted once per search; ``None``
-            without pruning).
+        usable: (B,) bool, scenes searched at all. covered: (B,) int32 ranks examined (a prefix).
+        err: (B, W) float32 δ of each matched rank (deg; inf: pruned, deferred, struck out, unexamined).
+        bound: (B, W) float32 lower bound on δ (deg; 0 where unknown): :func:`~.bound.edge_lower_bound`
+            when examined, the larger of it and :func:`~.bound.error_lower_bound` once refined.
+        refined: (B, W) bool, the bound is final (second stage run, or useless: vertex counts further
+            apart than ``prune_max_skip``, or no pruning). deferred: (B, W) bool, examined, neither
+            pruned nor matched.
+        matches: ``{(scene, rank): (K,) int32}`` correspondences of the matched pairs with δ ≤ ε_δ.
+        n_matched, n_pruned, n_rejected: (B,) int32 spectral matchings run, candidates the bound removed
+            against ε_δ (never-matched deferred ones are added by :func:`search_outcome`), answers
+            struck out.
+        image: :func:`image_tables` of the batch (``None`` without pruning).
     """
 
     cand: np.ndarray
@@ -519,10 +476,9 @@ def _needed(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarray:
     """(R, W) bool: deferred ranks whose δ can still change Algorithm 1's answer.
 
     With l* the level of the first matched success and δ* the least δ matched in the l* prefix, a
-    deferred rank J matters when its level is below l* (δ_J ≤ ε_δ would make an earlier level
-    succeed; its bound is ≤ ε_δ or it would have been pruned), or at l* when its bound does not
-    exceed δ* (it could be the argmin). Ranks past the prefix, or whose bound exceeds δ*, cannot be
-    J*. Before any success (l* = ``n_levels``) every deferred rank matters.
+    deferred rank matters when its level is below l* (δ ≤ ε_δ would make an earlier level succeed), or
+    at l* when its bound does not exceed δ* (it could be the argmin). Before any success
+    (l* = ``n_levels``) every deferred rank matters.
     """
     lstar = _first_success_level(state, config, rows)
     level = state.level[rows]
@@ -563,11 +519,9 @@ def _match_ranks(db, graphs: ImageGraph, state: SearchState, config: Config, sce
 
 def _examine_block(db, graphs: ImageGraph, state: SearchState, config: Config, act: np.ndarray,
                    block: int) -> None:
-    """Bound the next ``block`` ranks of the l* prefix of each scene in ``act`` (in place).
-
-    The first-stage bound (:func:`~.bound.edge_lower_bound`) is computed for every rank; ranks whose
-    bound exceeds ε_δ are pruned, the others are deferred until :func:`advance_search` finds them
-    needed (and refines their bound before matching them: :func:`_refine`).
+    """Bound the next ``block`` ranks of the l* prefix of each scene in ``act`` (in place): first-stage
+    bound (:func:`~.bound.edge_lower_bound`) > ε_δ → pruned, else deferred (refined when needed:
+    :func:`_refine`).
     """
     width = state.cand.shape[1]
     ranks = state.covered[act, None] + np.arange(block)[None, :]  # (A, block)
@@ -613,12 +567,9 @@ def _refine(db, graphs: ImageGraph, state: SearchState, config: Config, scene: n
 
 
 def _probe(db, graphs: ImageGraph, state: SearchState, config: Config, act: np.ndarray) -> None:
-    """Match each scene's needed rank with the smallest bound (the likeliest J*; in place).
-
-    Its bound is refined first (one call for all scenes) and it is matched only if the refined bound
-    keeps it. Ranks whose vertex count differs from the image graph's by more than
-    ``prune_max_skip`` come last: only the loose first stage bounds them and such a graph is seldom
-    J*, while a failed probe leaves the scene without δ* and so makes every rank it holds needed.
+    """Match each scene's needed rank with the smallest bound (the likeliest J*; in place), if its
+    refined bound keeps it. Ranks whose vertex count differs by more than ``prune_max_skip`` come last:
+    only the loose first stage bounds them, they are seldom J*, and a failed probe leaves no δ*.
     """
     need = _needed(state, config, act)
     far = beyond_row_bound(graphs.n[act, None], db.n[np.maximum(state.cand[act], 0)], config)
@@ -634,24 +585,18 @@ def advance_search(db, graphs: ImageGraph, state: SearchState, config: Config,
                    active: np.ndarray | None = None) -> SearchState:
     """Run Algorithm 1 on the ``active`` scenes (default: all) until each has stopped.
 
-    Each step examines the next block of ranks of every scene whose l* prefix is not covered yet
-    (``chunk_size`` ranks, then twice as many at every step up to 512: most scenes finish within
-    their first few dozen candidates) and drops the candidates whose :mod:`.bound` proves δ > ε_δ
-    (``Config.prune``; exact, see that module). Then: each scene's candidate with the smallest
-    first-stage bound is refined and, if kept, matched (a probe for δ*); the candidates still needed
-    (:func:`_needed`) are refined; a second probe by the refined bound; then every candidate that
-    can still change the answer is matched — once a success δ* ≤ ε_δ is known at level l*, a
-    candidate at l* whose bound exceeds δ* cannot be J*, so its matching is deferred (branch and
-    bound, module docstring; the outcome is Algorithm 1's). Without ``prune`` every examined
-    candidate of the l* prefix is matched, in rank order. Ranks of a block beyond the scene's
-    current l* prefix are left unexamined (they are not part of Algorithm 1's search).
+    Each step examines the next block of ranks of every scene whose l* prefix is not covered
+    (``chunk_size`` ranks, doubling up to 512) and prunes by the first-stage bound. With ``prune``: a
+    probe (:func:`_probe`) matches the needed rank with the smallest bound, the other needed ranks
+    (:func:`_needed`) are refined, a second probe, then every rank that can still change the answer is
+    matched; without it, every examined rank of the l* prefix. Ranks beyond the l* prefix stay
+    unexamined. The outcome is Algorithm 1's (module docstring).
 
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database`.
         graphs: per-scene image graphs as NumPy arrays: ``adj`` (B, K, K) deg, ``n`` (B,).
         state: :class:`SearchState` from :func:`start_search` (left unchanged).
-        config: :class:`Config`.
-        active: (B,) bool scenes to advance.
+        config: :class:`Config`. active: (B,) bool scenes to advance.
 
     Returns:
         The new :class:`SearchState`.
@@ -692,14 +637,7 @@ def search_outcome(state: SearchState, config: Config, k: int) -> SearchOutcome:
         k: K, the image graphs' vertex capacity.
 
     Returns:
-        dict of NumPy arrays: ``ok`` (B,) bool, ``best`` (B,) int32 database row of J* (−1),
-        ``rank`` (B,) its rank (−1), ``match`` (B, K) int32 database vertex of each image vertex
-        (−1), ``error`` (B,) δ_{I,J*} (deg; for a failed scene the least δ examined, inf when
-        nothing was matched — with pruning, also when every candidate was pruned),
-        ``n_matched_graphs`` (B,) candidates whose spectral matching ran, ``n_pruned`` (B,)
-        candidates the bound removed (against ε_δ, or against the best δ found), ``n_rejected``
-        (B,) answers struck out, ``level`` (B,)
-        index of the Δw level that succeeded (−1).
+        :class:`SearchOutcome` (NumPy arrays, batch axis first; fields documented there).
     """
     b = state.cand.shape[0]
     everyone = np.arange(b)
@@ -720,10 +658,9 @@ def search_outcome(state: SearchState, config: Config, k: int) -> SearchOutcome:
 
 
 def reject_best(state: SearchState, outcome: SearchOutcome, rows: np.ndarray) -> SearchState:
-    """A new state with the answer J* of the scenes ``rows`` struck out, as if its δ exceeded ε_δ.
-
-    A later :func:`advance_search` then goes on as Algorithm 1 would have without that candidate:
-    the next best of the same l* prefix when another one has δ ≤ ε_δ, else further levels.
+    """A new state with J* of the scenes ``rows`` struck out, as if its δ exceeded ε_δ: a later
+    :func:`advance_search` goes on as Algorithm 1 would without it (the next best of the same l* prefix
+    when another has δ ≤ ε_δ, else further levels).
     """
     state = state.copy(("err", "matches", "n_rejected"))
     rows = np.asarray(rows)
@@ -736,18 +673,17 @@ def reject_best(state: SearchState, outcome: SearchOutcome, rows: np.ndarray) ->
 
 
 def dynamic_search(db, graphs: ImageGraph, usable: np.ndarray, config: Config) -> SearchOutcome:
-    """Algorithm 1 for a batch of image graphs: :func:`start_search`, :func:`advance_search` and
-    :func:`search_outcome` in one call.
+    """Algorithm 1 for a batch of image graphs (:func:`start_search`, :func:`advance_search`,
+    :func:`search_outcome`).
 
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database`.
-        graphs: per-scene image graphs as NumPy arrays: ``adj`` (B, K, K) deg, ``mask`` (B, K),
-            ``n`` (B,), ``w`` (B,) deg.
-        usable: (B,) bool scenes to search (the others fail).
-        config: :class:`Config`.
+        graphs: per-scene NumPy image graphs: ``adj`` (B, K, K) deg, ``mask`` (B, K), ``n`` (B,),
+            ``w`` (B,) deg.
+        usable: (B,) bool scenes to search (the others fail). config: :class:`Config`.
 
     Returns:
-        :func:`search_outcome`'s dict.
+        :class:`SearchOutcome`.
     """
     state = advance_search(db, graphs, start_search(db, graphs, usable, config), config)
     return search_outcome(state, config, graphs.mask.shape[1])

@@ -1,61 +1,35 @@
 """Post-match verification of SGM identifications — our addition, not in You et al. (2022).
 
-The spectral match names every vertex pair that greedy binarization produces. Under position noise
-two failure modes survive Algorithm 1's error threshold: stars of a close pair (0.1–0.2° apart) are
-swapped, and stars near the neighbor-circle boundary are paired with a leftover database vertex. Both
-give a mis-identification, and the project prefers a failure. The step below, run per scene (vmapped,
-fixed shapes, masks), checks every named detection against the attitude of the others:
+Under position noise two failure modes survive Algorithm 1's threshold: the stars of a close pair
+(0.1–0.2° apart) are swapped, and stars near the circle boundary are paired with a leftover database
+vertex. A failure is preferred to a mis-identification, so each scene (vmapped, fixed shapes) checks
+every named detection against the attitude of the others:
 
-1. **Attitude fit.** ``C`` by Wahba (SVD) from the named detections; residual ``d_own`` = angle between
-   each detection and ``C r_id`` (deg, via atan2 of cross and dot, accurate near 0 in float32).
-2. **Noise-tied tolerance.** Robust RMS ``s = 1.2 · median(d_own)`` (for a 2-D Gaussian the residual
-   is Rayleigh: median = 1.177 σ_axis, RMS = 1.414 σ_axis, ratio 1.20), clipped so that
-   ``tol = k · s`` lies in ``[floor_deg, cap_deg]``; named detections with ``d_own > tol`` are
-   unnamed, the attitude is refitted from the rest and the test repeated once (a detection unnamed
-   in the first pass may come back). For a Rayleigh residual P(d > k·RMS) = exp(−k²): k = 3.5 unnames
-   a true star with probability 5·10⁻⁶.
-3. **Ambiguity guard.** A named star with other catalog stars within ``max(3·tol, ambiguity_deg)``
-   of it (a close pair the match may have swapped) keeps its name only when its own residual clearly
-   beats every such rival's: ``d_alt² − d_own² ≥ (ambiguity_k · s)²`` — a log likelihood ratio of
-   ``ambiguity_k²`` for isotropic Gaussian noise (RMS s = √2 σ_axis). When another detection lies
-   within the window of a rival star, the pair of names is tested jointly as well: the present names
-   (this → own star, the other → rival) must beat the exchange (this → rival, other → own star) by
-   the same margin in summed squared residuals. The joint test catches a close pair whose two
-   detections both drifted towards one star (seen at σ = 1.5 px: the detection named after the wrong
-   star of the pair sat 0.015° from it, so the single test alone passed). When the rival star has a
-   detection of its own — within the tolerance, nearer to the rival than to any other catalog star,
-   and named after the rival or unnamed (e.g. just outside the neighbor circle) — the rival is
-   accounted for and the exchange is the only alternative left, so passing the joint test alone
-   with the wider margin ``partner_k²`` also clears the name (``partner_joint``, on by default; the other
-   detection's present cost is then its own kept name's): for a pair 4 σ apart the single test
-   keeps a name ≈ 67 % of the time, the joint test ≈ 96 %. Why both conditions: without the
-   nearest-star condition a detection nearer its own star can be taken for the rival's, and with
-   the ``amb_k²`` margin a close pair whose two detections both drifted past each other can pass
-   the exchange test with the wrong names (docs/design/sgm.md). Optionally (``mag_sigma`` > 0, off
-   by default: SGM is a magnitude-free method) both tests add the magnitude term
-   ``(m_obs − V)² / (2 σ_m²)`` to each hypothesis' cost. Every margin of this step is measured
-   with a high-side s (:func:`_upper_rms`: the kept residuals' χ² with 2n − 3 degrees of freedom,
-   too small with probability Φ(−z), 16 % at ``Config.verify_rms_z`` = 1), not the fitted
-   tolerance's median-based s, whose chance shortfalls inflate every likelihood ratio. A last
-   test looks for a rival *detection*: an unnamed detection whose nearest catalog star is this
-   detection's own star (a false star next to a true one, seen once at σ = 3 px with one fake
-   star: the fake, 0.063° from the star, took its name) must lose to it by the same margin.
-4. **Scene decision.** The scene fails (``ok`` False, every id −1) when the main star was named and
-   is unnamed by the check, when fewer than ``min_matched`` stars stay named, or when fewer than half
-   of the named stars stay named (the attitude itself is then not trustworthy).
-5. **Frame coverage.** The neighbor circle holds only part of the frame: a small graph (3–5 stars)
-   matched to the wrong database graph can fit its own stars within the tolerance (δ just under
-   ε_δ). The attitude must then also explain the rest of the frame: of the catalog stars it projects
-   inside the frame (inset by ``cap_deg``), at least ``min_coverage`` must have a detection within
-   ``cap_deg`` (the widest tolerance: the fitted one is too tight after a fit on 3–4 stars), or the
-   scene fails. The wrong matches seen covered 11–12 % of the frame, correct scenes 97–100 % (one
-   missing star, one false star, σ ≤ 3 px).
-   Catalog stars are taken from a sky index (:mod:`jstarid.sky_index`) cell of the boresight, which
-   holds every star that can be in the frame.
+1. **Attitude fit.** ``C`` by Wahba (SVD) from the named detections; residual ``d_own`` = angle
+   between each detection and ``C r_id`` (deg, atan2 of cross and dot: accurate near 0 in float32).
+2. **Noise-tied tolerance.** ``s = 1.2 · median(d_own)`` (Rayleigh RMS / median), ``tol = k · s``
+   clipped to ``[floor_deg, cap_deg]``; detections with ``d_own > tol`` are unnamed, the attitude
+   refitted and the test repeated once (an unnamed one may come back). P(d > k·RMS) = exp(−k²).
+3. **Ambiguity guard.** A named star with rival catalog stars within ``max(3·tol, ambiguity_deg)``
+   keeps its name only when ``d_alt² − d_own² ≥ (ambiguity_k · s)²`` for each (a log likelihood
+   ratio of ``ambiguity_k²`` for isotropic Gaussian noise, s = √2 σ_axis), and, where another
+   detection lies in a rival's window, when the present names beat the exchange (this → rival,
+   other → own star) by the same margin in summed squared residuals. *Partner rule*
+   (``partner_joint``): when the rival has a detection of its own (within the tolerance, nearest to
+   the rival among catalog stars, named after it or unnamed), the joint test alone with the wider
+   margin ``partner_k²`` also clears the name (docs/design/sgm.md). With ``mag_sigma`` > 0 both tests
+   add ``(m_obs − V)² / (2 σ_m²)`` per hypothesis. Margins use a high-side s (:func:`_upper_rms`).
+   Last, an unnamed detection whose nearest catalog star is this one's own star must lose to it by
+   the same margin.
+4. **Scene decision.** The scene fails (``ok`` False, every id −1) when the named main star is
+   unnamed, when fewer than ``min_matched`` stars or than half of the named stars stay named.
+5. **Frame coverage.** A wrong small-graph match (3–5 stars, δ just under ε_δ) can fit its own
+   stars, so at least ``min_coverage`` of the catalog stars the attitude projects inside the frame
+   (inset by ``cap_deg``; :mod:`jstarid.sky_index` cell of the boresight) need a detection within
+   ``cap_deg`` (the fitted tolerance is too tight after a 3–4-star fit), or the scene fails.
 
-The caller (:func:`~jstarid.algorithms.sgm.identify.identify`, ``Config.verify_rename``) names the
-detections this step left unnamed from the verified attitude and runs the step once more, so a
-detection the match paired wrongly can still get its right name — through the same tests.
+The caller (``Config.verify_rename``) names the detections left unnamed from the verified attitude
+and runs the step again, so a wrongly paired detection can get its right name.
 """
 
 from __future__ import annotations
@@ -90,13 +64,11 @@ def _fit(body, ref, named, k, floor_deg, cap_deg):
 
 
 def _upper_rms(resid, mask, z: float):
-    """A high-side estimate of the residual RMS s (deg) for the ambiguity margins (step 3).
+    """High-side residual RMS s (deg) for the ambiguity margins (step 3).
 
-    The residuals of n stars fitted by a 3-parameter attitude have ν = 2n − 3 degrees of freedom:
-    Σ d² ~ (s²/2) χ²_ν. Dividing by the lower z-quantile of χ²_ν (Wilson–Hilferty) instead of its mean
-    gives an s that is too small only with probability Φ(−z) (16 % at z = 1). Why: an s that comes out
-    low by chance inflates every log likelihood ratio by 1/s² (a median-based s 13 % low let a
-    5.3-nat name pass a 6.25-nat margin at σ = 3 px).
+    With n stars and a 3-parameter attitude, Σ d² ~ (s²/2) χ²_ν, ν = 2n − 3. Dividing by the lower
+    z-quantile of χ²_ν (Wilson–Hilferty) instead of its mean gives an s too small only with probability
+    Φ(−z) (16 % at z = 1). Why: an s low by chance inflates every log likelihood ratio by 1/s².
     """
     n = jnp.sum(mask)
     nu = jnp.maximum(2.0 * n - 3.0, 1.0)
@@ -107,8 +79,7 @@ def _upper_rms(resid, mask, z: float):
 
 def _two_nearest(d):
     """Column and value of the two smallest entries of each row of d (R, N), lowest column first on
-    ties — ``lax.top_k(−d, 2)`` by two ``argmin`` passes (a few µs per scene on a CPU, where
-    ``top_k`` took ≈ 0.9 ms, over half of the verification).
+    ties: ``lax.top_k(−d, 2)`` as two ``argmin`` passes (much cheaper on a CPU; docs/design/sgm.md).
 
     Returns:
         ``(first, d_first, second, d_second)``: (R,) int32, (R,) float, (R,) int32, (R,) float.
@@ -126,10 +97,9 @@ def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_ma
                      kept, *, amb_k, amb_deg, partner_joint, partner_k, mag_sigma, rows=None):
     """Step 3: (N,) bool, the named stars whose name clearly beats every close rival catalog star.
 
-    Costs are negative log likelihoods (nats, up to a constant): ``d² / s²`` for an angular residual
-    d (s² = 2 σ_axis²) plus, with ``mag_sigma`` > 0, ``(m_obs − V)² / (2 σ_m²)``. A name is clear
-    when the rival hypothesis costs at least ``amb_k²`` more (``partner_k²`` when the joint test
-    alone decides, ``partner_joint``).
+    Costs are negative log likelihoods (nats): ``d² / s²`` (s² = 2 σ_axis²) plus, with ``mag_sigma``
+    > 0, ``(m_obs − V)² / (2 σ_m²)``; a name is clear when the rival costs ``amb_k²`` more
+    (``partner_k²`` under the partner rule).
 
     Args:
         body: (N, 3) detections (camera frame). mag: (N,) observed magnitudes. ids: (N,) names.
@@ -137,10 +107,8 @@ def _ambiguity_clear(body, mag, ids, valid, ref, c, near, cand, cand_mag, own_ma
         near: (R,) catalog rows searched for rivals; cand (R, 3) their vectors, cand_mag (R,) their V.
         own_mag: (N,) V of each detection's name. resid: (N,) residuals (deg). tol, s: () deg.
         kept: (N,) bool, the names that passed the residual test.
-        rows: optional (M,) int detections to test (default: all N). Every other detection still
-            serves as a partner or contender; only the named ones need a verdict, and the caller
-            (:func:`_verify_one`) passes those: the (N, R) and (N, N) tables of the named rows are
-            most of the verification's work.
+        rows: optional (M,) int detections to test (default all N; every detection still serves as
+            partner or contender); :func:`_verify_one` passes the named ones.
 
     Returns:
         (M,) bool, one verdict per entry of ``rows`` (N without ``rows``).
@@ -277,35 +245,28 @@ def verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, *, camera, gr
 
     Args:
         cat: (M, 3) catalog ICRS unit vectors (rows as in ``ids``). cat_mag: (M,) their V (mag).
-        cells: (6·G·G, K) int32 sky-index lists of catalog rows (padding ``M``) covering the frame
-            of any boresight in the cell (:func:`~jstarid.sky_index.build_sky_index`).
+        cells: (6·G·G, K) int32 sky-index lists of catalog rows (padding ``M``) covering the frame of
+            any boresight in the cell (:func:`~jstarid.sky_index.build_sky_index`).
         xy: (B, N, 2) centroids (px). mag: (B, N) observed magnitudes. valid: (B, N) bool.
         ids: (B, N) int32 catalog rows, −1 unnamed. ok: (B,) bool. main: (B,) int32 main detection.
         camera: static :class:`~jstarid.camera.Camera`. grid: G of the sky index.
         k: tolerance in robust RMS units. floor_deg, cap_deg: bounds on the tolerance (deg).
         amb_k: ambiguity margin in robust RMS units. amb_deg: smallest ambiguity window (deg).
-        partner_joint: a name whose rival star has a detection of its own (within the tolerance,
-            nearest to the rival, named after it or unnamed) is decided by the joint exchange test
-            alone, with the margin ``partner_k`` (robust RMS units) instead of ``amb_k``.
-        mag_sigma: assumed σ of observed magnitudes (mag) in the ambiguity tests; 0 = positions
-            only.
-        rms_z: the margins' s is the residual RMS over the lower ``rms_z`` quantile of its χ²
-            (:func:`_upper_rms`), too small with probability Φ(−rms_z).
+        partner_joint: apply the partner rule (step 3) with margin ``partner_k`` (robust RMS units).
+        mag_sigma: assumed σ of observed magnitudes (mag) in the ambiguity tests; 0 = positions only.
+        rms_z: the margins' s is too small with probability Φ(−rms_z) (:func:`_upper_rms`).
         min_matched: fewest stars a verified scene keeps.
-        min_coverage: fewest of the catalog stars projected inside the frame that must have a
-            detection within ``cap_deg`` (fraction; 0 = off).
-        n_near: static count of catalog stars (nearest the main star) searched for rivals; must
-            cover the neighbor circle plus the window.
-        max_named: static largest number of named detections per scene (default N): the ambiguity
-            tests run on that many compacted rows instead of all N detections. A scene with more
-            named detections fails (it is not verified partly). SGM names only the members of the
-            neighbor graph, so its graph capacity K serves.
+        min_coverage: fraction of the catalog stars projected in the frame that need a detection within
+            ``cap_deg`` (0 = off).
+        n_near: static count of catalog stars (nearest the main star) searched for rivals; must cover
+            the neighbor circle plus the window.
+        max_named: static most named detections per scene (default N) tested, as compacted rows; a scene
+            with more fails (SGM's graph capacity K serves).
 
     Returns:
-        ``(ids, ok, main_ambiguous)``: (B, N) int32 verified ids (−1 for unnamed, whole row −1
-        where not ok), (B,) bool, and (B,) bool for the scenes that failed only because a close
-        rival star contests their main star's name (every other test passed, the main star's
-        residual included): another database graph would not settle it.
+        ``(ids, ok, main_ambiguous)``: (B, N) int32 verified ids (−1 unnamed, whole row −1 where not
+        ok), (B,) bool, and (B,) bool for the scenes failed only because a close rival star contests
+        their main star's name (another database graph would not settle it).
     """
     body = camera.unproject(xy)
     ids = jnp.where(valid, ids, -1)
