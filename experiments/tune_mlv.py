@@ -253,21 +253,20 @@ def main(argv=None) -> dict:
     levels = _floats(args.levels)
     grid_levels = _floats(args.grid_levels)
     databases, results, timing = {}, {}, {}
-    if "fig5" in parts:  # all noise levels: one batched simulate call
+
+    def simulate(key, sigmas):  # all noise levels: one batched simulate call
         with ex.Stopwatch() as clock:
-            scenes = js.simulate(key_fig5, catalog, camera,
-                                 js.noise_grid(n, position_sigma_px=levels,
+            scenes = js.simulate(key, catalog, camera,
+                                 js.noise_grid(n, position_sigma_px=sigmas,
                                                magnitude_sigma=args.magnitude_sigma),
-                                 batch_size=n * len(levels), capacity=args.capacity)
-        timing["simulate_fig5_seconds"] = clock.seconds
+                                 batch_size=n * len(sigmas), capacity=args.capacity)
+        return scenes, clock.seconds
+
+    if "fig5" in parts:
+        scenes, timing["simulate_fig5_seconds"] = simulate(key_fig5, levels)
         results["fig5"] = run_fig5(args, catalog, camera, scenes, levels, n, databases)
     if "grid" in parts or "nstars" in parts:
-        with ex.Stopwatch() as clock:
-            scenes = js.simulate(key_grid, catalog, camera,
-                                 js.noise_grid(n, position_sigma_px=grid_levels,
-                                               magnitude_sigma=args.magnitude_sigma),
-                                 batch_size=n * len(grid_levels), capacity=args.capacity)
-        timing["simulate_grid_seconds"] = clock.seconds
+        scenes, timing["simulate_grid_seconds"] = simulate(key_grid, grid_levels)
         if "grid" in parts:
             results["grid"] = run_grid(args, catalog, camera, scenes, grid_levels, n)
         if "nstars" in parts:

@@ -7,20 +7,10 @@ success criterion (≥ 3 correct, none wrong).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from jstarid.papers import Sweep
 
 CAMERA = "mlv2021"
 MAG_LIMIT = 5.5
-
-
-class Sweep(NamedTuple):
-    """One noise sweep: the :class:`~jstarid.NoiseConfig` field varied, its levels, the fields held
-    fixed, and the x-axis label."""
-
-    field: str
-    levels: list
-    fixed: dict
-    label: str
 
 
 SWEEPS = {

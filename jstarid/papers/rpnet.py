@@ -15,19 +15,9 @@ in the same way as the training data set"), one noise family at a time:
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from jstarid.papers import Sweep
 
 CAMERA = "rpnet2019"
-
-
-class Sweep(NamedTuple):
-    """One noise sweep: the :class:`~jstarid.NoiseConfig` field varied, its levels, the fields held
-    fixed, and the x-axis label."""
-
-    field: str
-    levels: list
-    fixed: dict
-    label: str
 
 
 SWEEPS = {
