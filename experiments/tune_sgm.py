@@ -23,7 +23,7 @@ import jstarid as js
 from jstarid import experiment as ex
 from jstarid.algorithms import sgm
 from jstarid.algorithms.sgm import tuning
-from jstarid.algorithms.sgm.identify import scene_graphs
+from jstarid.algorithms.sgm.identify import searchable_graphs
 from jstarid.papers import sgm as paper
 
 
@@ -37,20 +37,12 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
-def _graphs(scenes, db, cfg):
-    g = scene_graphs(scenes.xy, scenes.valid, camera=db.camera, radius_deg=float(db.radius_deg),
-                     capacity=int(db.capacity))
-    g = jax.tree.map(np.asarray, g)
-    usable = g.any & ~g.overflow & (g.n >= cfg.min_stars)
-    return g, usable
-
-
 def delta_w(cat, cam, db, cfg, rows, sigmas, key):
     """Fig. 11: w_I − w_J(true main star) per σ, one batched simulation over every level (deg)."""
     noise = js.noise_grid(rows.size, position_sigma_px=list(sigmas))
     scenes = js.simulate(key, cat, cam, noise, capacity=paper.CAPACITY,
                          boresight_ids=np.tile(rows, len(sigmas)))
-    g, usable = _graphs(scenes, db, cfg)
+    g, usable = searchable_graphs(db, scenes, cfg)
     w_true = np.empty(len(cat), np.float32)
     w_true[db.main] = db.w
     dw = (g.w - w_true[np.tile(rows, len(sigmas))]).reshape(len(sigmas), rows.size)
@@ -78,7 +70,7 @@ def main(argv=None) -> dict:
 
     scenes = js.simulate(k2, cat, cam, js.NoiseConfig(position_sigma_px=args.sigma),
                          capacity=paper.CAPACITY, boresight_ids=rows)
-    g, usable = _graphs(scenes, db, base)
+    g, usable = searchable_graphs(db, scenes, base)
     with ex.Stopwatch() as clock:
         errors = tuning.candidate_errors(db, g, usable, base, args.cs, max(args.eps))
         ok, rank = tuning.replay_algorithm1(errors.level, errors.error, args.eps)

@@ -37,6 +37,12 @@ WORLDS = {
     "rpnet": (3.0, lambda: js.Camera.from_fov(1024, 1024, 60.0, mag_limit=3.0), _rpnet_config),
 }
 
+# Smallest share of noise-free scenes an algorithm must identify (strict criterion); 1.0 unless
+# listed. RpNet's world trains its network for seconds (200 + 200 steps): it names 11 and 10 of the
+# 12 scenes with Config() and Config.paper() (the trained quick network identifies every scene of
+# bench_rpnet.py on its own camera: experiments/RESULTS.md).
+NOISE_FREE_RATE = {"rpnet": 0.8}
+
 
 @dataclasses.dataclass
 class World:
@@ -106,16 +112,16 @@ def test_module_offers_the_contract(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_noise_free_scenes_are_identified(name):
-    """Noise-free scenes: most identified (strict: ≥ 3 correct, none wrong; the small worlds' tiny
-    RpNet network misses a few), none wrong — with ``Config()`` and with ``Config.paper()``;
-    diagnostics have the contract's shapes."""
+    """Noise-free scenes: identified (strict: ≥ 3 correct, none wrong; see :data:`NOISE_FREE_RATE`),
+    none wrong — with ``Config()`` and with ``Config.paper()``; diagnostics have the contract's
+    shapes."""
     w = world(name)
     scenes = _clean_scenes(w, 12, seed=1)
     for config in (w.config, _paper(w)):
         result, diag = w.algo.identify(w.database, scenes, config, diagnostics=True)
         report = js.evaluate(scenes, result, "strict")
         assert report["misid_rate"] == 0.0, (name, config)
-        assert report["identification_rate"] >= 0.8, (name, report)
+        assert report["identification_rate"] >= NOISE_FREE_RATE.get(name, 1.0), (name, report)
         assert np.shape(diag.n_candidates) == (12,) and np.shape(diag.overflow) == (12,)
         assert np.issubdtype(np.asarray(diag.n_candidates).dtype, np.integer)
         assert np.asarray(diag.overflow).dtype == bool

@@ -245,15 +245,12 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
 
 def _noisy_graphs(setup5, cfg, *, n, seed, key):
     """n random main stars at σ = 2 px: (rows, scenes, image graphs as NumPy, usable)."""
-    from jstarid.algorithms.sgm.identify import scene_graphs
+    from jstarid.algorithms.sgm.identify import searchable_graphs
     cat, cam, db = setup5
     rows = np.random.default_rng(seed).choice(len(cat), n, replace=False)
     scenes = js.simulate(jax.random.key(key), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)
-    g = jax.tree.map(np.asarray, scene_graphs(scenes.xy, scenes.valid, camera=cam,
-                                                    radius_deg=cfg.radius_deg,
-                                                    capacity=db.capacity))
-    return rows, scenes, g, g.any & ~g.overflow & (g.n >= cfg.min_stars)
+    return rows, scenes, *searchable_graphs(db, scenes, cfg)
 
 
 @pytest.mark.parametrize("eps", [0.1, 0.4])

@@ -18,7 +18,8 @@ Per scene (Algorithm 1):
 
 Extensions (on by default, :class:`~jstarid.algorithms.mlv.Config`): side-angle check and vertex
 correspondence in step 3; after step 5 a leave-one-out attitude check and a field check.
-``vertex_match=False, attitude_check=False, field_check=False`` is the paper's algorithm.
+``Config.paper()`` (``vertex_match=False, attitude_check=False, field_check=False``) is the paper's
+algorithm.
 """
 
 from __future__ import annotations
@@ -352,8 +353,9 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     t = math.comb(config.n_stars, 3)
     chunk = min(config.batch_chunk, b)
     static = dict(config=_kernel_config(config), th1_max=th1_max)
-    tails = [(config.n_stars,), (), (), (3, 3), (), (t,), (config.n_stars,), (config.n_stars,),
-             (), (), (), (), ()]
+    per_scene = dict(ids=(config.n_stars,), attitude=(3, 3), n_candidates=(t,),
+                     candidates=(config.n_stars,), votes=(config.n_stars,))  # the rest are scalars
+    tails = [per_scene.get(field, ()) for field in SceneResult._fields]
     out = None
     capacity_of = np.zeros((b,), np.int64)  # the candidate buffer K each scene was last run with
     pool_of = np.zeros((b,), np.int64)
@@ -365,7 +367,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
                         (database,), static=dict(static, capacity=k, pool=pool), n_rows=b,
                         tails=tails, fills=[0] * len(tails), out=out)
         capacity_of[rows], pool_of[rows] = k, pool
-        return out[SceneResult._fields.index("overflow")][rows]
+        return SceneResult(*out).overflow[rows]
 
     # a triangle with more than K candidates is flagged: those scenes run again with a doubled K,
     # up to max_candidate_capacity (K changes nothing for scenes that never overflow it)
@@ -376,8 +378,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     # rare (≈ 0.2 % of scenes): candidates beyond the shared buffer P; those scenes run again with a
     # doubled P, up to P = T·K (which cannot overflow), _REDO scenes per call
     while True:
-        redo = np.flatnonzero(out[SceneResult._fields.index("pool_overflow")]
-                              & (pool_of < t * capacity_of))
+        redo = np.flatnonzero(SceneResult(*out).pool_overflow & (pool_of < t * capacity_of))
         if not redo.size:
             break
         for k in np.unique(capacity_of[redo]):

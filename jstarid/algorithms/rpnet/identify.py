@@ -564,13 +564,10 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
         n_passes[subset] += 1
         # scenes sorted by their last valid detection, so each chunk's width fits its scenes
         calls = chunk_calls(subset[np.argsort(last[subset], kind="stable")], chunk)
-        if pool:
-            run_calls(_identify_pool_chunk, calls, args, replicated, static=common, n_rows=b,
-                      tails=[(n,), (), (3, 3)], fills=[-1, False, np.nan], out=out)
-        else:
-            run_calls(_identify_chunk, calls, args, (*replicated, jnp.int32(triple)),
-                      static=dict(common, trials=trials), n_rows=b, tails=[(n,), (), (3, 3)],
-                      fills=[-1, False, np.nan], out=out)
+        kernel, extra, static = ((_identify_pool_chunk, (), common) if pool else
+                                 (_identify_chunk, (jnp.int32(triple),), dict(common, trials=trials)))
+        run_calls(kernel, calls, args, (*replicated, *extra), static=static, n_rows=b,
+                  tails=[(n,), (), (3, 3)], fills=[-1, False, np.nan], out=out)
 
     run(np.arange(b), (0, 1), max(1, min(config.batch_chunk, b)))
     n_valid = valid_all.sum(1)

@@ -41,7 +41,7 @@ from jstarid.runtime import map_batch, on_every_device
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index
 
-__all__ = ["Diagnostics", "identify", "scene_graphs"]
+__all__ = ["Diagnostics", "identify", "scene_graphs", "searchable_graphs"]
 
 
 class Diagnostics(NamedTuple):
@@ -97,6 +97,14 @@ def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int):
     return g._replace(main=main.astype(jnp.int32), any=jnp.any(valid, axis=-1))
 
 
+def searchable_graphs(db, scenes: Scene, config: Config):
+    """The scenes' image graphs (:func:`scene_graphs`, as NumPy arrays) and which ones Algorithm 1
+    searches: (B,) bool, a detection, no overflow, at least ``config.min_stars`` vertices."""
+    g = jax.tree.map(np.asarray, scene_graphs(scenes.xy, scenes.valid, camera=db.camera,
+                                              radius_deg=float(db.radius_deg), capacity=int(db.capacity)))
+    return g, g.any & ~g.overflow & (g.n >= config.min_stars)
+
+
 def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bool = False,
              with_attitude: bool = True):
     """Identify the stars of the main star's neighbor circle in every scene.
@@ -122,10 +130,7 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
     if abs(config.radius_deg - db.radius_deg) > 1e-12:
         raise ValueError(f"config.radius_deg={config.radius_deg} but the database was built with "
                          f"r={db.radius_deg}")
-    g = scene_graphs(scenes.xy, scenes.valid, camera=db.camera, radius_deg=float(db.radius_deg),
-                     capacity=int(db.capacity))
-    g = jax.tree.map(np.asarray, g)
-    usable = g.any & ~g.overflow & (g.n >= config.min_stars)
+    g, usable = searchable_graphs(db, scenes, config)
     state = advance_search(db, g, start_search(db, g, usable, config), config)
     res = search_outcome(state, config, g.mask.shape[1])
     result, contested_main = _names_from_match(db, scenes, g, res, config)

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms.sgm.config import Config, Tuning
-from jstarid.algorithms.sgm.identify import scene_graphs
+from jstarid.algorithms.sgm.identify import searchable_graphs
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.algorithms.sgm.search import (
     bucket_up,
@@ -199,9 +199,7 @@ def identify_grid(db, scenes, config: Config, tuning: Tuning):
     Returns:
         ``(ids, ok)``: (B, C, E, N) int32 catalog rows (−1 unnamed) and (B, C, E) bool.
     """
-    g = jax.tree.map(np.asarray, scene_graphs(scenes.xy, scenes.valid, camera=db.camera,
-                                              radius_deg=float(db.radius_deg), capacity=int(db.capacity)))
-    usable = g.any & ~g.overflow & (g.n >= config.min_stars)
+    g, usable = searchable_graphs(db, scenes, config)
     cs = np.atleast_1d(np.asarray(tuning.c, np.float32))
     eps = np.atleast_1d(np.asarray(tuning.max_error_deg, np.float64))
     errors = candidate_errors(db, g, usable, config, cs, float(eps.max()))
