@@ -1,6 +1,6 @@
 """jstarid: lost-in-space star identification in JAX (public API, docs/conventions.md §9)."""
 
-from jstarid import algorithms, experiment, plotting, runtime
+from jstarid import algorithms, engine, experiment, plotting, runtime
 from jstarid.attitude import (
     attitude_errors_arcsec,
     estimate_attitude,
@@ -17,6 +17,8 @@ from jstarid.catalog import Catalog, load_catalog, v_from_hp
 from jstarid.centroid import CentroidConfig, extract_centroids, read_image
 from jstarid.compilation_cache import enable_compilation_cache
 from jstarid.completion import name_from_attitude
+from jstarid.engine import Entry, SweepResult, compare, grid, sweep
+from jstarid.engine import load as load_sweep
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.runtime import use_cpu_cores
 from jstarid.scene import Identification, Scene, scenes_from_centroids
@@ -25,8 +27,8 @@ from jstarid.simulator import NoiseConfig, noise_grid, simulate
 __version__ = "0.1.0"
 
 __all__ = [
-    "Camera", "Catalog", "CentroidConfig", "Identification", "NoiseConfig", "Scene", "algorithms",
-    "experiment",
+    "Camera", "Catalog", "CentroidConfig", "Entry", "Identification", "NoiseConfig", "Scene",
+    "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",
     "plotting", "runtime", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
     "estimate_attitude", "evaluate", "extract_centroids", "load_catalog", "name_from_attitude",
     "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation", "read_image",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_image", "plot_scene"]
+__all__ = ["plot_image", "plot_scene", "plot_sweep", "plot_sweep_axes"]
 
 
 def plot_scene(scenes, index: int, catalog, camera, *, ids=None, ax=None, label_limit: int = 40):
@@ -95,3 +95,62 @@ def plot_image(image, xy, *, labels=None, correct=None, ax=None):
     ax.set_xlabel("x (column, px)")
     ax.set_ylabel("y (row, px)")
     return ax
+
+
+def plot_sweep_axes(rows, *, axes=None, x_field: str | None = None, labels: dict | None = None):
+    """Identification and mis-identification rates against one noise axis, one line per entry.
+
+    Args:
+        rows: a sweep's tidy rows (:meth:`jstarid.engine.SweepResult.rows`, or ``results.json``'s
+            ``"rows"``): ``label``, the axis fields, ``*_rate``, ``*_low``, ``*_high``.
+        axes: two matplotlib axes (identification, mis-identification); new when ``None``.
+        x_field: the x axis (default: the first noise field of the rows). With a second noise
+            field, each of its values is a separate line (``label, field=value``).
+        labels: ``{field: axis label}`` (default :data:`jstarid.engine.levels.AXES`).
+
+    Returns:
+        The two axes. Error bars are the 95 % Wilson intervals.
+    """
+    import matplotlib.pyplot as plt
+
+    from jstarid.engine.levels import AXES
+
+    labels = AXES if labels is None else labels
+    fields = [k for k in rows[0] if k in AXES]
+    x_field = x_field or fields[0]
+    others = [f for f in fields if f != x_field]
+    if axes is None:
+        _, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    lines: dict[str, list] = {}
+    for r in rows:
+        name = r["label"] + "".join(f", {f}={r[f]:g}" for f in others)
+        lines.setdefault(name, []).append(r)
+    for name, group in lines.items():
+        x = np.array([r[x_field] for r in group], float)
+        for ax, rate in zip(axes, ("identification", "misid"), strict=True):
+            y = np.array([100 * r[f"{rate}_rate"] for r in group])
+            err = np.array([[100 * (r[f"{rate}_rate"] - r[f"{rate}_low"]) for r in group],
+                            [100 * (r[f"{rate}_high"] - r[f"{rate}_rate"]) for r in group]])
+            ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label=name)
+    for ax, title in zip(axes, ("identified (%)", "mis-identified (%)"), strict=True):
+        ax.set_xlabel(labels.get(x_field, x_field))
+        ax.set_ylabel(title)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylim(top=101)
+    axes[1].set_ylim(bottom=-0.2)
+    axes[0].legend(fontsize=8)
+    return axes
+
+
+def plot_sweep(results: dict, path) -> None:
+    """Draw ``results["rows"]`` (a saved sweep's ``results.json``) into ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes = plot_sweep_axes(results["rows"])
+    fig = axes[0].figure
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

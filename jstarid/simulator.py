@@ -208,7 +208,7 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
     noise_b = noise.broadcast(batch_size)
     statics["n_candidates"] = index.capacity
     stage1 = dict(grid=index.grid, mode_b=boresight_ids is not None)
-    if shard and jax.device_count() > 1:
+    if shard and jax.local_device_count() > 1:
         # both stages split over the devices, the tables placed on each device once (they are
         # long-lived: the index is memoised, the tables kept on the catalog)
         cat_vec = on_every_device(catalog, "simulator_catalog", lambda: tables[3])

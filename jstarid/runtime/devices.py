@@ -57,7 +57,7 @@ def use_cpu_cores(n: int | None = None) -> int:
 
 def batch_mesh(devices=None) -> jax.sharding.Mesh:
     """A 1-D mesh named ``"batch"`` over ``devices`` (default: all devices)."""
-    devices = jax.devices() if devices is None else list(devices)
+    devices = jax.local_devices() if devices is None else list(devices)
     return jax.sharding.Mesh(np.asarray(devices), (BATCH_AXIS,))
 
 

@@ -16,6 +16,7 @@ Usage::
 
 from jstarid.algorithms.mlv.config import Config, Tuning
 from jstarid.algorithms.mlv.database import Database, build_database
-from jstarid.algorithms.mlv.identify import Diagnostics, default_pool, identify
+from jstarid.algorithms.mlv.identify import Diagnostics, default_pool, identify, identify_grid
 
-__all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "default_pool", "identify"]
+__all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "default_pool", "identify",
+           "identify_grid"]

@@ -56,7 +56,7 @@ from jstarid.algorithms.mlv.voting import (
 from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, take_rows
 from jstarid.scene import Identification, Scene
 
-__all__ = ["Diagnostics", "SceneResult", "default_pool", "identify", "identify_scene"]
+__all__ = ["Diagnostics", "SceneResult", "default_pool", "identify", "identify_grid", "identify_scene"]
 
 
 class SceneResult(NamedTuple):
@@ -334,7 +334,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     # build statistics are static metadata: drop them so cached and fresh databases share a compile
     stripped = dataclasses.replace(database, info=(), key="")
     # placed on every device once (kept on the caller's database), not copied on each chunk's call
-    database = (on_every_device(database, "mlv_identify", lambda: stripped) if jax.device_count() > 1
+    database = (on_every_device(database, "mlv_identify", lambda: stripped) if jax.local_device_count() > 1
                 else stripped)
     b, cap = scenes.batch_size, scenes.capacity
     tuning = config.tuning() if tuning is None else tuning
@@ -405,3 +405,41 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
                        capacity=k_used)
     return result, diag
 
+
+
+# the Config fields behind Tuning's leaves (Config.tuning)
+_TUNING_FIELDS = ("th1", "th2", "eps_deg", "side_tol_deg")
+
+
+def identify_grid(database: Database, scenes: Scene, configs) -> list[Identification]:
+    """:func:`identify` with each of ``configs`` in one batch: the grid is a batch axis.
+
+    The scenes are repeated once per config and each copy gets its config's :class:`Tuning` as
+    per-scene arrays, so one compilation (per largest Th1) and one pass serve the grid. The result
+    for each config equals ``identify(database, scenes, config)``.
+
+    Args:
+        database: the database (its fields fixed for every config).
+        scenes: (B, N) scenes.
+        configs: :class:`Config` s that differ only in the traced tolerances (``th1``, ``th2``,
+            ``eps_deg``, ``side_tol_deg``).
+
+    Returns:
+        One (B, N) :class:`~jstarid.scene.Identification` per config, in order.
+
+    Raises:
+        ValueError: configs that differ in another field (run those as separate ``identify`` calls).
+    """
+    configs = list(configs)
+    base = configs[0]
+    for config in configs[1:]:
+        if dataclasses.replace(config, **{f: getattr(base, f) for f in _TUNING_FIELDS}) != base:
+            raise ValueError("identify_grid: configs may differ only in "
+                             f"{', '.join(_TUNING_FIELDS)}; run other settings separately")
+    g, b = len(configs), scenes.batch_size
+    tiled = jax.tree.map(lambda a: np.concatenate([np.asarray(a)] * g), scenes)
+    per_config = [c.tuning() for c in configs]
+    tuning = Tuning(*(np.repeat(np.asarray([getattr(t, f) for t in per_config]), b)
+                      for f in Tuning._fields))
+    result = identify(database, tiled, base, tuning=tuning)
+    return [result[i * b:(i + 1) * b] for i in range(g)]

@@ -544,7 +544,7 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
     # the kernels compile for config.compiled(); its thresholds travel as traced values, so configs
     # that differ only there (a tolerance or coverage sweep) share every compilation
     tables = (database.inference_weights, guide_rows, database.star_vectors)
-    if jax.device_count() > 1:  # placed on every device once, not copied on each chunk's call
+    if jax.local_device_count() > 1:  # placed on every device once, not copied on each chunk's call
         tables = on_every_device(database, "rpnet_identify", lambda: tables)
         cells = on_every_device(index, "device_arrays", index.device_arrays)[0]
     replicated = (*tables, cells, config.tuning() if tuning is None else tuning)

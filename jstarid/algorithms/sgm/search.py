@@ -200,7 +200,7 @@ def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes, budget
     Returns:
         List of the kernel outputs in pair order (NumPy arrays of shape (N,) + tail).
     """
-    n_dev = jax.device_count()
+    n_dev = jax.local_device_count()
     groups = {}
     for idx, key in enumerate(map(tuple, key_sizes)):
         groups.setdefault(key, []).append(idx)

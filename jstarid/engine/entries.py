@@ -1,0 +1,128 @@
+"""What a sweep runs: algorithms, each with a config and a label, and parameter grids of them.
+
+An :class:`Entry` is one row group of the table: a registered algorithm, its config and a label.
+:func:`entries` turns names (``"mlv"``) into entries with each algorithm's default config;
+:func:`grid` expands one algorithm over a product of config values. Entries of one grid share a
+``group``; the engine runs a group through the algorithm's ``identify_grid`` when it has one (one
+batch for every grid point: MLV's traced tolerances are per-scene arrays) and otherwise as
+successive ``identify`` calls, which share one compilation where the varied fields are the
+algorithm's traced ``Tuning``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
+
+from jstarid import algorithms
+
+__all__ = ["Entry", "default_config", "entries", "grid"]
+
+
+class Entry(NamedTuple):
+    """One algorithm setting of a sweep.
+
+    Attributes:
+        label: its name in tables and figures (unique within a sweep).
+        algorithm: registry name (:func:`jstarid.algorithms.names`).
+        config: the algorithm's ``Config``.
+        group: entries with the same group come from one :func:`grid` (``""``: none).
+    """
+
+    label: str
+    algorithm: str
+    config: Any
+    group: str = ""
+
+
+def default_config(name: str, *, rpnet_network: str = "quick"):
+    """The config a sweep uses when none is given: ``Config()``, except RpNet's network.
+
+    RpNet trains a network per camera on first use; ``Config()`` is the paper's Table 3 training
+    (about 2 hours on 2 CPU cores), so sweeps default to the ``quick`` preset (about 5 minutes).
+
+    Args:
+        name: registry name.
+        rpnet_network: ``"quick"`` or ``"table3"``.
+    """
+    module = algorithms.get(name)
+    if name == "rpnet":
+        if rpnet_network not in ("quick", "table3"):
+            raise ValueError(f"rpnet_network must be 'quick' or 'table3', got {rpnet_network!r}")
+        return module.Config.quick() if rpnet_network == "quick" else module.Config()
+    return module.Config()
+
+
+def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str = "quick") -> list[Entry]:
+    """Entries from registry names (``"sgm,mlv"`` or a list), entries or grids.
+
+    Raises:
+        ValueError: an unknown algorithm, no algorithm, or a label used twice.
+    """
+    if isinstance(items, str):
+        items = [s.strip() for s in items.split(",") if s.strip()]
+    out = []
+    for item in items:
+        if isinstance(item, Entry):
+            algorithms.get(item.algorithm)  # a clear error for an unknown name
+            out.append(item)
+        elif isinstance(item, list | tuple) and item and all(isinstance(e, Entry) for e in item):
+            out.extend(item)
+        else:
+            out.append(Entry(str(item), str(item), default_config(str(item),
+                                                                 rpnet_network=rpnet_network)))
+    if not out:
+        raise ValueError("no algorithm to run")
+    labels = [e.label for e in out]
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"entry labels must be unique, got {labels}")
+    return out
+
+
+def grid(algorithm: str, config=None, *, label: str | None = None,
+         **values: Sequence) -> list[Entry]:
+    """One entry per combination of config values (first field slowest).
+
+    ``js.grid("mlv", th1=[0, 1, 2], eps_deg=[0.1, 0.2])`` gives six MLV entries labelled
+    ``"mlv th1=0 eps_deg=0.1"`` …, run as one batch (the grid is a batch axis).
+
+    Args:
+        algorithm: registry name.
+        config: the base config (default: :func:`default_config`).
+        label: the label's prefix (default: the algorithm's name).
+        **values: ``field=[values]`` of the algorithm's ``Config``.
+
+    Raises:
+        ValueError: an unknown field or a field without values.
+    """
+    base = default_config(algorithm) if config is None else config
+    fields = {f.name for f in dataclasses.fields(base)}
+    for name, vals in values.items():
+        if name not in fields:
+            raise ValueError(f"{type(base).__name__} has no field {name!r}; fields: "
+                             f"{', '.join(sorted(fields))}")
+        if len(vals) == 0:
+            raise ValueError(f"grid field {name} has no values")
+    prefix = label or algorithm
+    group = f"{prefix}[{','.join(values)}]"
+    out = []
+    for combo in itertools.product(*values.values()):
+        setting = dict(zip(values, combo, strict=True))
+        text = " ".join(f"{k}={_short(v)}" for k, v in setting.items())
+        out.append(Entry(f"{prefix} {text}".strip(), algorithm,
+                         dataclasses.replace(base, **setting), group))
+    return out
+
+
+def _short(value) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def describe(entry: Entry) -> Mapping[str, Any]:
+    """An entry as JSON-ready settings (label, algorithm, group, every config field)."""
+    from jstarid.experiment import to_json
+
+    return {"label": entry.label, "algorithm": entry.algorithm, "group": entry.group,
+            "config_type": type(entry.config).__qualname__, "config": to_json(entry.config)}

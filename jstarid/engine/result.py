@@ -1,0 +1,182 @@
+"""A sweep's result: per-scene outcomes of every entry, and the tidy table computed from them.
+
+:class:`SweepResult` keeps, for every scene and entry, the outcome code and counts of
+:func:`jstarid.metrics.scene_outcomes` and the attitude errors, plus each entry's timings. Its
+:meth:`~SweepResult.rows` are the tidy table: one row per (entry, level) with scene counts, the
+identification, failure and mis-identification rates with 95 % Wilson intervals, attitude error
+quantiles, scenes/s and peak memory. :meth:`~SweepResult.save` writes the harness's results
+directory (``config.json``, ``results.json``, ``table.md``, ``scenes.npz``, ``rates.png``) and
+:func:`load` reads it back; figures are drawn from the saved rows only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from jstarid import experiment
+from jstarid.metrics import CORRECT, FAIL, INCOMPLETE, WRONG, wilson_interval
+
+__all__ = ["SweepResult", "load", "COLUMNS"]
+
+# (key, header, format) of table.md
+COLUMNS = (("identification_rate", "identified %", "{:.2%}"),
+           ("identification_ci", "95 % interval", "{}"),
+           ("misid_rate", "misid %", "{:.2%}"),
+           ("misid_ci", "95 % interval", "{}"),
+           ("failure_rate", "failed %", "{:.2%}"),
+           ("boresight_err_arcsec_median", "boresight ″ (median)", "{:.1f}"),
+           ("scenes_per_second", "scenes/s", "{:,.0f}"),
+           ("peak_rss_mb", "peak MB", "{:,.0f}"))
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepResult:
+    """Outcomes of a sweep (or of :func:`~jstarid.engine.compare` on given scenes).
+
+    Attributes:
+        settings: what was run (camera, catalog, axes, scenes per level, seed, criterion, …).
+        entries: per entry, ``{"label", "algorithm", "group", "config"}``.
+        levels: per level, ``{noise field: value}``.
+        level_of: (S,) int32 level of each scene.
+        scenes: per-scene arrays (S, E): ``outcome`` (int8 code of :mod:`jstarid.metrics`),
+            ``n_correct``, ``n_wrong``, ``n_identified``, ``boresight_err_arcsec`` and
+            ``roll_err_arcsec`` (NaN where the entry gave no attitude).
+        seconds: (E, L) identify seconds per entry and level, added over processes.
+        timing: per entry, ``database_seconds``, ``first_chunk_seconds`` (compilation included)
+            and ``peak_rss_mb`` (the process's peak after the entry ran).
+        processes: JAX processes that ran it.
+    """
+
+    settings: dict
+    entries: list
+    levels: list
+    level_of: np.ndarray
+    scenes: dict
+    seconds: np.ndarray
+    timing: list
+    processes: int = 1
+
+    @classmethod
+    def from_arrays(cls, *, entries, levels, level_of, arrays, timing, settings, processes=1):
+        """Build from the engine's arrays (``arrays["seconds"]`` (E, L), the rest (S, E))."""
+        from jstarid.engine.entries import describe
+
+        arrays = dict(arrays)
+        seconds = np.asarray(arrays.pop("seconds"), np.float64)
+        return cls(settings=experiment.to_json(settings), entries=[describe(e) for e in entries],
+                   levels=[dict(lv) for lv in levels], level_of=np.asarray(level_of, np.int32),
+                   scenes={k: np.asarray(v) for k, v in arrays.items()}, seconds=seconds,
+                   timing=experiment.to_json(list(timing)), processes=int(processes))
+
+    @property
+    def labels(self) -> list[str]:
+        return [e["label"] for e in self.entries]
+
+    def rows(self) -> list[dict[str, Any]]:
+        """The tidy table: one dict per (entry, level), entries outer, levels inner."""
+        out = []
+        codes = self.scenes["outcome"]
+        for e, entry in enumerate(self.entries):
+            for lv, level in enumerate(self.levels):
+                take = self.level_of == lv
+                code = codes[take, e]
+                n = int(code.size)
+                counts = {name: int(np.sum(code == c)) for name, c in
+                          (("correct", CORRECT), ("wrong", WRONG), ("fail", FAIL),
+                           ("incomplete", INCOMPLETE))}
+                row = {"label": entry["label"], "algorithm": entry["algorithm"], **level,
+                       "scenes": n, **{f"n_{k}": v for k, v in counts.items()}}
+                for rate, k in (("identification", "correct"), ("misid", "wrong"),
+                                ("failure", "fail")):
+                    lo, hi = wilson_interval(counts[k], n)
+                    row[f"{rate}_rate"] = counts[k] / n if n else float("nan")
+                    row[f"{rate}_low"], row[f"{rate}_high"] = float(lo), float(hi)
+                ok = code == CORRECT
+                errors = self.scenes["boresight_err_arcsec"][take, e][ok]
+                errors = errors[np.isfinite(errors)]
+                row["boresight_err_arcsec_median"] = float(np.median(errors)) if errors.size else None
+                row["boresight_err_arcsec_p95"] = (float(np.percentile(errors, 95)) if errors.size
+                                                   else None)
+                row["mean_identified"] = float(np.mean(self.scenes["n_identified"][take, e])) if n else None
+                sec = float(self.seconds[e, lv])
+                row["seconds"] = sec
+                row["scenes_per_second"] = n / sec if sec > 0 else None
+                row["peak_rss_mb"] = self.timing[e]["peak_rss_mb"]
+                out.append(row)
+        return out
+
+    def table(self, title: str | None = None) -> str:
+        """``rows()`` as markdown (rates in %, Wilson intervals in brackets)."""
+        axes = list(self.levels[0])
+        rows = []
+        for r in self.rows():
+            r = dict(r)
+            for rate in ("identification", "misid"):
+                r[f"{rate}_ci"] = f"{100 * r[f'{rate}_low']:.1f}–{100 * r[f'{rate}_high']:.1f}"
+            rows.append(r)
+        columns = [("label", "algorithm", "{}")] + [(a, a, "{:g}") for a in axes] + \
+                  [("scenes", "scenes", "{:,}")] + list(COLUMNS)
+        s = self.settings
+        note = (f"Camera {s.get('camera', {}).get('name', '?')}, {s.get('boresight', '?')} boresights, "
+                f"criterion {s.get('criterion', '?')}, seed {s.get('seed', '?')}, fixed "
+                f"{s.get('fixed') or 'nothing else'}. Intervals: 95 % Wilson. scenes/s: identify "
+                "alone, per process, after a first chunk that compiles; peak MB: the process's "
+                "resident peak after the algorithm ran.")
+        return experiment.markdown_table(rows, columns, title=title, note=note)
+
+    def rate(self, label: str, name: str = "identification") -> np.ndarray:
+        """(L,) rate of one entry per level (``name``: identification, misid, failure)."""
+        return np.array([r[f"{name}_rate"] for r in self.rows() if r["label"] == label])
+
+    def save(self, out: str | Path, *, title: str | None = None, figure: bool = True) -> Path:
+        """Write ``config.json``, ``results.json`` (rows, timing), ``table.md``, ``scenes.npz`` and
+        ``rates.png`` (drawn from ``results.json``) under ``out``."""
+        from jstarid.plotting import plot_sweep
+
+        config = {"settings": self.settings, "entries": self.entries, "levels": self.levels,
+                  "processes": self.processes}
+        results = {"rows": self.rows(), "timing": self.timing, "seconds": self.seconds}
+        out = experiment.write(out, config=config, results=results, table=self.table(title),
+                               figures={"rates.png": plot_sweep} if figure else None)
+        np.savez_compressed(out / "scenes.npz", level_of=self.level_of, **self.scenes)
+        return out
+
+    def equal_outcomes(self, other: SweepResult) -> bool:
+        """Same levels, entries and per-scene outcome arrays (timings aside)."""
+        return (self.labels == other.labels and self.levels == other.levels
+                and np.array_equal(self.level_of, other.level_of)
+                and all(np.array_equal(self.scenes[k], other.scenes[k], equal_nan=True)
+                        for k in self.scenes))
+
+
+def load(out: str | Path) -> SweepResult:
+    """A :class:`SweepResult` as saved by :meth:`SweepResult.save`.
+
+    Raises:
+        FileNotFoundError: ``out`` holds no saved sweep.
+    """
+    out = Path(out)
+    if not (out / "scenes.npz").exists():
+        raise FileNotFoundError(f"{out} holds no saved sweep (scenes.npz missing)")
+    config, results = experiment.load(out)
+    with np.load(out / "scenes.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    level_of = arrays.pop("level_of")
+    return SweepResult(settings=config["settings"], entries=config["entries"],
+                       levels=config["levels"], level_of=level_of, scenes=arrays,
+                       seconds=np.asarray(results["seconds"], np.float64), timing=results["timing"],
+                       processes=config.get("processes", 1))
+
+
+def rows_by_label(rows: Sequence[Mapping]) -> dict[str, list[Mapping]]:
+    """Rows grouped by entry label, in order."""
+    out: dict[str, list[Mapping]] = {}
+    for r in rows:
+        out.setdefault(r["label"], []).append(r)
+    return out
+

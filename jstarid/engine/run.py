@@ -1,0 +1,234 @@
+"""The sweep engine: simulate every level in one call, run every algorithm on the same scenes.
+
+:func:`sweep` = :func:`~jstarid.engine.levels.level_noise` → one ``js.simulate`` call →
+:func:`compare` → :class:`~jstarid.engine.result.SweepResult`. :func:`compare` runs each entry's
+``identify`` on the scenes in chunks that never cross a level and hold at most ``chunk_size``
+scenes (memory stays bounded whatever the sweep's size), scores every scene by one rule
+(:func:`jstarid.metrics.scene_outcomes`) and measures every algorithm's attitude the same way (a
+Wahba fit of the stars it named, :func:`jstarid.estimate_attitude`), so the algorithms differ only
+in their names. Timing: each entry's first chunk is run once before the clock starts (compilation
+and caches), then every chunk is timed; scenes/s are per process.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Mapping, Sequence
+
+import jax
+import numpy as np
+
+from jstarid.algorithms import get as get_algorithm
+from jstarid.attitude import attitude_errors_arcsec, estimate_attitude
+from jstarid.camera import Camera, camera_preset
+from jstarid.catalog import load_catalog
+from jstarid.engine import processes
+from jstarid.engine.entries import Entry
+from jstarid.engine.entries import entries as make_entries
+from jstarid.engine.levels import level_grid, level_noise
+from jstarid.engine.result import SweepResult
+from jstarid.experiment import peak_rss_mb
+from jstarid.metrics import CRITERIA, scene_outcomes
+from jstarid.scene import Identification, Scene
+from jstarid.simulator import simulate
+
+__all__ = ["compare", "sweep", "BORESIGHTS", "SCORES"]
+
+BORESIGHTS = ("random", "stars")
+# what is kept per scene and entry (the table is computed from these alone)
+SCORES = {"outcome": np.int8, "n_correct": np.int16, "n_wrong": np.int16, "n_identified": np.int16,
+          "boresight_err_arcsec": np.float32, "roll_err_arcsec": np.float32}
+
+
+def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "sgm2022", *,
+          axes: Mapping[str, Sequence[float]] | None = None, fixed: Mapping | None = None,
+          scenes: int = 200, seed: int = 0, catalog=None, capacity: int = 64,
+          boresight: str = "random", criterion: str = "strict", chunk_size: int = 1024,
+          rpnet_network: str = "quick", progress: bool = True) -> SweepResult:
+    """Every algorithm × every noise level on one shared, seeded set of simulated scenes.
+
+    Args:
+        algorithms: registry names (``"sgm,mlv"`` or a list), :class:`~jstarid.engine.Entry`
+            items, or :func:`~jstarid.engine.grid` lists.
+        camera: a preset name (:func:`jstarid.preset_names`) or a :class:`~jstarid.Camera`.
+        axes: one or two noise axes ``{axis: levels}`` (default ``{"position_sigma_px": [0, 1, 2,
+            3]}``); axis names as in :func:`~jstarid.engine.levels.axis_field`.
+        fixed: other :class:`~jstarid.NoiseConfig` settings for every scene.
+        scenes: scenes per level.
+        seed: PRNG seed of the scenes (same seed, same scenes, for every algorithm).
+        catalog: a :class:`~jstarid.Catalog` (default: Hipparcos down to the camera's limit).
+        capacity: detections kept per scene.
+        boresight: ``"random"`` (uniform attitudes) or ``"stars"`` (boresight on a catalog star
+            drawn at random, roll uniform: the SGM and RpNet papers' scenes).
+        criterion: outcome rule (:data:`jstarid.metrics.CRITERIA`).
+        chunk_size: most scenes per ``identify`` call (bounds memory).
+        rpnet_network: RpNet's network when RpNet is named (``"quick"`` or ``"table3"``).
+        progress: print what is built and each algorithm's progress (stderr).
+
+    Returns:
+        A :class:`~jstarid.engine.result.SweepResult` (rows, per-scene outcomes, settings).
+
+    Raises:
+        ValueError: an unknown algorithm, camera, axis or criterion, scenes or chunk size < 1, or
+            out-of-range noise.
+    """
+    axes = {"position_sigma_px": [0.0, 1.0, 2.0, 3.0]} if axes is None else axes
+    camera = camera_preset(camera) if isinstance(camera, str) else camera
+    _check_positive(scenes=scenes, chunk_size=chunk_size, capacity=capacity)
+    if boresight not in BORESIGHTS:
+        raise ValueError(f"boresight must be one of {BORESIGHTS}, got {boresight!r}")
+    if criterion not in CRITERIA:
+        raise ValueError(f"unknown criterion {criterion!r}; choose one of {CRITERIA}")
+    entries = make_entries(algorithms, rpnet_network=rpnet_network)
+    levels = level_grid(axes)
+    noise = level_noise(levels, scenes, fixed)
+    catalog = load_catalog(camera.mag_limit) if catalog is None else catalog
+    total = len(levels) * scenes
+    key_scenes, key_rows = jax.random.split(jax.random.key(seed))
+    rows = (np.asarray(jax.random.randint(key_rows, (total,), 0, len(catalog)))
+            if boresight == "stars" else None)
+    t0 = time.perf_counter()
+    batch = simulate(key_scenes, catalog, camera, noise, batch_size=total, capacity=capacity,
+                     boresight_ids=rows, shard=True)
+    jax.block_until_ready(batch)
+    _say(progress, f"simulated {total:,} scenes ({len(levels)} levels × {scenes}) in "
+                   f"{time.perf_counter() - t0:.1f} s")
+    settings = {"camera": camera, "catalog": {"mag_limit": catalog.mag_limit,
+                                              "fingerprint": catalog.fingerprint,
+                                              "stars": len(catalog)},
+                "axes": {k: [lv[k] for lv in levels] for k in levels[0]}, "levels": levels,
+                "fixed": dict(fixed or {}), "scenes_per_level": scenes, "seed": seed,
+                "capacity": capacity, "boresight": boresight, "criterion": criterion,
+                "chunk_size": chunk_size, "simulate_seconds": time.perf_counter() - t0}
+    return compare(batch, entries, catalog, camera, level_of=np.repeat(np.arange(len(levels)), scenes),
+                   levels=levels, criterion=criterion, chunk_size=chunk_size, progress=progress,
+                   settings=settings)
+
+
+def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, *,
+            level_of: np.ndarray | None = None, levels: Sequence[Mapping] | None = None,
+            criterion: str = "strict", chunk_size: int = 1024, progress: bool = True,
+            settings: Mapping | None = None, rpnet_network: str = "quick") -> SweepResult:
+    """Every entry on the given scenes, scored per scene and tabulated per level.
+
+    Args:
+        scenes: (S, N) scenes (with truth) from ``camera``.
+        algorithms: as in :func:`sweep`.
+        catalog, camera: what the scenes were drawn from.
+        level_of: (S,) level index of each scene (default: one level), ascending.
+        levels: the levels' settings, ``{field: value}`` each (default: ``[{}]``).
+        criterion, chunk_size, progress, rpnet_network: as in :func:`sweep`.
+        settings: recorded with the result.
+
+    Returns:
+        A :class:`~jstarid.engine.result.SweepResult`.
+    """
+    entries = make_entries(algorithms, rpnet_network=rpnet_network)
+    _check_positive(chunk_size=chunk_size)
+    n_total = scenes.batch_size
+    level_of = np.zeros(n_total, np.int32) if level_of is None else np.asarray(level_of, np.int32)
+    levels = [{}] if levels is None else list(levels)
+    if level_of.shape != (n_total,) or np.any(np.diff(level_of) < 0) or level_of.max() >= len(levels):
+        raise ValueError("level_of must be an ascending (S,) index into levels")
+    mine = processes.share(n_total)
+    local = scenes[mine]
+    chunks = _chunks(level_of[mine], chunk_size)
+    scored: list[dict | None] = [None] * len(entries)
+    timing: list[dict | None] = [None] * len(entries)
+    seconds = np.zeros((len(entries), len(levels)))
+    for members in _groups(entries):
+        first = entries[members[0]]
+        module = get_algorithm(first.algorithm)
+        configs = [entries[i].config for i in members]
+        names = ", ".join(entries[i].label for i in members)
+        _say(progress, f"{names}: database …")
+        t0 = time.perf_counter()
+        db = module.build_database(catalog, camera, first.config, progress=progress)
+        t_db = time.perf_counter() - t0
+        run = _runner(module, db, configs)
+        t0 = time.perf_counter()
+        if chunks:  # compile and fill caches before the clock starts
+            jax.block_until_ready([r.ids for r in run(local[chunks[0][0]])])
+        t_first = time.perf_counter() - t0
+        outs = [[] for _ in members]
+        for c, (part, level) in enumerate(chunks):
+            t0 = time.perf_counter()
+            results = run(local[part])
+            jax.block_until_ready([r.ids for r in results])
+            dt = time.perf_counter() - t0
+            for k, i in enumerate(members):
+                seconds[i, level] += dt / len(members)
+                outs[k].append(_score(local[part], results[k], catalog, camera, criterion))
+            if progress and (c + 1 == len(chunks) or c % 4 == 3):
+                _say(True, f"{names}: {part.stop:,} / {local.batch_size:,} scenes")
+        for k, i in enumerate(members):
+            scored[i] = {name: np.concatenate([o[name] for o in outs[k]]) if outs[k]
+                         else np.zeros((0,), dtype) for name, dtype in SCORES.items()}
+            timing[i] = {"label": entries[i].label, "database_seconds": t_db,
+                         "first_chunk_seconds": t_first, "peak_rss_mb": peak_rss_mb()}
+    local_arrays = {name: np.stack([s[name] for s in scored], axis=1) for name in SCORES}  # (S_i, E)
+    merged = processes.gather(local_arrays, n_total)
+    # (P, E, L) → (E, L): every process's seconds at each level, added
+    merged["seconds"] = processes.gather({"s": seconds[None]}, processes.process_count())["s"].sum(0)
+    return SweepResult.from_arrays(entries=entries, levels=levels, level_of=level_of, arrays=merged,
+                                   timing=timing, settings=dict(settings or {}),
+                                   processes=processes.process_count())
+
+
+def _runner(module, db, configs):
+    """``run(scenes) -> [Identification per config]``: one ``identify_grid`` call or one call each."""
+    if len(configs) > 1 and hasattr(module, "identify_grid"):
+        return lambda s: module.identify_grid(db, s, configs)
+    return lambda s: [module.identify(db, s, cfg) for cfg in configs]
+
+
+def _groups(entries: Sequence[Entry]) -> list[list[int]]:
+    """Entry indices grouped by grid (an entry without a group is alone)."""
+    groups: dict[str, list[int]] = {}
+    out = []
+    for i, e in enumerate(entries):
+        if e.group:
+            if e.group not in groups:
+                groups[e.group] = []
+                out.append(groups[e.group])
+            groups[e.group].append(i)
+        else:
+            out.append([i])
+    return out
+
+
+def _chunks(level_of: np.ndarray, chunk_size: int) -> list[tuple[slice, int]]:
+    """``(rows, level)`` blocks of at most ``chunk_size`` rows that never cross a level."""
+    out = []
+    starts = np.flatnonzero(np.r_[True, np.diff(level_of) != 0]) if level_of.size else []
+    ends = list(starts[1:]) + [level_of.size]
+    for lo, hi in zip(starts, ends, strict=True):
+        for a in range(int(lo), int(hi), chunk_size):
+            out.append((slice(a, min(a + chunk_size, int(hi))), int(level_of[lo])))
+    return out
+
+
+def _score(scenes: Scene, result: Identification, catalog, camera, criterion) -> dict:
+    """Per-scene outcome, counts and attitude errors (a Wahba fit of the named stars)."""
+    out = scene_outcomes(scenes, result, criterion, camera=camera)
+    att, _, have = estimate_attitude(catalog, camera, scenes, result)
+    bore, roll = attitude_errors_arcsec(att, scenes.attitude)
+    have = np.asarray(have) & np.asarray(result.ok)
+    return {"outcome": np.asarray(out["outcome"], np.int8),
+            "n_correct": np.asarray(out["n_correct"], np.int16),
+            "n_wrong": np.asarray(out["n_wrong"], np.int16),
+            "n_identified": np.asarray(out["n_identified"], np.int16),
+            "boresight_err_arcsec": np.where(have, np.asarray(bore), np.nan).astype(np.float32),
+            "roll_err_arcsec": np.where(have, np.asarray(roll), np.nan).astype(np.float32)}
+
+
+def _check_positive(**values) -> None:
+    for name, value in values.items():
+        if not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
+def _say(on: bool, text: str) -> None:
+    if on and jax.process_index() == 0:
+        print(text, file=sys.stderr, flush=True)

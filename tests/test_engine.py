@@ -1,0 +1,142 @@
+"""The sweep engine (:mod:`jstarid.engine`): levels, entries, equality with direct calls, chunking,
+determinism, grids, save/load and bad arguments."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+from scipy import stats
+
+import jstarid as js
+from jstarid.engine import levels as lv
+from jstarid.metrics import wilson_interval
+
+
+def _mlv_entry(**changes):
+    mlv = js.algorithms.get("mlv")
+    return js.Entry("mlv", "mlv", mlv.Config(n_boresights=20_000, batch_chunk=100, **changes))
+
+
+def _small_sweep(**kw):
+    args = dict(algorithms=["oracle", _mlv_entry()], camera="mlv2021",
+                axes={"position_sigma_px": [0.0, 2.0]}, fixed={"magnitude_sigma": 0.3}, scenes=12,
+                seed=4, catalog=js.load_catalog(5.5), progress=False)
+    return js.sweep(**{**args, **kw})
+
+
+@pytest.fixture(scope="module")
+def small():
+    return _small_sweep()
+
+
+def test_level_grid_is_the_product_first_axis_slowest():
+    grid = lv.level_grid({"position": [0, 1], "n_false": [0, 2, 4]})
+    assert grid[:4] == [{"position_sigma_px": 0.0, "n_false": 0}, {"position_sigma_px": 0.0, "n_false": 2},
+                        {"position_sigma_px": 0.0, "n_false": 4}, {"position_sigma_px": 1.0, "n_false": 0}]
+    noise = lv.level_noise(grid, 3, {"magnitude_sigma": 0.2})
+    assert np.asarray(noise.n_false).tolist() == [0] * 3 + [2] * 3 + [4] * 3 + [0] * 3 + [2] * 3 + [4] * 3
+    assert noise.magnitude_sigma == 0.2
+
+
+@pytest.mark.parametrize("axes, match", [
+    ({}, "one or two"), ({"a": [1], "b": [1], "c": [1]}, "one or two"),
+    ({"wobble": [1]}, "unknown noise axis"), ({"position": []}, "no values"),
+    ({"position": [0, 1], "position_sigma_px": [2]}, "repeat"),
+])
+def test_level_grid_rejects_bad_axes(axes, match):
+    with pytest.raises(ValueError, match=match):
+        lv.level_grid(axes)
+
+
+def test_level_noise_rejects_bad_values():
+    with pytest.raises(ValueError, match="position_sigma_px"):
+        lv.level_noise(lv.level_grid({"position": [-1.0]}), 2)
+    with pytest.raises(ValueError, match="both a noise axis and a fixed"):
+        lv.level_noise(lv.level_grid({"position": [1.0]}), 2, {"position_sigma_px": 1.0})
+    with pytest.raises(ValueError, match="bad noise setting"):
+        lv.level_noise(lv.level_grid({"position": [1.0]}), 2, {"sparkle": 1.0})
+
+
+@pytest.mark.parametrize("k, n", [(0, 200), (200, 200), (37, 50), (1, 3)])
+def test_wilson_interval_matches_scipy(k, n):
+    ref = stats.binomtest(k, n).proportion_ci(0.95, method="wilson")
+    lo, hi = wilson_interval(k, n)
+    np.testing.assert_allclose([lo, hi], [ref.low, ref.high], atol=2e-4)  # z = 1.96 vs 1.95996…
+
+
+def test_sweep_equals_direct_identify_calls(small):
+    """The engine's outcomes are those of simulate + identify + scene_outcomes called by hand."""
+    key_scenes, _ = jax.random.split(jax.random.key(4))
+    cat, cam = js.load_catalog(5.5), js.camera_preset("mlv2021")
+    noise = js.noise_grid(12, position_sigma_px=[0.0, 2.0], magnitude_sigma=0.3)
+    scenes = js.simulate(key_scenes, cat, cam, noise, batch_size=24, capacity=64)
+    entry = _mlv_entry()
+    mlv = js.algorithms.get("mlv")
+    direct = mlv.identify(mlv.build_database(cat, cam, entry.config, progress=False), scenes,
+                          entry.config)
+    codes = np.asarray(js.scene_outcomes(scenes, direct, "strict")["outcome"])
+    assert small.labels == ["oracle", "mlv"]
+    np.testing.assert_array_equal(small.scenes["outcome"][:, 1], codes)
+    np.testing.assert_array_equal(small.level_of, np.repeat([0, 1], 12))
+    rows = small.rows()
+    assert [(r["label"], r["position_sigma_px"]) for r in rows] == [
+        ("oracle", 0.0), ("oracle", 2.0), ("mlv", 0.0), ("mlv", 2.0)]
+    for row, part in zip(rows[2:], (slice(0, 12), slice(12, 24)), strict=True):
+        rep = js.evaluate(scenes[part], direct[part], "strict")
+        assert row["identification_rate"] == rep["identification_rate"]
+        assert row["misid_rate"] == rep["misid_rate"] and row["failure_rate"] == rep["failure_rate"]
+        assert row["identification_low"] <= row["identification_rate"] <= row["identification_high"]
+    assert rows[0]["identification_rate"] == 1.0 and rows[0]["boresight_err_arcsec_median"] < 1.0
+
+
+def test_chunking_and_seed(small):
+    """Chunks bound memory without changing an outcome; the seed alone decides the scenes."""
+    chunked = _small_sweep(chunk_size=5)
+    assert chunked.equal_outcomes(small)
+    other = _small_sweep(seed=5)
+    assert not np.array_equal(other.scenes["n_identified"], small.scenes["n_identified"])
+
+
+def test_grid_runs_as_one_batch_and_equals_single_entries():
+    mlv = js.algorithms.get("mlv")
+    base = _mlv_entry().config
+    grid = js.grid("mlv", base, th1=[0, 2], eps_deg=[0.1, 0.25])
+    assert [e.label for e in grid] == ["mlv th1=0 eps_deg=0.1", "mlv th1=0 eps_deg=0.25",
+                                       "mlv th1=2 eps_deg=0.1", "mlv th1=2 eps_deg=0.25"]
+    kw = dict(camera="mlv2021", axes={"position": [2.5]}, fixed={"magnitude_sigma": 0.3}, scenes=16,
+              catalog=js.load_catalog(5.5), progress=False)
+    batched = js.sweep(grid, **kw)
+    separate = js.sweep([e._replace(group="") for e in grid], **kw)
+    assert batched.equal_outcomes(separate)
+    assert len({r["identification_rate"] for r in batched.rows()}) > 1  # the grid matters
+    with pytest.raises(ValueError, match="differ only"):
+        mlv.identify_grid(None, None, [base, dataclasses.replace(base, n_stars=8)])
+    with pytest.raises(ValueError, match="no field"):
+        js.grid("mlv", base, wobble=[1])
+
+
+def test_save_and_load_round_trip(small, tmp_path):
+    small.save(tmp_path)
+    back = js.load_sweep(tmp_path)
+    assert back.equal_outcomes(small) and back.rows() == small.rows()
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert saved["rows"][0]["label"] == "oracle"
+    assert (tmp_path / "rates.png").stat().st_size > 10_000
+    table = (tmp_path / "table.md").read_text()
+    assert "| mlv | 2 | 12 |" in table and "Wilson" in table
+    with pytest.raises(FileNotFoundError):
+        js.load_sweep(tmp_path / "nothing")
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(algorithms="nope"), "unknown algorithm"), (dict(camera="nope"), "unknown camera"),
+    (dict(scenes=0), "scenes must be"), (dict(axes={"position": [-1.0]}), "position_sigma_px"),
+    (dict(criterion="lenient"), "unknown criterion"), (dict(boresight="moon"), "boresight"),
+])
+def test_bad_arguments_are_clear_errors(kw, match):
+    with pytest.raises(ValueError, match=match):
+        _small_sweep(**kw)
