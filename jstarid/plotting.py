@@ -129,8 +129,8 @@ def plot_sweep_axes(rows, *, axes=None, x_field: str | None = None, labels: dict
         x = np.array([r[x_field] for r in group], float)
         for ax, rate in zip(axes, ("identification", "misid"), strict=True):
             y = np.array([100 * r[f"{rate}_rate"] for r in group])
-            err = np.array([[100 * (r[f"{rate}_rate"] - r[f"{rate}_low"]) for r in group],
-                            [100 * (r[f"{rate}_high"] - r[f"{rate}_rate"]) for r in group]])
+            err = np.clip([[100 * (r[f"{rate}_rate"] - r[f"{rate}_low"]) for r in group],
+                           [100 * (r[f"{rate}_high"] - r[f"{rate}_rate"]) for r in group]], 0, None)
             ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label=name)
     for ax, title in zip(axes, ("identified (%)", "mis-identified (%)"), strict=True):
         ax.set_xlabel(labels.get(x_field, x_field))

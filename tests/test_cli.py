@@ -1,31 +1,77 @@
 import json
 
 import numpy as np
+import pytest
 
 from jstarid import cli
 
 
-def test_demo_writes_picture_and_stats(tmp_path, capsys):
-    assert cli.main(["demo", "--batch", "20", "--out", str(tmp_path), "--false", "1"]) == 0
-    stats = json.loads((tmp_path / "scene_stats.json").read_text())
-    assert stats["scenes"] == 20 and stats["stars_per_scene_mean"] > 3
-    assert (tmp_path / "scene.png").stat().st_size > 10_000
-    assert "simulated 20 scenes" in capsys.readouterr().out
+def test_demo_runs_the_engine_and_writes_results(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert cli.main(["demo", "--algorithms", "oracle", "--scenes", "6", "--levels", "0,2",
+                     "--out", str(out), "--quiet"]) == 0
+    for name in ("config.json", "results.json", "table.md", "rates.png", "scenes.npz"):
+        assert (out / name).exists(), name
+    rows = json.loads((out / "results.json").read_text())["rows"]
+    assert [(r["label"], r["position_sigma_px"], r["scenes"]) for r in rows] == [
+        ("oracle", 0.0, 6), ("oracle", 2.0, 6)]
+    text = capsys.readouterr().out
+    assert text.startswith("jstarid demo: oracle on 2 levels × 6 scenes")
+    assert "| oracle | 2 | 6 |" in text and "wrote" in text
 
 
-def test_compare_runs_registered_algorithms(tmp_path, capsys):
-    assert cli.main(["compare", "--algorithms", "oracle", "--batch", "30", "--out",
-                     str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / "results.json").read_text())["rows"]
-    assert rows[0]["algorithm"] == "oracle" and rows[0]["misid"] == 0.0
-    assert "| oracle |" in capsys.readouterr().out
+def test_sweep_with_a_grid_and_overrides(tmp_path):
+    out = tmp_path / "grid"
+    assert cli.main(["sweep", "--algorithms", "mlv", "--camera", "mlv2021", "--mag-limit", "5.5",
+                     "--axis", "magnitude", "--levels", "0.3", "--fixed", "position_sigma_px=2.5",
+                     "--grid", "th1=0,2", "--set", "mlv.n_boresights=20000", "--scenes", "8",
+                     "--out", str(out), "--quiet"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert [e["label"] for e in config["entries"]] == ["mlv th1=0", "mlv th1=2"]
+    assert {e["config"]["n_boresights"] for e in config["entries"]} == {20000}
+    assert config["settings"]["fixed"] == {"position_sigma_px": 2.5}
 
 
-def test_bad_input_is_a_clear_error(capsys):
-    assert cli.main(["demo", "--camera", "nope"]) == 2
-    assert "unknown camera preset" in capsys.readouterr().err
-    assert cli.main(["compare", "--algorithms", "nope", "--batch", "5"]) == 2
-    assert cli.main(["demo", "--sigma", "-1", "--batch", "5"]) == 2
+def test_report_collects_saved_sweeps(tmp_path):
+    demo = tmp_path / "demo"
+    assert cli.main(["demo", "--algorithms", "oracle", "--scenes", "3", "--levels", "1",
+                     "--out", str(demo), "--quiet"]) == 0
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# Results\n\nkept by hand\n")
+    args = ["report", "--reproduce", str(tmp_path / "none"), "--sweeps", str(demo),
+            "--out", str(tmp_path / "report.md"), "--update", str(results)]
+    assert cli.main(args) == 0 and cli.main(args) == 0  # updating twice replaces, not appends
+    page = (tmp_path / "report.md").read_text()
+    assert "| oracle | 1 | 3 |" in page and "commit" in page
+    text = results.read_text()
+    assert text.startswith("# Results\n\nkept by hand") and text.count("jstarid report: start") == 1
+
+
+def test_reproduce_quick_experiment(tmp_path, capsys):
+    assert cli.main(["reproduce", "mlv", "--experiments", "fig8", "--scenes", "3", "--out",
+                     str(tmp_path), "--quiet"]) == 0
+    rows = json.loads((tmp_path / "mlv" / "fig8" / "results.json").read_text())["rows"]
+    assert [r["n_false"] for r in rows] == [0, 1, 2, 3, 4, 5, 6]
+    assert "93.25" in capsys.readouterr().out  # the paper's quoted value beside ours
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["demo", "--algorithms", "nope"], "unknown algorithm"),
+    (["demo", "--camera", "nope"], "unknown camera preset"),
+    (["demo", "--scenes", "0"], "must be ≥ 1"),
+    (["demo", "--levels", "-1"], "position_sigma_px"),
+    (["demo", "--levels", "a,b"], "comma-separated numbers"),
+    (["sweep", "--axis", "wobble"], "unknown noise axis"),
+    (["sweep", "--algorithms", "mlv,sgm", "--grid", "th1=0,1"], "exactly one algorithm"),
+    (["sweep", "--set", "no_such_field=1"], "no algorithm in the run has"),
+    (["demo", "--bogus"], "unrecognized arguments"),
+    (["reproduce", "moon"], "invalid choice"),
+    (["report", "--reproduce", "/nonexistent", "--sweeps", "/nonexistent"], "no saved results"),
+])
+def test_bad_arguments_give_one_line_and_status_2(argv, message, capsys):
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
 
 
 def test_list(capsys):
@@ -89,3 +135,59 @@ def test_solve_bad_input(tmp_path, capsys):
     Image.fromarray(np.zeros((40, 50), np.uint16)).save(tmp_path / "small.tiff")
     assert cli.main(["solve", str(tmp_path / "small.tiff")]) == 2
     assert "768×1024" in capsys.readouterr().err
+
+
+def _scene_rows(n_scenes=2):
+    """Simulated mlv2021 scenes as (xy, mag, hip) per scene (catalog stars only)."""
+    import jax
+
+    import jstarid as js
+
+    cat, cam = js.load_catalog(5.5), js.camera_preset("mlv2021")
+    scenes = js.simulate(jax.random.key(7), cat, cam, js.NoiseConfig(position_sigma_px=0.3),
+                         batch_size=n_scenes)
+    out = []
+    for i in range(n_scenes):
+        keep = np.asarray(scenes.valid[i]) & (np.asarray(scenes.truth[i]) >= 0)
+        out.append((np.asarray(scenes.xy[i])[keep], np.asarray(scenes.mag[i])[keep],
+                    cat.hip[np.asarray(scenes.truth[i])[keep]]))
+    return out
+
+
+def test_identify_centroid_files(tmp_path, capsys):
+    """CSV (scenes split by a blank line) and JSON in, names that are the simulated stars' out."""
+    scenes = _scene_rows()
+    csv = tmp_path / "frames.csv"
+    csv.write_text("x, y, magnitude\n" + "\n\n".join(
+        "\n".join(f"{x:.3f}, {y:.3f}, {m:.2f}" for (x, y), m in zip(xy, mag, strict=True))
+        for xy, mag, _ in scenes) + "\n")
+    js_file = tmp_path / "one.json"
+    js_file.write_text(json.dumps([[float(x), float(y), float(m)] for (x, y), m
+                                   in zip(scenes[0][0], scenes[0][1], strict=True)]))
+    out = tmp_path / "ids.json"
+    assert cli.main(["identify", str(csv), str(js_file), "--camera", "mlv2021", "--mag-limit", "5.5",
+                     "--out", str(out)]) == 0
+    solved = json.loads(out.read_text())["scenes"]
+    assert [s["scene"] for s in solved] == [f"{csv}#0", f"{csv}#1", str(js_file)]
+    for entry, (xy, _, hip) in zip(solved, [*scenes, scenes[0]], strict=True):
+        assert entry["solved"] and len(entry["stars"]) >= 5 and len(entry["quaternion"]) == 4
+        for star in entry["stars"]:
+            j = np.argmin(np.linalg.norm(xy - [star["x"], star["y"]], axis=1))
+            assert hip[j] == star["hip"]
+    assert "boresight RA" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("empty.csv", "", "is empty"),
+    ("words.csv", "x,y,mag\n1,2,3\nfoo,bar,baz\n", "line 3"),
+    ("short.csv", "1,2,3\n4\n", "line 2"),
+    ("bad.json", "{not json", "not valid JSON"),
+    ("shape.json", '[[1, 2, 3, 4, 5]]', "scene 0"),
+])
+def test_identify_bad_centroid_files(tmp_path, capsys, name, text, message):
+    (tmp_path / name).write_text(text)
+    assert cli.main(["identify", str(tmp_path / name)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+    assert cli.main(["identify", str(tmp_path / "missing.csv")]) == 2
+    assert "cannot read" in capsys.readouterr().err

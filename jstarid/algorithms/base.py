@@ -31,6 +31,11 @@ An algorithm is a module (usually a subpackage of :mod:`jstarid.algorithms`) exp
     (or, where the database fixes settings, the database's config). A failure is reported as
     ``ok = False`` with every id −1; it is always preferred over a wrong name.
 
+Optional: ``first_use(catalog, camera, config) -> str | None`` says what ``build_database`` will
+    build and about how long it takes (``None`` when it is cached), so a command can say so up
+    front; ``identify_grid(database, scenes, configs) -> list[Identification]`` runs a parameter
+    grid in one batch (:func:`jstarid.engine.grid` uses it; without it, one call per config).
+
 :func:`check_algorithm` verifies that a module offers these names; the registry runs it on
 :func:`jstarid.algorithms.get`, and ``tests/algorithms/test_contract.py`` runs the behavioural
 checks over every registered name. ``docs/adding_an_algorithm.md`` walks through adding one.

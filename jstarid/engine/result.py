@@ -96,6 +96,8 @@ class SweepResult:
                     lo, hi = wilson_interval(counts[k], n)
                     row[f"{rate}_rate"] = counts[k] / n if n else float("nan")
                     row[f"{rate}_low"], row[f"{rate}_high"] = float(lo), float(hi)
+                answered = n - counts["fail"]
+                row["accuracy"] = counts["correct"] / answered if answered else None
                 ok = code == CORRECT
                 errors = self.scenes["boresight_err_arcsec"][take, e][ok]
                 errors = errors[np.isfinite(errors)]

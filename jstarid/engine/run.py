@@ -33,7 +33,7 @@ from jstarid.metrics import CRITERIA, scene_outcomes
 from jstarid.scene import Identification, Scene
 from jstarid.simulator import simulate
 
-__all__ = ["compare", "sweep", "BORESIGHTS", "SCORES"]
+__all__ = ["compare", "plan", "sweep", "BORESIGHTS", "SCORES"]
 
 BORESIGHTS = ("random", "stars")
 # what is kept per scene and entry (the table is computed from these alone)
@@ -174,6 +174,31 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
     return SweepResult.from_arrays(entries=entries, levels=levels, level_of=level_of, arrays=merged,
                                    timing=timing, settings=dict(settings or {}),
                                    processes=processes.process_count())
+
+
+def plan(algorithms: Sequence | str, catalog, camera: Camera, *, rpnet_network: str = "quick",
+         compiled_before: bool = True) -> list[tuple[str, float]]:
+    """What a run of these entries builds first, and about how long each takes on 2 CPU cores (s).
+
+    Uses each algorithm's optional ``first_use(catalog, camera, config)``; empty when everything
+    is cached.
+
+    Args:
+        compiled_before: ``False`` adds the one-off compilation of a first run on this machine
+            (no on-disk compilation cache yet).
+    """
+    items = []
+    names = set()
+    for entry in make_entries(algorithms, rpnet_network=rpnet_network):
+        names.add(entry.algorithm)
+        first_use = getattr(get_algorithm(entry.algorithm), "first_use", None)
+        item = first_use(catalog, camera, entry.config) if first_use else None
+        if item and item not in items:
+            items.append(item)
+    if not compiled_before:
+        seconds = 150.0 if "sgm" in names else 30.0  # SGM: one kernel per graph-size bucket
+        items.append(("compiled kernels, kept on disk for later runs", seconds))
+    return items
 
 
 def _runner(module, db, configs):

@@ -286,3 +286,12 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *,
                                  info={"build_seconds": seconds, "cached": False,
                                        "cache_path": str(path) if use_cache else ""})
     return dataclasses.replace(db, key=key)
+
+
+def first_use(catalog, camera: Camera, config: Config | None = None) -> tuple[str, float] | None:
+    """What :func:`build_database` will build for these settings and about how long it takes on a
+    2-core CPU (s); ``None`` when it is cached."""
+    config = Config() if config is None else config
+    if (cache_dir() / f"mlv-{_cache_key(catalog, camera, config)}.npz").exists():
+        return None
+    return f"MLV triangle database for {camera.name} ({config.n_boresights:,} boresights)", 10.0

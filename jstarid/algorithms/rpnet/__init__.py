@@ -18,11 +18,17 @@ Usage::
 """
 
 from jstarid.algorithms.rpnet.config import Config, Training, Tuning
-from jstarid.algorithms.rpnet.database import Database, build_database, database_from_variables, load_database
+from jstarid.algorithms.rpnet.database import (
+    Database,
+    build_database,
+    database_from_variables,
+    first_use,
+    load_database,
+)
 from jstarid.algorithms.rpnet.grid import GridResult, grid_members, member_variables, train_grid
 from jstarid.algorithms.rpnet.guide_catalog import guide_rows, load_guide_catalog
 from jstarid.algorithms.rpnet.identify import Diagnostics, identify
 
 __all__ = ["Config", "Database", "Diagnostics", "GridResult", "Training", "Tuning", "build_database",
-           "database_from_variables", "grid_members", "guide_rows", "identify", "load_database",
+           "database_from_variables", "first_use", "grid_members", "guide_rows", "identify", "load_database",
            "load_guide_catalog", "member_variables", "train_grid"]

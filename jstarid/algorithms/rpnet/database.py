@@ -159,3 +159,19 @@ def _database(catalog, camera, config, rows, variables, history, path) -> Databa
                     guide_rows=np.asarray(rows, np.int32),
                     star_vectors=jnp.asarray(catalog.unit_vectors, jnp.float32), variables=variables,
                     history=history, path=path, key=database_key(catalog, camera, config))
+
+
+# seconds per training step per 256 samples on a 2-core CPU (quick: 6,000 steps in 289 s;
+# Table 3: 78,813 steps of 512 in 7,336 s; experiments/RESULTS.md)
+_SECONDS_PER_STEP_256 = 0.048
+
+
+def first_use(catalog, camera, config: Config | None = None) -> tuple[str, float] | None:
+    """What :func:`build_database` will build for these settings and about how long the training
+    takes on a 2-core CPU (s); ``None`` when a trained network is cached."""
+    config = Config() if config is None else config
+    if checkpoint_path(catalog, camera, config).exists():
+        return None
+    steps = sum(config.training.steps(len(guide_rows(catalog, config))))
+    seconds = steps * config.training.batch_size / 256 * _SECONDS_PER_STEP_256
+    return f"RpNet networks trained for {camera.name} ({steps:,} steps; resumable)", seconds

@@ -9,7 +9,7 @@ check — our addition, on by default), ``identify``, ``tuning`` (c × ε_δ gri
 """
 
 from jstarid.algorithms.sgm.config import Config, Tuning
-from jstarid.algorithms.sgm.database import Database, build_database
+from jstarid.algorithms.sgm.database import Database, build_database, first_use
 from jstarid.algorithms.sgm.identify import Diagnostics, identify
 
-__all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "identify"]
+__all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "first_use", "identify"]

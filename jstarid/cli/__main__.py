@@ -1,0 +1,5 @@
+"""``python -m jstarid.cli``."""
+
+from jstarid.cli import main
+
+raise SystemExit(main())

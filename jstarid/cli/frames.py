@@ -1,0 +1,147 @@
+"""``jstarid identify`` (centroid files) and ``jstarid solve`` (raw images): names and attitude."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def add_commands(sub) -> None:
+    i = sub.add_parser(
+        "identify", help="centroid file(s) (x, y, magnitude per line; CSV or JSON) → star names and "
+                         "attitude as JSON; exit 1 when a scene is not solved",
+        description="Identify the stars of one scene or many given as centroids (px, origin at the "
+                    "centre of pixel (0, 0)). CSV: x, y[, magnitude] per line, scenes separated by "
+                    "blank lines or a leading 'scene' column; JSON: [[x, y, mag], …], a list of "
+                    "those, or {\"scenes\": [...]}. Prints JSON (or writes --out).")
+    i.add_argument("files", nargs="+", type=Path, help="centroid files (.csv, .txt or .json)")
+    _frame_options(i, camera="sgm2022", mag_limit=None, capacity=64)
+    i.add_argument("--out", type=Path, default=None, help="write the JSON here instead of stdout")
+    i.set_defaults(func=run_identify)
+    s = sub.add_parser("solve", help="identify the stars of raw images (TIFF/PNG) and print the "
+                                     "attitude; exit 1 when an image is not solved")
+    s.add_argument("images", nargs="+", help="grayscale image files, all from one camera")
+    _frame_options(s, camera="tetra3_test", mag_limit=7.0, capacity=24)
+    s.add_argument("--out", default="results/solve", help="results directory (default results/solve)")
+    s.set_defaults(func=run_solve)
+
+
+def _frame_options(p, *, camera: str, mag_limit, capacity: int) -> None:
+    p.add_argument("--camera", default=camera, help=f"camera preset (`jstarid list`; default {camera})")
+    p.add_argument("--algorithm", default="mlv", help="registry name (default mlv)")
+    p.add_argument("--mag-limit", type=float, default=mag_limit,
+                   help="catalog depth V (default: " + ("the camera's detection limit)"
+                                                        if mag_limit is None else f"{mag_limit})"))
+    p.add_argument("--epoch", type=float, default=None,
+                   help="Julian year of the observation, for proper motion (e.g. 2019.57); "
+                        "default: the catalog's epoch J1991.25")
+    p.add_argument("--capacity", type=int, default=capacity,
+                   help=f"brightest detections used per scene (default {capacity})")
+    p.add_argument("--name-all", action=argparse.BooleanOptionalAction, default=True,
+                   help="name every detection the solved attitude explains (js.name_from_attitude); "
+                        "--no-name-all keeps the algorithm's own names")
+    p.add_argument("--tol-px", type=float, default=2.0, help="tolerance of --name-all (px)")
+    p.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
+                   help="RpNet network (trained for the camera on first use, then cached)")
+
+
+def _identify(args, scenes, labels: list[str]) -> list[dict]:
+    """Identify ``scenes`` and describe each one (names, boresight, roll, residual)."""
+    import jstarid as js
+
+    if args.capacity < 1:
+        raise ValueError("--capacity must be ≥ 1")
+    cam = js.camera_preset(args.camera)
+    limit = cam.mag_limit if args.mag_limit is None else args.mag_limit
+    cat = js.load_catalog(limit, epoch=args.epoch)
+    algo = js.algorithms.get(args.algorithm)
+    cfg = js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network)
+    first = getattr(algo, "first_use", None)
+    built = first(cat, cam, cfg) if first else None
+    if built:
+        print(f"first use builds {built[0]} (≈ {built[1] / 60:.0f} min), once", file=sys.stderr)
+    result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)
+    if args.name_all:
+        result = js.name_from_attitude(cat, cam, scenes, result, tol_px=args.tol_px)
+    att, rms_arcsec, have = (np.asarray(a) for a in js.estimate_attitude(cat, cam, scenes, result))
+    ra, dec, roll = (np.degrees(np.asarray(a)) for a in js.rotation_to_radec_roll(att))
+    ids, xy, ok = np.asarray(result.ids), np.asarray(scenes.xy), np.asarray(result.ok)
+    n_det = np.asarray(scenes.valid).sum(axis=1)
+    out = []
+    for i, label in enumerate(labels):
+        named = np.nonzero(ids[i] >= 0)[0]
+        solved = bool(ok[i] and have[i])
+        entry = {"scene": label, "detections": int(n_det[i]), "solved": solved,
+                 "stars": [{"hip": int(cat.hip[ids[i, j]]), "x": float(xy[i, j, 0]),
+                            "y": float(xy[i, j, 1]), "v": float(cat.mag[ids[i, j]])} for j in named]}
+        if solved:
+            entry.update(ra_deg=float(ra[i]), dec_deg=float(dec[i]), roll_deg=float(roll[i]),
+                         residual_arcsec=float(rms_arcsec[i]), attitude=att[i].tolist(),
+                         quaternion=np.asarray(js.quaternion_from_rotation(att[i])).tolist())
+        out.append(entry)
+    return out
+
+
+def _summary(entry: dict) -> str:
+    if not entry["solved"]:
+        return f"{entry['scene']}: not solved ({entry['detections']} detections)"
+    return (f"{entry['scene']}: {len(entry['stars'])} of {entry['detections']} detections identified; "
+            f"boresight RA {entry['ra_deg']:.4f}°, Dec {entry['dec_deg']:+.4f}°, roll "
+            f"{entry['roll_deg']:+.3f}°, residual {entry['residual_arcsec']:.1f}″")
+
+
+def run_identify(args) -> int:
+    import jstarid as js
+    from jstarid.centroid_files import read_centroids
+
+    xy, mag, labels = [], [], []
+    for path in args.files:
+        x, m = read_centroids(path)
+        xy += x
+        mag += m
+        labels += [f"{path}" if len(x) == 1 else f"{path}#{k}" for k in range(len(x))]
+    if any(m is None for m in mag) and not all(m is None for m in mag):
+        mag = [np.arange(len(x), dtype=float) if m is None else m for x, m in zip(xy, mag, strict=True)]
+    scenes = js.scenes_from_centroids(xy, None if all(m is None for m in mag) else mag,
+                                      capacity=args.capacity)
+    solutions = _identify(args, scenes, labels)
+    for entry in solutions:
+        print(_summary(entry), file=sys.stderr)
+    text = json.dumps({"camera": args.camera, "algorithm": args.algorithm, "epoch": args.epoch,
+                       "scenes": solutions}, indent=1)
+    if args.out is None:
+        print(text)
+    else:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+        print(f"wrote {args.out}", file=sys.stderr)
+    return 0 if all(s["solved"] for s in solutions) else 1
+
+
+def run_solve(args) -> int:
+    """Raw images → centroids → identification → attitude, one line per image plus a JSON file."""
+    import jstarid as js
+
+    cam = js.camera_preset(args.camera)
+    images = [js.read_image(p) for p in args.images]
+    if len({im.shape for im in images}) != 1 or images[0].shape != (cam.height, cam.width):
+        raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "
+                         f"got {sorted({im.shape for im in images})}")
+    if args.epoch is None:
+        print("note: no --epoch given: star positions at the catalog's epoch J1991.25 (proper "
+              "motion ignored)", file=sys.stderr)
+    scenes = js.extract_centroids(np.stack(images), capacity=args.capacity, shard=True)
+    solutions = _identify(args, scenes, [str(p) for p in args.images])
+    for entry in solutions:
+        entry["image"] = entry.pop("scene")
+        print(_summary({**entry, "scene": entry["image"]}))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "solutions.json").write_text(json.dumps({"args": vars(args), "solutions": solutions},
+                                                   indent=1, default=str))
+    print(f"wrote {out / 'solutions.json'}")
+    return 0 if all(s["solved"] for s in solutions) else 1

@@ -1,0 +1,125 @@
+"""``jstarid reproduce`` (the papers' experiments through the engine) and ``jstarid report``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+REPORT_START = "<!-- jstarid report: start -->"
+REPORT_END = "<!-- jstarid report: end -->"
+
+
+def add_commands(sub) -> None:
+    r = sub.add_parser(
+        "reproduce", help="the papers' experiments through the sweep engine (--quick: minutes)",
+        description="Run a paper's experiments (SGM Table 2; MLV Figs. 6–8; RpNet Figs. 8–11) on "
+                    "the paper's camera, scenes and criterion, and save each under "
+                    "<out>/<paper>/<experiment>/. Full size: 10,000 scenes per level (SGM: 5,070), "
+                    "hours on 2 cores; --quick: 200 per level (SGM: 60), minutes.")
+    r.add_argument("paper", choices=("sgm", "mlv", "rpnet", "all"), help="which paper")
+    r.add_argument("--quick", action="store_true", help="a small run (200 scenes per level; SGM 60)")
+    r.add_argument("--scenes", type=int, default=None, help="scenes per level (overrides --quick)")
+    r.add_argument("--experiments", default=None,
+                   help="comma-separated experiment names (e.g. fig6,fig8; default: all of them)")
+    r.add_argument("--seed", type=int, default=0, help="PRNG seed (default 0)")
+    r.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
+                   help="RpNet's network (default quick)")
+    r.add_argument("--out", type=Path, default=Path("results/reproduce"),
+                   help="results directory (default results/reproduce)")
+    r.add_argument("--quiet", action="store_true", help="no progress lines")
+    r.set_defaults(func=run_reproduce)
+    p = sub.add_parser(
+        "report", help="one markdown page from saved results: each paper beside ours, and the "
+                       "cross-algorithm sweeps",
+        description="Collect the saved runs of `jstarid reproduce` and the sweeps of `jstarid "
+                    "demo`/`sweep` into one markdown page (each with its command, commit and "
+                    "machine). --update FILE rewrites the part of FILE between the report markers "
+                    "(experiments/RESULTS.md is kept this way).")
+    p.add_argument("--reproduce", type=Path, default=Path("results/reproduce"),
+                   help="where `jstarid reproduce` saved (default results/reproduce)")
+    p.add_argument("--sweeps", type=Path, nargs="*", default=[Path("results/demo")],
+                   help="saved sweep directories (default results/demo)")
+    p.add_argument("--out", type=Path, default=Path("results/report.md"),
+                   help="the page (default results/report.md)")
+    p.add_argument("--update", type=Path, default=None,
+                   help=f"also replace the text between {REPORT_START} and {REPORT_END} in this file")
+    p.set_defaults(func=run_report)
+
+
+def run_reproduce(args: argparse.Namespace) -> int:
+    from jstarid.papers import reproduction as rp
+
+    papers = rp.PAPERS if args.paper == "all" else (args.paper,)
+    chosen = None if args.experiments is None else set(args.experiments.split(","))
+    if args.scenes is not None and args.scenes < 1:
+        raise ValueError("--scenes must be ≥ 1")
+    todo = [e for p in papers for e in rp.experiments(p) if chosen is None or e.name in chosen]
+    if not todo:
+        raise ValueError(f"no experiment named {args.experiments!r} in {', '.join(papers)}")
+    for exp in todo:
+        print(f"{exp.paper} {exp.name}: {exp.label}, {len(exp.levels)} levels", flush=True)
+        result = rp.run(exp, args.out, quick=args.quick, scenes=args.scenes, seed=args.seed,
+                        progress=not args.quiet, rpnet_network=args.rpnet_network)
+        print(rp.comparison(exp, result.rows()), flush=True)
+    print(f"saved under {args.out}/; `jstarid report` collects them into one page")
+    return 0
+
+
+def report_text(reproduce: Path, sweeps: list[Path]) -> str:
+    """The report page: each reproduced experiment beside its paper, then the saved sweeps."""
+    import jstarid as js
+    from jstarid.papers import reproduction as rp
+
+    parts = ["# jstarid report", "",
+             "Made by `jstarid report` from saved results; every table names the command, commit "
+             "and machine that produced it. Rates are % of scenes with 95 % Wilson intervals.", ""]
+    found = False
+    for paper in rp.PAPERS:
+        for exp in rp.experiments(paper):
+            where = reproduce / paper / exp.name
+            if not (where / "scenes.npz").exists():
+                continue
+            if not found:
+                parts += ["## The papers' experiments", ""]
+                found = True
+            result = js.load_sweep(where)
+            parts += [rp.comparison(exp, result.rows()), _provenance(where), ""]
+    for where in sweeps:
+        if not (where / "scenes.npz").exists():
+            continue
+        result = js.load_sweep(where)
+        parts += [f"## Every algorithm on identical scenes: `{where}`", "",
+                  result.table().strip(), "", _provenance(where), "",
+                  f"![rates]({(where / 'rates.png').as_posix()})", ""]
+    if len(parts) == 4:
+        raise FileNotFoundError(f"no saved results under {reproduce} or {', '.join(map(str, sweeps))}; "
+                                "run `jstarid demo` or `jstarid reproduce … --quick` first")
+    return "\n".join(parts).rstrip() + "\n"
+
+
+def _provenance(where: Path) -> str:
+    from jstarid import experiment
+
+    config, _ = experiment.load(where)
+    p = config.get("provenance", {})
+    m = p.get("machine", {})
+    return (f"`{p.get('command', '?')}` — commit {p.get('commit', '?')}, {p.get('date', '?')}; "
+            f"{m.get('cpu_count', '?')} CPU cores, {m.get('devices', '?')} ({m.get('backend', '?')}).")
+
+
+def run_report(args: argparse.Namespace) -> int:
+    text = report_text(args.reproduce, args.sweeps)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+    print(f"wrote {args.out}")
+    if args.update is not None:
+        old = args.update.read_text() if args.update.exists() else ""
+        block = f"{REPORT_START}\n{text}{REPORT_END}"
+        if REPORT_START in old and REPORT_END in old:
+            head, rest = old.split(REPORT_START, 1)
+            new = head + block + rest.split(REPORT_END, 1)[1]
+        else:
+            new = old.rstrip() + ("\n\n" if old else "") + block + "\n"
+        args.update.write_text(new)
+        print(f"updated {args.update}")
+    return 0

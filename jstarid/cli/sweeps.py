@@ -1,0 +1,179 @@
+"""``jstarid demo`` and ``jstarid sweep``: the sweep engine from the command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+DEMO_LEVELS = "0,1,2,3"
+
+
+def add_commands(sub) -> None:
+    d = sub.add_parser(
+        "demo", help="every algorithm on a position-noise sweep of the same scenes: table, figure",
+        description="Run every registered algorithm (the oracle aside) on the same simulated scenes "
+                    "at 0–3 px of centroid noise; print the table and write results/demo/ "
+                    "(config.json, results.json, table.md, rates.png, scenes.npz). The first run "
+                    "builds databases, trains RpNet's quick network and compiles (≈ 10 min on 2 "
+                    "cores); later runs take about a minute.")
+    _scene_options(d, out="results/demo", scenes=200, levels=DEMO_LEVELS)
+    d.set_defaults(func=run_demo)
+    s = sub.add_parser(
+        "sweep", help="algorithms × one or two noise axes (× a parameter grid) on any camera",
+        description="Like demo, for any noise axis, camera and algorithm settings. Example: "
+                    "jstarid sweep --algorithms mlv --camera mlv2021 --axis magnitude --levels "
+                    "0,0.35,0.7 --fixed position_sigma_px=1 --grid th1=0,2 eps_deg=0.1,0.2")
+    _scene_options(s, out="results/sweep", scenes=200, levels=DEMO_LEVELS)
+    s.add_argument("--grid", nargs="*", default=[], metavar="FIELD=V1,V2",
+                   help="a parameter grid of the one algorithm in --algorithms: every combination "
+                        "of these Config values is a row (run as one batch where the algorithm "
+                        "allows), e.g. th1=0,1,2 eps_deg=0.1,0.2")
+    s.set_defaults(func=run_sweep)
+
+
+def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
+    p.add_argument("--algorithms", default=None,
+                   help="comma-separated registry names (default: every registered algorithm "
+                        "but the oracle; `jstarid list` shows them)")
+    p.add_argument("--camera", default="sgm2022", help="camera preset (`jstarid list`)")
+    p.add_argument("--mag-limit", type=float, default=None,
+                   help="catalog depth V (default: the camera's detection limit)")
+    p.add_argument("--axis", default="position",
+                   help="noise axis: position (px), magnitude (mag), missing, false (stars per "
+                        "scene) or false-ratio")
+    p.add_argument("--levels", default=levels, help=f"comma-separated levels of --axis (default {levels})")
+    p.add_argument("--axis2", default=None, help="a second noise axis (every combination is a level)")
+    p.add_argument("--levels2", default=None, help="levels of --axis2")
+    p.add_argument("--fixed", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="other NoiseConfig settings for every scene, e.g. magnitude_sigma=0.3")
+    p.add_argument("--scenes", type=int, default=scenes, help=f"scenes per level (default {scenes})")
+    p.add_argument("--seed", type=int, default=0, help="PRNG seed of the scenes (default 0)")
+    p.add_argument("--capacity", type=int, default=96,
+                   help="detections kept per scene, brightest first (default 96)")
+    p.add_argument("--boresight", choices=("random", "stars"), default="random",
+                   help="random attitudes, or the boresight on a random catalog star (default random)")
+    p.add_argument("--criterion", choices=("strict", "mlv", "sgm", "rpnet"), default="strict",
+                   help="what counts as identified (docs/conventions.md §5; default strict: ≥ 3 "
+                        "correct, none wrong)")
+    p.add_argument("--chunk-size", type=int, default=1024,
+                   help="most scenes per identify call (bounds memory; default 1024)")
+    p.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
+                   help="RpNet's network, trained for the camera on first use: quick (≈ 5 min on "
+                        "2 cores) or table3 (the paper's schedule, ≈ 2 h)")
+    p.add_argument("--set", nargs="*", default=[], metavar="[ALGORITHM.]FIELD=VALUE",
+                   help="algorithm Config overrides, VALUE in JSON (e.g. mlv.n_stars=12 "
+                        "sgm.max_error_deg=0.2); without ALGORITHM. it applies to every algorithm "
+                        "that has the field")
+    p.add_argument("--out", type=Path, default=Path(out), help=f"results directory (default {out})")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def _floats(text: str, what: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"{what} must be comma-separated numbers, got {text!r}") from None
+    if not values:
+        raise ValueError(f"{what} has no values")
+    return values
+
+
+def _settings(items, what: str) -> dict:
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise ValueError(f"{what} {item!r} is not FIELD=VALUE")
+        name, value = item.split("=", 1)
+        out[name.strip()] = value
+    return out
+
+
+def _run(args, *, title: str, grid: dict | None = None) -> int:
+    import jax
+
+    import jstarid as js
+
+    camera = js.camera_preset(args.camera)
+    names = (args.algorithms or ",".join(n for n in js.algorithms.names() if n != "oracle"))
+    algorithms = [n.strip() for n in names.split(",") if n.strip()]
+    for name in algorithms:
+        js.algorithms.get(name)  # unknown names fail before anything is built
+    axes = {js.engine.axis_field(args.axis): _floats(args.levels, "--levels")}
+    if args.axis2:
+        axes[js.engine.axis_field(args.axis2)] = _floats(args.levels2 or "", "--levels2")
+    fixed = {k: float(v) for k, v in _settings(args.fixed, "--fixed").items()}
+    algorithms = _with_overrides(js.engine.entries(algorithms, rpnet_network=args.rpnet_network),
+                                 _settings(args.set, "--set"))
+    if grid:
+        if len(algorithms) != 1:
+            raise ValueError("--grid needs exactly one algorithm in --algorithms")
+        algorithms = js.grid(algorithms[0].algorithm, algorithms[0].config, **grid)
+    js.engine.level_noise(js.engine.level_grid(axes), 1, fixed)  # bad levels fail here, not later
+    if args.scenes < 1 or args.chunk_size < 1 or args.capacity < 1:
+        raise ValueError("--scenes, --chunk-size and --capacity must be ≥ 1")
+    catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit)
+    cache = Path(jax.config.jax_compilation_cache_dir or js.catalog.cache_dir() / "xla")
+    compiled_before = cache.exists() and any(cache.iterdir())
+    steps = js.engine.plan(algorithms, catalog, camera, rpnet_network=args.rpnet_network,
+                           compiled_before=compiled_before)
+    n_levels = len(js.engine.level_grid(axes))
+    label = ", ".join(sorted({e.algorithm for e in js.engine.entries(
+        algorithms, rpnet_network=args.rpnet_network)}))
+    print(f"jstarid {title}: {label} on {n_levels} levels × {args.scenes} scenes "
+          f"({', '.join(axes)}; camera {camera.name}).", flush=True)
+    if steps:
+        total = sum(s for _, s in steps) + 60
+        print(f"First use builds: {'; '.join(t for t, _ in steps)} — about {total / 60:.0f} min in "
+              "all on 2 CPU cores, once; later runs reuse them.", flush=True)
+    else:
+        print("Everything is built already: about a minute.", flush=True)
+    t0 = time.perf_counter()
+    result = js.sweep(algorithms, camera, axes=axes, fixed=fixed, scenes=args.scenes, seed=args.seed,
+                      catalog=catalog, capacity=args.capacity, boresight=args.boresight,
+                      criterion=args.criterion, chunk_size=args.chunk_size,
+                      rpnet_network=args.rpnet_network, progress=not args.quiet)
+    out = result.save(args.out, title=f"jstarid {title}")
+    print(result.table(), flush=True)
+    print(f"wrote {out}/ (table.md, rates.png, results.json, config.json, scenes.npz) in "
+          f"{time.perf_counter() - t0:.0f} s", flush=True)
+    return 0
+
+
+def _with_overrides(entries, overrides: dict):
+    """Entries with ``--set`` applied (``algorithm.field`` or ``field`` for every entry having it)."""
+    import dataclasses
+
+    from jstarid.experiment import with_overrides
+
+    out = list(entries)
+    for key, text in overrides.items():
+        target, _, field = key.rpartition(".")
+        hit = False
+        for k, e in enumerate(out):
+            names = {f.name for f in dataclasses.fields(e.config)}
+            if (target and target != e.algorithm) or field not in names:
+                continue
+            out[k] = e._replace(config=with_overrides(e.config, [f"{field}={text}"]))
+            hit = True
+        if not hit:
+            raise ValueError(f"--set {key}: no algorithm in the run has a field {field!r}")
+    return out
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    return _run(args, title="demo")
+
+
+def run_sweep(args: argparse.Namespace) -> int:
+    grid = {}
+    for name, text in _settings(args.grid, "--grid").items():
+        values = []
+        for v in text.split(","):
+            try:
+                values.append(json.loads(v))
+            except json.JSONDecodeError:
+                raise ValueError(f"--grid {name}: {v!r} is not a JSON value") from None
+        grid[name] = values
+    return _run(args, title="sweep", grid=grid or None)
