@@ -29,12 +29,14 @@ class Entry(NamedTuple):
         algorithm: registry name (:func:`jstarid.algorithms.names`).
         config: the algorithm's ``Config``.
         group: entries with the same group come from one :func:`grid` (``""``: none).
+        setting: the grid's ``(field, value)`` pairs of this entry (columns of the table).
     """
 
     label: str
     algorithm: str
     config: Any
     group: str = ""
+    setting: tuple = ()
 
 
 def default_config(name: str, *, rpnet_network: str = "quick"):
@@ -112,7 +114,7 @@ def grid(algorithm: str, config=None, *, label: str | None = None,
         setting = dict(zip(values, combo, strict=True))
         text = " ".join(f"{k}={_short(v)}" for k, v in setting.items())
         out.append(Entry(f"{prefix} {text}".strip(), algorithm,
-                         dataclasses.replace(base, **setting), group))
+                         dataclasses.replace(base, **setting), group, tuple(setting.items())))
     return out
 
 
@@ -125,4 +127,5 @@ def describe(entry: Entry) -> Mapping[str, Any]:
     from jstarid.experiment import to_json
 
     return {"label": entry.label, "algorithm": entry.algorithm, "group": entry.group,
-            "config_type": type(entry.config).__qualname__, "config": to_json(entry.config)}
+            "setting": to_json(dict(entry.setting)), "config_type": type(entry.config).__qualname__,
+            "config": to_json(entry.config)}

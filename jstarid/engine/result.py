@@ -89,7 +89,8 @@ class SweepResult:
                 counts = {name: int(np.sum(code == c)) for name, c in
                           (("correct", CORRECT), ("wrong", WRONG), ("fail", FAIL),
                            ("incomplete", INCOMPLETE))}
-                row = {"label": entry["label"], "algorithm": entry["algorithm"], **level,
+                row = {"label": entry["label"], "algorithm": entry["algorithm"],
+                       **entry.get("setting", {}), **level,
                        "scenes": n, **{f"n_{k}": v for k, v in counts.items()}}
                 for rate, k in (("identification", "correct"), ("misid", "wrong"),
                                 ("failure", "fail")):

@@ -141,7 +141,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
         first = entries[members[0]]
         module = get_algorithm(first.algorithm)
         configs = [entries[i].config for i in members]
-        names = ", ".join(entries[i].label for i in members)
+        names = first.group or first.label
         _say(progress, f"{names}: database …")
         t0 = time.perf_counter()
         db = module.build_database(catalog, camera, first.config, progress=progress)
