@@ -68,6 +68,13 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
                         "that has the field")
     p.add_argument("--out", type=Path, default=Path(out), help=f"results directory (default {out})")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    g = p.add_argument_group("several processes (jax.distributed; docs/scale_out.md)")
+    g.add_argument("--distributed", action="store_true",
+                   help="join a multi-process run; on SLURM / Open MPI / Cloud TPU nothing else is "
+                        "needed, elsewhere add the three options below")
+    g.add_argument("--coordinator", default=None, help="HOST:PORT of process 0")
+    g.add_argument("--num-processes", type=int, default=None, help="how many processes take part")
+    g.add_argument("--process-id", type=int, default=None, help="this process's index (0 …)")
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -95,6 +102,11 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
 
     import jstarid as js
 
+    if args.distributed or args.coordinator is not None:
+        js.engine.initialize(args.coordinator, args.num_processes, args.process_id)
+    if jax.process_index() != 0:  # every process computes its share; process 0 reports and writes
+        args.quiet = True
+
     camera = js.camera_preset(args.camera)
     names = (args.algorithms or ",".join(n for n in js.algorithms.names() if n != "oracle"))
     algorithms = [n.strip() for n in names.split(",") if n.strip()]
@@ -121,19 +133,22 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     n_levels = len(js.engine.level_grid(axes))
     label = ", ".join(sorted({e.algorithm for e in js.engine.entries(
         algorithms, rpnet_network=args.rpnet_network)}))
-    print(f"jstarid {title}: {label} on {n_levels} levels × {args.scenes} scenes "
-          f"({', '.join(axes)}; camera {camera.name}).", flush=True)
-    if steps:
-        total = sum(s for _, s in steps) + 60
-        print(f"First use builds: {'; '.join(t for t, _ in steps)} — about {total / 60:.0f} min in "
-              "all on 2 CPU cores, once; later runs reuse them.", flush=True)
-    else:
-        print("Everything is built already: about a minute.", flush=True)
+    if jax.process_index() == 0:
+        print(f"jstarid {title}: {label} on {n_levels} levels × {args.scenes} scenes "
+              f"({', '.join(axes)}; camera {camera.name}).", flush=True)
+        if steps:
+            total = sum(s for _, s in steps) + 60
+            print(f"First use builds: {'; '.join(t for t, _ in steps)} — about {total / 60:.0f} min in "
+                  "all on 2 CPU cores, once; later runs reuse them.", flush=True)
+        else:
+            print("Everything it needs is built and cached.", flush=True)
     t0 = time.perf_counter()
     result = js.sweep(algorithms, camera, axes=axes, fixed=fixed, scenes=args.scenes, seed=args.seed,
                       catalog=catalog, capacity=args.capacity, boresight=args.boresight,
                       criterion=args.criterion, chunk_size=args.chunk_size,
                       rpnet_network=args.rpnet_network, progress=not args.quiet)
+    if jax.process_index() != 0:
+        return 0
     out = result.save(args.out, title=f"jstarid {title}")
     print(result.table(), flush=True)
     print(f"wrote {out}/ (table.md, rates.png, results.json, config.json, scenes.npz) in "

@@ -23,8 +23,9 @@ Usage::
 
 from jstarid.engine.entries import Entry, default_config, entries, grid
 from jstarid.engine.levels import AXES, axis_field, level_grid, level_noise
+from jstarid.engine.processes import initialize
 from jstarid.engine.result import SweepResult, load
 from jstarid.engine.run import BORESIGHTS, compare, plan, sweep
 
 __all__ = ["AXES", "BORESIGHTS", "Entry", "SweepResult", "axis_field", "compare", "default_config",
-           "entries", "grid", "level_grid", "level_noise", "load", "plan", "sweep"]
+           "entries", "grid", "initialize", "level_grid", "level_noise", "load", "plan", "sweep"]

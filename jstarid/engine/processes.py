@@ -16,7 +16,29 @@ from collections.abc import Mapping
 import jax
 import numpy as np
 
-__all__ = ["gather", "process_count", "share"]
+__all__ = ["gather", "initialize", "process_count", "share"]
+
+
+def initialize(coordinator: str | None = None, num_processes: int | None = None,
+               process_id: int | None = None, *, timeout_s: int = 300) -> None:
+    """Join a multi-process run (``jax.distributed.initialize``); call before any JAX computation.
+
+    On a cluster whose scheduler JAX recognises (SLURM, Open MPI, Cloud TPU) every argument may be
+    left out: JAX reads them from the environment. Elsewhere give all three, the same coordinator
+    (``host:port`` of process 0) to every process.
+
+    Raises:
+        ValueError: only some of the three arguments given.
+    """
+    given = [a is not None for a in (coordinator, num_processes, process_id)]
+    if any(given) and not all(given):
+        raise ValueError("give --coordinator, --num-processes and --process-id together (or none, "
+                         "on a cluster JAX detects)")
+    kwargs = {"initialization_timeout": timeout_s}
+    if all(given):
+        kwargs.update(coordinator_address=coordinator, num_processes=num_processes,
+                      process_id=process_id)
+    jax.distributed.initialize(**kwargs)
 
 
 def process_count() -> int:
