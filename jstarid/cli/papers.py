@@ -65,14 +65,25 @@ def run_reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
-def report_text(reproduce: Path, sweeps: list[Path]) -> str:
-    """The report page: each reproduced experiment beside its paper, then the saved sweeps."""
+def report_text(reproduce: Path, sweeps: list[Path], *, title: bool = True) -> str:
+    """The report page: the saved sweeps (every algorithm on identical scenes), then each
+    reproduced experiment beside its paper. ``title=False``: no ``#`` heading (a block of a page)."""
     import jstarid as js
     from jstarid.papers import reproduction as rp
 
-    parts = ["# jstarid report", "",
-             "Made by `jstarid report` from saved results; every table names the command, commit "
-             "and machine that produced it. Rates are % of scenes with 95 % Wilson intervals.", ""]
+    head = ["# jstarid report", ""] if title else []
+    parts = head + ["Made by `jstarid report` from saved results; every table names the command, "
+                    "commit and machine that produced it. Rates are % of scenes with 95 % Wilson "
+                    "intervals.", ""]
+    n_head = len(parts)
+    for where in sweeps:
+        if not (where / "scenes.npz").exists():
+            continue
+        result = js.load_sweep(where)
+        parts += [f"## Every algorithm on identical scenes: `{where}`", "",
+                  result.table().strip(), "", _provenance(where), ""]
+        if title:  # the page sits beside results/; a block of a committed file links no figure
+            parts += [f"![rates]({(where / 'rates.png').as_posix()})", ""]
     found = False
     for paper in rp.PAPERS:
         for exp in rp.experiments(paper):
@@ -84,14 +95,7 @@ def report_text(reproduce: Path, sweeps: list[Path]) -> str:
                 found = True
             result = js.load_sweep(where)
             parts += [rp.comparison(exp, result.rows()), _provenance(where), ""]
-    for where in sweeps:
-        if not (where / "scenes.npz").exists():
-            continue
-        result = js.load_sweep(where)
-        parts += [f"## Every algorithm on identical scenes: `{where}`", "",
-                  result.table().strip(), "", _provenance(where), "",
-                  f"![rates]({(where / 'rates.png').as_posix()})", ""]
-    if len(parts) == 4:
+    if len(parts) == n_head:
         raise FileNotFoundError(f"no saved results under {reproduce} or {', '.join(map(str, sweeps))}; "
                                 "run `jstarid demo` or `jstarid reproduce … --quick` first")
     return "\n".join(parts).rstrip() + "\n"
@@ -114,7 +118,7 @@ def run_report(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}")
     if args.update is not None:
         old = args.update.read_text() if args.update.exists() else ""
-        block = f"{REPORT_START}\n{text}{REPORT_END}"
+        block = f"{REPORT_START}\n{report_text(args.reproduce, args.sweeps, title=False)}{REPORT_END}"
         if REPORT_START in old and REPORT_END in old:
             head, rest = old.split(REPORT_START, 1)
             new = head + block + rest.split(REPORT_END, 1)[1]

@@ -71,7 +71,7 @@ def experiments(paper: str) -> list[Experiment]:
                 for name, s in mlv_paper.SWEEPS.items()]
     if paper == "rpnet":
         return [Experiment("rpnet", name, rpnet_paper.CAMERA, 6.0, s.field, tuple(s.levels), dict(s.fixed),
-                           "stars", "rpnet", 64, 10_000, 200, s.label,
+                           "stars", "rpnet", 128, 10_000, 200, s.label,
                            dict(rpnet_paper.PAPER[name]["values"]), rpnet_paper.PAPER[name]["note"])
                 for name, s in rpnet_paper.SWEEPS.items()]
     if paper == "sgm":
@@ -86,8 +86,13 @@ def experiments(paper: str) -> list[Experiment]:
 
 
 def run(experiment: Experiment, out: str | Path, *, quick: bool = False, scenes: int | None = None,
-        seed: int = 0, progress: bool = True, rpnet_network: str = "quick"):
+        seed: int = 0, progress: bool = True, rpnet_network: str = "quick", config=None,
+        capacity: int | None = None):
     """Run one experiment through the engine and save it under ``out/<paper>/<name>``.
+
+    Args:
+        config: the algorithm's config (default: :func:`jstarid.engine.default_config`).
+        capacity: detections per scene (default: the experiment's).
 
     Returns:
         The :class:`~jstarid.engine.SweepResult`.
@@ -95,10 +100,12 @@ def run(experiment: Experiment, out: str | Path, *, quick: bool = False, scenes:
     import jstarid as js
 
     n = scenes or (experiment.quick_scenes if quick else experiment.scenes)
-    result = js.sweep([experiment.paper], experiment.camera,
+    entry = (experiment.paper if config is None
+             else js.Entry(experiment.paper, experiment.paper, config))
+    result = js.sweep([entry], experiment.camera,
                       axes={experiment.axis: list(experiment.levels)}, fixed=experiment.fixed,
                       scenes=n, seed=seed, catalog=js.load_catalog(experiment.mag_limit),
-                      capacity=experiment.capacity, boresight=experiment.boresight,
+                      capacity=capacity or experiment.capacity, boresight=experiment.boresight,
                       criterion=experiment.criterion, rpnet_network=rpnet_network, progress=progress)
     result.save(Path(out) / experiment.paper / experiment.name,
                 title=f"{experiment.paper.upper()} {experiment.name}: {experiment.label}")
