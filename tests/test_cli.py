@@ -3,6 +3,7 @@ import json
 import numpy as np
 import pytest
 
+import jstarid as js
 from jstarid import cli
 
 
@@ -74,9 +75,13 @@ def test_bad_arguments_give_one_line_and_status_2(argv, message, capsys):
     assert message in err and err.count("\n") == 1, err
 
 
-def test_list(capsys):
+def test_list_and_catalog(capsys):
     assert cli.main(["list"]) == 0
     assert "oracle" in capsys.readouterr().out
+    assert cli.main(["catalog", "--mag-limit", "4.0"]) == 0
+    out = capsys.readouterr().out
+    counts = [int(line.rsplit(":", 1)[1]) for line in out.splitlines() if line.startswith("  V")]
+    assert "V   3.5 –  4.5" in out and sum(counts) == len(js.load_catalog(4.0))  # every star binned
 
 
 def _render(xy, mag, height, width, *, zero_point=16.7, psf_sigma=0.8, seed=0):

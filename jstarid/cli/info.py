@@ -31,7 +31,9 @@ def run_catalog(args) -> int:
     cat = js.load_catalog(args.mag_limit, double_sep_deg=args.double_sep,
                           double_mode=args.double_mode)
     print(cat)
-    hist, edges = np.histogram(cat.mag, bins=np.arange(-1.5, args.mag_limit + 0.5, 1.0))
+    # bins of 1 mag centred on integers, the last one reaching past the limit (every star counted)
+    edges = np.arange(-1.5, args.mag_limit + 1.0, 1.0)
+    hist, edges = np.histogram(cat.mag, bins=edges)
     for h, e in zip(hist, edges, strict=False):
         print(f"  V {e:5.1f} – {e + 1:4.1f}: {h}")
     return 0

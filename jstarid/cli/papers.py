@@ -80,7 +80,7 @@ def report_text(reproduce: Path, sweeps: list[Path], *, title: bool = True) -> s
         if not (where / "scenes.npz").exists():
             continue
         result = js.load_sweep(where)
-        parts += [f"## Every algorithm on identical scenes: `{where}`", "",
+        parts += ["## Every algorithm on identical scenes", "", f"Saved in `{where}`.", "",
                   result.table().strip(), "", _provenance(where), ""]
         if title:  # the page sits beside results/; a block of a committed file links no figure
             parts += [f"![rates]({(where / 'rates.png').as_posix()})", ""]

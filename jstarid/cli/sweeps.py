@@ -137,7 +137,7 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
         print(f"jstarid {title}: {label} on {n_levels} levels × {args.scenes} scenes "
               f"({', '.join(axes)}; camera {camera.name}).", flush=True)
         if steps:
-            total = sum(s for _, s in steps) + 60
+            total = sum(s for _, s in steps) + 30  # + simulating, identifying, writing
             print(f"First use builds: {'; '.join(t for t, _ in steps)} — about {total / 60:.0f} min in "
                   "all on 2 CPU cores, once; later runs reuse them.", flush=True)
         else:

@@ -161,9 +161,9 @@ def _database(catalog, camera, config, rows, variables, history, path) -> Databa
                     history=history, path=path, key=database_key(catalog, camera, config))
 
 
-# seconds per training step per 256 samples on a 2-core CPU (quick: 6,000 steps in 289 s;
-# Table 3: 78,813 steps of 512 in 7,336 s; experiments/RESULTS.md)
-_SECONDS_PER_STEP_256 = 0.048
+# seconds per training step per 256 samples on a 2-core CPU (quick: 6,000 steps in ≈ 180 s on an
+# idle machine, 289 s on a shared one; Table 3: 78,813 steps of 512 in 7,336 s, shared)
+_SECONDS_PER_STEP_256 = 0.035
 
 
 def first_use(catalog, camera, config: Config | None = None) -> tuple[str, float] | None:
