@@ -125,13 +125,17 @@ def plot_sweep_axes(rows, *, axes=None, x_field: str | None = None, labels: dict
     for r in rows:
         name = r["label"] + "".join(f", {f}={r[f]:g}" for f in others)
         lines.setdefault(name, []).append(r)
-    for name, group in lines.items():
-        x = np.array([r[x_field] for r in group], float)
+    xs = np.array([r[x_field] for r in rows], float)
+    span = float(np.ptp(xs)) or 1.0
+    for k, (name, group) in enumerate(lines.items()):
+        # lines side by side (a small dodge) so that overlapping intervals stay readable
+        dodge = (k - (len(lines) - 1) / 2) * 0.012 * span
+        x = np.array([r[x_field] for r in group], float) + dodge
         for ax, rate in zip(axes, ("identification", "misid"), strict=True):
             y = np.array([100 * r[f"{rate}_rate"] for r in group])
             err = np.clip([[100 * (r[f"{rate}_rate"] - r[f"{rate}_low"]) for r in group],
                            [100 * (r[f"{rate}_high"] - r[f"{rate}_rate"]) for r in group]], 0, None)
-            ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label=name)
+            ax.errorbar(x, y, yerr=err, marker="o", ms=4, capsize=2, elinewidth=1, label=name)
     for ax, title in zip(axes, ("identified (%)", "mis-identified (%)"), strict=True):
         ax.set_xlabel(labels.get(x_field, x_field))
         ax.set_ylabel(title)

@@ -113,6 +113,11 @@ def test_grid_runs_as_one_batch_and_equals_single_entries():
     separate = js.sweep([e._replace(group="") for e in grid], **kw)
     assert batched.equal_outcomes(separate)
     assert len({r["identification_rate"] for r in batched.rows()}) > 1  # the grid matters
+    # Δv shapes MLV's lookup tables: not batchable, so each point runs with its own database
+    dv = js.grid("mlv", base, dv1=[3e-5, 6e-5])
+    dv_batched = js.sweep(dv, **kw)
+    assert dv_batched.equal_outcomes(js.sweep([e._replace(group="") for e in dv], **kw))
+    assert dv_batched.rows()[0]["dv1"] == 3e-5
     with pytest.raises(ValueError, match="differ only"):
         mlv.identify_grid(None, None, [base, dataclasses.replace(base, n_stars=8)])
     with pytest.raises(ValueError, match="no field"):

@@ -146,9 +146,11 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
         names = first.group or first.label
         _say(progress, f"{names}: database …")
         t0 = time.perf_counter()
-        db = module.build_database(catalog, camera, first.config, progress=progress)
+        # one database per config (cached on disk: a grid over traced tolerances loads one file)
+        dbs = [module.build_database(catalog, camera, c, progress=progress and k == 0)
+               for k, c in enumerate(configs)]
         t_db = time.perf_counter() - t0
-        run = _runner(module, db, configs)
+        run = _runner(module, dbs, configs)
         outs = [[] for _ in members]
         compile_s = 0.0
         for c, (part, level) in enumerate(chunks):
@@ -201,11 +203,22 @@ def plan(algorithms: Sequence | str, catalog, camera: Camera, *, rpnet_network: 
     return items
 
 
-def _runner(module, db, configs):
-    """``run(scenes) -> [Identification per config]``: one ``identify_grid`` call or one call each."""
-    if len(configs) > 1 and hasattr(module, "identify_grid"):
-        return lambda s: module.identify_grid(db, s, configs)
-    return lambda s: [module.identify(db, s, cfg) for cfg in configs]
+def _runner(module, dbs, configs):
+    """``run(scenes) -> [Identification per config]``: the algorithm's ``identify_grid`` (one batch)
+    where it can take the grid, else one ``identify`` call per config with its own database."""
+    grid = getattr(module, "identify_grid", None)
+    state = {"batched": (len(configs) > 1 and grid is not None
+                         and len({d.cache_key() for d in dbs}) == 1)}
+
+    def run(scenes):
+        if state["batched"]:
+            try:
+                return grid(dbs[0], scenes, configs)
+            except ValueError:  # the grid varies settings it cannot batch (e.g. MLV's Δv)
+                state["batched"] = False
+        return [module.identify(db, scenes, c) for db, c in zip(dbs, configs, strict=True)]
+
+    return run
 
 
 def _groups(entries: Sequence[Entry]) -> list[list[int]]:

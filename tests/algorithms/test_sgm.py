@@ -609,10 +609,16 @@ def test_grid_replay_equals_separate_searches(setup5):
         np.testing.assert_array_equal(ids[:, ci, ei], np.asarray(res.ids))
     assert ok.any() and not ok.all()  # the grid has successes and failures
     # the one-call form over a Tuning grid gives the same ids and outcomes
-    grid_ids, grid_ok = tuning.identify_grid(db, scenes, base, sgm.Tuning(c=np.array(cs),
-                                                                          max_error_deg=np.array(eps)))
+    grid_ids, grid_ok = tuning.search_grid(db, scenes, base, sgm.Tuning(c=np.array(cs),
+                                                                        max_error_deg=np.array(eps)))
     np.testing.assert_array_equal(grid_ok, ok & usable[:, None, None])
     np.testing.assert_array_equal(grid_ids, ids)
+    # the engine's form: one Identification per config of the grid, from the same single search
+    configs = [dataclasses.replace(base, c=c, max_error_deg=e) for c in cs for e in eps]
+    results = sgm.identify_grid(db, scenes, configs)
+    for k, res in enumerate(results):
+        np.testing.assert_array_equal(np.asarray(res.ok), grid_ok[:, k // 3, k % 3])
+        np.testing.assert_array_equal(np.asarray(res.ids), grid_ids[:, k // 3, k % 3])
 
 
 def _pair_case(j_name, mags=None, contender_deg=None, third_star_deg=None, star_at_j=False, s=0.08):

@@ -15,6 +15,7 @@ paper's algorithm.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import NamedTuple
 
@@ -35,10 +36,12 @@ from jstarid.algorithms.sgm.search import (
     run_pairs,
     skip_padding,
 )
+from jstarid.attitude import estimate_attitude
 from jstarid.runtime import replicate
+from jstarid.scene import Identification
 
 __all__ = ["CandidateErrors", "candidate_errors", "grid_identifications", "identify_grid",
-           "replay_algorithm1"]
+           "replay_algorithm1", "search_grid"]
 
 
 class CandidateErrors(NamedTuple):
@@ -181,7 +184,7 @@ def grid_identifications(db, graphs, errors: dict, ok, rank, n_detections: int):
     return ids
 
 
-def identify_grid(db, scenes, config: Config, tuning: Tuning):
+def search_grid(db, scenes, config: Config, tuning: Tuning):
     """The paper's Algorithm 1 for every (c, ε_δ) of a grid, on one batch of scenes.
 
     One spectral matching per (candidate, c) — c is a ``vmap`` axis — and the stop rule replayed for
@@ -206,3 +209,43 @@ def identify_grid(db, scenes, config: Config, tuning: Tuning):
     ok, rank = replay_algorithm1(errors.level, errors.error, eps)
     ok = ok & usable[:, None, None]
     return grid_identifications(db, g, errors, ok, rank, scenes.xy.shape[1]), ok
+
+
+# the fields a grid of search_grid may vary, and the extensions it does not apply
+_GRID_FIELDS = ("c", "max_error_deg")
+
+
+def identify_grid(db, scenes, configs) -> list[Identification]:
+    """``identify`` with each of ``configs`` (the sweep engine's parameter grids, :func:`jstarid.grid`).
+
+    Where every config runs the paper's Algorithm 1 alone (``verify`` off, no leftover naming) and
+    they differ only in ``c`` and ``max_error_deg``, the grid is one :func:`search_grid` call (c a
+    batch axis of the matching, ε_δ replayed on the stored errors), whose names equal separate
+    searches; otherwise each config is a separate :func:`~jstarid.algorithms.sgm.identify` call.
+
+    Args:
+        db: the database. scenes: (B, N) scenes. configs: :class:`Config` s.
+
+    Returns:
+        One (B, N) :class:`~jstarid.scene.Identification` per config (attitudes fitted to the names).
+    """
+    from jstarid.algorithms.sgm.identify import identify
+
+    configs = list(configs)
+    base = dataclasses.replace(configs[0], c=1.0, max_error_deg=0.1)
+    batched = (not base.verify and base.leftover_tol_deg is None and all(
+        dataclasses.replace(c, c=1.0, max_error_deg=0.1) == base for c in configs))
+    if not batched:
+        return [identify(db, scenes, c) for c in configs]
+    cs = sorted({float(c.c) for c in configs})
+    eps = sorted({float(c.max_error_deg) for c in configs})
+    ids, ok = search_grid(db, scenes, configs[0], Tuning(c=np.array(cs), max_error_deg=np.array(eps)))
+    out = []
+    for config in configs:
+        ci, ei = cs.index(float(config.c)), eps.index(float(config.max_error_deg))
+        result = Identification(ids=jnp.asarray(ids[:, ci, ei]), ok=jnp.asarray(ok[:, ci, ei]),
+                                attitude=None)
+        att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
+        att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
+        out.append(Identification(ids=result.ids, ok=result.ok, attitude=att))
+    return out
