@@ -156,9 +156,22 @@ def _git_commit() -> str | None:
     return f"{out}+changes" if dirty else out
 
 
+def _command() -> str:
+    """The command line, its program named as a user would type it: a script of the repository by
+    its relative path, an installed command (``jstarid``) by its name."""
+    program = Path(sys.argv[0]) if sys.argv and sys.argv[0] else Path("python")
+    name = program.name
+    if program.suffix == ".py":
+        try:
+            name = "python " + str(program.resolve().relative_to(Path(__file__).resolve().parent.parent))
+        except ValueError:
+            name = f"python {name}"
+    return " ".join([name, *sys.argv[1:]])
+
+
 def provenance() -> dict:
     """Commit (``+changes`` when the package has uncommitted edits), machine, command line, date."""
-    return {"commit": _git_commit(), "machine": machine(), "command": " ".join(sys.argv),
+    return {"commit": _git_commit(), "machine": machine(), "command": _command(),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
 
 

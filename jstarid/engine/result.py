@@ -24,11 +24,11 @@ from jstarid.metrics import CORRECT, FAIL, INCOMPLETE, WRONG, wilson_interval
 __all__ = ["SweepResult", "load", "COLUMNS"]
 
 # (key, header, format) of table.md
-COLUMNS = (("identification_rate", "identified %", "{:.2%}"),
+COLUMNS = (("identification_rate", "identified", "{:.2%}"),
            ("identification_ci", "95 % interval", "{}"),
-           ("misid_rate", "misid %", "{:.2%}"),
+           ("misid_rate", "misid", "{:.2%}"),
            ("misid_ci", "95 % interval", "{}"),
-           ("failure_rate", "failed %", "{:.2%}"),
+           ("failure_rate", "failed", "{:.2%}"),
            ("boresight_err_arcsec_median", "boresight ″ (median)", "{:.1f}"),
            ("scenes_per_second", "scenes/s", "{:,.0f}"),
            ("peak_rss_mb", "peak MB", "{:,.0f}"))
