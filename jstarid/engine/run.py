@@ -99,7 +99,8 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
     settings = {"camera": camera, "catalog": {"mag_limit": catalog.mag_limit,
                                               "fingerprint": catalog.fingerprint,
                                               "stars": len(catalog)},
-                "axes": {k: [lv[k] for lv in levels] for k in levels[0]}, "levels": levels,
+                "axes": {k: sorted({lv[k] for lv in levels}, key=[lv[k] for lv in levels].index)
+                         for k in levels[0]}, "levels": levels,
                 "fixed": dict(fixed or {}), "scenes_per_level": scenes, "seed": seed,
                 "capacity": capacity, "boresight": boresight, "criterion": criterion,
                 "chunk_size": chunk_size, "simulate_seconds": time.perf_counter() - t0}
