@@ -3,8 +3,8 @@
 - :mod:`.levels`: noise axes → levels → one (L · n,) :class:`~jstarid.NoiseConfig` batch;
 - :mod:`.entries`: what runs (:class:`Entry`: algorithm, config, label) and parameter grids
   (:func:`grid`);
-- :mod:`.run`: :func:`sweep` (simulate once, then :func:`compare`) and :func:`compare` (every
-  entry on given scenes, in memory-bounded chunks);
+- :mod:`.run`: :func:`sweep` = :func:`simulate_levels` (every level in one simulate call) +
+  :func:`compare` (every entry on given scenes, in memory-bounded chunks);
 - :mod:`.result`: :class:`SweepResult`, the tidy table with Wilson intervals, save and :func:`load`;
 - :mod:`.processes`: a process's share of the scenes and the gather, under ``jax.distributed``.
 
@@ -25,7 +25,8 @@ from jstarid.engine.entries import Entry, default_config, entries, grid
 from jstarid.engine.levels import AXES, axis_field, level_grid, level_noise
 from jstarid.engine.processes import initialize
 from jstarid.engine.result import SweepResult, load
-from jstarid.engine.run import BORESIGHTS, compare, plan, sweep
+from jstarid.engine.run import BORESIGHTS, Levels, compare, plan, simulate_levels, sweep
 
-__all__ = ["AXES", "BORESIGHTS", "Entry", "SweepResult", "axis_field", "compare", "default_config",
-           "entries", "grid", "initialize", "level_grid", "level_noise", "load", "plan", "sweep"]
+__all__ = ["AXES", "BORESIGHTS", "Entry", "Levels", "SweepResult", "axis_field", "compare",
+           "default_config", "entries", "grid", "initialize", "level_grid", "level_noise", "load",
+           "plan", "simulate_levels", "sweep"]

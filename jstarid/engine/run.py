@@ -16,6 +16,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -35,7 +36,7 @@ from jstarid.metrics import CRITERIA, scene_outcomes
 from jstarid.scene import Identification, Scene
 from jstarid.simulator import simulate
 
-__all__ = ["compare", "plan", "sweep", "BORESIGHTS", "SCORES"]
+__all__ = ["Levels", "compare", "plan", "simulate_levels", "sweep", "BORESIGHTS", "SCORES"]
 
 BORESIGHTS = ("random", "stars")
 # what is kept per scene and entry (the table is computed from these alone)
@@ -61,8 +62,9 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
         seed: PRNG seed of the scenes (same seed, same scenes, for every algorithm).
         catalog: a :class:`~jstarid.Catalog` (default: Hipparcos down to the camera's limit).
         capacity: detections kept per scene.
-        boresight: ``"random"`` (uniform attitudes) or ``"stars"`` (boresight on a catalog star
-            drawn at random, roll uniform: the SGM and RpNet papers' scenes).
+        boresight: ``"random"`` (uniform attitudes), ``"stars"`` (boresight on a catalog star
+            drawn at random, roll uniform: the SGM and RpNet papers' scenes) or a 1-D array of
+            the catalog rows to draw that star from (e.g. RpNet's guide stars).
         criterion: outcome rule (:data:`jstarid.metrics.CRITERIA`).
         chunk_size: most scenes per ``identify`` call (bounds memory).
         rpnet_network: RpNet's network when RpNet is named (``"quick"`` or ``"table3"``).
@@ -75,20 +77,64 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
         ValueError: an unknown algorithm, camera, axis or criterion, scenes or chunk size < 1, or
             out-of-range noise.
     """
-    axes = {"position_sigma_px": [0.0, 1.0, 2.0, 3.0]} if axes is None else axes
-    camera = camera_preset(camera) if isinstance(camera, str) else camera
-    _check_positive(scenes=scenes, chunk_size=chunk_size, capacity=capacity)
-    if boresight not in BORESIGHTS:
-        raise ValueError(f"boresight must be one of {BORESIGHTS}, got {boresight!r}")
+    _check_positive(chunk_size=chunk_size)
     if criterion not in CRITERIA:
         raise ValueError(f"unknown criterion {criterion!r}; choose one of {CRITERIA}")
     entries = make_entries(algorithms, rpnet_network=rpnet_network)
+    drawn = simulate_levels(camera, axes=axes, fixed=fixed, scenes=scenes, seed=seed,
+                            catalog=catalog, capacity=capacity, boresight=boresight,
+                            progress=progress)
+    settings = {**drawn.settings, "criterion": criterion, "chunk_size": chunk_size}
+    return compare(drawn.scenes, entries, drawn.catalog, drawn.camera, level_of=drawn.level_of,
+                   levels=drawn.levels, criterion=criterion, chunk_size=chunk_size,
+                   progress=progress, settings=settings)
+
+
+class Levels(NamedTuple):
+    """A sweep's scenes (:func:`simulate_levels`): every level's, level-major.
+
+    Attributes:
+        scenes: (L · n, N) :class:`~jstarid.Scene`. level_of: (L · n,) level index of each scene.
+        levels: per level, ``{noise field: value}``. catalog, camera: what they were drawn from.
+        settings: the drawing settings (recorded with a sweep's result).
+    """
+
+    scenes: Scene
+    level_of: np.ndarray
+    levels: list
+    catalog: object
+    camera: Camera
+    settings: dict
+
+
+def simulate_levels(camera: str | Camera = "sgm2022", *,
+                    axes: Mapping[str, Sequence[float]] | None = None,
+                    fixed: Mapping | None = None, scenes: int = 200, seed: int = 0, catalog=None,
+                    capacity: int = 64, boresight: str = "random", progress: bool = False) -> Levels:
+    """The scenes :func:`sweep` runs on, in one ``simulate`` call (arguments as in :func:`sweep`).
+
+    A script that measures more than the engine does (a network's top-1 accuracy, a naming
+    ceiling) draws the scenes here and passes them to :func:`compare` and to its own code.
+    """
+    axes = {"position_sigma_px": [0.0, 1.0, 2.0, 3.0]} if axes is None else axes
+    camera = camera_preset(camera) if isinstance(camera, str) else camera
+    _check_positive(scenes=scenes, capacity=capacity)
+    candidates = None
+    if not isinstance(boresight, str):  # the catalog rows a boresight star is drawn from
+        candidates = np.asarray(boresight)
+        if candidates.ndim != 1 or candidates.size == 0 or not np.issubdtype(candidates.dtype,
+                                                                             np.integer):
+            raise ValueError("boresight rows must be a non-empty 1-D integer array")
+        boresight = "stars"
+    if boresight not in BORESIGHTS:
+        raise ValueError(f"boresight must be one of {BORESIGHTS} or catalog rows, got {boresight!r}")
     levels = level_grid(axes)
     noise = level_noise(levels, scenes, fixed)
     catalog = load_catalog(camera.mag_limit) if catalog is None else catalog
+    candidates = np.arange(len(catalog)) if candidates is None else candidates
     total = len(levels) * scenes
     key_scenes, key_rows = jax.random.split(jax.random.key(seed))
-    rows = (np.asarray(jax.random.randint(key_rows, (total,), 0, len(catalog)))
+    rows = (candidates[np.asarray(jax.random.randint(key_rows, (total,), 0, candidates.size))]
             if boresight == "stars" else None)
     t0 = time.perf_counter()
     batch = simulate(key_scenes, catalog, camera, noise, batch_size=total, capacity=capacity,
@@ -102,11 +148,10 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
                 "axes": {k: sorted({lv[k] for lv in levels}, key=[lv[k] for lv in levels].index)
                          for k in levels[0]}, "levels": levels,
                 "fixed": dict(fixed or {}), "scenes_per_level": scenes, "seed": seed,
-                "capacity": capacity, "boresight": boresight, "criterion": criterion,
-                "chunk_size": chunk_size, "simulate_seconds": time.perf_counter() - t0}
-    return compare(batch, entries, catalog, camera, level_of=np.repeat(np.arange(len(levels)), scenes),
-                   levels=levels, criterion=criterion, chunk_size=chunk_size, progress=progress,
-                   settings=settings)
+                "capacity": capacity, "boresight": boresight,
+                "simulate_seconds": time.perf_counter() - t0}
+    return Levels(batch, np.repeat(np.arange(len(levels)), scenes).astype(np.int32), levels,
+                  catalog, camera, settings)
 
 
 def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, *,
