@@ -2,21 +2,21 @@
 
 Camera ``mlv2021`` (25°×25°, 1024², V ≤ 5.5, simulation list to 6.5), random attitudes, the mlv
 success criterion (≥ 3 correct and none wrong; conventions §5), identification and
-mis-identification rates per level. Three parts:
+mis-identification rates per level; a preset over the sweep engine (``js.engine.simulate_levels``
+draws every level in one simulate call, ``js.compare`` runs the entries on the same scenes in
+bounded chunks). Three parts:
 
 - ``fig5``: identification rate vs position noise σ ∈ {0, 0.5, …, 2.5} px with magnitude σ 0.3 (the
   paper's Fig. 5 conditions, :mod:`jstarid.papers.mlv`) for Δv1/Δv2 ∈ {3e-5/3e-4, 5e-5/5e-4,
   6e-5/6e-4}, for our algorithm (``mlv``: all extensions on) and the paper's voting alone
-  (``paper``: ``Config.paper()``, no vertex match, attitude or field check). All noise levels are
-  ONE batched ``js.simulate`` call over ``js.noise_grid``; the same scenes serve every Δv and
-  variant (a paired comparison). Δv changes the discretization, so the lookup tables are built once
-  per Δv pair (the triangle table is cached on disk and shared by all Δv) and reused for every
-  noise level.
+  (``paper``: ``Config.paper()``, no vertex match, attitude or field check). The same scenes serve
+  every Δv and variant (a paired comparison). Δv changes the discretization, so each pair has its
+  own lookup tables (the triangle table is cached on disk and shared by all Δv).
 - ``grid``: Th1 = Th2 ∈ ``--th`` × ε ∈ ``--eps`` (deg; the vertex-match side tolerance is set to ε
   too) at the ``--grid-levels`` position-noise levels, default Δv, extensions on. Th and ε are
-  traced per-scene values (``identify(..., tuning=mlv.Tuning(th1, th2, eps_rad, side_tol_rad))``), so
-  the whole grid is one batch axis: ONE ``identify`` call and one compilation (its window shape is
-  set by the largest Th) serve every (Th, ε, noise) cell.
+  traced per-scene values, so the grid is one engine group that MLV's ``identify_grid`` runs as one
+  batch axis (the scenes repeated once per cell): one compilation (its window shape is set by the
+  largest Th) serves every (Th, ε, noise) cell.
 - ``nstars``: N ∈ ``--n-stars`` at the grid levels, default Δv, Th, ε. N changes array shapes (C(N,3)
   triangles, 2^N verification subsets) and the database (brightest N stars per boresight), so it is
   NOT a batch axis: one database and one compilation per static N value (a loop).
@@ -38,10 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-
-import jax
-import jax.numpy as jnp
-import numpy as np
 
 import jstarid as js
 from jstarid import experiment as ex
@@ -71,94 +67,77 @@ def _floats(text):
     return [float(v) for v in text.split(",") if v.strip()]
 
 
-def _rates(scenes, result, diag, lo, hi):
-    rep = js.evaluate(scenes[lo:hi], result[lo:hi], "mlv")
-    return {"identification_rate": rep["identification_rate"], "misid_rate": rep["misid_rate"],
-            "failure_rate": rep["failure_rate"], "mean_identified": rep["mean_identified"],
-            "candidate_overflow_rate": float(np.mean(np.asarray(diag.candidate_overflow)[lo:hi])),
-            "n_scenes": rep["n_scenes"]}
+def _compare(drawn, entries):
+    """The engine on the drawn scenes; per entry, its rows and identify seconds."""
+    result = js.compare(drawn.scenes, entries, drawn.catalog, drawn.camera, level_of=drawn.level_of,
+                        levels=drawn.levels, criterion="mlv", progress=False)
+    keys = ("position_sigma_px", "identification_rate", "misid_rate", "failure_rate",
+            "mean_identified", "scenes")
+    rows = {e.label: [{k: r[k] for k in keys} for r in result.rows() if r["label"] == e.label]
+            for e in entries}
+    seconds = {e.label: float(result.seconds[i].sum()) for i, e in enumerate(entries)}
+    return rows, seconds
 
 
-def _identify_timed(db, scenes, cfg, tuning=None):
-    with ex.Stopwatch() as clock:
-        result, diag = mlv.identify(db, scenes, cfg, diagnostics=True, tuning=tuning)
-        result.ids.block_until_ready()
-    return result, diag, clock.seconds
-
-
-def _tile(scenes, times: int):
-    """The batch repeated ``times`` times along the batch axis (a new batch axis for tuning)."""
-    return jax.tree_util.tree_map(lambda a: jnp.concatenate([a] * times), scenes)
-
-
-def run_fig5(args, catalog, camera, scenes, levels, n, databases):
-    out = {}
+def run_fig5(args, drawn):
+    """Every Δv pair of every variant on the same scenes (one engine run; Δv shapes the lookup
+    tables, so each pair has its own database and identify call)."""
+    entries = []
     for variant in args.variants.split(","):
         if variant not in ("mlv", "paper"):
             raise ValueError(f"unknown variant {variant!r}")
         base = ex.with_overrides(mlv.Config.paper() if variant == "paper" else mlv.Config(), args.set)
-        out[variant] = {}
         for pair in args.dv.split(","):
             dv1, dv2 = (float(v) for v in pair.split("/"))
-            cfg = dataclasses.replace(base, dv1=dv1, dv2=dv2)
-            with ex.Stopwatch() as clock:
-                db = mlv.build_database(catalog, camera, cfg, progress=False)  # once per Δv
-            databases[pair] = {**db.info_dict(), "seconds": clock.seconds}
-            result, diag, seconds = _identify_timed(db, scenes, cfg)
-            rows = [{"position_sigma_px": lv, **_rates(scenes, result, diag, i * n, (i + 1) * n)}
-                    for i, lv in enumerate(levels)]
-            out[variant][pair] = {"rows": rows, "identify_seconds": seconds,
-                                  "scenes_per_second": scenes.batch_size / seconds,
-                                  "candidate_capacity_used": diag.capacity}
-            print(f"fig5 {variant} Δv {pair}: " + ", ".join(
-                f"{r['position_sigma_px']}px {100 * r['identification_rate']:.2f}%"
-                f"/{100 * r['misid_rate']:.2f}%" for r in rows) + f" ({seconds:.1f} s)", flush=True)
+            entries.append(js.Entry(f"{variant} {pair}", "mlv", dataclasses.replace(base, dv1=dv1,
+                                                                                 dv2=dv2)))
+    rows, seconds = _compare(drawn, entries)
+    out = {}
+    for e in entries:
+        variant, pair = e.label.split(" ")
+        out.setdefault(variant, {})[pair] = {
+            "rows": rows[e.label], "identify_seconds": seconds[e.label],
+            "scenes_per_second": drawn.scenes.batch_size / seconds[e.label]}
+        print(f"fig5 {variant} Δv {pair}: " + ", ".join(
+            f"{r['position_sigma_px']}px {100 * r['identification_rate']:.2f}%"
+            f"/{100 * r['misid_rate']:.2f}%" for r in rows[e.label]), flush=True)
     return out
 
 
-def run_grid(args, catalog, camera, scenes, levels, n):
-    """One identify call over the Cartesian grid (Th × ε) × noise levels × scenes."""
-    cfg = ex.with_overrides(mlv.Config(), args.set)
-    db = mlv.build_database(catalog, camera, cfg, progress=False)
-    grid = list(itertools.product([int(v) for v in _floats(args.th)], _floats(args.eps)))
-    s = scenes.batch_size
-    th = np.repeat([g[0] for g in grid], s)  # (G·S,) per-scene values, grid cell outermost
-    eps = np.repeat([g[1] for g in grid], s)
-    tiled = _tile(scenes, len(grid))
-    eps_rad = np.deg2rad(eps.astype(np.float32))
-    tuning = mlv.Tuning(th1=th, th2=th, eps_rad=eps_rad, side_tol_rad=eps_rad)
-    result, diag, seconds = _identify_timed(db, tiled, cfg, tuning)
-    rows = []
-    for g, (t, e) in enumerate(grid):
-        for i, lv in enumerate(levels):
-            lo = g * s + i * n
-            rows.append({"th": t, "eps_deg": e, "position_sigma_px": lv,
-                         **_rates(tiled, result, diag, lo, lo + n)})
-    print(f"grid: {len(grid)} (Th, ε) cells × {len(levels)} levels × {n} scenes in one call, "
-          f"{seconds:.1f} s", flush=True)
-    return {"rows": rows, "identify_seconds": seconds,
-            "scenes_per_second": tiled.batch_size / seconds, "n_calls": 1}
+def run_grid(args, drawn):
+    """Th1 = Th2 × ε (= side tolerance) as one grid of the engine: MLV runs it as one batch (the
+    scenes repeated once per cell, each copy with its own traced tolerances)."""
+    base = ex.with_overrides(mlv.Config(), args.set)
+    cells = list(itertools.product([int(v) for v in _floats(args.th)], _floats(args.eps)))
+    entries = [js.Entry(f"th={t} eps={e:g}", "mlv",
+                        dataclasses.replace(base, th1=t, th2=t, eps_deg=e, side_tol_deg=e), "grid")
+               for t, e in cells]
+    rows, seconds = _compare(drawn, entries)
+    out = [{"th": t, "eps_deg": e, **r} for (t, e), entry in zip(cells, entries, strict=True)
+           for r in rows[entry.label]]
+    total = sum(seconds.values())
+    print(f"grid: {len(cells)} (Th, ε) cells × {len(drawn.levels)} levels as one batch axis, "
+          f"{total:.1f} s", flush=True)
+    return {"rows": out, "identify_seconds": total,
+            "scenes_per_second": len(cells) * drawn.scenes.batch_size / total, "n_calls": 1}
 
 
-def run_nstars(args, catalog, camera, scenes, levels, n, databases):
-    rows, timing = [], {}
-    for n_stars in (int(v) for v in _floats(args.n_stars)):
-        cfg = dataclasses.replace(ex.with_overrides(mlv.Config(), args.set), n_stars=n_stars)
-        with ex.Stopwatch() as clock:
-            db = mlv.build_database(catalog, camera, cfg, progress=False)
-        databases[f"N={n_stars}"] = {**db.info_dict(), "seconds": clock.seconds}
-        result, diag, seconds = _identify_timed(db, scenes, cfg)
-        timing[str(n_stars)] = {"identify_seconds": seconds,
-                           "scenes_per_second": scenes.batch_size / seconds}
-        for i, lv in enumerate(levels):
-            rows.append({"n_stars": n_stars, "position_sigma_px": lv,
-                         "db_triangles": db.n_triangles,
-                         **_rates(scenes, result, diag, i * n, (i + 1) * n)})
-        print(f"N = {n_stars}: " + ", ".join(
-            f"{r['position_sigma_px']}px {100 * r['identification_rate']:.2f}%"
-            f"/{100 * r['misid_rate']:.2f}%" for r in rows if r["n_stars"] == n_stars)
-            + f" ({seconds:.1f} s)", flush=True)
-    return {"rows": rows, "timing": timing}
+def run_nstars(args, drawn):
+    """N changes shapes and the database: one entry (database, compilation) per N."""
+    values = [int(v) for v in _floats(args.n_stars)]
+    configs = [dataclasses.replace(ex.with_overrides(mlv.Config(), args.set), n_stars=k) for k in values]
+    rows, seconds = _compare(drawn, [js.Entry(f"N={k}", "mlv", c) for k, c in zip(values, configs,
+                                                                                 strict=True)])
+    out, timing = [], {}
+    for k, cfg in zip(values, configs, strict=True):
+        triangles = mlv.build_database(drawn.catalog, drawn.camera, cfg, progress=False).n_triangles
+        out += [{"n_stars": k, "db_triangles": triangles, **r} for r in rows[f"N={k}"]]
+        timing[str(k)] = {"identify_seconds": seconds[f"N={k}"],
+                          "scenes_per_second": drawn.scenes.batch_size / seconds[f"N={k}"]}
+        print(f"N = {k}: " + ", ".join(f"{r['position_sigma_px']}px {100 * r['identification_rate']:.2f}%"
+                                       f"/{100 * r['misid_rate']:.2f}%" for r in rows[f"N={k}"]),
+              flush=True)
+    return {"rows": out, "timing": timing}
 
 
 def table(results, n, magnitude_sigma, seed) -> str:
@@ -185,8 +164,8 @@ def table(results, n, magnitude_sigma, seed) -> str:
         g = results["grid"]
         levels = sorted({r["position_sigma_px"] for r in g["rows"]})
         lines += ["## Th1 = Th2 × ε (deg; side tolerance = ε), Δv 5e-5/5e-4, N = 10", "",
-                  f"One identify call over the whole grid ({g['identify_seconds']:.1f} s, "
-                  f"{g['scenes_per_second']:.0f} scenes/s, compile included).", "",
+                  f"The whole grid as one batch axis ({g['identify_seconds']:.1f} s, "
+                  f"{g['scenes_per_second']:.0f} scenes/s, compilation left out).", "",
                   "| Th | ε (deg) | " + " | ".join(f"{lv} px" for lv in levels) + " |",
                   "|---|---|" + "---|" * len(levels)]
         for (th, eps), rows in itertools.groupby(g["rows"], key=lambda r: (r["th"], r["eps_deg"])):
@@ -209,7 +188,7 @@ def table(results, n, magnitude_sigma, seed) -> str:
                 f"{100 * by[lv]['identification_rate']:.2f} / {100 * by[lv]['misid_rate']:.2f}"
                 for lv in levels) + f" | {sps:.0f} |")
         lines.append("")
-    lines += ["scenes/s: identify only, compile included.", ""]
+    lines += ["scenes/s: identify only, JAX's compilation left out (the sweep engine's timing).", ""]
     return "\n".join(lines)
 
 
@@ -249,32 +228,28 @@ def main(argv=None) -> dict:
     parts = args.parts.split(",")
     catalog = js.load_catalog(paper.MAG_LIMIT)
     camera = js.camera_preset(paper.CAMERA)
-    key_fig5, key_grid = jax.random.split(jax.random.key(args.seed))
     levels = _floats(args.levels)
     grid_levels = _floats(args.grid_levels)
-    databases, results, timing = {}, {}, {}
+    results, timing = {}, {}
 
-    def simulate(key, sigmas):  # all noise levels: one batched simulate call
-        with ex.Stopwatch() as clock:
-            scenes = js.simulate(key, catalog, camera,
-                                 js.noise_grid(n, position_sigma_px=sigmas,
-                                               magnitude_sigma=args.magnitude_sigma),
-                                 batch_size=n * len(sigmas), capacity=args.capacity)
-        return scenes, clock.seconds
+    def simulate(seed, sigmas):  # all noise levels: one batched simulate call
+        drawn = js.engine.simulate_levels(camera, axes={"position_sigma_px": sigmas},
+                                          fixed={"magnitude_sigma": args.magnitude_sigma}, scenes=n,
+                                          seed=seed, catalog=catalog, capacity=args.capacity)
+        return drawn, drawn.settings["simulate_seconds"]
 
     if "fig5" in parts:
-        scenes, timing["simulate_fig5_seconds"] = simulate(key_fig5, levels)
-        results["fig5"] = run_fig5(args, catalog, camera, scenes, levels, n, databases)
+        drawn, timing["simulate_fig5_seconds"] = simulate(args.seed, levels)
+        results["fig5"] = run_fig5(args, drawn)
     if "grid" in parts or "nstars" in parts:
-        scenes, timing["simulate_grid_seconds"] = simulate(key_grid, grid_levels)
+        drawn, timing["simulate_grid_seconds"] = simulate(args.seed + 1, grid_levels)
         if "grid" in parts:
-            results["grid"] = run_grid(args, catalog, camera, scenes, grid_levels, n)
+            results["grid"] = run_grid(args, drawn)
         if "nstars" in parts:
-            results["nstars"] = run_nstars(args, catalog, camera, scenes, grid_levels, n, databases)
+            results["nstars"] = run_nstars(args, drawn)
     config = {"args": vars(args), "scenes_per_level": n, "seed": args.seed,
               "mlv_config": ex.with_overrides(mlv.Config(), args.set), "catalog": catalog.fingerprint,
-              "catalog_settings": catalog.settings, "camera": camera, "databases": databases,
-              "timing": timing}
+              "catalog_settings": catalog.settings, "camera": camera, "timing": timing}
     text = table(results, n, args.magnitude_sigma, args.seed)
     ex.write(args.out, config=config, results=results, table=text,
              figures={"fig5.png": plot} if "fig5" in results else None)
