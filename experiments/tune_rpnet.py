@@ -5,7 +5,7 @@ quarter each, guide star at the boresight, random roll); every (po, pr) pair of 
 simplex (eq. 9, step ``--step``, decreasing order) is then scored in one ``vmap`` over the stored
 probability tables (:func:`jstarid.algorithms.rpnet.tune.weight_grid_search`). The figure of merit is
 the rate of scenes whose confident pair is correct. The best weights and Table 5's are then run
-end to end (``rpnet.identify``) on the same scenes.
+end to end on the same scenes through the sweep engine (``js.compare``, rpnet criterion).
 
 Usage::
 
@@ -30,6 +30,7 @@ import jstarid as js
 from jstarid import experiment as ex
 from jstarid.algorithms import rpnet
 from jstarid.algorithms.rpnet.tune import mixed_noise, pair_tables, simplex_grid, weight_grid_search
+from jstarid.metrics import CORRECT, WRONG
 from jstarid.papers import rpnet as paper
 
 FAMILY_NAMES = ("position", "magnitude", "missing", "false")
@@ -75,21 +76,23 @@ def main(argv=None) -> dict:
             "probability_weights": np.round(pr[b].astype(float), 3).tolist(),
             "correct": float(corr[a, b]), "wrong": float(grid["wrong"][a, b])}
            for a, b in (np.unravel_index(f, corr.shape) for f in flat)]
-    # end to end with the best weights and with Table 5's
-    e2e = {}
-    for name, (w_po, w_pr) in {"table5": (paper.TABLE5_POSITION_WEIGHTS, paper.TABLE5_PROBABILITY_WEIGHTS),
-                               "best": (tuple(grid["best"]["position_weights"]),
-                                        tuple(grid["best"]["probability_weights"]))}.items():
-        res = rpnet.identify(db, scenes, dataclasses.replace(cfg, position_weights=w_po,
-                                                             probability_weights=w_pr))
-        rep = js.evaluate(scenes, res, "rpnet", camera=camera)
-        per_family = {}
-        for f, fname in enumerate(FAMILY_NAMES):
-            sel = np.nonzero(fam == f)[0]
-            rep_f = js.evaluate(scenes[sel], res[sel], "rpnet", camera=camera)
-            per_family[fname] = rep_f["identification_rate"]
-        e2e[name] = {"identification_rate": rep["identification_rate"], "misid_rate": rep["misid_rate"],
-                     "per_family": per_family}
+    # end to end with the best weights and with Table 5's, through the sweep engine on the same
+    # scenes (grouped by noise family: the engine's levels are contiguous)
+    weights = {"table5": (paper.TABLE5_POSITION_WEIGHTS, paper.TABLE5_PROBABILITY_WEIGHTS),
+               "best": (tuple(grid["best"]["position_weights"]),
+                        tuple(grid["best"]["probability_weights"]))}
+    entries = [js.Entry(name, "rpnet", dataclasses.replace(cfg, position_weights=w_po,
+                                                           probability_weights=w_pr))
+               for name, (w_po, w_pr) in weights.items()]
+    order = np.argsort(fam, kind="stable")
+    swept = js.compare(scenes[order], entries, catalog, camera, level_of=fam[order],
+                       levels=[{"family": f} for f in FAMILY_NAMES], criterion="rpnet", progress=False)
+    codes = swept.scenes["outcome"]
+    e2e = {name: {"identification_rate": float(np.mean(codes[:, k] == CORRECT)),
+                  "misid_rate": float(np.mean(codes[:, k] == WRONG)),
+                  "per_family": {r["family"]: r["identification_rate"] for r in swept.rows()
+                                 if r["label"] == name}}
+           for k, name in enumerate(weights)}
     results = {"grid_points": int(corr.size), "n_po": len(po), "n_pr": len(pr), "scenes": n,
                "tables_seconds": t_tables.seconds, "grid_seconds": t_grid.seconds, "best": grid["best"],
                "table5": table5, "top10": top, "end_to_end": e2e, "n_tied_at_best": n_tied,
@@ -130,7 +133,7 @@ def table(results, network, step, pair_tol_px) -> str:
     lines += ["", f"Upper bound (some admissible pair is correct): {bound:.2f} %; "
               f"top-1 accuracy of S1, S2, S3: "
               f"{', '.join(f'{100 * a:.1f} %' for a in results['top1_guide_accuracy'])}.", "",
-              "End to end (`rpnet.identify`, rpnet criterion):", "",
+              "End to end through the sweep engine (`js.compare`, rpnet criterion):", "",
               "| weights | identification % | mis-identification % | position | magnitude | missing | "
               "false |",
               "|---|---|---|---|---|---|---|"]
