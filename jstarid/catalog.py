@@ -27,6 +27,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import secrets
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +63,18 @@ def cache_dir() -> Path:
     path = Path(os.environ.get("JSTARID_CACHE", Path.home() / ".cache" / "jstarid"))
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def temporary_path(path: Path) -> Path:
+    """A private file name beside ``path`` (same suffix) to write before ``os.replace(tmp, path)``.
+
+    Several processes may build the same cache file at once (pytest-xdist workers, the processes
+    of a distributed sweep sharing a cache directory): each writes its own temporary file, and the
+    last rename wins with a complete file. A shared temporary name would let one process rename
+    another's half-written file, or find it gone.
+    """
+    path = Path(path)
+    return path.with_name(f".{path.stem}.{os.getpid()}-{secrets.token_hex(4)}.tmp{path.suffix}")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -264,7 +277,7 @@ def load_catalog(mag_limit: float = 6.0, *, double_sep_deg: float = 0.05,
     if arrays is None:
         arrays = _build(settings)
         if use_cache:
-            tmp = path.with_suffix(".tmp.npz")
+            tmp = temporary_path(path)
             np.savez(tmp, settings=json.dumps(settings), **arrays)
             os.replace(tmp, path)
     return Catalog(settings=settings, **arrays)

@@ -101,3 +101,14 @@ def test_bad_catalog_settings():
 def test_v_transformation_table_monotone_pieces():
     # The table itself is the documented transformation: it must stay sorted for interpolation.
     assert np.all(np.diff(catalog_module._BV_TABLE) > 0)
+
+
+def test_cache_files_are_written_through_private_temporary_names(tmp_path):
+    """Concurrent builders of one cache file (xdist workers, distributed processes) never share a
+    temporary file: each has its own, beside the target, with the target's suffix."""
+    from jstarid.catalog import temporary_path
+
+    target = tmp_path / "mlv-abc.npz"
+    a, b = temporary_path(target), temporary_path(target)
+    assert a != b and a.parent == b.parent == tmp_path and a.suffix == b.suffix == ".npz"
+    assert a.name.startswith(".mlv-abc.")

@@ -29,7 +29,7 @@ from jstarid.algorithms.mlv.config import Config
 from jstarid.algorithms.mlv.features import discretize, singular_values, triangle_combinations
 from jstarid.attitude import rotation_from_boresight
 from jstarid.camera import Camera
-from jstarid.catalog import cache_dir
+from jstarid.catalog import cache_dir, temporary_path
 from jstarid.geometry import precise
 from jstarid.sky_index import build_sky_index, cell_of
 
@@ -279,7 +279,7 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *,
     triangles = _triangle_table(catalog, camera, config, progress)
     seconds = time.perf_counter() - t0
     if use_cache:
-        tmp = path.with_suffix(".tmp.npz")
+        tmp = temporary_path(path)
         np.savez(tmp, triangles=triangles.astype(np.int32), build_seconds=seconds)
         tmp.replace(path)
     db = database_from_triangles(catalog, camera, triangles, config.dv1, config.dv2,

@@ -21,6 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.catalog import temporary_path
+
 __all__ = ["Snapshot", "load_checkpoint", "load_snapshot", "save_checkpoint", "save_snapshot"]
 
 
@@ -62,7 +64,7 @@ def _write(path, meta: dict[str, str], variables: dict, training: dict | None = 
     payload = {"meta": dict(meta), "variables": _state(variables)}
     if training is not None:
         payload["training"] = training
-    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp = temporary_path(path)
     tmp.write_bytes(flax.serialization.msgpack_serialize(payload))
     tmp.replace(path)
     return path

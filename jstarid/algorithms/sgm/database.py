@@ -23,7 +23,7 @@ from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.sgm.bound import row_table, sorted_edges
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import catalog_neighbors, mst_weight
-from jstarid.catalog import cache_dir
+from jstarid.catalog import cache_dir, temporary_path
 from jstarid.geometry import KVector, build_kvector
 from jstarid.runtime import device_cache
 
@@ -185,7 +185,7 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
     if arrays is None:
         arrays = _build_arrays(catalog, config, progress)
         if use_cache:
-            tmp = path.with_suffix(".tmp.npz")
+            tmp = temporary_path(path)
             np.savez(tmp, **arrays)
             tmp.replace(path)
     kv, order = build_kvector(arrays["w"])
