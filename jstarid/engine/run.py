@@ -179,8 +179,10 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
     levels = [{}] if levels is None else list(levels)
     if level_of.shape != (n_total,) or np.any(np.diff(level_of) < 0) or level_of.max() >= len(levels):
         raise ValueError("level_of must be an ascending (S,) index into levels")
+    # a host copy: chunks are cut on the host and each algorithm places (and shards) its inputs
+    # itself, rather than every chunk starting as a slice of a sharded device array
     mine = processes.share(n_total)
-    local = scenes[mine]
+    local = jax.device_get(scenes[mine])
     chunks = _chunks(level_of[mine], chunk_size)
     scored: list[dict | None] = [None] * len(entries)
     timing: list[dict | None] = [None] * len(entries)
