@@ -46,11 +46,11 @@ class SweepResult:
         scenes: per-scene arrays (S, E): ``outcome`` (int8 code of :mod:`jstarid.metrics`),
             ``n_correct``, ``n_wrong``, ``n_identified``, ``boresight_err_arcsec`` and
             ``roll_err_arcsec`` (NaN where the entry gave no attitude).
-        seconds: (E, L) identify seconds per entry and level without compilation, added over
-            processes.
-        timing: per entry, ``database_seconds``, ``compile_seconds`` (JAX tracing and compilation
-            during its identify calls, left out of ``seconds``) and ``peak_rss_mb`` (the process's
-            peak after the entry ran).
+        seconds: (E, L) identify wall seconds per entry and level (compilation of shapes first met
+            there included), added over processes.
+        timing: per entry, ``database_seconds``, ``first_call_seconds`` (its first identify call,
+            mostly compilation on a first run) and ``peak_rss_mb`` (the process's peak after the
+            entry ran).
         processes: JAX processes that ran it.
     """
 
@@ -130,10 +130,9 @@ class SweepResult:
         note = (f"Camera {s.get('camera', {}).get('name', '?')}, {s.get('boresight', '?')} boresights, "
                 f"criterion {s.get('criterion', '?')}, seed {s.get('seed', '?')}, fixed "
                 f"{s.get('fixed') or 'nothing else'}. Intervals: 95 % Wilson. scenes/s: identify "
-                "alone, per process, without JAX's compilation (compile s per algorithm: "
-                + ", ".join(f"{t['label']} {t.get('compile_seconds', float('nan')):.0f}"
-                            for t in self.timing)
-                + "); peak MB: the process's resident peak after the algorithm ran.")
+                "wall time per process, compilation of the shapes a level meets first included "
+                "(experiments/benchmark.py measures steady throughput); peak MB: the process's "
+                "resident peak after the algorithm ran.")
         return experiment.markdown_table(rows, columns, title=title, note=note)
 
     def rate(self, label: str, name: str = "identification") -> np.ndarray:

@@ -6,9 +6,9 @@
 scenes (memory stays bounded whatever the sweep's size), scores every scene by one rule
 (:func:`jstarid.metrics.scene_outcomes`) and measures every algorithm's attitude the same way (a
 Wahba fit of the stars it named, :func:`jstarid.estimate_attitude`), so the algorithms differ only
-in their names. Timing: every chunk is timed once, less the tracing and compilation JAX reports
-during it (:class:`~jstarid.engine.timing.CompileClock`), which is recorded per entry; scenes/s are
-per process.
+in their names. Timing: every chunk is timed once (wall time, compilation of the shapes a level
+meets first included; the entry's first call is recorded apart); scenes/s are per process.
+``experiments/benchmark.py`` measures steady throughput.
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ from jstarid.engine.entries import Entry
 from jstarid.engine.entries import entries as make_entries
 from jstarid.engine.levels import level_grid, level_noise
 from jstarid.engine.result import SweepResult
-from jstarid.engine.timing import CompileClock
 from jstarid.experiment import peak_rss_mb
 from jstarid.metrics import CRITERIA, scene_outcomes
 from jstarid.scene import Identification, Scene
@@ -200,14 +199,15 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
         t_db = time.perf_counter() - t0
         run = _runner(module, dbs, configs)
         outs = [[] for _ in members]
-        compile_s = 0.0
+        first_call = None
         for c, (part, level) in enumerate(chunks):
-            with CompileClock() as clock:
-                results = run(local[part])
-                jax.block_until_ready([r.ids for r in results])
-            compile_s += clock.compile
+            t0 = time.perf_counter()
+            results = run(local[part])
+            jax.block_until_ready([r.ids for r in results])
+            dt = time.perf_counter() - t0
+            first_call = dt if first_call is None else first_call
             for k, i in enumerate(members):
-                seconds[i, level] += clock.steady / len(members)
+                seconds[i, level] += dt / len(members)
                 outs[k].append(_score(local[part], results[k], catalog, camera, criterion))
             if progress and (c + 1 == len(chunks) or c % 4 == 3):
                 _say(True, f"{names}: {part.stop:,} / {local.batch_size:,} scenes")
@@ -215,7 +215,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
             scored[i] = {name: np.concatenate([o[name] for o in outs[k]]) if outs[k]
                          else np.zeros((0,), dtype) for name, dtype in SCORES.items()}
             timing[i] = {"label": entries[i].label, "database_seconds": t_db,
-                         "compile_seconds": compile_s, "peak_rss_mb": peak_rss_mb()}
+                         "first_call_seconds": first_call, "peak_rss_mb": peak_rss_mb()}
     local_arrays = {name: np.stack([s[name] for s in scored], axis=1) for name in SCORES}  # (S_i, E)
     merged = processes.gather(local_arrays, n_total)
     # (P, E, L) → (E, L): every process's seconds at each level, added
