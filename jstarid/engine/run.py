@@ -181,7 +181,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
     # a host copy: chunks are cut on the host and each algorithm places (and shards) its inputs
     # itself, rather than every chunk starting as a slice of a sharded device array
     mine = processes.share(n_total)
-    local = jax.device_get(scenes[mine])
+    local = jax.device_get(scenes)[mine]
     chunks = _chunks(level_of[mine], chunk_size)
     scored: list[dict | None] = [None] * len(entries)
     timing: list[dict | None] = [None] * len(entries)
