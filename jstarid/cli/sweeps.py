@@ -57,8 +57,8 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
     p.add_argument("--criterion", choices=("strict", "mlv", "sgm", "rpnet"), default="strict",
                    help="what counts as identified (docs/conventions.md §5; default strict: ≥ 3 "
                         "correct, none wrong)")
-    p.add_argument("--chunk-size", type=int, default=1024,
-                   help="most scenes per identify call (bounds memory; default 1024)")
+    p.add_argument("--chunk-size", type=int, default=256,
+                   help="most scenes per identify call (bounds memory; default 256)")
     p.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet's network, trained for the camera on first use: quick (≈ 5 min on "
                         "2 cores) or table3 (the paper's schedule, ≈ 2 h)")

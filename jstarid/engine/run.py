@@ -35,9 +35,14 @@ from jstarid.metrics import CRITERIA, scene_outcomes
 from jstarid.scene import Identification, Scene
 from jstarid.simulator import simulate
 
-__all__ = ["Levels", "compare", "plan", "simulate_levels", "sweep", "BORESIGHTS", "SCORES"]
+__all__ = ["Levels", "compare", "plan", "simulate_levels", "sweep", "BORESIGHTS", "CHUNK_SIZE",
+           "SCORES"]
 
 BORESIGHTS = ("random", "stars")
+# Scenes per identify call. Kept at 256: SGM on two CPU devices has stopped for good inside an eager
+# op after its sharded pair kernels at 1,000-scene calls (seen five times, JAX 0.10.2; cause open,
+# issue 37) and never at 200-scene calls in about ten runs.
+CHUNK_SIZE = 256
 # what is kept per scene and entry (the table is computed from these alone)
 SCORES = {"outcome": np.int8, "n_correct": np.int16, "n_wrong": np.int16, "n_identified": np.int16,
           "boresight_err_arcsec": np.float32, "roll_err_arcsec": np.float32}
@@ -46,7 +51,7 @@ SCORES = {"outcome": np.int8, "n_correct": np.int16, "n_wrong": np.int16, "n_ide
 def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "sgm2022", *,
           axes: Mapping[str, Sequence[float]] | None = None, fixed: Mapping | None = None,
           scenes: int = 200, seed: int = 0, catalog=None, capacity: int = 64,
-          boresight: str = "random", criterion: str = "strict", chunk_size: int = 1024,
+          boresight: str = "random", criterion: str = "strict", chunk_size: int = CHUNK_SIZE,
           rpnet_network: str = "quick", progress: bool = True) -> SweepResult:
     """Every algorithm × every noise level on one shared, seeded set of simulated scenes.
 
@@ -155,7 +160,7 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
 
 def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, *,
             level_of: np.ndarray | None = None, levels: Sequence[Mapping] | None = None,
-            criterion: str = "strict", chunk_size: int = 1024, progress: bool = True,
+            criterion: str = "strict", chunk_size: int = CHUNK_SIZE, progress: bool = True,
             settings: Mapping | None = None, rpnet_network: str = "quick") -> SweepResult:
     """Every entry on the given scenes, scored per scene and tabulated per level.
 
