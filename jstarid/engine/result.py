@@ -12,7 +12,6 @@ directory (``config.json``, ``results.json``, ``table.md``, ``scenes.npz``, ``ra
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -135,10 +134,6 @@ class SweepResult:
                 "resident peak after the algorithm ran.")
         return experiment.markdown_table(rows, columns, title=title, note=note)
 
-    def rate(self, label: str, name: str = "identification") -> np.ndarray:
-        """(L,) rate of one entry per level (``name``: identification, misid, failure)."""
-        return np.array([r[f"{name}_rate"] for r in self.rows() if r["label"] == label])
-
     def save(self, out: str | Path, *, title: str | None = None, figure: bool = True) -> Path:
         """Write ``config.json``, ``results.json`` (rows, timing), ``table.md``, ``scenes.npz`` and
         ``rates.png`` (drawn from ``results.json``) under ``out``."""
@@ -177,12 +172,4 @@ def load(out: str | Path) -> SweepResult:
                        levels=config["levels"], level_of=level_of, scenes=arrays,
                        seconds=np.asarray(results["seconds"], np.float64), timing=results["timing"],
                        processes=config.get("processes", 1))
-
-
-def rows_by_label(rows: Sequence[Mapping]) -> dict[str, list[Mapping]]:
-    """Rows grouped by entry label, in order."""
-    out: dict[str, list[Mapping]] = {}
-    for r in rows:
-        out.setdefault(r["label"], []).append(r)
-    return out
 
