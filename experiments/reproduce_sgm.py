@@ -10,9 +10,13 @@ scenes in which an oracle that knows the attitude and the stars present would na
 the neighbor circle correctly from positions alone — no position-only identifier does better, so
 with at most 2 % failures no accuracy can exceed ceiling / 0.98.
 
-Each finished level is written to ``<out>/levels/`` and a rerun with the same settings and the same
-jstarid code picks it up instead of recomputing it, so a full-size run (hours on a CPU) can be stopped
-and resumed.
+A preset over the sweep engine: each level is one :func:`jstarid.compare` call on the paper's
+scenes (its main stars taken in order, not drawn at random as ``jstarid reproduce sgm`` does), saved
+as an engine result under ``<out>/levels/<experiment>_<σ>/`` (``table.md``, ``scenes.npz`` with
+every scene's outcome, …) beside what the engine does not measure (``extras.json``: the naming
+ceiling and false stars inside the circle). A rerun with the same settings and the same jstarid
+code picks a stored level up instead of recomputing it, so a full-size run (hours on a CPU) can be
+stopped and resumed.
 
     python experiments/reproduce_sgm.py --quick          # a few stars per level, minutes on a CPU
     python experiments/reproduce_sgm.py                  # every database star (≈5,070 per level)
@@ -29,6 +33,7 @@ import hashlib
 import json
 from pathlib import Path
 
+import jax
 import numpy as np
 
 import jstarid as js
@@ -89,34 +94,48 @@ def _code_fingerprint(package: Path | None = None) -> str:
     return digest.hexdigest()[:16]
 
 
-def _run_level(args, scfg, cat, cam, db, rows, exp, sigma) -> dict:
-    """One (experiment, σ) level: simulate, identify, score; the per-level row of the tables."""
-    outcomes, fake_in, ceiling, confident, n_graphs = [], [], [], [], []
-    with ex.Stopwatch() as clock:
-        for _, scenes in paper.level_scenes(cat, cam, rows, exp, sigma, seed=args.seed, batch=args.batch):
-            res, info = sgm.identify(db, scenes, scfg, diagnostics=True)
-            out_s = js.scene_outcomes(scenes, res, "sgm", camera=cam, radius_deg=scfg.radius_deg)
-            outcomes.append(np.asarray(out_s["outcome"]))
-            fake_in.append(_fake_inside(scenes, cam, scfg.radius_deg))
-            ceiling.append(naming_ceiling(scenes, cat, cam, radius_deg=scfg.radius_deg))
-            confident.append(naming_ceiling(scenes, cat, cam, radius_deg=scfg.radius_deg,
-                                            margin_nats=scfg.verify_ambiguity_k ** 2, sigma_px=sigma))
-            n_graphs.append(info.n_matched)
-    code = np.concatenate(outcomes)
-    total, fail = code.size, int(np.sum(code == js.metrics.FAIL))
-    correct, wrong = int(np.sum(code == js.metrics.CORRECT)), int(np.sum(code == js.metrics.WRONG))
-    return {
-        "experiment": exp, "sigma_px": float(sigma), "n_scenes": total,
-        "accuracy": correct / (total - fail) if total > fail else float("nan"),
-        "identification_rate": correct / total, "failure_rate": fail / total,
-        "misid_rate": wrong / total,
-        "incomplete_rate": int(np.sum(code == js.metrics.INCOMPLETE)) / total,
-        "ceiling_rate": float(np.mean(np.concatenate(ceiling))),
-        "ceiling_at_margin_rate": float(np.mean(np.concatenate(confident))),
-        "fake_inside_circle_rate": float(np.mean(np.concatenate(fake_in))),
-        "mean_graphs_matched": float(np.mean(np.concatenate(n_graphs))),
-        "seconds": clock.seconds,
-    }
+def _level_scenes(args, cat, cam, rows, exp, sigma):
+    """The level's scenes (the paper's main stars in order, :func:`jstarid.papers.sgm.level_scenes`),
+    joined on the host into one (R, N) batch."""
+    parts = [s for _, s in paper.level_scenes(cat, cam, rows, exp, sigma, seed=args.seed,
+                                              batch=args.batch)]
+    return jax.tree.map(lambda *a: np.concatenate([np.asarray(x) for x in a]), *parts)
+
+
+def _run_level(args, scfg, cat, cam, rows, exp, sigma, out: Path) -> None:
+    """One (experiment, σ) level through the engine (:func:`jstarid.compare`), saved under ``out``
+    with what the engine does not measure: the naming ceiling and false stars inside the circle."""
+    scenes = _level_scenes(args, cat, cam, rows, exp, sigma)
+    level = {"position_sigma_px": float(sigma), "n_missing": int(exp == "lost"),
+             "n_false": int(exp == "fake")}
+    result = js.compare(scenes, [js.Entry("sgm", "sgm", scfg)], cat, cam, levels=[level],
+                        criterion="sgm", chunk_size=args.batch, progress=False,
+                        settings={"camera": cam, "experiment": exp, "seed": args.seed,
+                                  "boresight": "stars", "criterion": "sgm"})
+    ceiling, confident, fake_in = [], [], []
+    for a in range(0, scenes.batch_size, args.batch):
+        part = scenes[a:a + args.batch]
+        ceiling.append(naming_ceiling(part, cat, cam, radius_deg=scfg.radius_deg))
+        confident.append(naming_ceiling(part, cat, cam, radius_deg=scfg.radius_deg,
+                                        margin_nats=scfg.verify_ambiguity_k ** 2, sigma_px=sigma))
+        fake_in.append(_fake_inside(part, cam, scfg.radius_deg))
+    result.save(out, title=f"SGM {exp}, σ = {sigma:g} px")
+    extras = {"ceiling_rate": float(np.mean(np.concatenate(ceiling))),
+              "ceiling_at_margin_rate": float(np.mean(np.concatenate(confident))),
+              "fake_inside_circle_rate": float(np.mean(np.concatenate(fake_in)))}
+    (out / "extras.json").write_text(json.dumps(extras))
+
+
+def _level_row(exp, sigma, out: Path) -> dict:
+    """The per-level row of the tables, from a stored level (engine row + extras)."""
+    row = js.load_sweep(out).rows()[0]
+    n = row["scenes"]
+    return {"experiment": exp, "sigma_px": float(sigma), "n_scenes": n,
+            "accuracy": float("nan") if row["accuracy"] is None else row["accuracy"],
+            "identification_rate": row["identification_rate"], "failure_rate": row["failure_rate"],
+            "misid_rate": row["misid_rate"], "incomplete_rate": row["n_incomplete"] / n,
+            "boresight_err_arcsec_median": row["boresight_err_arcsec_median"],
+            **json.loads((out / "extras.json").read_text()), "seconds": row["seconds"]}
 
 
 def _summary(levels) -> dict:
@@ -136,7 +155,7 @@ def main(argv=None) -> dict:
     cat = js.load_catalog(paper.MAG_LIMIT)
     cam = js.camera_preset(paper.CAMERA)
     scfg = ex.with_overrides(sgm.Config.paper() if args.paper else sgm.Config(), args.set)
-    db = sgm.build_database(cat, cam, scfg)
+    db = sgm.build_database(cat, cam, scfg)  # built here to report its size (the engine loads it)
     rows = paper.main_star_rows(len(cat), n_stars, args.seed)
     code = _code_fingerprint()
     results = {"levels": [], "database": {"stars": len(db), "capacity": db.capacity,
@@ -147,14 +166,17 @@ def main(argv=None) -> dict:
             settings = {"code": code, "experiment": exp, "sigma_px": float(sigma), "seed": args.seed,
                         "batch": args.batch, "capacity": paper.CAPACITY, "camera": paper.CAMERA,
                         "catalog": cat.fingerprint, "sgm_config": ex.to_json(scfg), "rows": rows.tolist()}
-            path = args.out / "levels" / f"{exp}_{sigma:.2f}.json"
-            stored = json.loads(path.read_text()) if path.exists() else None
-            if stored is not None and stored["settings"] == settings:
-                level, note = stored["level"], "stored"
+            path = args.out / "levels" / f"{exp}_{sigma:.2f}"
+            stored_settings = path / "settings.json"
+            stored = json.loads(stored_settings.read_text()) if stored_settings.exists() else None
+            if stored == settings and (path / "extras.json").exists():
+                note = "stored"
             else:
-                level = _run_level(args, scfg, cat, cam, db, rows, exp, sigma)
-                path.write_text(json.dumps({"settings": settings, "level": level}))
-                note = f"{level['seconds']:.1f}s"
+                _run_level(args, scfg, cat, cam, rows, exp, sigma, path)
+                stored_settings.write_text(json.dumps(settings))
+                note = "computed"
+            level = _level_row(exp, sigma, path)
+            note = f"{level['seconds']:.1f}s identify, {note}"
             results["levels"].append(level)
             print(f"{exp:8s} σ={sigma:.1f}px  acc={level['accuracy']:.4f} "
                   f"id={level['identification_rate']:.4f} fail={level['failure_rate']:.4f} "

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import jstarid as js
+
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 
 
@@ -57,7 +59,8 @@ def test_reproduce_sgm_tiny_resumes(tmp_path):
     args = ["--n-stars", "3", "--sigmas", "0", "2", "--experiments", "position", "--out", str(tmp_path)]
     first = module.main(args)
     stored = sorted(p.name for p in (tmp_path / "levels").iterdir())
-    assert stored == ["position_0.00.json", "position_2.00.json"]
+    assert stored == ["position_0.00", "position_2.00"]
+    assert js.load_sweep(tmp_path / "levels" / "position_2.00").rows()[0]["scenes"] == 3
     second = module.main(args)
     assert second["levels"] == first["levels"]  # reused, not recomputed (timings included)
     one = module.main(["--n-stars", "3", "--sigmas", "2", "--experiments", "position",

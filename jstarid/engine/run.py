@@ -213,7 +213,8 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
             first_call = dt if first_call is None else first_call
             for k, i in enumerate(members):
                 seconds[i, level] += dt / len(members)
-                outs[k].append(_score(local[part], results[k], catalog, camera, criterion))
+                outs[k].append(_score(local[part], results[k], catalog, camera, criterion,
+                                      getattr(entries[i].config, "radius_deg", 6.0)))
             if progress and (c + 1 == len(chunks) or c % 4 == 3):
                 _say(True, f"{names}: {part.stop:,} / {local.batch_size:,} scenes")
         for k, i in enumerate(members):
@@ -300,9 +301,14 @@ def _chunks(level_of: np.ndarray, chunk_size: int) -> list[tuple[slice, int]]:
     return out
 
 
-def _score(scenes: Scene, result: Identification, catalog, camera, criterion) -> dict:
-    """Per-scene outcome, counts and attitude errors (a Wahba fit of the named stars)."""
-    out = scene_outcomes(scenes, result, criterion, camera=camera)
+def _score(scenes: Scene, result: Identification, catalog, camera, criterion,
+           radius_deg: float = 6.0) -> dict:
+    """Per-scene outcome, counts and attitude errors (a Wahba fit of the named stars).
+
+    ``radius_deg``: the neighbor circle of the ``"sgm"`` criterion, the entry's own where its
+    config has one (an SGM run with another r is scored on its own circle).
+    """
+    out = scene_outcomes(scenes, result, criterion, camera=camera, radius_deg=float(radius_deg))
     att, _, have = estimate_attitude(catalog, camera, scenes, result)
     bore, roll = attitude_errors_arcsec(att, scenes.attitude)
     have = np.asarray(have) & np.asarray(result.ok)

@@ -5,10 +5,11 @@ noise axis and levels, outcome criterion and the values the paper quotes. :func:
 through :func:`jstarid.sweep` (every level in one simulate call, the algorithm in bounded chunks)
 and saves it under ``<out>/<paper>/<name>/``; :func:`comparison` puts ours beside the paper's.
 
-Differences from the per-paper scripts in ``experiments/`` (which remain for their extra outputs:
-SGM's naming ceiling and resumable full-size levels, MLV's Δv tuning, RpNet's weight search): SGM's
-main stars are drawn at random from the catalog rather than taken one by one, so a full-size run
-has the paper's scene count (5,070 per level) but not exactly its stars.
+Differences from the per-paper scripts in ``experiments/`` (presets over the same engine, which
+add their extra outputs: SGM's naming ceiling and resumable full-size levels, MLV's Δv tuning,
+RpNet's weight search): here SGM's main stars are drawn at random from the catalog rather than
+taken one by one, so a full-size run has the paper's scene count (5,070 per level) but not exactly
+its stars.
 """
 
 from __future__ import annotations
