@@ -145,3 +145,22 @@ def test_save_and_load_round_trip(small, tmp_path):
 def test_bad_arguments_are_clear_errors(kw, match):
     with pytest.raises(ValueError, match=match):
         _small_sweep(**kw)
+
+
+def test_sgm_criterion_is_scored_on_the_entry_s_own_circle():
+    """A result naming only the stars within 3° of the main star meets the sgm criterion on a 3°
+    circle and not on the default 6° one."""
+    from jstarid.engine.run import _score
+
+    cam = js.camera_preset("sgm2022")
+    cat = js.load_catalog(6.0)
+    scenes = js.simulate(jax.random.key(0), cat, cam, js.NoiseConfig(), batch_size=8, capacity=128,
+                         boresight_ids=np.arange(100, 108))
+    near = np.asarray(js.metrics.in_neighbor_circle(scenes, cam, 3.0))
+    named = near & np.asarray(scenes.valid)
+    ids = np.where(named, np.asarray(scenes.truth), -1).astype(np.int32)
+    result = js.Identification(ids=ids, ok=np.ones(8, bool))
+    narrow = _score(scenes, result, cat, cam, "sgm", radius_deg=3.0)["outcome"]
+    wide = _score(scenes, result, cat, cam, "sgm")["outcome"]
+    assert np.all(narrow == js.metrics.CORRECT)
+    assert np.all(wide == js.metrics.INCOMPLETE)  # stars between 3° and 6° left unnamed
