@@ -96,7 +96,8 @@ def read_image(path) -> np.ndarray:
     """A grayscale image file (8/16-bit TIFF, PNG, …) as a (H, W) float32 array (host, Pillow).
 
     Raises:
-        ValueError: a missing file or one Pillow cannot read as an image.
+        ValueError: any input that yields no image: a missing or unreadable path, a directory, a
+            truncated or corrupt file, a format Pillow does not know.
     """
     from PIL import Image, UnidentifiedImageError
 
@@ -105,7 +106,9 @@ def read_image(path) -> np.ndarray:
             if im.mode not in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
                 im = im.convert("L")
             return np.asarray(im).astype(np.float32)
-    except (FileNotFoundError, UnidentifiedImageError) as err:
+    # OSError covers a directory, a permission error and a truncated file; Pillow's decoders raise
+    # SyntaxError or ValueError on some corrupt headers
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as err:
         raise ValueError(f"cannot read an image from {path}: {err}") from err
 
 

@@ -97,8 +97,12 @@ def scenes_from_centroids(xy_list: Sequence, mag_list: Sequence | None = None, *
     Raises:
         ValueError: non-finite centroids or magnitudes, wrong shapes, or a non-positive capacity.
     """
-    if capacity < 1:
-        raise ValueError(f"capacity must be ≥ 1, got {capacity}")
+    if not isinstance(capacity, int | np.integer) or capacity < 1:
+        raise ValueError(f"capacity must be a positive integer, got {capacity!r}")
+    if isinstance(xy_list, np.ndarray | jax.Array) and np.ndim(xy_list) != 3:
+        # a bare (n, 2) array would read as n one-star scenes: one scene is [xy]
+        raise ValueError(f"xy_list must be a list of (n, 2) arrays (one per scene) or a (B, n, 2) "
+                         f"array, got an array of shape {np.shape(xy_list)}; for one scene pass [xy]")
     if mag_list is not None and len(mag_list) != len(xy_list):
         raise ValueError(f"got {len(xy_list)} centroid arrays but {len(mag_list)} magnitude arrays")
     b = len(xy_list)
@@ -107,7 +111,13 @@ def scenes_from_centroids(xy_list: Sequence, mag_list: Sequence | None = None, *
     valid = np.zeros((b, capacity), bool)
     overflow = np.zeros(b, bool)
     for i, xy in enumerate(xy_list):
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2) if np.size(xy) else np.zeros((0, 2))
+        xy = np.asarray(xy, dtype=np.float64)
+        if xy.size == 0:
+            xy = np.zeros((0, 2))
+        if xy.ndim != 2 or xy.shape[1] != 2:
+            # (2, n) or (n, 3) x, y, flux arrays are refused rather than reshaped into wrong points
+            raise ValueError(f"scene {i}: centroids must be an (n, 2) array of x, y (px), got shape "
+                             f"{xy.shape}")
         if not np.all(np.isfinite(xy)):
             raise ValueError(f"scene {i}: centroids contain NaN or inf")
         if mag_list is None or mag_list[i] is None:

@@ -143,6 +143,22 @@ def _false_capacity(noise: NoiseConfig, capacity: int) -> int:
     return int(n_false + extra)
 
 
+def check_key(key) -> None:
+    """Refuse anything but one PRNG key: a typed ``jax.random.key`` or a legacy (2,) uint32 key.
+
+    Raises:
+        ValueError: e.g. an integer seed, a float array or a batch of keys.
+    """
+    dtype = getattr(key, "dtype", None)
+    if dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key):
+        if np.shape(key) == ():
+            return
+    elif dtype is not None and np.dtype(dtype) == np.uint32 and np.shape(key) == (2,):
+        return
+    what = " ".join(str(x) for x in (type(key).__name__, getattr(key, "dtype", ""), np.shape(key)) if x != "")
+    raise ValueError(f"key must be one PRNG key (jax.random.key(seed)), got {what}")
+
+
 def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_size: int | None = None,
              capacity: int = 64, boresight_ids=None, shard: bool = False) -> Scene:
     """Simulate a batch of scenes (conventions §3). A pure function of ``key`` and the settings.
@@ -163,7 +179,8 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         A :class:`~jstarid.scene.Scene` of B scenes.
 
     Raises:
-        ValueError: inconsistent batch settings, a bad capacity, out-of-range noise or rows.
+        ValueError: inconsistent batch settings, a bad capacity, out-of-range noise or rows, or a
+            key that is not a PRNG key.
     """
     noise = NoiseConfig() if noise is None else noise
     noise.validate()
@@ -180,8 +197,9 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         batch_size = rows.shape[0]
     elif batch_size is None:
         raise ValueError("give batch_size (random attitudes) or boresight_ids (mode b)")
-    if batch_size < 1:
-        raise ValueError(f"batch_size must be ≥ 1, got {batch_size}")
+    if not isinstance(batch_size, int | np.integer) or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+    check_key(key)
     sim_limit = catalog.mag_limit + catalog.settings["sim_margin"]
     if camera.mag_limit > sim_limit + 1e-6:
         warnings.warn(f"camera limit V {camera.mag_limit} is deeper than the catalog's simulation "

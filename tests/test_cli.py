@@ -140,6 +140,16 @@ def test_solve_bad_input(tmp_path, capsys):
     Image.fromarray(np.zeros((40, 50), np.uint16)).save(tmp_path / "small.tiff")
     assert cli.main(["solve", str(tmp_path / "small.tiff")]) == 2
     assert "768×1024" in capsys.readouterr().err
+    # a directory and a truncated image: one line, status 2 (not a traceback, not "unsolved")
+    assert cli.main(["solve", str(tmp_path)]) == 2
+    assert "cannot read an image" in capsys.readouterr().err
+    Image.fromarray(np.arange(768 * 1024, dtype=np.uint32).reshape(768, 1024).astype(np.uint16)).save(
+        tmp_path / "whole.png")
+    data = (tmp_path / "whole.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    assert cli.main(["solve", str(tmp_path / "cut.png")]) == 2
+    err = capsys.readouterr().err
+    assert "cannot read an image" in err and err.count("\n") == 1
 
 
 def _scene_rows(n_scenes=2):

@@ -34,6 +34,16 @@ def test_scenes_from_centroids_bad_input():
         js.scenes_from_centroids([np.ones((2, 2))], capacity=0)
     with pytest.raises(ValueError, match="NaN or inf"):
         js.scenes_from_centroids([np.ones((1, 2))], [np.array([np.inf])])
+    # shapes that a reshape(-1, 2) would silently misread
+    with pytest.raises(ValueError, match=r"for one scene pass \[xy\]"):
+        js.scenes_from_centroids(np.ones((5, 2)))  # a bare array is not five one-star scenes
+    with pytest.raises(ValueError, match=r"\(n, 2\) array"):
+        js.scenes_from_centroids([np.ones((2, 5))])  # transposed
+    with pytest.raises(ValueError, match=r"\(n, 2\) array"):
+        js.scenes_from_centroids([np.ones((5, 3))])  # x, y, flux
+    with pytest.raises(ValueError, match="capacity"):
+        js.scenes_from_centroids([np.ones((2, 2))], capacity=8.0)
+    assert js.scenes_from_centroids(np.ones((3, 5, 2))).batch_size == 3  # a (B, n, 2) array is fine
 
 
 def test_scene_indexing_keeps_batch_axis():

@@ -271,6 +271,15 @@ def test_bad_simulation_input(catalog6, sgm_camera):
     with pytest.raises(ValueError, match="shape"):
         js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=np.ones(3)),
                     batch_size=4)
+    with pytest.raises(ValueError, match="batch_size must be a positive integer"):
+        js.simulate(key, catalog6, sgm_camera, batch_size=2.5)
+    with pytest.raises(ValueError, match="capacity must be a positive integer"):
+        js.simulate(key, catalog6, sgm_camera, batch_size=2, capacity=64.0)
+    for not_a_key in (0, np.zeros(2, np.float32), jax.random.split(key, 2)):
+        with pytest.raises(ValueError, match="key must be one PRNG key"):
+            js.simulate(not_a_key, catalog6, sgm_camera, batch_size=2)
+    legacy = js.simulate(jax.random.PRNGKey(0), catalog6, sgm_camera, batch_size=2)  # still taken
+    assert legacy.batch_size == 2
 
 
 def test_noise_config_is_a_pytree():

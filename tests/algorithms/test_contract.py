@@ -221,3 +221,11 @@ def test_jit_equals_no_jit(name):
     np.testing.assert_array_equal(np.asarray(eager.ok), np.asarray(compiled.ok))
     if compiled.attitude is not None and bool(np.asarray(compiled.ok)[0]):
         np.testing.assert_allclose(np.asarray(eager.attitude), np.asarray(compiled.attitude), atol=1e-5)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_a_batch_of_zero_scenes_gives_an_empty_result(name):
+    w = world(name)
+    scenes = _clean_scenes(w, 2, seed=3)[0:0]
+    result = w.algo.identify(w.database, scenes, w.config)
+    assert np.shape(result.ids) == (0, scenes.capacity) and np.shape(result.ok) == (0,)

@@ -337,6 +337,8 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     database = (on_every_device(database, "mlv_identify", lambda: stripped) if jax.local_device_count() > 1
                 else stripped)
     b, cap = scenes.batch_size, scenes.capacity
+    if b == 0:  # nothing to identify: an empty result of the usual shapes
+        return _empty(cap, config, scenes.overflow, diagnostics)
     tuning = config.tuning() if tuning is None else tuning
     tuning = Tuning(
         th1=_per_scene(tuning.th1, b, jnp.int32), th2=_per_scene(tuning.th2, b, jnp.int32),
@@ -405,6 +407,22 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
                        capacity=k_used)
     return result, diag
 
+
+
+def _empty(capacity: int, config: Config, overflow, diagnostics: bool):
+    """:func:`identify`'s result for a batch of 0 scenes."""
+    result = Identification(ids=jnp.zeros((0, capacity), jnp.int32), ok=jnp.zeros((0,), bool),
+                            attitude=jnp.zeros((0, 3, 3), jnp.float32))
+    if not diagnostics:
+        return result
+    n, t = config.n_stars, math.comb(config.n_stars, 3)
+    zeros = functools.partial(jnp.zeros, dtype=jnp.int32)
+    return result, Diagnostics(
+        n_candidates=zeros((0,)), overflow=jnp.asarray(overflow, bool),
+        candidate_overflow=jnp.zeros((0,), bool), n_overflow_triangles=zeros((0,)),
+        triangle_candidates=zeros((0, t)), candidates=zeros((0, n)), votes=zeros((0, n)),
+        cluster_size=zeros((0,)), field_predicted=zeros((0,)), field_seen=zeros((0,)),
+        capacity=config.candidate_capacity)
 
 
 # the Config fields behind Tuning's leaves (Config.tuning)
