@@ -26,13 +26,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.attitude import estimate_attitude
+from jstarid.camera_fit import check_claims, unproject_scaled, verify_names
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
+from jstarid.robust import masked_median
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
 
-__all__ = ["first_argmax", "name_from_attitude", "name_stars"]
+__all__ = ["first_argmax", "magnitude_agrees", "name_from_attitude", "name_stars"]
+
+EXTEND_ROUNDS = 2  # naming rounds of name_from_attitude, each with the camera refitted to all names
 
 
 def first_argmax(x):
@@ -75,25 +78,41 @@ def name_stars(c, body, valid, star_vectors, tol_rad, isolation=1.0):
 
 
 def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *, tol_px: float = 2.0,
-                       isolation: float = 2.0, min_named: int = 3) -> Identification:
+                       isolation: float = 2.0, min_named: int = 3, k_sigma: float = 5.0,
+                       mag_tol: float = 1.0, max_scale_error: float = 0.1,
+                       fit_scale: bool = True) -> Identification:
     """Extend ``result`` to every detection the attitude of its named stars explains (module doc).
+
+    The attitude and the focal length are first fitted together to the given names
+    (:func:`jstarid.camera_fit.verify_names`): names more than ``k_sigma`` σ̂ from their star are
+    taken back, and a
+    scene whose fit needs the focal length moved by more than ``max_scale_error`` is not solved.
+    New names then use the fitted camera, a radius that follows the fit's centroid noise
+    (``k_sigma`` σ̂, at most ``tol_px``), and must agree in brightness: a detection's magnitude
+    minus its star's may differ from the median of the named stars' by at most ``mag_tol`` (or 3
+    robust σ of that difference where the magnitudes scatter more), checked from 4 names on.
 
     Args:
         catalog: :class:`~jstarid.catalog.Catalog` whose rows ``result.ids`` refers to.
-        camera: :class:`~jstarid.camera.Camera` of the scenes.
+        camera: :class:`~jstarid.camera.Camera` of the scenes (the nominal one).
         scenes: (B, N) :class:`~jstarid.scene.Scene`.
         result: (B, N) :class:`~jstarid.scene.Identification`.
-        tol_px: largest angle between a detection and the star it is named after, in pixels at the
-            principal point (``tol_px / f_px`` rad).
-        isolation: no second catalog star may lie within ``isolation · tol_px`` (≥ 1).
+        tol_px: largest distance (px) between a detection and the star it is named after.
+        isolation: no second catalog star may lie within ``isolation`` × the naming radius (≥ 1).
         min_named: fewest names a scene needs for its attitude to be used.
+        k_sigma: the naming radius in units of the fit's centroid noise σ̂.
+        mag_tol: brightness tolerance (mag) of a new name (module doc); ``inf`` turns it off.
+        max_scale_error: largest relative focal-length correction of a solved scene.
+        fit_scale: fit the focal length (False: attitude only, the nominal camera).
 
     Returns:
-        An :class:`~jstarid.scene.Identification` with the added names, the same ``ok`` and the
-        attitude refitted to all names (NaN where a scene is not solved or has fewer than 2 names).
+        An :class:`~jstarid.scene.Identification` with the checked and added names, ``ok`` (a scene
+        may lose its claim, never gain one), the attitude refitted to all names (NaN where not
+        solved) and ``focal_scale`` (NaN where not fitted). A failed scene, or one with fewer than
+        ``min_named`` names, is returned as given.
 
     Raises:
-        ValueError: a bad tolerance, isolation factor or ``min_named``.
+        ValueError: a bad tolerance, isolation factor, ``min_named`` or scale error.
     """
     if not (math.isfinite(tol_px) and tol_px > 0):
         raise ValueError(f"tol_px must be a positive number of pixels, got {tol_px}")
@@ -101,30 +120,74 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
         raise ValueError(f"isolation must be ≥ 1, got {isolation}")
     if not isinstance(min_named, int | np.integer) or min_named < 2:
         raise ValueError(f"min_named must be an integer ≥ 2 (a rotation needs two stars), got {min_named}")
-    att, _, have = estimate_attitude(catalog, camera, scenes, result, min_stars=int(min_named))
-    margin = math.atan(isolation * tol_px / camera.f_px)  # a star just outside can still compete
+    if not (math.isfinite(max_scale_error) and 0 <= max_scale_error < 0.5):
+        raise ValueError(f"max_scale_error must be in [0, 0.5), got {max_scale_error}")
+    if not (k_sigma > 0 and mag_tol > 0):
+        raise ValueError(f"k_sigma and mag_tol must be positive, got {k_sigma}, {mag_tol}")
+    vectors = jnp.asarray(catalog.unit_vectors, jnp.float32)
+    # a scene with fewer names than min_named can be neither checked nor extended: left alone
+    ids, ok, fit, enough = check_claims(vectors, camera, scenes, result, k_sigma=k_sigma,
+                                        min_tol_px=min(1.0, tol_px), max_scale_error=max_scale_error,
+                                        min_named=int(min_named), fit_scale=fit_scale)
+    # a fitted focal length can put stars slightly beyond the nominal field into the frame
+    margin = math.atan(isolation * tol_px / camera.f_px) + max_scale_error * camera.half_diagonal_rad
     index = build_sky_index(catalog.unit_vectors, camera.half_diagonal_rad, margin_rad=margin,
                             key=f"{catalog.fingerprint}-complete-{margin:.3e}")
     cells, _ = index.device_arrays()
-    ids = _extend(jnp.asarray(catalog.unit_vectors, jnp.float32), cells,
-                  jnp.where(jnp.isfinite(att), att, 0.0), have & result.ok, scenes.xy, scenes.valid,
-                  jnp.where(scenes.valid, result.ids, -1), jnp.float32(tol_px / camera.f_px),
-                  jnp.float32(isolation), camera=camera, grid=index.grid)
-    extended = Identification(ids=ids, ok=result.ok)
-    att2, _, have2 = estimate_attitude(catalog, camera, scenes, extended, min_stars=2)
-    return Identification(ids=ids, ok=result.ok,
-                          attitude=jnp.where((have2 & result.ok)[:, None, None], att2, jnp.nan))
+    use = ok & enough
+    star_mag = jnp.asarray(catalog.mag, jnp.float32)
+    det_mag = jnp.asarray(scenes.mag, jnp.float32)
+    fitted = dict(k_sigma=k_sigma, min_tol_px=min(1.0, tol_px), max_scale_error=max_scale_error,
+                  min_named=2, fit_scale=fit_scale)
+    # rounds of naming and refitting: the first names come from the algorithm's stars (often
+    # central ones, a weak lever on the focal length); every round's names reach further out
+    for _ in range(EXTEND_ROUNDS):
+        ids = _extend(vectors, star_mag, cells, jnp.where(use[:, None, None], fit.attitude, 0.0),
+                      jnp.where(use, fit.scale, 1.0), use, scenes.xy, scenes.valid, det_mag, ids,
+                      jnp.clip(k_sigma * fit.sigma_px, min(1.0, tol_px), tol_px),
+                      jnp.float32(isolation), jnp.float32(mag_tol), camera=camera, grid=index.grid)
+        kept, solved, fit = verify_names(vectors, camera, scenes.xy, scenes.valid, ids, use, **fitted)
+        ids = jnp.where(use[:, None], kept, ids)  # a name the refitted camera cannot explain goes
+        ok = jnp.where(use, solved, ok)
+        use = use & solved
+    final = fit
+    # a failed scene, or one with too few names, is returned as given
+    ids = jnp.where(enough[:, None], ids, result.ids)
+    attitude = jnp.where(ok[:, None, None], final.attitude, jnp.nan)
+    if result.attitude is not None:
+        attitude = jnp.where(enough[:, None, None], attitude, result.attitude)
+    return Identification(ids=ids, ok=ok, attitude=attitude,
+                          focal_scale=jnp.where(enough & ok, final.scale, jnp.nan))
+
+
+def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
+    """(N,) bool: ``candidate`` names whose magnitude difference (detection − catalog) lies within
+    ``max(mag_tol, 3 σ̂)`` of the median difference of the ``named`` detections (σ̂ = 1.4826 × MAD).
+
+    Instrumental magnitudes (any zero point) are fine: only differences from the median count.
+    Fewer than 4 names: every candidate agrees (no zero point to trust).
+    """
+    diff = det_mag - star_mag
+    zero = masked_median(diff, named)
+    spread = 1.4826 * masked_median(jnp.abs(diff - zero), named)
+    tol = jnp.maximum(mag_tol, 3.0 * spread)
+    return candidate & ((jnp.sum(named) < 4) | (jnp.abs(diff - zero) <= tol))
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "grid"))
-def _extend(star_vec, cells, att, use, xy, valid, ids, tol_rad, isolation, *, camera, grid):
+def _extend(star_vec, star_mag, cells, att, scale, use, xy, valid, mag, ids, tol_px, isolation, mag_tol, *,
+            camera, grid):
     """(B, N) ids with the new names (vmapped over scenes); the tolerances are traced (no recompile)."""
-    def one(c, use_i, xy_i, valid_i, ids_i):
+    def one(c, s, use_i, xy_i, valid_i, mag_i, ids_i, tol_i):
         rows, vectors, _ = local_stars(cells, star_vec, c[2], grid)  # c[2] = Cᵀ ẑ, the boresight
-        local, named = name_stars(c, camera.unproject(xy_i), valid_i, vectors, tol_rad, isolation)
+        body = unproject_scaled(camera, xy_i, s)
+        local, named = name_stars(c, body, valid_i, vectors, tol_i / (camera.f_px * s), isolation)
         row = rows[local]
         taken = jnp.any((ids_i[None, :] == row[:, None]) & (ids_i[None, :] >= 0), axis=1)
         new = use_i & (ids_i < 0) & named & ~taken
+        have = ids_i >= 0
+        star_mag_i = star_mag[jnp.where(have, ids_i, row).clip(0, star_mag.shape[0] - 1)]
+        new = magnitude_agrees(mag_i, star_mag_i, have, new, mag_tol)
         return jnp.where(new, row, ids_i).astype(jnp.int32)
 
-    return jax.vmap(one)(att, use, xy, valid, ids)
+    return jax.vmap(one)(att, scale, use, xy, valid, mag, ids, tol_px)

@@ -68,11 +68,14 @@ class Identification:
         ids: (B, N) int32 catalog row given to each detection, −1 = not identified.
         ok: (B,) bool, the algorithm claims success for the scene.
         attitude: (B, 3, 3) float32 estimated ``C`` or ``None`` when the algorithm gives none.
+        focal_scale: (B,) float32 focal length fitted while solving / the camera's
+            (:mod:`jstarid.camera_fit`), or ``None`` when not fitted.
     """
 
     ids: jax.Array
     ok: jax.Array
     attitude: jax.Array | None = None
+    focal_scale: jax.Array | None = None
 
     def __getitem__(self, index) -> Identification:
         if isinstance(index, int | np.integer):

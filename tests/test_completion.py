@@ -52,10 +52,14 @@ def setup():
     return cat, cam, scenes, truth, partial, ok
 
 
+# the naming rule alone (nominal camera, the radius at tol_px, no brightness check): the reference
+PLAIN = dict(fit_scale=False, k_sigma=math.inf, mag_tol=math.inf)
+
+
 def test_matches_reference_and_truth(setup):
     cat, cam, scenes, truth, partial, ok = setup
     result = js.Identification(ids=partial, ok=ok)
-    out = name_from_attitude(cat, cam, scenes, result)
+    out = name_from_attitude(cat, cam, scenes, result, **PLAIN)
     ids = np.asarray(out.ids)
     ref = reference(cat, cam, np.asarray(scenes.xy, np.float64), np.asarray(scenes.valid), partial, ok,
                     2.0, 2.0, 3)
@@ -77,15 +81,23 @@ def test_too_few_names_and_conflicts_are_left_alone(setup):
     two[np.cumsum(truth >= 0, axis=1) > 2] = -1  # 2 names < min_named = 3
     out = name_from_attitude(cat, cam, scenes, js.Identification(ids=two, ok=np.ones(len(two), bool)))
     np.testing.assert_array_equal(np.asarray(out.ids), two)
-    # a star already named elsewhere is not given twice: name the first star's detection after the
-    # second star, then the second star's own detection must stay unnamed
-    clash = partial.copy()
+    # a wrong name among the given ones: the second star's name put on the first star's detection
     b = 5
     first, second = np.nonzero(truth[b] >= 0)[0][:2]
-    clash[b, first] = truth[b, second]
-    clash[b, second] = -1
-    out = np.asarray(name_from_attitude(cat, cam, scenes, js.Identification(ids=clash, ok=ok)).ids)
-    assert out[b, second] == -1 and np.sum(out[b] == truth[b, second]) == 1
+    for keep, solved in ((4, False), (8, True)):
+        clash = truth.copy()
+        clash[np.cumsum(truth >= 0, axis=1) > keep] = -1
+        clash[b, first] = truth[b, second]
+        clash[b, second] = -1
+        out = name_from_attitude(cat, cam, scenes, js.Identification(ids=clash, ok=ok),
+                                 fit_scale=False)
+        ids = np.asarray(out.ids)
+        assert bool(out.ok[b]) == solved
+        if solved:  # the camera fit takes the wrong name back; each star is named once, rightly
+            assert ids[b, first] == truth[b, first] and ids[b, second] == truth[b, second]
+            assert np.sum(ids[b] == truth[b, second]) == 1
+        else:  # 2 right names and a wrong one: too few to trust, the scene fails, nothing wrong
+            assert np.all(ids[b] == -1)
 
 
 def test_bad_arguments(setup):

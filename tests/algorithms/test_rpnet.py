@@ -840,7 +840,8 @@ def test_verification_names_no_false_star_beside_an_undetected_star():
     det_rows = [r for r in rows if r not in missing]
     det_xy = [xy[r] for r in det_rows] + [xy[missing[0]] + [3.0, 2.5], xy[missing[1]] + [-4.0, 3.0]]
     truth = np.array(det_rows + [-1, -1])
-    body = cam.unproject(jnp.asarray(np.stack(det_xy), jnp.float32))
+    det_xy = jnp.asarray(np.stack(det_xy), jnp.float32)
+    body = cam.unproject(det_xy)
     valid = jnp.ones(len(truth), bool)
     a, b = 0, len(truth) - 2  # the pair: the central star, and the false star named after missing[0]
     db = type("Db", (), {"camera": cam, "star_vectors": cat.unit_vectors,
@@ -849,8 +850,8 @@ def test_verification_names_no_false_star_beside_an_undetected_star():
     cells = index.device_arrays()[0]
 
     def verify(config):
-        return _verify_pair(jnp.int32(a), jnp.int32(b), jnp.int32(rows[0]), jnp.int32(missing[0]), body,
-                            valid, jnp.asarray(vec, jnp.float32), cells, config.tuning(), camera=cam,
+        return _verify_pair(jnp.int32(a), jnp.int32(b), jnp.int32(rows[0]), jnp.int32(missing[0]), det_xy,
+                            body, valid, jnp.asarray(vec, jnp.float32), cells, config.tuning(), camera=cam,
                             config=config, grid=index.grid)
 
     ids, named, c, _ = verify(cfg)

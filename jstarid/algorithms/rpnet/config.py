@@ -49,7 +49,7 @@ class Tuning(NamedTuple):
 
 # Config fields that compiled identification never reads as compile-time constants: the traced
 # thresholds, and the host loop's chunking and pass counts (passed to the kernels separately).
-_NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk")
+_NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk", "max_focal_error")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -197,6 +197,10 @@ class Config:
         n_pool_pairs: extension: after the triples, on the scenes still unconfirmed, this many of the
             best pairs of candidates of any two of the 3 · ``n_guide_triples`` nearest detections (eq. 11
             without position weights) are verified in score order (0 = off).
+        fit_focal: (extension) fit the focal length with the attitude in the naming passes and
+            check every name against that fit at the end (:mod:`jstarid.camera_fit`): a camera
+            whose focal length is off by a few % names its stars, not others.
+        max_focal_error: the largest relative focal-length correction of a solved scene.
         network_bf16: run the network's matmuls on bfloat16 operands with float32 accumulation
             (parameters stay float32). ``None``: bfloat16 where the hardware has it
             (:func:`.model.native_bf16`: GPU or TPU, or AVX512-BF16 / AMX-BF16 CPU flags), else
@@ -232,6 +236,8 @@ class Config:
     n_pair_trials: int = 3
     n_guide_triples: int = 12
     n_pool_pairs: int = 8
+    fit_focal: bool = True
+    max_focal_error: float = 0.1
     network_bf16: bool | None = None
     batch_chunk: int = 512
     name_chunk: int = 64
@@ -247,6 +253,8 @@ class Config:
             raise ValueError("match_sigmas, pair_sigmas, trim_sigmas must be > 0 and outlier_ratio ≥ 1")
         if not 1 <= self.n_pair_trials <= 27:
             raise ValueError(f"n_pair_trials must be in [1, 27], got {self.n_pair_trials}")
+        if not 0.0 <= self.max_focal_error < 0.5:
+            raise ValueError(f"max_focal_error must be in [0, 0.5), got {self.max_focal_error}")
         if self.n_pool_pairs < 0:
             raise ValueError(f"n_pool_pairs must be ≥ 0, got {self.n_pool_pairs}")
         if self.n_guide_triples < 1:
@@ -292,10 +300,11 @@ class Config:
     @classmethod
     def paper(cls, **overrides) -> Config:
         """The paper's algorithm alone: paper network, input and Table 3 training, none of our extensions
-        (no pair-angle test, one confident pair, S1–S3 only, no pool of pairs, no coverage test).
+        (no pair-angle test, one confident pair, S1–S3 only, no pool of pairs, no coverage test, no
+        camera fit).
         """
         return cls(**{"pair_tol_px": None, "n_pair_trials": 1, "n_guide_triples": 1,
-                      "n_pool_pairs": 0, "min_coverage": 0.0, **overrides})
+                      "n_pool_pairs": 0, "min_coverage": 0.0, "fit_focal": False, **overrides})
 
     def database_fields(self) -> dict:
         """The settings that shape the trained network (identification-time ones left out)."""

@@ -53,6 +53,7 @@ from jstarid.algorithms.rpnet.inference import inference_logits
 from jstarid.algorithms.rpnet.model import use_bf16
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.attitude import solve_wahba
+from jstarid.camera_fit import check_identification, fit_scaled, project_scaled, unproject_scaled
 from jstarid.completion import first_argmax, name_stars
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
@@ -273,9 +274,14 @@ def _rms_sigma(resid, named):
     return jnp.sqrt(jnp.sum(w * resid**2) / jnp.maximum(2.0 * jnp.sum(w) - 3.0, 1.0))
 
 
-def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Tuning, *, camera,
+def _verify_pair(a, b, row_a, row_b, xy, body, valid, star_vectors, cells, th: Tuning, *, camera,
                  config: Config, grid):
     """Steps 4–5 from one pair: detection ``a`` named catalog row ``row_a``, ``b`` named ``row_b``.
+
+    With ``config.fit_focal`` (extension) every refinement pass fits the focal length with the
+    attitude (:func:`jstarid.camera_fit.fit_scaled`) and the later steps use the fitted camera:
+    a focal length off by 2 % moves the edge stars of a 20° frame by 10–15 px, beyond the naming
+    tolerance, where the nominal camera leaves them unnamed or names them after another star.
 
     Returns:
         ``(rows, named, attitude, expected)``: (N,) catalog row of each detection, (N,) bool named,
@@ -296,18 +302,27 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Tunin
     c_a = solve_wahba(body, loc_vec[rows_a], named_a.astype(jnp.float32))
     c0 = jnp.where(jnp.sum(named_a) >= 2, c_a, c0)
 
-    def refine(c):  # name within the fixed tolerance, refit on every named star (Wahba)
-        rows, named = name_stars(c, body, valid, loc_vec, tol)
-        fit = solve_wahba(body, loc_vec[rows], named.astype(jnp.float32))
-        return jnp.where(jnp.sum(named) >= 2, fit, c)
+    def refine(c, s):  # name within the fixed tolerance, refit on every named star (Wahba)
+        if not config.fit_focal:
+            rows, named = name_stars(c, body, valid, loc_vec, tol)
+            return jnp.where(jnp.sum(named) >= 2, solve_wahba(body, loc_vec[rows],
+                                                               named.astype(jnp.float32)), c), s
+        rows, named = name_stars(c, unproject_scaled(camera, xy, s), valid, loc_vec, tol / s)
+        fit, s_fit, _ = fit_scaled(xy, loc_vec[rows], named.astype(jnp.float32), camera)
+        enough = jnp.sum(named) >= 2
+        return jnp.where(enough, fit, c), jnp.where(enough, s_fit, s)
 
-    c1 = c0
+    c1, scale = c0, jnp.float32(1.0)
     for _ in range(config.n_refine):  # unrolled: a loop inside vmap runs ≈ 4× slower on CPU
-        c1 = refine(c1)
+        c1, scale = refine(c1, scale)
+    if config.fit_focal:  # from here on the fitted camera: directions and pixels at f · scale
+        body = unproject_scaled(camera, xy, scale)
+        tol = tol / scale
+    f_px = camera.f_px * scale
     rows0, named0 = name_stars(c1, body, valid, loc_vec, tol)
 
     def residual_px(c):  # (N,) distance of each detection from its name's predicted position (px)
-        return angle_between(body, precise.small_matmul(loc_vec[rows0], c.T)) * camera.f_px
+        return angle_between(body, precise.small_matmul(loc_vec[rows0], c.T)) * f_px
 
     # centroid noise σ̂ (px per axis) from the residuals of the fit on every name (RMS over 2n − 3)
     resid = residual_px(c1)
@@ -334,7 +349,7 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Tunin
     sigma = jnp.where(robust, sigma_i, sigma)
     # last pass: the tolerance follows the centroid noise
     tol2 = jnp.clip(th.match_sigmas * sigma, th.match_tol_min_px, th.match_tol_px)
-    rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / camera.f_px)
+    rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / f_px)
     # the pair's two detections were named by the network and the pair check, not by proximity:
     # they keep their name out to pair_sigmas · σ̂ (a 3.5 σ̂ radius drops 0.2 % of true stars; at
     # 8 σ̂ none are lost even where σ̂ from ≈ 10 stars comes out low), not further: a false star
@@ -348,13 +363,13 @@ def _verify_pair(a, b, row_a, row_b, body, valid, star_vectors, cells, th: Tunin
     c2 = solve_wahba(body, loc_vec[rows1], named1.astype(jnp.float32))
     c2 = jnp.where(jnp.sum(named1) >= 2, c2, c1)
     # coverage: catalog stars the final attitude puts inside the frame (inset by the tolerance)
-    xy_pred, in_field = camera.project(precise.small_matmul(loc_vec, c2.T))
+    xy_pred, in_field = project_scaled(camera, precise.small_matmul(loc_vec, c2.T), scale)
     inside = (loc < star_vectors.shape[0]) & in_field & camera.contains(xy_pred, th.match_tol_px)
     return loc[rows1], named1, c2, jnp.sum(inside)
 
 
-def _first_confirmed(score, a, b, row_a, row_b, body, valid, overflow, star_vectors, cells, th: Tuning,
-                     *, camera, config: Config, grid):
+def _first_confirmed(score, a, b, row_a, row_b, xy, body, valid, overflow, star_vectors, cells,
+                     th: Tuning, *, camera, config: Config, grid):
     """Verify the pairs in the given (score) order and keep the first confirmed one (step 5).
 
     Args:
@@ -365,7 +380,7 @@ def _first_confirmed(score, a, b, row_a, row_b, body, valid, overflow, star_vect
         ``(ids, ok, attitude)``: (N,) int32 catalog rows (−1 unnamed, all −1 unless ok), () bool,
         (3, 3) float32 (NaN unless ok).
     """
-    verify = functools.partial(_verify_pair, body=body, valid=valid, star_vectors=star_vectors,
+    verify = functools.partial(_verify_pair, xy=xy, body=body, valid=valid, star_vectors=star_vectors,
                                cells=cells, th=th, camera=camera, config=config, grid=grid)
     rows_t, named_t, att_t, expected_t = jax.vmap(verify)(a, b, row_a, row_b)
     # a scene cut to its brightest `capacity` detections (overflow) cannot name more stars than it
@@ -403,7 +418,7 @@ def _name_pool(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cell
     score = jnp.where(ok, weight[:, None] + weight[None, :], -jnp.inf).reshape(-1)
     top_score, flat = jax.lax.top_k(score, min(config.n_pool_pairs, score.shape[0]))
     u, v = flat // (3 * t), flat % (3 * t)
-    return _first_confirmed(top_score, det[u], det[v], rows[u], rows[v], body, valid, overflow,
+    return _first_confirmed(top_score, det[u], det[v], rows[u], rows[v], xy, body, valid, overflow,
                             star_vectors, cells, th, camera=camera, config=config, grid=grid)
 
 
@@ -421,7 +436,7 @@ def _name_one(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells
     top_score, q = jax.lax.top_k(score, trials[0] + trials[1])
     top_score, q = top_score[trials[0]:], q[trials[0]:]
     return _first_confirmed(top_score, near[i[q]], near[k[q]], cand_rows[i[q], j[q]], cand_rows[k[q], m[q]],
-                            body, valid, overflow, star_vectors, cells, th, camera=camera, config=config,
+                            xy, body, valid, overflow, star_vectors, cells, th, camera=camera, config=config,
                             grid=grid)
 
 
@@ -587,6 +602,9 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
     if config.n_pool_pairs and failed.size:  # last: pairs across the triples (_name_pool)
         run(failed, None, _pass_chunk(failed.size, config), pool=True)
     result = Identification(ids=jnp.asarray(ids_out), ok=jnp.asarray(ok_out), attitude=jnp.asarray(att_out))
+    if config.fit_focal:  # the camera fitted on every name; names it cannot explain taken back
+        result = check_identification(database.star_vectors, database.camera, scenes, result,
+                                      max_scale_error=config.max_focal_error)
     if diagnostics:
         return result, Diagnostics(n_candidates=n_pairs, overflow=overflow_all.copy(), n_passes=n_passes)
     return result
