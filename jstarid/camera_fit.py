@@ -24,19 +24,22 @@ the centroid noise σ̂ is taken from the median residual (Rayleigh: median = σ
 final fit uses only the names within ``k_sigma`` σ̂ (clipped to ``[min_tol_px, max_tol_px]``).
 
 **Verification** (:func:`verify_names`). Names outside that radius under the final fit are taken
-back; a scene keeps its claim only with ``min_named`` names left and a fitted focal length within
-``max_scale_error`` of the nominal one (``--fov-max-error`` in tetra3's terms). A failure is always
-better than a wrong name.
+back; a scene keeps its claim only with ``min_named`` names left, a fitted focal length within
+``max_scale_error`` of the nominal one (``--fov-max-error`` in tetra3's terms), and a field that
+looks like the fitted sky (:func:`field_seen`: most of the brightest stars it puts in the frame were
+detected). A failure is always better than a wrong name.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jstarid.attitude import solve_wahba
 from jstarid.geometry import precise
@@ -44,13 +47,23 @@ from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
 
 __all__ = ["CameraFit", "check_claims", "check_identification", "fit_named", "fit_scaled", "project_scaled",
-           "unproject_scaled", "verify_names"]
+           "field_seen", "rescale_scenes", "search_focal", "unproject_scaled", "verify_names"]
 
 ITERATIONS = 4  # Gauss–Newton steps of the joint attitude and scale fit
 MIN_SCALE_STARS = 4  # fewest names from which the focal length is fitted (3 rotation + 1 scale)
 MIN_LEVER = 0.05  # the names' RMS distance from the principal point must exceed this × f_px
 SCALE_RANGE = (0.5, 2.0)  # the fitted scale is clipped to this range (a verification rejects far less)
+K_SIGMA = 6.0  # a name is taken back beyond this many σ̂ from its star (a right one: 1 in 6.6e7)
+MIN_TOL_PX = 2.5  # … and never within this radius (px): σ̂ of ten names can come out at half σ
 MAX_TOL_PX = 10.0  # largest verification radius (px): 5 σ at 2 px per axis, beyond any real tracker
+LADDER_MIN_NAMES = 6  # fewest names of a solution found under a rescaled focal length
+FEW_NAMES = 10  # up to this many names the robust fit drops the worst ones one by one
+DROP_STEPS = 2  # … at most this many
+FIELD_STARS = 10  # the brightest catalog stars in the fitted frame that the field check looks for
+FIELD_FRACTION = 0.5  # … of which at least this share must have a detection
+FIELD_SCALES = 81  # focal scales the field check also tries (0.25 % apart at a span of 0.1)
+FIELD_MIN = 3  # fewer unnamed stars than this in the window: nothing to judge, the check passes
+FIELD_GROUP = 32  # scenes per lax.map group of the check (the catalog is projected per scene)
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median / σ of a 2-D Gaussian error's length
 
 
@@ -95,7 +108,7 @@ def _rotation_from_vector(theta):
     return jnp.eye(3, dtype=theta.dtype) + jnp.sin(angle) * kx + (1.0 - jnp.cos(angle)) * (kx @ kx)
 
 
-def fit_scaled(xy, ref, weights, camera, fit_scale=True):
+def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iterations: int = ITERATIONS):
     """Attitude and focal scale by least squares on the pixel residuals (module doc), one scene.
 
     Wahba's solution with the nominal focal length starts :data:`ITERATIONS` Gauss–Newton steps
@@ -109,6 +122,9 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True):
         weights: (N,) float, 0 for detections left out.
         camera: the nominal :class:`~jstarid.camera.Camera` (static under jit).
         fit_scale: () bool; False keeps the nominal focal length (Wahba's solution alone).
+        start: ``(C, scale)`` to start the Gauss–Newton steps from (a previous fit of nearly the
+            same names) instead of Wahba's solution at the nominal focal length.
+        iterations: Gauss–Newton steps (static).
 
     Returns:
         ``(C, scale, residual_px)``: (3, 3), (), (N,) px (angles × the fitted focal length).
@@ -118,12 +134,15 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True):
     centred = xy - centre
     lever = jnp.sqrt(jnp.sum(weights * jnp.sum(centred**2, -1)) / jnp.maximum(jnp.sum(weights), 1.0))
     use_scale = fit_scale & (n >= MIN_SCALE_STARS) & (lever > MIN_LEVER * camera.f_px)
-    c = solve_wahba(camera.unproject(xy), ref, weights)
     f = camera.f_px
     if isinstance(fit_scale, bool) and not fit_scale:  # static: Wahba's solution is the fit
+        c = solve_wahba(camera.unproject(xy), ref, weights)
         return c, jnp.float32(1.0), angle_between(camera.unproject(xy), precise.small_matmul(ref, c.T)) * f
-    scale = jnp.float32(1.0)
-    for _ in range(ITERATIONS):  # unrolled: each step a 4×4 solve and a few sums over the names
+    if start is None:
+        c, scale = solve_wahba(camera.unproject(xy), ref, weights), jnp.float32(1.0)
+    else:
+        c, scale = start[0], jnp.where(use_scale, start[1], 1.0).astype(jnp.float32)
+    for _ in range(iterations):  # unrolled: each step a 4×4 solve and a few sums over the names
         v = precise.small_matmul(ref, c.T)  # (N, 3) rotated catalog stars
         front = v[:, 2] > 0.5  # a name far outside the frame carries no information here
         w = jnp.where(front, weights, 0.0)
@@ -172,20 +191,39 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
         better = named & (r <= masked_median(r, named))
         use = jnp.where(jnp.sum(better) >= 3, better, named)
         r = fit_scaled(xy, ref, use.astype(jnp.float32), camera, scaled)[2]
+    # a few names (MLV names at most its 10 brightest): half of them cannot fit the scale, so the
+    # worst name is dropped instead, while it lies 3× beyond the others' median, and the rest
+    # refitted with the scale (one wrong name among five pulls a 4-parameter fit by pixels)
+    use = named
+    r_few = fit_scaled(xy, ref, use.astype(jnp.float32), camera, fit_scale)[2]
+    for _ in range(DROP_STEPS):
+        worst = jnp.argmax(jnp.where(use, r_few, -jnp.inf))
+        others = use & (jnp.arange(use.shape[0]) != worst)
+        drop = (jnp.sum(use) > MIN_SCALE_STARS) & (r_few[worst] > 3.0 * masked_median(r_few, others))
+        use = jnp.where(drop, others, use)
+        r_few = fit_scaled(xy, ref, use.astype(jnp.float32), camera, fit_scale)[2]
+    r = jnp.where(jnp.sum(named) <= FEW_NAMES, r_few, r)
     # σ̂ from the median over every name: robust while fewer than half of the names are wrong
     sigma = masked_median(r, named) / RAYLEIGH_MEDIAN
     tol = jnp.clip(k_sigma * sigma, min_tol_px, max_tol_px)
     inlier = named & (r <= tol)
     # twice: at a large scale error the better half lies near the principal point and fixes the
-    # scale roughly; the fit on every inlier reaches the edge stars the first radius left out
+    # scale roughly; the fit on every inlier reaches the edge stars the first radius left out.
+    # The second radius comes from the inliers' RMS over their degrees of freedom (2n − 3, or
+    # 2n − 4 with the scale): with a dozen names the median alone can come out at half the true σ
+    # and would take right names back.
     for _ in range(2):
         c, scale, r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)
+        n = jnp.sum(inlier).astype(jnp.float32)
+        dof = jnp.maximum(2.0 * n - (4.0 if fit_scale is not False else 3.0), 1.0)
+        sigma = jnp.sqrt(jnp.sum(jnp.where(inlier, r**2, 0.0)) / dof)
+        tol = jnp.clip(k_sigma * sigma, min_tol_px, max_tol_px)
         inlier = named & (r <= tol)
     return CameraFit(c, scale, r, inlier, sigma, tol)
 
 
-def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = 5.0,
-                 min_tol_px: float = 1.0, max_tol_px: float = MAX_TOL_PX, max_scale_error: float = 0.1,
+def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K_SIGMA,
+                 min_tol_px: float = MIN_TOL_PX, max_tol_px: float = MAX_TOL_PX, max_scale_error: float = 0.1,
                  min_named: int = 3, fit_scale: bool = True):
     """Fit attitude and focal length to each scene's names and take back the names the fit cannot
     explain (module doc). Batched over scenes.
@@ -195,7 +233,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = 5
         camera: the nominal :class:`~jstarid.camera.Camera` (static).
         xy: (B, N, 2) px. valid: (B, N) bool. ids: (B, N) int32, −1 unnamed. ok: (B,) bool.
         k_sigma, min_tol_px, max_tol_px: a name is kept within ``clip(k_sigma · σ̂, min, max)`` px
-            (5 σ̂ loses one right name in 270,000: the check is for names that are far off). The
+            (the check is for names that are far off, not for the last fraction of a pixel). The
             cap matters where σ̂ itself is unreliable: with 3 names, one of them wrong, the median
             residual is large.
         max_scale_error: largest ``|s − 1|`` of a solved scene.
@@ -206,6 +244,10 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = 5
         ``(ids, ok, fit)``: (B, N) the kept names (all −1 in a scene that is not solved), (B,) bool,
         and the batched :class:`CameraFit` (its attitude NaN where not solved).
     """
+    # host copies: scenes sharded over several devices (simulate(shard=True)) would make this a
+    # partitioned program around lax.map, whose collectives on CPU devices can stall
+    host = (np.asarray(a) for a in (star_vectors, xy, valid, ids, ok))
+    star_vectors, xy, valid, ids, ok = host
     return _verify(jnp.asarray(star_vectors, jnp.float32), jnp.asarray(xy, jnp.float32),
                    jnp.asarray(valid), jnp.asarray(ids, jnp.int32), jnp.asarray(ok),
                    jnp.float32(k_sigma), jnp.float32(min_tol_px), jnp.float32(max_tol_px),
@@ -222,13 +264,61 @@ def _verify(star_vectors, xy, valid, ids, ok, k_sigma, min_tol_px, max_tol_px, m
         fit = fit_named(xy_i, ref, named, camera, k_sigma=k_sigma, min_tol_px=min_tol_px,
                         max_tol_px=max_tol_px, fit_scale=fit_scale)
         solved = (ok_i & (jnp.sum(fit.inlier) >= min_named)
-                  & (jnp.abs(fit.scale - 1.0) <= max_scale_error))
+                  & (jnp.abs(fit.scale - 1.0) <= max_scale_error)
+                  & field_seen(star_vectors, camera, xy_i, valid_i, jnp.where(fit.inlier, ids_i, -1), fit,
+                               max_scale_error))
         kept = jnp.where(solved & fit.inlier, ids_i, -1).astype(jnp.int32)
         fit = fit._replace(attitude=jnp.where(solved, fit.attitude, jnp.nan),
                            inlier=fit.inlier & solved)
         return kept, solved, fit
 
-    return jax.vmap(one)(xy, valid, ids, ok)
+    # lax.map in groups: the field check projects the whole catalog once per scene
+    return jax.lax.map(lambda a: one(*a), (xy, valid, ids, ok), batch_size=FIELD_GROUP)
+
+
+def field_seen(star_vectors, camera, xy, valid, ids, fit: CameraFit, span=0.0):
+    """() bool: the fitted camera sees the sky it claims — of the :data:`FIELD_STARS` brightest
+    catalog stars it puts inside the frame, those not named (if :data:`FIELD_MIN` or more) have a
+    detection within the fit's radius ``fit.tol_px`` in at least :data:`FIELD_FRACTION` of cases.
+
+    A handful of names can fit a wrong attitude (4 names and 4 parameters); the other bright stars
+    of that wrong sky then land where nothing was detected. The named stars themselves prove
+    nothing and are left out, but the window stays the brightest stars of the frame (a frame cut
+    to its brightest detections lacks the faint ones). ``star_vectors`` rows must run brightest
+    first (a :class:`~jstarid.catalog.Catalog`'s do).
+
+    Args:
+        ids: (N,) the names the fit used (−1 elsewhere).
+        span: the window is also looked for under :data:`FIELD_SCALES` focal scales over
+            ``1 ± span`` (the largest focal-length error allowed).
+    """
+    v = star_vectors @ fit.attitude.T  # (M, 3) camera frame
+    pred, inside = project_scaled(camera, v, fit.scale)
+    named = jnp.zeros(star_vectors.shape[0], bool).at[jnp.where(ids >= 0, ids, star_vectors.shape[0])].set(
+        True, mode="drop")
+    inside = inside & camera.contains(pred, fit.tol_px)
+    rank = jnp.cumsum(inside)
+    rows = jnp.nonzero(inside & (rank <= FIELD_STARS), size=FIELD_STARS, fill_value=0)[0]
+    have = (jnp.arange(FIELD_STARS) < jnp.minimum(rank[-1], FIELD_STARS)) & ~named[rows]
+    radius = jnp.maximum(fit.tol_px, MIN_TOL_PX)
+    # a few central names fix the focal length poorly, and the edge of a right sky then misses its
+    # stars by pixels: the window is looked for under every scale of 1 ± span (the names' attitude
+    # refitted under each); a wrong sky matches under none
+    ref = star_vectors[jnp.clip(ids, 0, star_vectors.shape[0] - 1)]
+    weight = (ids >= 0).astype(jnp.float32)
+
+    def seen_under(s):
+        c = solve_wahba(unproject_scaled(camera, xy, s), ref, weight)
+        p, _ = project_scaled(camera, star_vectors[rows] @ c.T, s)
+        gap = jnp.linalg.norm(p[:, None, :] - xy[None, :, :], axis=-1)  # (K, N) px
+        return jnp.sum(have & jnp.any(valid[None, :] & (gap <= radius), axis=1))
+
+    scales = jnp.concatenate([fit.scale[None],
+                              1.0 + span * jnp.linspace(-1.0, 1.0, FIELD_SCALES, dtype=jnp.float32)])
+    seen = jnp.max(jax.vmap(seen_under)(scales))
+    n = jnp.sum(have)
+    # one or two unnamed stars in the window may be undetected (a close pair, a missed star)
+    return (n < FIELD_MIN) | (seen >= FIELD_FRACTION * n)
 
 
 def project_scaled(camera, v_cam, scale):
@@ -244,7 +334,7 @@ def project_scaled(camera, v_cam, scale):
 
 
 def check_identification(star_vectors, camera, scenes, result, *, max_scale_error: float = 0.1,
-                         min_named: int = 3, k_sigma: float = 5.0):
+                         min_named: int = 3, k_sigma: float = K_SIGMA):
     """An algorithm's last step: :func:`verify_names` on the scenes it claims with at least
     ``min_named`` names (fewer cannot be checked: those are returned as they are).
 
@@ -282,3 +372,56 @@ def check_claims(star_vectors, camera, scenes, result, *, min_named: int = 3, **
     ids, ok, fit = verify_names(star_vectors, camera, scenes.xy, scenes.valid, given, checked,
                                 min_named=min_named, **kwargs)
     return jnp.where(checked[:, None], ids, result.ids), jnp.where(checked, ok, result.ok), fit, checked
+
+
+def rescale_scenes(scenes, camera, scale: float):
+    """The scenes as the nominal camera would see them if its focal length were ``scale · f_px``:
+    centroids moved to ``c + (xy − c) / scale`` about the principal point ``c``.
+
+    Unprojecting the moved centroids with the nominal camera gives the directions the original
+    centroids have under the camera of focal length ``scale · f_px``.
+    """
+    centre = np.array([camera.cx, camera.cy], np.float32)
+    xy = np.asarray(scenes.xy, np.float32)
+    moved = centre + (xy - centre) / np.float32(scale)
+    moved = np.where(np.asarray(scenes.valid)[..., None], moved, xy)
+    return dataclasses.replace(scenes, xy=jnp.asarray(moved))
+
+
+def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER_MIN_NAMES):
+    """Retry the scenes ``result`` leaves unsolved as if the focal length were each of ``scales`` ×
+    the nominal one in turn (:func:`rescale_scenes`), keeping the first solution of each scene.
+
+    For methods whose features are angles (triangle singular values, pair distances, network
+    patterns), a focal length off by more than their tolerance (≈ 1 % for MLV's) loses the scene;
+    a ladder of 1 % steps brings it back. The ids of a retry are aligned with the same detections,
+    so the camera check that follows (:func:`check_identification`, nominal camera, original
+    centroids) fits the actual focal length.
+
+    Args:
+        run: ``run(scenes, rows) -> Identification``: the algorithm on moved scenes, ``rows`` their
+            indices in the batch (for per-scene settings).
+        result: the algorithm's :class:`~jstarid.scene.Identification` of ``scenes``.
+        scenes: (B, N) scenes. camera: the nominal camera.
+        scales: focal-length factors to try, in order (e.g. ``(0.99, 1.01, 0.98, 1.02)``).
+        min_named: fewest names a retry's solution needs to be kept. More tries are more chances
+            of a chance match, and a solution under a corrected focal length is checked by a
+            4-parameter fit: five names (one of them wrong) can fit it within 2 px.
+
+    Returns:
+        The merged :class:`~jstarid.scene.Identification` (``attitude`` as each call gave it).
+    """
+    ids, ok = np.array(result.ids), np.array(result.ok)
+    att = None if result.attitude is None else np.array(result.attitude)
+    for scale in scales:
+        todo = np.flatnonzero(~ok)
+        if not todo.size:
+            break
+        retry = run(rescale_scenes(scenes[todo], camera, float(scale)), todo)
+        solved = np.asarray(retry.ok) & (np.sum(np.asarray(retry.ids) >= 0, axis=1) >= min_named)
+        rows = todo[solved]
+        ids[rows], ok[rows] = np.asarray(retry.ids)[solved], True
+        if att is not None and retry.attitude is not None:
+            att[rows] = np.asarray(retry.attitude)[solved]
+    return dataclasses.replace(result, ids=jnp.asarray(ids), ok=jnp.asarray(ok),
+                               attitude=None if att is None else jnp.asarray(att))

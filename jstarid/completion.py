@@ -6,15 +6,20 @@ second-nearest beyond ``isolation`` × the tolerance, and no other detection nam
 wants the same star.
 
 The algorithms name what their method covers (MLV its ``n_stars`` brightest detections, SGM the
-neighbor circle). :func:`name_from_attitude` takes any :class:`~jstarid.scene.Identification`, fits
-the attitude to its named stars (Wahba), and names each unnamed detection by :func:`name_stars`
-against the catalog stars that can be in the frame (:func:`~jstarid.sky_index.local_stars`), unless
-its star is already a name in the scene.
+neighbor circle). :func:`name_from_attitude` takes any :class:`~jstarid.scene.Identification` and
+fits the camera to its names: attitude and focal length together (:mod:`jstarid.camera_fit`), so a
+lens whose focal length is off by a few % does not put the frame's edge stars where other catalog
+stars lie. Names the fit cannot explain are taken back, and a scene whose fit fails is no longer
+claimed. It then names the unnamed detections in rounds (the first choosing the focal scale that
+explains the most detections, each later one refitting the camera to every name) by
+:func:`name_stars` against the catalog stars that can be in the frame
+(:func:`~jstarid.sky_index.local_stars`), with a radius that follows the fit's centroid noise and a
+brightness check (:func:`magnitude_agrees`), unless the star is already a name in the scene.
 
-Only solved scenes (``ok``) with at least ``min_named`` names are extended, and existing names are
-kept, so the step never turns a correct detection into a wrong one. A detection of a star fainter
-than the catalog stays unnamed unless a catalog star lies within the tolerance with no other within
-``isolation`` × it: the residual risk, kept small by a tight tolerance.
+Only solved scenes (``ok``) with at least ``min_named`` names are checked and extended (others are
+returned as given). A detection of a star fainter than the catalog stays unnamed unless a catalog
+star lies within the radius with no other within ``isolation`` × it and a brightness that agrees:
+the residual risk, kept small by a tight radius.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.attitude import solve_wahba
 from jstarid.camera_fit import check_claims, unproject_scaled, verify_names
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
@@ -36,6 +42,7 @@ from jstarid.sky_index import build_sky_index, local_stars
 __all__ = ["first_argmax", "magnitude_agrees", "name_from_attitude", "name_stars"]
 
 EXTEND_ROUNDS = 2  # naming rounds of name_from_attitude, each with the camera refitted to all names
+SCALE_SCAN = 81  # focal scales tried by the first round (0.25 % apart at max_scale_error = 0.1)
 
 
 def first_argmax(x):
@@ -84,7 +91,7 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     """Extend ``result`` to every detection the attitude of its named stars explains (module doc).
 
     The attitude and the focal length are first fitted together to the given names
-    (:func:`jstarid.camera_fit.verify_names`): names more than ``k_sigma`` σ̂ from their star are
+    (:func:`jstarid.camera_fit.verify_names`): names far from their star (6 σ̂, at least 1.5 px) are
     taken back, and a
     scene whose fit needs the focal length moved by more than ``max_scale_error`` is not solved.
     New names then use the fitted camera, a radius that follows the fit's centroid noise
@@ -125,9 +132,10 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     if not (k_sigma > 0 and mag_tol > 0):
         raise ValueError(f"k_sigma and mag_tol must be positive, got {k_sigma}, {mag_tol}")
     vectors = jnp.asarray(catalog.unit_vectors, jnp.float32)
+    scenes = jax.tree.map(np.asarray, scenes)  # host copies (see camera_fit.verify_names)
+    result = jax.tree.map(np.asarray, result)
     # a scene with fewer names than min_named can be neither checked nor extended: left alone
-    ids, ok, fit, enough = check_claims(vectors, camera, scenes, result, k_sigma=k_sigma,
-                                        min_tol_px=min(1.0, tol_px), max_scale_error=max_scale_error,
+    ids, ok, fit, enough = check_claims(vectors, camera, scenes, result, max_scale_error=max_scale_error,
                                         min_named=int(min_named), fit_scale=fit_scale)
     # a fitted focal length can put stars slightly beyond the nominal field into the frame
     margin = math.atan(isolation * tol_px / camera.f_px) + max_scale_error * camera.half_diagonal_rad
@@ -137,15 +145,16 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     use = ok & enough
     star_mag = jnp.asarray(catalog.mag, jnp.float32)
     det_mag = jnp.asarray(scenes.mag, jnp.float32)
-    fitted = dict(k_sigma=k_sigma, min_tol_px=min(1.0, tol_px), max_scale_error=max_scale_error,
-                  min_named=2, fit_scale=fit_scale)
+    fitted = dict(max_scale_error=max_scale_error, min_named=2, fit_scale=fit_scale)
     # rounds of naming and refitting: the first names come from the algorithm's stars (often
     # central ones, a weak lever on the focal length); every round's names reach further out
-    for _ in range(EXTEND_ROUNDS):
+    for k in range(EXTEND_ROUNDS):
         ids = _extend(vectors, star_mag, cells, jnp.where(use[:, None, None], fit.attitude, 0.0),
                       jnp.where(use, fit.scale, 1.0), use, scenes.xy, scenes.valid, det_mag, ids,
                       jnp.clip(k_sigma * fit.sigma_px, min(1.0, tol_px), tol_px),
-                      jnp.float32(isolation), jnp.float32(mag_tol), camera=camera, grid=index.grid)
+                      jnp.float32(isolation), jnp.float32(mag_tol), jnp.float32(max_scale_error),
+                      camera=camera, grid=index.grid,
+                      scan=SCALE_SCAN if (k == 0 and fit_scale and max_scale_error > 0) else 0)
         kept, solved, fit = verify_names(vectors, camera, scenes.xy, scenes.valid, ids, use, **fitted)
         ids = jnp.where(use[:, None], kept, ids)  # a name the refitted camera cannot explain goes
         ok = jnp.where(use, solved, ok)
@@ -174,20 +183,42 @@ def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
     return candidate & ((jnp.sum(named) < 4) | (jnp.abs(diff - zero) <= tol))
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "grid"))
-def _extend(star_vec, star_mag, cells, att, scale, use, xy, valid, mag, ids, tol_px, isolation, mag_tol, *,
-            camera, grid):
-    """(B, N) ids with the new names (vmapped over scenes); the tolerances are traced (no recompile)."""
+@functools.partial(jax.jit, static_argnames=("camera", "grid", "scan"))
+def _extend(star_vec, star_mag, cells, att, scale, use, xy, valid, mag, ids, tol_px, isolation, mag_tol,
+            span, *, camera, grid, scan):
+    """(B, N) ids with the new names (vmapped over scenes); the tolerances are traced (no recompile).
+
+    ``scan`` > 0 (static): the focal scale is first chosen among ``scan`` values evenly over
+    ``1 ± span`` as the one under which the given names' attitude names the most detections (ties:
+    the one nearest 1). Three names cannot fit a scale, and a wrong one puts the frame's edge
+    pixels off; the right one names the frame.
+    """
     def one(c, s, use_i, xy_i, valid_i, mag_i, ids_i, tol_i):
         rows, vectors, _ = local_stars(cells, star_vec, c[2], grid)  # c[2] = Cᵀ ẑ, the boresight
-        body = unproject_scaled(camera, xy_i, s)
-        local, named = name_stars(c, body, valid_i, vectors, tol_i / (camera.f_px * s), isolation)
-        row = rows[local]
-        taken = jnp.any((ids_i[None, :] == row[:, None]) & (ids_i[None, :] >= 0), axis=1)
-        new = use_i & (ids_i < 0) & named & ~taken
         have = ids_i >= 0
-        star_mag_i = star_mag[jnp.where(have, ids_i, row).clip(0, star_mag.shape[0] - 1)]
-        new = magnitude_agrees(mag_i, star_mag_i, have, new, mag_tol)
+
+        def names(c_s, s_s):
+            body = unproject_scaled(camera, xy_i, s_s)
+            local, named = name_stars(c_s, body, valid_i, vectors, tol_i / (camera.f_px * s_s), isolation)
+            row = rows[local]
+            taken = jnp.any((ids_i[None, :] == row[:, None]) & have[None, :], axis=1)
+            new = use_i & ~have & named & ~taken
+            star_mag_i = star_mag[jnp.where(have, ids_i, row).clip(0, star_mag.shape[0] - 1)]
+            return row, magnitude_agrees(mag_i, star_mag_i, have, new, mag_tol)
+
+        if scan:
+            grid_s = 1.0 + span * jnp.linspace(-1.0, 1.0, scan, dtype=jnp.float32)
+            ref = star_vec[jnp.clip(ids_i, 0, star_vec.shape[0] - 1)]
+
+            def count(s_s):
+                c_s = solve_wahba(unproject_scaled(camera, xy_i, s_s), ref, have.astype(jnp.float32))
+                return jnp.sum(names(c_s, s_s)[1]), c_s
+
+            counts, cs = jax.vmap(count)(grid_s)
+            near_one = jnp.abs(jnp.arange(scan) - (scan - 1) / 2.0)
+            best = first_argmax(counts.astype(jnp.float32) * scan - near_one)
+            c, s = cs[best], grid_s[best]
+        row, new = names(c, s)
         return jnp.where(new, row, ids_i).astype(jnp.int32)
 
     return jax.vmap(one)(att, scale, use, xy, valid, mag, ids, tol_px)

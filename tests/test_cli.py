@@ -127,6 +127,7 @@ def test_solve_identifies_a_rendered_image(tmp_path, capsys):
     for star in sol["stars"]:  # every name is the rendered star's
         j = np.argmin(np.linalg.norm(xy - [star["x"], star["y"]], axis=1))
         assert cat.hip[truth[j]] == star["hip"]
+    assert abs(sol["focal_scale"] - 1.0) < 2e-3  # the camera fit finds the preset's focal length
 
 
 def test_solve_bad_input(tmp_path, capsys):
@@ -186,6 +187,7 @@ def test_identify_centroid_files(tmp_path, capsys):
     assert [s["scene"] for s in solved] == [f"{csv}#0", f"{csv}#1", str(js_file)]
     for entry, (xy, _, hip) in zip(solved, [*scenes, scenes[0]], strict=True):
         assert entry["solved"] and len(entry["stars"]) >= 5 and len(entry["quaternion"]) == 4
+        assert abs(entry["focal_scale"] - 1.0) < 2e-3 and entry["f_px_fitted"] > 0
         for star in entry["stars"]:
             j = np.argmin(np.linalg.norm(xy - [star["x"], star["y"]], axis=1))
             assert hip[j] == star["hip"]

@@ -45,12 +45,16 @@ def _frame_options(p, *, camera: str, mag_limit, capacity: int) -> None:
                    help="name every detection the solved attitude explains (js.name_from_attitude); "
                         "--no-name-all keeps the algorithm's own names")
     p.add_argument("--tol-px", type=float, default=2.0, help="tolerance of --name-all (px)")
+    p.add_argument("--fov-max-error", type=float, default=0.1,
+                   help="largest relative focal-length (field of view) correction the camera fit of "
+                        "--name-all may make before a frame counts as not solved (default 0.1)")
     p.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet network (trained for the camera on first use, then cached)")
 
 
 def _identify(args, scenes, labels: list[str]) -> list[dict]:
-    """Identify ``scenes`` and describe each one (names, boresight, roll, residual)."""
+    """Identify ``scenes`` and describe each one (names, boresight, roll, residual and, with
+    ``--name-all``, the focal length fitted with the attitude)."""
     import jstarid as js
 
     if args.capacity < 1:
@@ -66,8 +70,14 @@ def _identify(args, scenes, labels: list[str]) -> list[dict]:
         print(f"first use builds {built[0]} (≈ {built[1] / 60:.0f} min), once", file=sys.stderr)
     result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)
     if args.name_all:
-        result = js.name_from_attitude(cat, cam, scenes, result, tol_px=args.tol_px)
+        result = js.name_from_attitude(cat, cam, scenes, result, tol_px=args.tol_px,
+                                       max_scale_error=args.fov_max_error)
     att, rms_arcsec, have = (np.asarray(a) for a in js.estimate_attitude(cat, cam, scenes, result))
+    if result.attitude is not None:  # the camera fit's attitude (focal length fitted with it)
+        fitted = np.isfinite(np.asarray(result.attitude)).all(axis=(1, 2))
+        att = np.where(fitted[:, None, None], np.asarray(result.attitude), att)
+    scale = (np.full(len(labels), np.nan) if result.focal_scale is None
+             else np.asarray(result.focal_scale, np.float64))
     ra, dec, roll = (np.degrees(np.asarray(a)) for a in js.rotation_to_radec_roll(att))
     ids, xy, ok = np.asarray(result.ids), np.asarray(scenes.xy), np.asarray(result.ok)
     n_det = np.asarray(scenes.valid).sum(axis=1)
@@ -82,6 +92,10 @@ def _identify(args, scenes, labels: list[str]) -> list[dict]:
             entry.update(ra_deg=float(ra[i]), dec_deg=float(dec[i]), roll_deg=float(roll[i]),
                          residual_arcsec=float(rms_arcsec[i]), attitude=att[i].tolist(),
                          quaternion=np.asarray(js.quaternion_from_rotation(att[i])).tolist())
+            if np.isfinite(scale[i]):
+                entry.update(focal_scale=float(scale[i]), f_px_fitted=float(cam.f_px * scale[i]),
+                             fov_x_deg_fitted=float(np.degrees(2 * np.arctan(cam.width / 2 / (cam.f_px
+                                                                                          * scale[i])))))
         out.append(entry)
     return out
 
@@ -91,7 +105,8 @@ def _summary(entry: dict) -> str:
         return f"{entry['scene']}: not solved ({entry['detections']} detections)"
     return (f"{entry['scene']}: {len(entry['stars'])} of {entry['detections']} detections identified; "
             f"boresight RA {entry['ra_deg']:.4f}°, Dec {entry['dec_deg']:+.4f}°, roll "
-            f"{entry['roll_deg']:+.3f}°, residual {entry['residual_arcsec']:.1f}″")
+            f"{entry['roll_deg']:+.3f}°, residual {entry['residual_arcsec']:.1f}″"
+            + (f", focal length × {entry['focal_scale']:.4f}" if "focal_scale" in entry else ""))
 
 
 def run_identify(args) -> int:

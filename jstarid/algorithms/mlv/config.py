@@ -86,6 +86,14 @@ class Config:
         field_check: under the final cluster's attitude, at least ``field_check_fraction`` of the N
             brightest catalog stars predicted in the frame need a detection within
             ``residual_max_deg``. Why: a three-member cluster can be one chance triangle match.
+        fit_focal: check every solved scene's names against a joint fit of the attitude and the
+            focal length (:mod:`jstarid.camera_fit`); names the fit cannot explain are taken back,
+            and the fitted scale is reported. Why: a focal length off by 1–2 % names edge stars
+            after other stars.
+        focal_search: focal-length factors under which the scenes still unsolved are tried again,
+            in order (:func:`jstarid.camera_fit.search_focal`); ``()`` turns it off. Why: the
+            triangle features are angles, and 1 % of focal length moves them past Th1, Th2.
+        max_focal_error: largest relative focal-length correction of a solved scene.
     """
 
     n_stars: int = 10
@@ -115,6 +123,9 @@ class Config:
     ambiguity_deg: float = 0.2
     field_check: bool = True
     field_check_fraction: float = 0.5
+    fit_focal: bool = True
+    focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
+    max_focal_error: float = 0.1
 
     def __post_init__(self):
         if not 3 <= int(self.n_stars) <= 12:
@@ -133,6 +144,10 @@ class Config:
             raise ValueError("candidate_capacity, batch_chunk and map_batch must be ≥ 1")
         if int(self.n_boresights) < 1:
             raise ValueError("n_boresights must be ≥ 1")
+        if not 0.0 <= self.max_focal_error < 0.5:
+            raise ValueError(f"max_focal_error must be in [0, 0.5), got {self.max_focal_error}")
+        if any(not (math.isfinite(f) and 0.5 < f < 2.0) for f in self.focal_search):
+            raise ValueError(f"focal_search factors must lie in (0.5, 2), got {self.focal_search}")
 
     @property
     def side_tol_rad(self) -> float:
@@ -146,9 +161,10 @@ class Config:
 
     @classmethod
     def paper(cls, **overrides) -> Config:
-        """The paper's algorithm alone (Table 1): no vertex matching, attitude check or field check."""
+        """The paper's algorithm alone (Table 1): no vertex matching, attitude, field or camera check,
+        no focal search."""
         return cls(**{"vertex_match": False, "attitude_check": False, "field_check": False,
-                      **overrides})
+                      "fit_focal": False, "focal_search": (), **overrides})
 
     def tuning(self) -> Tuning:
         """This config's traced tolerances as a :class:`Tuning` of scalars (Th1, Th2 in bins; ε and the side

@@ -53,6 +53,7 @@ from jstarid.algorithms.mlv.voting import (
     gather_pool,
     observed_sides,
 )
+from jstarid.camera_fit import check_identification, search_focal
 from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, take_rows
 from jstarid.scene import Identification, Scene
 
@@ -281,7 +282,8 @@ def _kernel_config(config: Config) -> Config:
                                candidate_pool=d.candidate_pool, batch_chunk=d.batch_chunk,
                                n_boresights=d.n_boresights, database_roll_deg=d.database_roll_deg,
                                th1=d.th1, th2=d.th2, eps_deg=d.eps_deg,
-                               side_tol_deg=d.side_tol_deg)
+                               side_tol_deg=d.side_tol_deg, fit_focal=d.fit_focal,
+                               focal_search=d.focal_search, max_focal_error=d.max_focal_error)
 
 
 def _brightest(scenes: Scene, n: int):
@@ -314,6 +316,14 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     warned about); scenes that exceed the shared buffer P (:func:`default_pool`) are recomputed with a
     doubled P up to T·K, so the result never depends on P.
 
+    Extensions (``Config.focal_search``, ``Config.fit_focal``; off in ``Config.paper()``): the scenes
+    left unsolved are tried again as if the focal length were each factor of ``focal_search`` × the
+    camera's (:func:`jstarid.camera_fit.search_focal`; the triangle features are angles, and a
+    focal length off by 1 % moves them past the tolerances), and every solved scene's names are
+    checked against a fit of the attitude and the focal length
+    (:func:`jstarid.camera_fit.check_identification`), which sets ``focal_scale``. Diagnostics
+    describe the first pass.
+
     Args:
         database: from :func:`~jstarid.algorithms.mlv.build_database` (same camera as the scenes).
         scenes: :class:`~jstarid.scene.Scene` batch (B, capacity).
@@ -331,6 +341,25 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     """
     config = Config() if config is None else config
     check_scenes(scenes)
+    out = _identify(database, scenes, config, diagnostics=diagnostics, tuning=tuning)
+    result, diag = out if diagnostics else (out, None)
+    if scenes.batch_size and config.focal_search:
+        tuning = config.tuning() if tuning is None else tuning
+
+        def run(moved, rows):  # per-scene tolerances (a grid) follow their scenes
+            sub = jax.tree.map(lambda t: t[rows] if np.ndim(t) else t, tuning)
+            return _identify(database, moved, config, tuning=sub)
+
+        result = search_focal(run, result, scenes, database.camera, config.focal_search)
+    if scenes.batch_size and config.fit_focal:
+        result = check_identification(database.catalog_vectors, database.camera, scenes, result,
+                                      max_scale_error=config.max_focal_error)
+    return (result, diag) if diagnostics else result
+
+
+def _identify(database: Database, scenes: Scene, config: Config, *, diagnostics: bool = False,
+              tuning: Tuning | None = None):
+    """:func:`identify`'s voting and verification on one set of centroids (no focal search)."""
     # build statistics are static metadata: drop them so cached and fresh databases share a compile
     stripped = dataclasses.replace(database, info=(), key="")
     # placed on every device once (kept on the caller's database), not copied on each chunk's call

@@ -308,7 +308,9 @@ def _verify_pair(a, b, row_a, row_b, xy, body, valid, star_vectors, cells, th: T
             return jnp.where(jnp.sum(named) >= 2, solve_wahba(body, loc_vec[rows],
                                                                named.astype(jnp.float32)), c), s
         rows, named = name_stars(c, unproject_scaled(camera, xy, s), valid, loc_vec, tol / s)
-        fit, s_fit, _ = fit_scaled(xy, loc_vec[rows], named.astype(jnp.float32), camera)
+        # two Gauss–Newton steps from the previous pass's fit: the passes themselves iterate
+        fit, s_fit, _ = fit_scaled(xy, loc_vec[rows], named.astype(jnp.float32), camera,
+                                   start=(c, s), iterations=2)
         enough = jnp.sum(named) >= 2
         return jnp.where(enough, fit, c), jnp.where(enough, s_fit, s)
 

@@ -1,0 +1,123 @@
+"""jstarid.camera_fit: the joint attitude and focal-length fit against SciPy, and its checks."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+import jstarid as js
+from jstarid import camera_fit as cf
+
+
+@pytest.fixture(scope="module")
+def world():
+    return js.load_catalog(6.0), js.camera_preset("sgm2022")
+
+
+def _scenes(cat, nominal, scale, n=16, seed=0, sigma=0.5):
+    true = dataclasses.replace(nominal, f_px=nominal.f_px * scale)
+    scenes = js.simulate(jax.random.key(seed), cat, true, js.NoiseConfig(position_sigma_px=sigma),
+                         batch_size=n)
+    return scenes, np.where(np.asarray(scenes.valid), np.asarray(scenes.truth), -1)
+
+
+def _scipy_fit(xy, ref, cam):
+    """Least squares over (rotation vector, scale) of the pixel residuals, float64."""
+    def residuals(p):
+        v = Rotation.from_rotvec(p[:3]).apply(ref)
+        pred = np.array([cam.cx, cam.cy]) + p[3] * cam.f_px * v[:, :2] / v[:, 2:3]
+        return (pred - xy).ravel()
+
+    start = Rotation.align_vectors(np.asarray(cam.unproject(jnp.asarray(xy, jnp.float32)), np.float64),
+                                   ref)[0].as_rotvec()
+    return least_squares(residuals, np.r_[start, 1.0], xtol=1e-12, ftol=1e-12).x
+
+
+@pytest.mark.parametrize("scale", [0.97, 1.0, 1.02])
+def test_fit_scaled_matches_scipy_least_squares(world, scale):
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, scale, n=4)
+    for i in range(4):
+        named = truth[i] >= 0
+        xy = np.asarray(scenes.xy[i], np.float64)[named]
+        ref = cat.unit_vectors[truth[i][named]]
+        c, s, _ = cf.fit_scaled(jnp.asarray(xy, jnp.float32), jnp.asarray(ref, jnp.float32),
+                                jnp.ones(len(xy), jnp.float32), nominal)
+        p = _scipy_fit(xy, ref, nominal)
+        assert abs(float(s) - p[3]) < 2e-5, (float(s), p[3])
+        angle = np.linalg.norm((Rotation.from_matrix(np.asarray(c, np.float64))
+                                * Rotation.from_rotvec(p[:3]).inv()).as_rotvec())
+        assert np.degrees(angle) * 3600 < 1.0  # arcsec
+        assert abs(p[3] - scale) < 2e-3  # and both find the camera the scenes were taken with
+
+
+def test_verify_names_takes_back_wrong_names_and_keeps_right_ones(world):
+    cat, nominal = world
+    for scale in (0.95, 1.0, 1.05):
+        scenes, truth = _scenes(cat, nominal, scale, n=24, seed=1)
+        ids = truth.copy()
+        rows = np.arange(len(ids))
+        first = np.argmax(ids >= 0, axis=1)
+        ids[rows, first] = (ids[rows, first] + 7) % len(cat)  # a star from elsewhere in the sky
+        kept, ok, fit = cf.verify_names(cat.unit_vectors, nominal, scenes.xy, scenes.valid, ids,
+                                        np.ones(len(ids), bool))
+        kept = np.asarray(kept)
+        assert np.all(np.asarray(ok))
+        assert np.all((kept < 0) | (kept == truth))  # every wrong name taken back
+        right = (ids >= 0) & (ids == truth)
+        assert np.sum(kept[right] >= 0) >= 0.995 * right.sum()
+        np.testing.assert_allclose(np.asarray(fit.scale), scale, atol=2e-3)
+
+
+def test_a_wrong_sky_fails_the_field_check(world):
+    """Four names that fit a wrong attitude exactly (their detections moved to where that attitude
+    puts them): every name fits, but the frame's other bright stars are missing."""
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=8, seed=2, sigma=0.0)
+    names = np.full_like(truth, -1)
+    xy = np.array(scenes.xy)
+    other = np.asarray(js.attitude.random_rotation(jax.random.key(9), (8,)))
+    for i in range(8):
+        v = cat.unit_vectors @ other[i].T
+        pred, inside = (np.asarray(a) for a in nominal.project(jnp.asarray(v, jnp.float32)))
+        rows = np.flatnonzero(inside)[:4]  # the wrong sky's four brightest stars
+        det = np.flatnonzero(truth[i] >= 0)[:4]
+        names[i, det], xy[i, det] = rows, pred[rows]
+    moved = dataclasses.replace(scenes, xy=jnp.asarray(xy))
+    kept, ok, _ = cf.verify_names(cat.unit_vectors, nominal, moved.xy, moved.valid, names,
+                                  np.ones(8, bool))
+    assert not np.any(np.asarray(ok)) and np.all(np.asarray(kept) == -1)
+    _, ok_true, _ = cf.verify_names(cat.unit_vectors, nominal, scenes.xy, scenes.valid, truth,
+                                    np.ones(8, bool))
+    assert np.all(np.asarray(ok_true))
+
+
+def test_rescaled_scenes_read_as_the_scaled_camera(world):
+    cat, nominal = world
+    scenes, _ = _scenes(cat, nominal, 1.0, n=2)
+    moved = cf.rescale_scenes(scenes, nominal, 0.98)
+    scaled = dataclasses.replace(nominal, f_px=nominal.f_px * 0.98)
+    valid = np.asarray(scenes.valid)
+    np.testing.assert_allclose(np.asarray(nominal.unproject(moved.xy))[valid],
+                               np.asarray(scaled.unproject(scenes.xy))[valid], atol=2e-6)
+
+
+def test_search_focal_retries_only_unsolved_scenes(world):
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=4)
+    calls = []
+
+    def run(moved, rows):
+        calls.append((rows.tolist(), float(moved.xy[0, 0, 0])))
+        return js.Identification(ids=jnp.asarray(truth[rows]), ok=jnp.asarray(rows != 3))
+
+    first = js.Identification(ids=jnp.full(truth.shape, -1), ok=jnp.array([True, False, True, False]))
+    out = cf.search_focal(run, first, scenes, nominal, (0.99, 1.01))
+    assert [c[0] for c in calls] == [[1, 3], [3]]  # the second factor sees only what is left
+    np.testing.assert_array_equal(np.asarray(out.ok), [True, True, True, False])
+    np.testing.assert_array_equal(np.asarray(out.ids[1]), truth[1])
+    assert np.all(np.asarray(out.ids[3]) == -1)
