@@ -105,7 +105,7 @@ def _rotation_from_vector(theta):
     angle = jnp.sqrt(jnp.sum(theta**2) + 1e-30)
     k = theta / angle
     kx = jnp.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], theta.dtype)
-    return jnp.eye(3, dtype=theta.dtype) + jnp.sin(angle) * kx + (1.0 - jnp.cos(angle)) * (kx @ kx)
+    return jnp.eye(3, dtype=theta.dtype) + jnp.sin(angle) * kx + (1.0 - jnp.cos(angle)) * precise.small_matmul(kx, kx)
 
 
 def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iterations: int = ITERATIONS):
@@ -155,15 +155,15 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
             jnp.stack([-vx * vy / vzz**2, 1.0 + vx**2 / vzz**2, -vy / vzz], -1),
             jnp.stack([-(1.0 + vy**2 / vzz**2), vx * vy / vzz**2, vx / vzz], -1)], 1)  # (N, 2, 3)
         jac = jnp.concatenate([f * scale * du_dtheta, f * u[:, :, None]], axis=2)  # (N, 2, 4)
-        normal = jnp.einsum("n,nai,naj->ij", w, jac, jac)
-        rhs = jnp.einsum("n,nai,na->i", w, jac, resid)
+        normal = precise.einsum("n,nai,naj->ij", w, jac, jac)
+        rhs = precise.einsum("n,nai,na->i", w, jac, resid)
         # the scale held where it cannot be fitted: a stiff prior on δs
         stiff = jnp.where(use_scale, 0.0, 1e6 * (jnp.trace(normal) + 1.0))
         normal = normal + jnp.diag(jnp.array([0.0, 0.0, 0.0, 1.0], normal.dtype)) * stiff
         normal = normal + jnp.eye(4, dtype=normal.dtype) * (1e-9 * jnp.trace(normal) + 1e-12)
         step = jnp.linalg.solve(normal, rhs)
         step = jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
-        c = _rotation_from_vector(step[:3]) @ c
+        c = precise.small_matmul(_rotation_from_vector(step[:3]), c)
         scale = jnp.clip(scale + step[3], SCALE_RANGE[0], SCALE_RANGE[1]).astype(jnp.float32)
     body = unproject_scaled(camera, xy, scale)
     c = jnp.where(use_scale, c, solve_wahba(body, ref, weights))  # scale held: Wahba is exact
@@ -292,7 +292,7 @@ def field_seen(star_vectors, camera, xy, valid, ids, fit: CameraFit, span=0.0):
         span: the window is also looked for under :data:`FIELD_SCALES` focal scales over
             ``1 ± span`` (the largest focal-length error allowed).
     """
-    v = star_vectors @ fit.attitude.T  # (M, 3) camera frame
+    v = precise.small_matmul(star_vectors, fit.attitude.T)  # (M, 3) camera frame
     pred, inside = project_scaled(camera, v, fit.scale)
     named = jnp.zeros(star_vectors.shape[0], bool).at[jnp.where(ids >= 0, ids, star_vectors.shape[0])].set(
         True, mode="drop")
@@ -309,7 +309,7 @@ def field_seen(star_vectors, camera, xy, valid, ids, fit: CameraFit, span=0.0):
 
     def seen_under(s):
         c = solve_wahba(unproject_scaled(camera, xy, s), ref, weight)
-        p, _ = project_scaled(camera, star_vectors[rows] @ c.T, s)
+        p, _ = project_scaled(camera, precise.small_matmul(star_vectors[rows], c.T), s)
         gap = jnp.linalg.norm(p[:, None, :] - xy[None, :, :], axis=-1)  # (K, N) px
         return jnp.sum(have & jnp.any(valid[None, :] & (gap <= radius), axis=1))
 
