@@ -46,8 +46,9 @@ from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
 
-__all__ = ["CameraFit", "check_claims", "check_identification", "fit_named", "fit_scaled", "project_scaled",
-           "field_seen", "rescale_scenes", "search_focal", "unproject_scaled", "verify_names"]
+__all__ = ["CameraFit", "check_claims", "check_identification", "field_seen", "fit_named", "fit_scaled",
+           "project_scaled", "rescale_scenes", "scale_step", "search_focal", "unproject_scaled",
+           "verify_names"]
 
 ITERATIONS = 4  # Gauss–Newton steps of the joint attitude and scale fit
 MIN_SCALE_STARS = 4  # fewest names from which the focal length is fitted (3 rotation + 1 scale)
@@ -105,7 +106,8 @@ def _rotation_from_vector(theta):
     angle = jnp.sqrt(jnp.sum(theta**2) + 1e-30)
     k = theta / angle
     kx = jnp.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], theta.dtype)
-    return jnp.eye(3, dtype=theta.dtype) + jnp.sin(angle) * kx + (1.0 - jnp.cos(angle)) * precise.small_matmul(kx, kx)
+    kx2 = precise.small_matmul(kx, kx)
+    return jnp.eye(3, dtype=theta.dtype) + jnp.sin(angle) * kx + (1.0 - jnp.cos(angle)) * kx2
 
 
 def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iterations: int = ITERATIONS):
@@ -142,7 +144,8 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
         c, scale = solve_wahba(camera.unproject(xy), ref, weights), jnp.float32(1.0)
     else:
         c, scale = start[0], jnp.where(use_scale, start[1], 1.0).astype(jnp.float32)
-    for _ in range(iterations):  # unrolled: each step a 4×4 solve and a few sums over the names
+    def step(_, state):  # one Gauss–Newton step: a 4×4 solve and a few sums over the names
+        c, scale = state
         v = precise.small_matmul(ref, c.T)  # (N, 3) rotated catalog stars
         front = v[:, 2] > 0.5  # a name far outside the frame carries no information here
         w = jnp.where(front, weights, 0.0)
@@ -150,10 +153,10 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
         u = v[:, :2] / vz[:, None]  # (N, 2) ideal image-plane coordinates
         resid = centred - f * scale * u  # (N, 2) px
         # d(v_x / v_z) / dθ for dv = θ × v, times f s; and d/ds = f u
-        vx, vy, vzz = v[:, 0], v[:, 1], vz
+        vx, vy = v[:, 0], v[:, 1]
         du_dtheta = jnp.stack([
-            jnp.stack([-vx * vy / vzz**2, 1.0 + vx**2 / vzz**2, -vy / vzz], -1),
-            jnp.stack([-(1.0 + vy**2 / vzz**2), vx * vy / vzz**2, vx / vzz], -1)], 1)  # (N, 2, 3)
+            jnp.stack([-vx * vy / vz**2, 1.0 + vx**2 / vz**2, -vy / vz], -1),
+            jnp.stack([-(1.0 + vy**2 / vz**2), vx * vy / vz**2, vx / vz], -1)], 1)  # (N, 2, 3)
         jac = jnp.concatenate([f * scale * du_dtheta, f * u[:, :, None]], axis=2)  # (N, 2, 4)
         normal = precise.einsum("n,nai,naj->ij", w, jac, jac)
         rhs = precise.einsum("n,nai,na->i", w, jac, resid)
@@ -161,14 +164,40 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
         stiff = jnp.where(use_scale, 0.0, 1e6 * (jnp.trace(normal) + 1.0))
         normal = normal + jnp.diag(jnp.array([0.0, 0.0, 0.0, 1.0], normal.dtype)) * stiff
         normal = normal + jnp.eye(4, dtype=normal.dtype) * (1e-9 * jnp.trace(normal) + 1e-12)
-        step = jnp.linalg.solve(normal, rhs)
-        step = jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
-        c = precise.small_matmul(_rotation_from_vector(step[:3]), c)
-        scale = jnp.clip(scale + step[3], SCALE_RANGE[0], SCALE_RANGE[1]).astype(jnp.float32)
+        delta = jnp.linalg.solve(normal, rhs)
+        delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
+        c = precise.small_matmul(_rotation_from_vector(delta[:3]), c)
+        return c, jnp.clip(scale + delta[3], SCALE_RANGE[0], SCALE_RANGE[1]).astype(jnp.float32)
+
+    # a loop, not unrolled: the fit is called a dozen times per scene and compile time adds up
+    c, scale = jax.lax.fori_loop(0, iterations, step, (c, scale))
     body = unproject_scaled(camera, xy, scale)
     c = jnp.where(use_scale, c, solve_wahba(body, ref, weights))  # scale held: Wahba is exact
     resid = angle_between(body, precise.small_matmul(ref, c.T)) * (f * scale)
     return c, scale, resid
+
+
+def scale_step(xy, ref, weights, camera, scale):
+    """One cheap alternation (for iterative callers such as RpNet's naming passes): Wahba at the
+    current ``scale``, then the scale's closed-form least squares for that attitude,
+    ``s = Σ w (xy − c)·u / (f Σ w |u|²)``, ``u = (v_x, v_y) / v_z``. Converges slowly where the
+    names lie to one side (:func:`fit_scaled` is the exact fit); each pass of the caller is a step.
+
+    Returns:
+        ``(C, scale)``: (3, 3), () (unchanged below :data:`MIN_SCALE_STARS` names or lever).
+    """
+    n = jnp.sum(weights > 0)
+    centred = xy - jnp.array([[camera.cx, camera.cy]], xy.dtype)
+    lever = jnp.sqrt(jnp.sum(weights * jnp.sum(centred**2, -1)) / jnp.maximum(jnp.sum(weights), 1.0))
+    c = solve_wahba(unproject_scaled(camera, xy, scale), ref, weights)
+    v = precise.small_matmul(ref, c.T)
+    front = v[:, 2] > 0.5
+    w = jnp.where(front, weights, 0.0)
+    u = v[:, :2] / jnp.where(front, v[:, 2], 1.0)[:, None]
+    num, den = jnp.sum(w * jnp.sum(centred * u, -1)), jnp.sum(w * jnp.sum(u * u, -1))
+    fitted = jnp.clip(num / (camera.f_px * jnp.maximum(den, 1e-12)), SCALE_RANGE[0], SCALE_RANGE[1])
+    use = (n >= MIN_SCALE_STARS) & (lever > MIN_LEVER * camera.f_px) & (den > 0)
+    return c, jnp.where(use, fitted, scale).astype(jnp.float32)
 
 
 def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_scale=True) -> CameraFit:
@@ -248,11 +277,17 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     # partitioned program around lax.map, whose collectives on CPU devices can stall
     host = (np.asarray(a) for a in (star_vectors, xy, valid, ids, ok))
     star_vectors, xy, valid, ids, ok = host
-    return _verify(jnp.asarray(star_vectors, jnp.float32), jnp.asarray(xy, jnp.float32),
-                   jnp.asarray(valid), jnp.asarray(ids, jnp.int32), jnp.asarray(ok),
-                   jnp.float32(k_sigma), jnp.float32(min_tol_px), jnp.float32(max_tol_px),
-                   jnp.float32(max_scale_error), camera=camera, min_named=int(min_named),
-                   fit_scale=bool(fit_scale))
+    # the batch padded to a multiple of FIELD_GROUP (unclaimed rows): one compilation per size class
+    b = ok.shape[0]
+    pad = (-b) % FIELD_GROUP
+    xy, valid, ids, ok = (np.concatenate([a, np.zeros((pad, *a.shape[1:]), a.dtype)])
+                          for a in (xy, valid, ids, ok))
+    out = _verify(jnp.asarray(star_vectors, jnp.float32), jnp.asarray(xy, jnp.float32),
+                  jnp.asarray(valid), jnp.asarray(ids, jnp.int32), jnp.asarray(ok),
+                  jnp.float32(k_sigma), jnp.float32(min_tol_px), jnp.float32(max_tol_px),
+                  jnp.float32(max_scale_error), camera=camera, min_named=int(min_named),
+                  fit_scale=bool(fit_scale))
+    return jax.tree.map(lambda a: a[:b], out)
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "min_named", "fit_scale"))

@@ -53,7 +53,7 @@ from jstarid.algorithms.rpnet.inference import inference_logits
 from jstarid.algorithms.rpnet.model import use_bf16
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.attitude import solve_wahba
-from jstarid.camera_fit import check_identification, fit_scaled, project_scaled, unproject_scaled
+from jstarid.camera_fit import check_identification, project_scaled, scale_step, unproject_scaled
 from jstarid.completion import first_argmax, name_stars
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
@@ -308,9 +308,9 @@ def _verify_pair(a, b, row_a, row_b, xy, body, valid, star_vectors, cells, th: T
             return jnp.where(jnp.sum(named) >= 2, solve_wahba(body, loc_vec[rows],
                                                                named.astype(jnp.float32)), c), s
         rows, named = name_stars(c, unproject_scaled(camera, xy, s), valid, loc_vec, tol / s)
-        # two Gauss–Newton steps from the previous pass's fit: the passes themselves iterate
-        fit, s_fit, _ = fit_scaled(xy, loc_vec[rows], named.astype(jnp.float32), camera,
-                                   start=(c, s), iterations=2)
+        # one alternation of Wahba and the scale's closed form per pass (the passes iterate; the
+        # exact joint fit checks the final names, jstarid.camera_fit.check_identification)
+        fit, s_fit = scale_step(xy, loc_vec[rows], named.astype(jnp.float32), camera, s)
         enough = jnp.sum(named) >= 2
         return jnp.where(enough, fit, c), jnp.where(enough, s_fit, s)
 
