@@ -37,7 +37,7 @@ def _scipy_fit(xy, ref, cam):
     return least_squares(residuals, np.r_[start, 1.0], xtol=1e-12, ftol=1e-12).x
 
 
-@pytest.mark.parametrize("scale", [0.97, 1.0, 1.02])
+@pytest.mark.parametrize("scale", [0.97, 1.02])
 def test_fit_scaled_matches_scipy_least_squares(world, scale):
     cat, nominal = world
     scenes, truth = _scenes(cat, nominal, scale, n=4)
@@ -57,7 +57,7 @@ def test_fit_scaled_matches_scipy_least_squares(world, scale):
 
 def test_verify_names_takes_back_wrong_names_and_keeps_right_ones(world):
     cat, nominal = world
-    for scale in (0.95, 1.0, 1.05):
+    for scale in (0.95, 1.05):
         scenes, truth = _scenes(cat, nominal, scale, n=24, seed=1)
         ids = truth.copy()
         rows = np.arange(len(ids))
