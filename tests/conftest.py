@@ -13,11 +13,13 @@ import jstarid as js  # noqa: E402
 # and optax's suites: an implicit rank promotion is usually a shape bug.
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
-# One persistent XLA cache for the whole run: the pytest-xdist workers (and the scripts the tests
-# start) compile many of the same kernels (SGM's per-size pair kernels, the tiny RpNet network), and
-# each compiles a kernel only when no other process has stored it yet. Compilation dominates the
-# suite's time on a 2-core machine; results do not depend on the cache (it is keyed by the program).
-js.enable_compilation_cache(js.catalog.cache_dir() / "xla-tests", min_compile_time_s=0.2)
+# A persistent XLA cache per pytest-xdist worker: compilation dominates the suite's time on a
+# 2-core machine and the worker's later tests (and the scripts they start) reuse its kernels; results
+# do not depend on the cache (it is keyed by the program). Not shared between the workers: two
+# processes reading and writing one cache directory crashed JAX's cache code (a segfault on reading
+# an entry the other worker was writing, seen twice).
+js.enable_compilation_cache(js.catalog.cache_dir() / "xla-tests" / os.environ.get("PYTEST_XDIST_WORKER", "main"),
+                            min_compile_time_s=0.2)
 
 
 @pytest.fixture(scope="session")
