@@ -18,8 +18,8 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # do not depend on the cache (it is keyed by the program). Not shared between the workers: two
 # processes reading and writing one cache directory crashed JAX's cache code (a segfault on reading
 # an entry the other worker was writing, seen twice).
-js.enable_compilation_cache(js.catalog.cache_dir() / "xla-tests" / os.environ.get("PYTEST_XDIST_WORKER", "main"),
-                            min_compile_time_s=0.2)
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "main")
+js.enable_compilation_cache(js.catalog.cache_dir() / "xla-tests" / _WORKER, min_compile_time_s=0.2)
 
 
 @pytest.fixture(scope="session")
