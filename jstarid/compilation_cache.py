@@ -36,11 +36,16 @@ def enable_compilation_cache(path: str | os.PathLike | None = None, *,
     Returns:
         The cache directory in use.
 
+    The environment variable ``JSTARID_COMPILATION_CACHE=off`` turns this function into a no-op.
+
     Raises:
         ValueError: ``min_compile_time_s`` is negative.
     """
     if min_compile_time_s < 0:
         raise ValueError(f"min_compile_time_s must be ≥ 0, got {min_compile_time_s}")
+    if os.environ.get("JSTARID_COMPILATION_CACHE", "").lower() in ("0", "off", "false", "no"):
+        # turned off from outside (the test suite: JAX's cache code segfaulted in its workers)
+        return Path(jax.config.jax_compilation_cache_dir or cache_dir() / "xla")
     current = jax.config.jax_compilation_cache_dir
     if path is None and current:
         chosen = Path(current)

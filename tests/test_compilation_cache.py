@@ -8,7 +8,8 @@ import jstarid as js
 
 
 @pytest.fixture
-def restore_jax_cache_config():
+def restore_jax_cache_config(monkeypatch):
+    monkeypatch.delenv("JSTARID_COMPILATION_CACHE", raising=False)  # the suite turns it off (conftest)
     saved = (jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs)
     yield
     from jax.experimental.compilation_cache import compilation_cache
@@ -40,3 +41,10 @@ def test_executables_written(tmp_path, restore_jax_cache_config):
         path = js.enable_compilation_cache(tmp_path / name, min_compile_time_s=0.0)
         jax.jit(lambda x, s=scale: jnp.sin(x) * s + 1.25)(jnp.arange(7.0)).block_until_ready()
         assert any(path.iterdir()), name
+
+
+def test_environment_turns_it_off(tmp_path, monkeypatch, restore_jax_cache_config):
+    jax.config.update("jax_compilation_cache_dir", None)
+    monkeypatch.setenv("JSTARID_COMPILATION_CACHE", "off")
+    js.enable_compilation_cache(tmp_path / "never")
+    assert jax.config.jax_compilation_cache_dir is None and not (tmp_path / "never").exists()
