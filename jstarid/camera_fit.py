@@ -15,7 +15,7 @@ steps alternate (:data:`ITERATIONS` times; the coupling is weak, so three steps 
 precision). The scale is fitted only from :data:`MIN_SCALE_STARS` names on, and only when they
 reach away from the principal point (otherwise it is 1). A principal-point offset is not fitted:
 to first order it is a rotation, which the attitude absorbs (a 20 px offset leaves sub-pixel
-residuals on a 20° frame, checked by the probes in ``tests/test_camera_errors.py``).
+residuals on a 20° frame, checked by the probes in ``tests/algorithms/test_camera_errors.py``).
 
 **Robust fit** (:func:`fit_named`). A wrong name among the right ones would pull the fit towards
 itself, so a first fit of the attitude alone ranks the names, the attitude and the scale are then

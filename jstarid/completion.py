@@ -91,7 +91,7 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     """Extend ``result`` to every detection the attitude of its named stars explains (module doc).
 
     The attitude and the focal length are first fitted together to the given names
-    (:func:`jstarid.camera_fit.verify_names`): names far from their star (6 σ̂, at least 1.5 px) are
+    (:func:`jstarid.camera_fit.verify_names`): names far from their star (6 σ̂, at least 2.5 px) are
     taken back, and a
     scene whose fit needs the focal length moved by more than ``max_scale_error`` is not solved.
     New names then use the fitted camera, a radius that follows the fit's centroid noise
