@@ -21,7 +21,9 @@ residuals on a 20° frame, checked by the probes in ``tests/algorithms/test_came
 itself, so a first fit of the attitude alone ranks the names, the attitude and the scale are then
 fitted to the better half of them (least trimmed squares, one step),
 the centroid noise σ̂ is taken from the median residual (Rayleigh: median = σ √(2 ln 2)), and the
-final fit uses only the names within ``k_sigma`` σ̂ (clipped to ``[min_tol_px, max_tol_px]``).
+fit is repeated on the names within ``k_sigma`` σ̂ (clipped to ``[min_tol_px, max_tol_px]``), each
+name judged by the σ̂ of the others (an externally studentized residual), so that a wrong name
+cannot widen its own radius.
 
 **Verification** (:func:`verify_names`). Names outside that radius under the final fit are taken
 back; a scene keeps its claim only with ``min_named`` names left, a fitted focal length within
@@ -58,8 +60,11 @@ K_SIGMA = 6.0  # a name is taken back beyond this many σ̂ from its star (a rig
 MIN_TOL_PX = 2.5  # … and never within this radius (px): σ̂ of ten names can come out at half σ
 MAX_TOL_PX = 10.0  # largest verification radius (px): 5 σ at 2 px per axis, beyond any real tracker
 LADDER_MIN_NAMES = 6  # fewest names of a solution found under a rescaled focal length
-FEW_NAMES = 10  # up to this many names the robust fit drops the worst ones one by one
-DROP_STEPS = 2  # … at most this many
+FEW_NAMES = 10  # up to this many names the robust fit tests each name by leaving it out
+DROP_STEPS = 2  # … and drops at most this many
+DELETION_RATIO = 3.0  # … each time the others' RMS residual shrinks at least this many times
+TRIM_SHARE = 0.8  # the trimmed σ̂ of the refits uses the smallest 80 % of the residuals
+REFITS = 4  # fits on the inliers of the previous fit (the inlier set grows from the better half)
 FIELD_STARS = 10  # the brightest catalog stars in the fitted frame that the field check looks for
 FIELD_FRACTION = 0.5  # … of which at least this share must have a detection
 FIELD_SCALES = 81  # focal scales the field check also tries (0.25 % apart at a span of 0.1)
@@ -220,35 +225,87 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
         better = named & (r <= masked_median(r, named))
         use = jnp.where(jnp.sum(better) >= 3, better, named)
         r = fit_scaled(xy, ref, use.astype(jnp.float32), camera, scaled)[2]
-    # a few names (MLV names at most its 10 brightest): half of them cannot fit the scale, so the
-    # worst name is dropped instead, while it lies 3× beyond the others' median, and the rest
-    # refitted with the scale (one wrong name among five pulls a 4-parameter fit by pixels)
-    use = named
-    r_few = fit_scaled(xy, ref, use.astype(jnp.float32), camera, fit_scale)[2]
-    for _ in range(DROP_STEPS):
-        worst = jnp.argmax(jnp.where(use, r_few, -jnp.inf))
-        others = use & (jnp.arange(use.shape[0]) != worst)
-        drop = (jnp.sum(use) > MIN_SCALE_STARS) & (r_few[worst] > 3.0 * masked_median(r_few, others))
-        use = jnp.where(drop, others, use)
-        r_few = fit_scaled(xy, ref, use.astype(jnp.float32), camera, fit_scale)[2]
+    # a few names (MLV names at most its 10 brightest): half of them cannot fit the scale, so a
+    # wrong name is found by deletion instead: each name is left out in turn, and the one whose
+    # absence shrinks the others' residuals most is dropped when they shrink DELETION_RATIO-fold
+    # and the left-out name then lies beyond k_sigma of them (and min_tol_px). One wrong name among
+    # five bends a 4-parameter fit to 1.5–2 px residuals on all of them; without it they are 0.2.
+    r_few = _few_names_fit(xy, ref, named, camera, fit_scale, k_sigma=k_sigma, min_tol_px=min_tol_px)
     r = jnp.where(jnp.sum(named) <= FEW_NAMES, r_few, r)
     # σ̂ from the median over every name: robust while fewer than half of the names are wrong
     sigma = masked_median(r, named) / RAYLEIGH_MEDIAN
     tol = jnp.clip(k_sigma * sigma, min_tol_px, max_tol_px)
-    inlier = named & (r <= tol)
-    # twice: at a large scale error the better half lies near the principal point and fixes the
-    # scale roughly; the fit on every inlier reaches the edge stars the first radius left out.
-    # The second radius comes from the inliers' RMS over their degrees of freedom (2n − 3, or
-    # 2n − 4 with the scale): with a dozen names the median alone can come out at half the true σ
-    # and would take right names back.
-    for _ in range(2):
+    # with many names the refits grow from the better half under the current fit (a clean core):
+    # wrong names that lie together on one side pull a fit of every name towards themselves, and
+    # inflate the median with the right names' residuals
+    core = named & (r <= masked_median(r, named))
+    inlier = jnp.where(jnp.sum(named) <= FEW_NAMES, named & (r <= tol), core)
+    # then refitted on the inliers, REFITS times: at a large scale error the better half lies near
+    # the principal point and fixes the scale roughly; the fit on every inlier reaches the edge
+    # stars the first radius left out. σ comes from the inliers' RMS over their degrees of freedom
+    # (2n − 3, or 2n − 4 with the scale): with a dozen names the median alone can come out at half
+    # the true σ and would take right names back. Each inlier is judged by the σ of the *others*
+    # (an externally studentized residual): a wrong name's own residual would widen its own radius
+    # — one 9 px name among twenty right ones at 0.5 px inflates the plain RMS to 1.5 px, a 9 px
+    # radius — and it pulls the fitted scale by a few tenths of a percent while it stays.
+    p = 4.0 if fit_scale is not False else 3.0
+    for _ in range(REFITS):
         c, scale, r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)
-        n = jnp.sum(inlier).astype(jnp.float32)
-        dof = jnp.maximum(2.0 * n - (4.0 if fit_scale is not False else 3.0), 1.0)
-        sigma = jnp.sqrt(jnp.sum(jnp.where(inlier, r**2, 0.0)) / dof)
-        tol = jnp.clip(k_sigma * sigma, min_tol_px, max_tol_px)
-        inlier = named & (r <= tol)
+        dof = 2.0 * jnp.sum(inlier).astype(jnp.float32) - p
+        ss = jnp.sum(jnp.where(inlier, r**2, 0.0))
+        ss_others = jnp.where(inlier, ss - r**2, ss)
+        dof_others = jnp.where(inlier, dof - 2.0, dof)
+        sigma_others = jnp.sqrt(jnp.maximum(ss_others, 0.0) / jnp.maximum(dof_others, 1.0))
+        # … and by a trimmed σ̂ (two wrong names side by side would each widen the other's radius)
+        sigma_i = jnp.minimum(sigma_others, _trimmed_sigma(r, inlier))
+        inlier = named & (r <= jnp.clip(k_sigma * sigma_i, min_tol_px, max_tol_px))
+    c, scale, r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)
+    dof = jnp.maximum(2.0 * jnp.sum(inlier).astype(jnp.float32) - p, 1.0)
+    sigma = jnp.sqrt(jnp.sum(jnp.where(inlier, r**2, 0.0)) / dof)
+    tol = jnp.clip(k_sigma * sigma, min_tol_px, max_tol_px)
+    inlier = named & (r <= tol)
     return CameraFit(c, scale, r, inlier, sigma, tol)
+
+
+def _trimmed_sigma(r, mask):
+    """σ̂ (px per axis) from the smallest :data:`TRIM_SHARE` of the residual lengths ``r[mask]``:
+    for a 2-D Gaussian error, ``E[r² | r below its q-quantile] = 2σ² (1 − (1 − q)(1 − ln(1 − q))) / q``
+    (1.196 σ² at q = 0.8), robust while under 1 − q of the names are wrong."""
+    n = jnp.sum(mask)
+    keep = jnp.maximum(jnp.floor(TRIM_SHARE * n), 1.0)
+    smallest = jnp.sort(jnp.where(mask, r, jnp.inf))
+    first = jnp.arange(r.shape[0]) < keep
+    mean_sq = jnp.sum(jnp.where(first, smallest**2, 0.0)) / keep
+    q = TRIM_SHARE
+    factor = 2.0 * (1.0 - (1.0 - q) * (1.0 - math.log(1.0 - q))) / q
+    return jnp.where(n >= 2, jnp.sqrt(mean_sq / factor), jnp.inf)
+
+
+def _few_names_fit(xy, ref, named, camera, fit_scale, *, k_sigma, min_tol_px):
+    """Residuals (N,) px of the fit on the names of a scene with at most :data:`FEW_NAMES` names,
+    after up to :data:`DROP_STEPS` deletions (see :func:`fit_named`)."""
+    n = named.shape[0]
+    slots = jnp.argsort(~named, stable=True)[:min(FEW_NAMES, n)]  # the names first (static size)
+    use = named[slots]
+    sxy, sref = xy[slots], ref[slots]
+    k = slots.shape[0]
+    p = 4.0 if fit_scale is not False else 3.0
+
+    def rms(r, mask):
+        dof = jnp.maximum(2.0 * jnp.sum(mask).astype(jnp.float32) - p, 1.0)
+        return jnp.sqrt(jnp.sum(jnp.where(mask, r**2, 0.0)) / dof)
+
+    for _ in range(DROP_STEPS):
+        r_all = fit_scaled(sxy, sref, use.astype(jnp.float32), camera, fit_scale)[2]
+        without = use[None, :] & ~jnp.eye(k, dtype=bool)  # (k, k): row i leaves name i out
+        r_wo = jax.vmap(lambda m: fit_scaled(sxy, sref, m.astype(jnp.float32), camera, fit_scale)[2])(without)
+        rms_wo = jax.vmap(rms)(r_wo, without)
+        i = jnp.argmin(jnp.where(use, rms_wo, jnp.inf))
+        drop = ((jnp.sum(use) > MIN_SCALE_STARS) & (rms_wo[i] * DELETION_RATIO < rms(r_all, use))
+                & (r_wo[i, i] > jnp.maximum(k_sigma * rms_wo[i], min_tol_px)))
+        use = use & ~(drop & (jnp.arange(k) == i))
+    mask = jnp.zeros_like(named).at[slots].set(use)
+    return fit_scaled(xy, ref, mask.astype(jnp.float32), camera, fit_scale)[2]
 
 
 def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K_SIGMA,

@@ -21,6 +21,7 @@ from jstarid.algorithms import rpnet
 from jstarid.algorithms.rpnet import checkpoint, data, inference, model, pattern, train
 from jstarid.algorithms.rpnet.identify import (
     PAIRS,
+    _identify,
     anchor_names,
     network_candidates,
     softmax_top3,
@@ -166,7 +167,8 @@ def tiny():
     training = rpnet.Training(dae_lr=3e-3, clf_lr=3e-3, dae_steps=200, clf_steps=200, batch_size=128,
                               eval_every=100, eval_size=128, pool_batches=3, sim_capacity=64, seed=1)
     cfg = rpnet.Config(rho_deg=20.0, e_deg=0.1, gen_widths=(64, 128), clf_width=64, training=training,
-                       pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=64)
+                       pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=64,
+                       focal_search=())  # the passes under test; the ladder: test_camera_errors
     db = rpnet.build_database(cat, cam, cfg, cache=False, progress=False)
     tables = data.build_tables(cat, cam, cfg, db.guide_rows)
     return cat, cam, cfg, db, tables
@@ -610,13 +612,16 @@ def test_coverage_check_fails_scenes_that_name_few_of_the_expected_stars(tiny, c
     """
     from jstarid.runtime import devices as sweep
     _, cam, cfg, db, _ = tiny
-    # the camera fit's field check would fail the pushed scenes as well: off, to test this check
-    cfg = dataclasses.replace(cfg, fit_focal=False)
+    # the passes alone (identify's _identify): the final camera check's field test would fail
+    # the pushed scenes as well, and this tests the passes' own coverage check
+    def identify(scenes, config):
+        return _identify(db, scenes, config, None)[0]
+
     s = clean_scenes[:96]
     strict = dataclasses.replace(cfg, min_coverage=0.9)
-    base = rpnet.identify(db, s, dataclasses.replace(cfg, min_coverage=0.0))
+    base = identify(s, dataclasses.replace(cfg, min_coverage=0.0))
     compiled = sweep._compiled.cache_info().currsize
-    full = rpnet.identify(db, s, strict)
+    full = identify(s, strict)
     # the threshold is a traced value (Config.thresholds): the second setting compiled nothing new
     assert jax.device_count() == 1 or sweep._compiled.cache_info().currsize == compiled
     # the expected-star count matches the named stars: the check changes nothing on clean scenes
@@ -641,8 +646,8 @@ def test_coverage_check_fails_scenes_that_name_few_of_the_expected_stars(tiny, c
     chosen = np.asarray(full.ok) & (move.sum(1) >= 0.3 * valid.sum(1))
     assert chosen.sum() >= 5
 
-    off = rpnet.identify(db, pushed, dataclasses.replace(cfg, min_coverage=0.0))
-    on = rpnet.identify(db, pushed, strict)
+    off = identify(pushed, dataclasses.replace(cfg, min_coverage=0.0))
+    on = identify(pushed, strict)
     ids_off, truth = np.asarray(off.ids), np.asarray(s.truth)
     assert np.mean(np.asarray(off.ok)[chosen]) >= 0.8
     assert np.sum((ids_off != truth) & (ids_off >= 0)) <= 2  # measured 1: what the check is for

@@ -49,7 +49,7 @@ class Tuning(NamedTuple):
 
 # Config fields that compiled identification never reads as compile-time constants: the traced
 # thresholds, and the host loop's chunking and pass counts (passed to the kernels separately).
-_NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk", "max_focal_error")
+_NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk", "max_focal_error", "focal_search")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -201,6 +201,10 @@ class Config:
             check every name against that fit at the end (:mod:`jstarid.camera_fit`): a camera
             whose focal length is off by a few % names its stars, not others.
         max_focal_error: the largest relative focal-length correction of a solved scene.
+        focal_search: (extension) focal-length factors under which the scenes still unsolved are
+            tried again, in order (:func:`jstarid.camera_fit.search_focal`): the network reads a
+            pattern of angles, and a focal length off by 2 % moves the outer stars of the pattern by
+            ≈ 1.5 bins. A retry's solution needs 6 names. ``()``: off.
         network_bf16: run the network's matmuls on bfloat16 operands with float32 accumulation
             (parameters stay float32). ``None``: bfloat16 where the hardware has it
             (:func:`.model.native_bf16`: GPU or TPU, or AVX512-BF16 / AMX-BF16 CPU flags), else
@@ -238,6 +242,7 @@ class Config:
     n_pool_pairs: int = 8
     fit_focal: bool = True
     max_focal_error: float = 0.1
+    focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
     network_bf16: bool | None = None
     batch_chunk: int = 512
     name_chunk: int = 64
@@ -255,6 +260,8 @@ class Config:
             raise ValueError(f"n_pair_trials must be in [1, 27], got {self.n_pair_trials}")
         if not 0.0 <= self.max_focal_error < 0.5:
             raise ValueError(f"max_focal_error must be in [0, 0.5), got {self.max_focal_error}")
+        if any(not (math.isfinite(f) and 0.5 < f < 2.0) for f in self.focal_search):
+            raise ValueError(f"focal_search factors must lie in (0.5, 2), got {self.focal_search}")
         if self.n_pool_pairs < 0:
             raise ValueError(f"n_pool_pairs must be ≥ 0, got {self.n_pool_pairs}")
         if self.n_guide_triples < 1:
@@ -301,10 +308,11 @@ class Config:
     def paper(cls, **overrides) -> Config:
         """The paper's algorithm alone: paper network, input and Table 3 training, none of our extensions
         (no pair-angle test, one confident pair, S1–S3 only, no pool of pairs, no coverage test, no
-        camera fit).
+        camera fit or focal-length retries).
         """
         return cls(**{"pair_tol_px": None, "n_pair_trials": 1, "n_guide_triples": 1,
-                      "n_pool_pairs": 0, "min_coverage": 0.0, "fit_focal": False, **overrides})
+                      "n_pool_pairs": 0, "min_coverage": 0.0, "fit_focal": False, "focal_search": (),
+                      **overrides})
 
     def database_fields(self) -> dict:
         """The settings that shape the trained network (identification-time ones left out)."""

@@ -53,7 +53,13 @@ from jstarid.algorithms.rpnet.inference import inference_logits
 from jstarid.algorithms.rpnet.model import use_bf16
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.attitude import solve_wahba
-from jstarid.camera_fit import check_identification, project_scaled, scale_step, unproject_scaled
+from jstarid.camera_fit import (
+    check_identification,
+    fit_scaled,
+    project_scaled,
+    search_focal,
+    unproject_scaled,
+)
 from jstarid.completion import first_argmax, name_stars
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
@@ -308,9 +314,12 @@ def _verify_pair(a, b, row_a, row_b, xy, body, valid, star_vectors, cells, th: T
             return jnp.where(jnp.sum(named) >= 2, solve_wahba(body, loc_vec[rows],
                                                                named.astype(jnp.float32)), c), s
         rows, named = name_stars(c, unproject_scaled(camera, xy, s), valid, loc_vec, tol / s)
-        # one alternation of Wahba and the scale's closed form per pass (the passes iterate; the
-        # exact joint fit checks the final names, jstarid.camera_fit.check_identification)
-        fit, s_fit = scale_step(xy, loc_vec[rows], named.astype(jnp.float32), camera, s)
+        # one joint Gauss–Newton step of attitude and scale per pass, from the previous pass's
+        # fit (the passes iterate). An alternation of Wahba and the scale's closed form was
+        # cheaper but crept where the names lie to one side: its partly fitted scale named far
+        # edge stars after neighbours of theirs, consistently enough to survive the final check.
+        fit, s_fit, _ = fit_scaled(xy, loc_vec[rows], named.astype(jnp.float32), camera, True,
+                                   start=(c, s), iterations=1)
         enough = jnp.sum(named) >= 2
         return jnp.where(enough, fit, c), jnp.where(enough, s_fit, s)
 
@@ -522,6 +531,13 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
              tuning: Tuning | None = None):
     """Identify a batch of scenes (host loop over fixed-size chunks of one compiled function per width).
 
+    Extensions (``Config.focal_search``, ``Config.fit_focal``; off in ``Config.paper()``): the scenes
+    left unsolved are tried again as if the focal length were each factor of ``focal_search`` × the
+    camera's (:func:`jstarid.camera_fit.search_focal`), and every solved scene's names are checked
+    against a fit of the attitude and the focal length
+    (:func:`jstarid.camera_fit.check_identification`), which sets ``focal_scale``. Diagnostics
+    describe the first call.
+
     Args:
         database: :class:`~jstarid.algorithms.rpnet.database.Database`.
         scenes: (B, N) :class:`~jstarid.scene.Scene` taken with ``database.camera``.
@@ -542,6 +558,18 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
     check_scenes(scenes)
     if config.database_fields() != database.config.database_fields():
         raise ValueError("config's network settings differ from the database's; build a database for it")
+    result, diag = _identify(database, scenes, config, tuning)
+    if scenes.batch_size and config.focal_search:
+        result = search_focal(lambda moved, rows: _identify(database, moved, config, tuning)[0],
+                              result, scenes, database.camera, config.focal_search)
+    if scenes.batch_size and config.fit_focal:  # every name checked on a fit of attitude and scale
+        result = check_identification(database.star_vectors, database.camera, scenes, result,
+                                      max_scale_error=config.max_focal_error)
+    return (result, diag) if diagnostics else result
+
+
+def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
+    """:func:`identify` under the nominal camera, without the final camera check: (result, diagnostics)."""
     b, n = scenes.batch_size, scenes.xy.shape[1]
     guide_rows = jnp.asarray(database.guide_rows, jnp.int32)
     index = _local_index(database, config)
@@ -604,9 +632,4 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
     if config.n_pool_pairs and failed.size:  # last: pairs across the triples (_name_pool)
         run(failed, None, _pass_chunk(failed.size, config), pool=True)
     result = Identification(ids=jnp.asarray(ids_out), ok=jnp.asarray(ok_out), attitude=jnp.asarray(att_out))
-    if config.fit_focal:  # the camera fitted on every name; names it cannot explain taken back
-        result = check_identification(database.star_vectors, database.camera, scenes, result,
-                                      max_scale_error=config.max_focal_error)
-    if diagnostics:
-        return result, Diagnostics(n_candidates=n_pairs, overflow=overflow_all.copy(), n_passes=n_passes)
-    return result
+    return result, Diagnostics(n_candidates=n_pairs, overflow=overflow_all.copy(), n_passes=n_passes)
