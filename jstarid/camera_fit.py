@@ -49,7 +49,7 @@ from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
 
 __all__ = ["CameraFit", "check_claims", "check_identification", "field_seen", "fit_named", "fit_scaled",
-           "project_scaled", "rescale_scenes", "scale_step", "search_focal", "unproject_scaled",
+           "project_scaled", "rescale_scenes", "search_focal", "unproject_scaled",
            "verify_names"]
 
 ITERATIONS = 4  # Gauss–Newton steps of the joint attitude and scale fit
@@ -180,29 +180,6 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
     c = jnp.where(use_scale, c, solve_wahba(body, ref, weights))  # scale held: Wahba is exact
     resid = angle_between(body, precise.small_matmul(ref, c.T)) * (f * scale)
     return c, scale, resid
-
-
-def scale_step(xy, ref, weights, camera, scale):
-    """One cheap alternation (for iterative callers such as RpNet's naming passes): Wahba at the
-    current ``scale``, then the scale's closed-form least squares for that attitude,
-    ``s = Σ w (xy − c)·u / (f Σ w |u|²)``, ``u = (v_x, v_y) / v_z``. Converges slowly where the
-    names lie to one side (:func:`fit_scaled` is the exact fit); each pass of the caller is a step.
-
-    Returns:
-        ``(C, scale)``: (3, 3), () (unchanged below :data:`MIN_SCALE_STARS` names or lever).
-    """
-    n = jnp.sum(weights > 0)
-    centred = xy - jnp.array([[camera.cx, camera.cy]], xy.dtype)
-    lever = jnp.sqrt(jnp.sum(weights * jnp.sum(centred**2, -1)) / jnp.maximum(jnp.sum(weights), 1.0))
-    c = solve_wahba(unproject_scaled(camera, xy, scale), ref, weights)
-    v = precise.small_matmul(ref, c.T)
-    front = v[:, 2] > 0.5
-    w = jnp.where(front, weights, 0.0)
-    u = v[:, :2] / jnp.where(front, v[:, 2], 1.0)[:, None]
-    num, den = jnp.sum(w * jnp.sum(centred * u, -1)), jnp.sum(w * jnp.sum(u * u, -1))
-    fitted = jnp.clip(num / (camera.f_px * jnp.maximum(den, 1e-12)), SCALE_RANGE[0], SCALE_RANGE[1])
-    use = (n >= MIN_SCALE_STARS) & (lever > MIN_LEVER * camera.f_px) & (den > 0)
-    return c, jnp.where(use, fitted, scale).astype(jnp.float32)
 
 
 def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_scale=True) -> CameraFit:
