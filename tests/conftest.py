@@ -1,5 +1,6 @@
 """Shared fixtures. Several host devices are forced so sharding code paths are exercised on CPU."""
 
+import gc
 import os
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=4")
@@ -18,11 +19,32 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # shared directory and with one per worker. Each process keeps its compiled kernels in memory.
 os.environ["JSTARID_COMPILATION_CACHE"] = "off"
 
-# A test whose xdist worker dies in native code runs once more in a fresh worker; a second crash
-# fails it. Cores of such crashes (jax 0.10.2, CPU) show XLA's compile returning an error status and
-# the C++ exception segfaulting in libgcc's unwinder (_Unwind_Find_FDE) — a process-state fault of
-# the native runtime, not of the test: in isolation the same tests pass every time. Ordinary
-# failures are never retried, and the retry shows as ``R`` / "rerun" in the report.
+# Memory maps: each compiled XLA CPU executable holds ≈ 6 memory mappings, and a worker that runs
+# a third of the suite keeps thousands of executables in JAX's caches. At Linux's default
+# vm.max_map_count (65,530) XLA's next compile fails to map its code, and the C++ exception it throws
+# segfaulted in libgcc's unwinder (cores of three worker crashes: 65,507–65,522 mappings, the crash
+# in XLA's compile_and_load). Past MAX_MAPS mappings the caches are dropped between tests.
+MAX_MAPS = 45_000
+
+
+def _memory_maps() -> int:
+    try:
+        with open("/proc/self/maps") as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux: no such limit to watch
+        return 0
+
+
+@pytest.fixture(autouse=True)
+def _bounded_memory_maps():
+    yield
+    if _memory_maps() > MAX_MAPS:
+        jax.clear_caches()
+        gc.collect()
+
+
+# A test whose xdist worker still dies in native code runs once more in a fresh worker; a second
+# crash fails it. Ordinary failures are never retried, and the retry shows as ``R`` / "rerun".
 _crash_retries: dict[str, int] = {}
 MAX_CRASH_RETRIES = 1
 
