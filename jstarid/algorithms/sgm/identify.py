@@ -16,6 +16,7 @@ mis-identify it; ``verify_rename`` names what the verification left unnamed and 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import warnings
 from typing import NamedTuple
@@ -36,6 +37,7 @@ from jstarid.algorithms.sgm.search import (
 )
 from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
+from jstarid.camera_fit import check_identification, search_focal
 from jstarid.metrics import nearest_to_principal_point
 from jstarid.runtime import map_batch, on_every_device
 from jstarid.scene import Identification, Scene
@@ -120,7 +122,17 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
     Returns:
         :class:`~jstarid.scene.Identification`: ``ids`` (B, N) int32 catalog rows of the verified
         detections of the neighbor circle (−1 elsewhere; every id −1 where ``ok`` (B,) is False), or
-        with ``diagnostics`` a ``(result, Diagnostics)`` tuple.
+        with ``diagnostics`` a ``(result, Diagnostics)`` tuple (the diagnostics of the first
+        pass). With ``config.fit_focal`` also ``focal_scale`` (B,), the fitted focal length /
+        the camera's (NaN where not fitted).
+
+    Extensions (``Config.focal_search``, ``Config.fit_focal``; off in ``Config.paper()``): the scenes
+    left unsolved are searched again (up to Δw = ``focal_search_dw_max_deg``) as if the focal length
+    were each factor of ``focal_search`` × the camera's (:func:`jstarid.camera_fit.search_focal`:
+    the graph's edges are angles, and a scale error of 2 % moves the circle's edge stars by 0.1°,
+    past the verification's tolerance), and
+    every solved scene's names are checked against a joint fit of attitude and focal length
+    (:func:`jstarid.camera_fit.check_identification`).
 
     Raises:
         ValueError: ``config.radius_deg`` differs from the database's.
@@ -130,6 +142,23 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
     if abs(config.radius_deg - db.radius_deg) > 1e-12:
         raise ValueError(f"config.radius_deg={config.radius_deg} but the database was built with "
                          f"r={db.radius_deg}")
+    out = _identify(db, scenes, config, diagnostics=diagnostics, with_attitude=with_attitude)
+    result, diag = out if diagnostics else (out, None)
+    if scenes.batch_size and config.focal_search:
+        cap = config.focal_search_dw_max_deg
+        retry = config if cap is None else dataclasses.replace(config, dw_max_deg=min(cap, config.dw_max_deg))
+        result = search_focal(lambda moved, rows: _identify(db, moved, retry, with_attitude=with_attitude),
+                              result, scenes, db.camera, config.focal_search)
+    if scenes.batch_size and config.fit_focal:
+        checked = check_identification(jnp.asarray(db.catalog.unit_vectors, jnp.float32), db.camera,
+                                       scenes, result, max_scale_error=config.max_focal_error)
+        result = checked if with_attitude else dataclasses.replace(checked, attitude=None)
+    return (result, diag) if diagnostics else result
+
+
+def _identify(db, scenes: Scene, config: Config, *, diagnostics: bool = False, with_attitude: bool = True):
+    """:func:`identify` without the focal-length extensions (the paper's search and the
+    verification), on scenes already checked."""
     g, usable = searchable_graphs(db, scenes, config)
     state = advance_search(db, g, start_search(db, g, usable, config), config)
     res = search_outcome(state, config, g.mask.shape[1])
