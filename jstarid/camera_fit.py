@@ -47,6 +47,7 @@ from jstarid.attitude import solve_wahba
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
+from jstarid.runtime.memory_maps import relieve
 
 __all__ = ["CameraFit", "check_claims", "check_identification", "field_seen", "fit_named", "fit_scaled",
            "project_scaled", "rescale_scenes", "search_focal", "unproject_scaled",
@@ -457,6 +458,11 @@ def rescale_scenes(scenes, camera, scale: float):
     return dataclasses.replace(scenes, xy=jnp.asarray(moved))
 
 
+def _bucket(n: int) -> int:
+    """The padded size of a retried batch of ``n`` scenes: the next power of two, at least 8."""
+    return max(8, 1 << (int(n) - 1).bit_length())
+
+
 def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER_MIN_NAMES):
     """Retry the scenes ``result`` leaves unsolved as if the focal length were each of ``scales`` ×
     the nominal one in turn (:func:`rescale_scenes`), keeping the first solution of each scene.
@@ -486,11 +492,17 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
         todo = np.flatnonzero(~ok)
         if not todo.size:
             break
-        retry = run(rescale_scenes(scenes[todo], camera, float(scale)), todo)
-        solved = np.asarray(retry.ok) & (np.sum(np.asarray(retry.ids) >= 0, axis=1) >= min_named)
+        # the retried batch padded to a power of two (copies of its last scene): every new
+        # batch size compiles the algorithm's kernels again, and a long run of retries on batches
+        # of many sizes would otherwise fill memory with executables
+        padded = np.concatenate([todo, np.full(_bucket(todo.size) - todo.size, todo[-1])])
+        retry = run(rescale_scenes(scenes[padded], camera, float(scale)), padded)
+        retry_ids = np.asarray(retry.ids)[: todo.size]
+        solved = np.asarray(retry.ok)[: todo.size] & (np.sum(retry_ids >= 0, axis=1) >= min_named)
         rows = todo[solved]
-        ids[rows], ok[rows] = np.asarray(retry.ids)[solved], True
+        ids[rows], ok[rows] = retry_ids[solved], True
         if att is not None and retry.attitude is not None:
-            att[rows] = np.asarray(retry.attitude)[solved]
+            att[rows] = np.asarray(retry.attitude)[: todo.size][solved]
+        relieve()
     return dataclasses.replace(result, ids=jnp.asarray(ids), ok=jnp.asarray(ok),
                                attitude=None if att is None else jnp.asarray(att))

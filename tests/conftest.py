@@ -1,6 +1,5 @@
 """Shared fixtures. Several host devices are forced so sharding code paths are exercised on CPU."""
 
-import gc
 import os
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=4")
@@ -27,20 +26,10 @@ os.environ["JSTARID_COMPILATION_CACHE"] = "off"
 MAX_MAPS = 45_000
 
 
-def _memory_maps() -> int:
-    try:
-        with open("/proc/self/maps") as f:
-            return sum(1 for _ in f)
-    except OSError:  # not Linux: no such limit to watch
-        return 0
-
-
 @pytest.fixture(autouse=True)
 def _bounded_memory_maps():
     yield
-    if _memory_maps() > MAX_MAPS:
-        jax.clear_caches()
-        gc.collect()
+    js.runtime.relieve(MAX_MAPS)
 
 
 # A test whose xdist worker still dies in native code runs once more in a fresh worker; a second

@@ -131,3 +131,15 @@ def test_map_by_width_equals_the_full_width_map():
 
     got = jax.jit(lambda a, nd: js.runtime.map_by_width(make, (a, nd), nd, (4, 8, 16), 8))(x, need)
     np.testing.assert_allclose(np.asarray(got), np.asarray(make(16)((x, need))), rtol=1e-6)
+
+
+def test_relieve_drops_compiled_kernels_only_past_the_limit(monkeypatch):
+    from jstarid.runtime import memory_maps
+
+    double = jax.jit(lambda x: 2 * x)
+    double(jnp.ones(3))
+    assert double._cache_size() == 1
+    monkeypatch.setattr(memory_maps, "map_count", lambda: 1_000)
+    assert not js.runtime.relieve(1_000) and double._cache_size() == 1
+    assert js.runtime.relieve(999) and double._cache_size() == 0
+    assert memory_maps.map_limit() > 0 and memory_maps.map_count() > 0  # Linux: /proc is there

@@ -32,6 +32,7 @@ from jstarid.engine.levels import level_grid, level_noise
 from jstarid.engine.result import SweepResult
 from jstarid.experiment import peak_rss_mb
 from jstarid.metrics import CRITERIA, scene_outcomes
+from jstarid.runtime.memory_maps import relieve
 from jstarid.scene import Identification, Scene
 from jstarid.simulator import simulate
 
@@ -222,6 +223,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
                          else np.zeros((0,), dtype) for name, dtype in SCORES.items()}
             timing[i] = {"label": entries[i].label, "database_seconds": t_db,
                          "first_call_seconds": first_call, "peak_rss_mb": peak_rss_mb()}
+        relieve()  # between algorithms, never inside a timed chunk (runtime.memory_maps)
     local_arrays = {name: np.stack([s[name] for s in scored], axis=1) for name in SCORES}  # (S_i, E)
     merged = processes.gather(local_arrays, n_total)
     # (P, E, L) → (E, L): every process's seconds at each level, added
