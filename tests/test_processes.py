@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import SUITE_XLA_FLAGS
 
 import jstarid as js
 from jstarid import cli
@@ -31,7 +32,7 @@ def _free_port() -> int:
 
 def _launch(out, n_processes: int, devices: int, deadline_s: float = 300.0) -> None:
     """Run ``jstarid sweep`` as ``n_processes`` local processes of ``devices`` CPU devices each."""
-    env = {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"}
+    env = {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices} {SUITE_XLA_FLAGS}"}
     port = _free_port()
     extra = (lambda i: ["--coordinator", f"127.0.0.1:{port}", "--num-processes", str(n_processes),
                         "--process-id", str(i)]) if n_processes > 1 else (lambda i: [])

@@ -1,4 +1,4 @@
-"""Probes: a slightly wrong camera never becomes a wrong name (16 scenes × 2 settings here, 300 ×
+"""Probes: a slightly wrong camera never becomes a wrong name (16 scenes × 1 setting here, 300 ×
 6 in the slow test).
 
 Scenes are simulated with the focal length scaled by 0.98 … 1.05, or the principal point moved by
@@ -20,7 +20,7 @@ import jstarid as js
 
 SETTINGS = [("f×0.98", 0.98, 0.0), ("f×0.99", 0.99, 0.0), ("f×1.01", 1.01, 0.0), ("f×1.02", 1.02, 0.0),
             ("f×1.05", 1.05, 0.0), ("principal point +20 px", 1.0, 20.0)]
-QUICK = ("f×0.98", "f×1.02")  # the default suite's settings
+QUICK = ("f×0.98",)  # the default suite's setting
 
 
 def _probe(name: str, n_scenes: int, seed: int, labels=None) -> list[str]:

@@ -415,8 +415,8 @@ def test_anchor_names_survive_roll_error():
 
 
 def test_identify_clean_scenes_no_wrong(tiny, clean_scenes):
-    _, cam, _, db, _ = tiny
-    res = rpnet.identify(db, clean_scenes)
+    _, cam, cfg, db, _ = tiny
+    res = rpnet.identify(db, clean_scenes, cfg)
     rep = js.evaluate(clean_scenes, res, "rpnet", camera=cam)
     assert rep["n_wrong"] == 0
     assert rep["identification_rate"] > 0.6, rep
@@ -593,7 +593,7 @@ def test_identify_invariant_to_detection_order_and_chunks(tiny, clean_scenes):
     """Unpacked / permuted detection columns and other chunk sizes give the same ids (width cut)."""
     _, _, cfg, db, _ = tiny
     s = clean_scenes[:40]
-    ref = rpnet.identify(db, s)
+    ref = rpnet.identify(db, s, cfg)
     perm = np.random.default_rng(2).permutation(s.xy.shape[1])
     shuffled = dataclasses.replace(s, xy=s.xy[:, perm], mag=s.mag[:, perm], truth=s.truth[:, perm],
                                    valid=s.valid[:, perm])

@@ -16,11 +16,18 @@ CAPACITY = 128  # the 20°×20° sgm2022 field holds > 64 stars of V ≤ 6 in de
 _match = jax.jit(spectral_match, static_argnames=("c", "n_iter", "min_matched"))
 
 
+def _search_config(**fields):
+    """The algorithm without its focal-length ladder and camera check (tested in
+    ``test_camera_errors.py`` and the contract test): these tests are about the search, and the
+    ladder would search every failing scene four more times."""
+    return sgm.Config(focal_search=(), fit_focal=False, **fields)
+
+
 @pytest.fixture(scope="module")
 def setup():
     cat = js.load_catalog(6.0)
     cam = js.camera_preset("sgm2022")
-    cfg = sgm.Config(power_iterations=30)  # fewer power steps than the default: faster tests
+    cfg = _search_config(power_iterations=30)  # fewer power steps than the default: faster tests
     db = sgm.build_database(cat, cam, cfg, progress=False)
     return cat, cam, cfg, db
 
@@ -103,7 +110,7 @@ def test_false_stars_only_fail_cleanly(setup):
     xy = [cam.cx + rng.uniform(-250, 250, (n, 2)) for n in (12, 15)]
     scenes = js.scenes_from_centroids(xy, capacity=32)
     # Δw_max cut to 0.5° to keep the test fast (the full 6° window matches ~2,700 graphs per scene)
-    result, info = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5), diagnostics=True)
+    result, info = sgm.identify(db, scenes, _search_config(dw_max_deg=0.5), diagnostics=True)
     # candidates were really examined (spectral matching or the exact pruning bound) and rejected
     assert np.all(info.n_matched + info.n_pruned > 20)
     # a second call with the same shapes compiles nothing new (no retracing)
@@ -112,11 +119,11 @@ def test_false_stars_only_fail_cleanly(setup):
     n_compiled = tuple(k._cache_size() for k in kernels)
     from jstarid.runtime import devices as sweep
     n_sharded = sweep._compiled.cache_info().currsize
-    again = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5))
+    again = sgm.identify(db, scenes, _search_config(dw_max_deg=0.5))
     assert tuple(k._cache_size() for k in kernels) == n_compiled
     np.testing.assert_array_equal(np.asarray(again.ids), np.asarray(result.ids))
     # … nor does another c (eq. 2): it is a traced value of the matching kernel
-    other_c = sgm.identify(db, scenes, sgm.Config(dw_max_deg=0.5, c=1.0))
+    other_c = sgm.identify(db, scenes, _search_config(dw_max_deg=0.5, c=1.0))
     assert tuple(k._cache_size() for k in kernels) == n_compiled
     assert sweep._compiled.cache_info().currsize == n_sharded
     assert not np.any(np.asarray(other_c.ok))
@@ -181,7 +188,7 @@ def test_bounds_of_the_search_equal_the_per_pair_bounds(setup5):
     from jstarid.algorithms.sgm import search
     from jstarid.algorithms.sgm.bound import edge_lower_bound, error_lower_bound, sorted_edges, sorted_rows
     cat, cam, db = setup5
-    cfg = sgm.Config()
+    cfg = _search_config()
     _, _, g, _ = _noisy_graphs(setup5, cfg, n=5, seed=4, key=2)
     rng = np.random.default_rng(0)
     scene = rng.integers(0, 5, 70)
@@ -213,7 +220,7 @@ def test_bounds_of_the_search_equal_the_per_pair_bounds(setup5):
 def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     cat, cam, db = setup5
     # tight ε → several Δw levels are visited; Δw_max cut to 0.5° to bound the work of failures
-    cfg = sgm.Config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5)
+    cfg = _search_config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5)
     rows = np.random.default_rng(2).choice(len(cat), 4, replace=False)
     scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)
@@ -261,7 +268,7 @@ def test_search_resumed_after_a_rejection_equals_algorithm1_without_that_candida
     some of them back."""
     from jstarid.algorithms.sgm import search
     cat, cam, db = setup5
-    cfg = sgm.Config(max_error_deg=eps, chunk_size=8, dw_max_deg=0.5)
+    cfg = _search_config(max_error_deg=eps, chunk_size=8, dw_max_deg=0.5)
     rows, _, g, usable = _noisy_graphs(setup5, cfg, n=4 if eps < 0.4 else 6, seed=2 if eps < 0.4 else 3,
                                        key=6)
     state = search.advance_search(db, g, search.start_search(db, g, usable, cfg), cfg)
