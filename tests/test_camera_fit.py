@@ -182,3 +182,29 @@ def test_two_wrong_names_on_one_side_do_not_widen_their_own_radius(world):
     right = keep & ~move
     assert np.sum(kept[right] >= 0) >= 0.99 * right.sum()
     np.testing.assert_allclose(np.asarray(fit.scale)[np.asarray(ok) & caught], 0.98, atol=1e-3)
+
+
+def test_a_right_sky_with_its_brightest_stars_missing_keeps_its_claim(world):
+    """The field check asks only fits of a handful of names: a scene named in full whose five
+    brightest stars were not detected stays solved with its many names (with the check on every
+    fit it failed: the bright stars left unnamed are exactly the undetected ones), and fails the
+    check once cut to a few names."""
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=24, seed=3)
+    valid = np.array(scenes.valid)
+    rows = np.arange(len(valid))
+    mag = np.where(valid, np.asarray(scenes.mag), np.inf)
+    for _ in range(5):  # the five brightest detections go missing
+        valid[rows, np.argmin(mag, axis=1)] = False
+        mag = np.where(valid, mag, np.inf)
+    ids = np.where(valid, truth, -1)
+    many = (ids >= 0).sum(1) > cf.FIELD_MAX_NAMES
+    assert many.sum() >= 12
+    kept, ok, _ = cf.verify_names(cat.unit_vectors, nominal, scenes.xy, valid, ids, np.ones(len(ids), bool))
+    assert np.all(np.asarray(ok)[many])
+    assert np.all((np.asarray(kept) < 0) | (np.asarray(kept) == truth))
+    # the same scenes with only their six brightest remaining names: the field check fails most
+    rank = np.argsort(np.argsort(mag, axis=1), axis=1)
+    few = np.where(rank < 6, ids, -1)
+    _, ok_few, _ = cf.verify_names(cat.unit_vectors, nominal, scenes.xy, valid, few, np.ones(len(ids), bool))
+    assert np.asarray(ok_few)[many].mean() < 0.5
