@@ -736,3 +736,26 @@ def test_config_rejects_bad_settings(bad):
     """Every out-of-range setting is a ValueError when the Config is made, not a failure in jit."""
     with pytest.raises(ValueError):
         sgm.Config(**bad)
+
+
+@pytest.mark.slow
+def test_focal_ladder_and_camera_check_under_a_two_percent_focal_error(setup):
+    """Scenes taken with f × 0.98: the ladder (extension) only adds solved scenes, none wrong, and
+    the camera check reports the focal length the scenes were taken with (slow: the ladder adds
+    one scene in thirty, so it takes a few hundred scenes to see it)."""
+    cat, cam, _, db = setup
+    cfg = sgm.Config(power_iterations=30)  # the extensions on, as by default
+    true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
+    scenes = js.simulate(jax.random.key(31), cat, true, js.NoiseConfig(position_sigma_px=0.5),
+                         batch_size=160, capacity=CAPACITY)
+    off = sgm.identify(db, scenes, dataclasses.replace(cfg, focal_search=()))
+    on = sgm.identify(db, scenes, cfg)
+    ok_off, ok_on = np.asarray(off.ok), np.asarray(on.ok)
+    assert np.all(ok_on[ok_off]) and ok_on.sum() > ok_off.sum()
+    for res, ok in ((off, ok_off), (on, ok_on)):
+        assert np.all(np.asarray(js.scene_outcomes(scenes, res, "strict")["n_wrong"])[ok] == 0)
+    # the names lie within the 6° circle of the main star: a short lever on the scale, so the median
+    scale = np.asarray(on.focal_scale)[ok_on]
+    assert np.mean(np.isfinite(scale)) > 0.9 and abs(np.nanmedian(scale) - 0.98) < 1e-3
+    print(f"\nf × 0.98: {ok_off.sum()} → {ok_on.sum()} of 160 solved with the ladder; fitted scale "
+          f"{np.nanmedian(scale):.4f} (median), 90 % within {np.nanpercentile(np.abs(scale - 0.98), 90):.4f}")
