@@ -47,6 +47,7 @@ from jstarid.attitude import solve_wahba
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
+from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.memory_maps import relieve
 
 __all__ = ["CameraFit", "check_claims", "check_identification", "field_seen", "fit_named", "fit_scaled",
@@ -72,6 +73,9 @@ FIELD_SCALES = 81  # focal scales the field check also tries (0.25 % apart at a 
 FIELD_MIN = 3  # fewer unnamed stars than this in the window: nothing to judge, the check passes
 FIELD_MAX_NAMES = 10  # … and is made only for fits of at most this many names (field_seen)
 FIELD_GROUP = 32  # scenes per lax.map group of the check (the catalog is projected per scene)
+CHECK_CHUNK = 1024  # scenes per call of the check's kernels (each call split over the devices)
+CHECK_MIN_CALL = 64  # … padded to a power of two at least this large (fewer programs to compile)
+CHECK_MIN_WIDTH = 32  # … and cut to a power of two of columns at least this wide
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median / σ of a 2-D Gaussian error's length
 
 
@@ -184,7 +188,8 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
     return c, scale, resid
 
 
-def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_scale=True) -> CameraFit:
+def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_scale=True,
+              few: bool | None = None) -> CameraFit:
     """The robust fit of one scene (module doc): all names, the better half, then the inliers.
 
     Args:
@@ -209,8 +214,10 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
     # absence shrinks the others' residuals most is dropped when they shrink DELETION_RATIO-fold
     # and the left-out name then lies beyond k_sigma of them (and min_tol_px). One wrong name among
     # five bends a 4-parameter fit to 1.5–2 px residuals on all of them; without it they are 0.2.
-    r_few = _few_names_fit(xy, ref, named, camera, fit_scale, k_sigma=k_sigma, min_tol_px=min_tol_px)
-    r = jnp.where(jnp.sum(named) <= FEW_NAMES, r_few, r)
+    is_few = jnp.sum(named) <= FEW_NAMES if few is None else few
+    if few is not False:
+        r_few = _few_names_fit(xy, ref, named, camera, fit_scale, k_sigma=k_sigma, min_tol_px=min_tol_px)
+        r = jnp.where(is_few, r_few, r)
     # σ̂ from the median over every name: robust while fewer than half of the names are wrong
     sigma = masked_median(r, named) / RAYLEIGH_MEDIAN
     tol = jnp.clip(k_sigma * sigma, min_tol_px, max_tol_px)
@@ -218,7 +225,7 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
     # wrong names that lie together on one side pull a fit of every name towards themselves, and
     # inflate the median with the right names' residuals
     core = named & (r <= masked_median(r, named))
-    inlier = jnp.where(jnp.sum(named) <= FEW_NAMES, named & (r <= tol), core)
+    inlier = jnp.where(is_few, named & (r <= tol), core)
     # then refitted on the inliers, REFITS times: at a large scale error the better half lies near
     # the principal point and fixes the scale roughly; the fit on every inlier reaches the edge
     # stars the first radius left out. σ comes from the inliers' RMS over their degrees of freedom
@@ -293,6 +300,16 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     """Fit attitude and focal length to each scene's names and take back the names the fit cannot
     explain (module doc). Batched over scenes.
 
+    The work is split on the host so that each scene pays only for the steps it needs: scenes of
+    at most :data:`FEW_NAMES` names are fitted with the leave-one-out deletions, the others with
+    the plain robust fit, each scene's names packed first and each call cut to the columns its
+    names fill; only the fits of at most :data:`FIELD_MAX_NAMES` inliers go on to the field check
+    (:func:`field_seen`, which projects the catalog once per scene). Calls hold at most
+    :data:`CHECK_CHUNK` scenes, padded to a power of two (at least :data:`CHECK_MIN_CALL`: one
+    program per size class), and the fits are split over the devices
+    (:func:`~jstarid.runtime.run_calls`). On RpNet's benchmark (4,096 scenes, 2 CPU cores) this
+    took the check from 1,751 to ≈ 19,000 scenes/s.
+
     Args:
         star_vectors: (M, 3) ICRS unit vectors; ``ids`` are rows of it.
         camera: the nominal :class:`~jstarid.camera.Camera` (static).
@@ -307,46 +324,95 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
 
     Returns:
         ``(ids, ok, fit)``: (B, N) the kept names (all −1 in a scene that is not solved), (B,) bool,
-        and the batched :class:`CameraFit` (its attitude NaN where not solved).
+        and the batched :class:`CameraFit` (its attitude NaN where not solved; scale 1 and residuals,
+        σ̂ and radius NaN in scenes that were not claimed).
     """
-    # host copies: scenes sharded over several devices (simulate(shard=True)) would make this a
-    # partitioned program around lax.map, whose collectives on CPU devices can stall
-    host = (np.asarray(a) for a in (star_vectors, xy, valid, ids, ok))
-    star_vectors, xy, valid, ids, ok = host
-    # the batch padded to a multiple of FIELD_GROUP (unclaimed rows): one compilation per size class
-    b = ok.shape[0]
-    pad = (-b) % FIELD_GROUP
-    xy, valid, ids, ok = (np.concatenate([a, np.zeros((pad, *a.shape[1:]), a.dtype)])
-                          for a in (xy, valid, ids, ok))
-    out = _verify(jnp.asarray(star_vectors, jnp.float32), jnp.asarray(xy, jnp.float32),
-                  jnp.asarray(valid), jnp.asarray(ids, jnp.int32), jnp.asarray(ok),
-                  jnp.float32(k_sigma), jnp.float32(min_tol_px), jnp.float32(max_tol_px),
-                  jnp.float32(max_scale_error), camera=camera, min_named=int(min_named),
-                  fit_scale=bool(fit_scale))
-    return jax.tree.map(lambda a: a[:b], out)
+    # host copies: the groups are chosen on the host, and each kernel call is split over the
+    # devices by run_calls (scenes sharded by simulate(shard=True) are gathered here)
+    star_vectors, xy, valid, ids, ok = (np.asarray(a) for a in (star_vectors, xy, valid, ids, ok))
+    xy = xy.astype(np.float32)
+    ids = ids.astype(np.int32)
+    b, n = ids.shape
+    named = valid & (ids >= 0) & ok[:, None]
+    count = named.sum(axis=1)
+    limits = (jnp.float32(k_sigma), jnp.float32(min_tol_px), jnp.float32(max_tol_px))
+    attitude = np.full((b, 3, 3), np.nan, np.float32)
+    scale = np.ones(b, np.float32)
+    residual = np.full((b, n), np.nan, np.float32)
+    inlier = np.zeros((b, n), bool)
+    sigma = np.full(b, np.nan, np.float32)
+    tol = np.full(b, np.nan, np.float32)
+    vectors = jnp.asarray(star_vectors, jnp.float32)
+    static = dict(camera=camera, fit_scale=bool(fit_scale))
+    # each scene's names packed first, and each call cut to the columns its names need (a power
+    # of two, at most FEW_NAMES for the few-names group): the fits' work follows the names, not
+    # the scenes' capacity
+    order = np.argsort(~named, axis=1, kind="stable")
+    packed = tuple(np.take_along_axis(a, order if a.ndim == 2 else order[..., None], axis=1)
+                   for a in (xy, named, ids))
+
+    def columns(call, few):
+        need = max(int(count[call.rows].max()), 1)
+        return min(FEW_NAMES, n) if few else min(n, max(CHECK_MIN_WIDTH, _bucket(need)))
+
+    for few in (True, False):
+        rows = np.flatnonzero(ok & ((count <= FEW_NAMES) == few))
+        if not rows.size:
+            continue
+        rows = rows[np.argsort(count[rows], kind="stable")]  # calls of similar widths
+
+        def args(call, few=few):
+            width = columns(call, few)
+            return tuple(a[:, :width] for a in take_rows(packed, call))
+
+        fit = CameraFit(*run_calls(
+            _fit_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size), args, (vectors, *limits), n_rows=b,
+            tails=[(3, 3), (), (n,), (n,), (), ()], fills=[np.nan, 1.0, np.nan, False, np.nan, np.nan],
+            static=dict(static, few=few)))
+        attitude[rows], scale[rows] = fit.attitude[rows], fit.scale[rows]
+        sigma[rows], tol[rows] = fit.sigma_px[rows], fit.tol_px[rows]
+        residual[rows[:, None], order[rows]] = fit.residual_px[rows]
+        inlier[rows[:, None], order[rows]] = fit.inlier[rows]
+    solved = (ok & (inlier.sum(axis=1) >= min_named) & (np.abs(scale - 1.0) <= max_scale_error))
+    # the field check only where a handful of names could fit a wrong sky (field_seen)
+    rows = np.flatnonzero(solved & (inlier.sum(axis=1) <= FIELD_MAX_NAMES))
+    if rows.size:
+        # on one device, in calls of at most CHECK_CHUNK scenes: split over several CPU devices
+        # (shard_map around its lax.map) this kernel stalled, every device idle
+        fitted = (xy, valid, np.where(inlier, ids, -1), attitude, scale, tol)
+        for call in chunk_calls(rows, CHECK_CHUNK, size=_call_size):
+            seen = _field_kernel(*take_rows(fitted, call), vectors, jnp.float32(max_scale_error),
+                                 camera=camera)
+            solved[call.rows] &= np.asarray(seen)[call.slots]
+    kept = np.where(solved[:, None] & inlier, ids, -1).astype(np.int32)
+    fit = CameraFit(attitude=jnp.asarray(np.where(solved[:, None, None], attitude, np.nan)),
+                    scale=jnp.asarray(scale), residual_px=jnp.asarray(residual),
+                    inlier=jnp.asarray(inlier & solved[:, None]), sigma_px=jnp.asarray(sigma),
+                    tol_px=jnp.asarray(tol))
+    return jnp.asarray(kept), jnp.asarray(solved), fit
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "min_named", "fit_scale"))
-def _verify(star_vectors, xy, valid, ids, ok, k_sigma, min_tol_px, max_tol_px, max_scale_error, *,
-            camera, min_named, fit_scale):
-    def one(xy_i, valid_i, ids_i, ok_i):
-        named = valid_i & (ids_i >= 0) & ok_i
+@functools.partial(jax.jit, static_argnames=("camera", "fit_scale", "few"))
+def _fit_kernel(xy, named, ids, star_vectors, k_sigma, min_tol_px, max_tol_px, *, camera, fit_scale, few):
+    """:func:`fit_named` of each scene (B, N) of :func:`verify_names` (``few``: its static branch)."""
+    def one(xy_i, named_i, ids_i):
         ref = star_vectors[jnp.clip(ids_i, 0, star_vectors.shape[0] - 1)]
-        fit = fit_named(xy_i, ref, named, camera, k_sigma=k_sigma, min_tol_px=min_tol_px,
-                        max_tol_px=max_tol_px, fit_scale=fit_scale)
-        # the field check only where a handful of names could fit a wrong sky (field_seen)
-        many = jnp.sum(fit.inlier) > FIELD_MAX_NAMES
-        solved = (ok_i & (jnp.sum(fit.inlier) >= min_named)
-                  & (jnp.abs(fit.scale - 1.0) <= max_scale_error)
-                  & (many | field_seen(star_vectors, camera, xy_i, valid_i, jnp.where(fit.inlier, ids_i, -1),
-                                       fit, max_scale_error)))
-        kept = jnp.where(solved & fit.inlier, ids_i, -1).astype(jnp.int32)
-        fit = fit._replace(attitude=jnp.where(solved, fit.attitude, jnp.nan),
-                           inlier=fit.inlier & solved)
-        return kept, solved, fit
+        return fit_named(xy_i, ref, named_i, camera, k_sigma=k_sigma, min_tol_px=min_tol_px,
+                         max_tol_px=max_tol_px, fit_scale=fit_scale, few=few)
 
-    # lax.map in groups: the field check projects the whole catalog once per scene
-    return jax.lax.map(lambda a: one(*a), (xy, valid, ids, ok), batch_size=FIELD_GROUP)
+    return jax.vmap(one)(xy, named, ids)
+
+
+@functools.partial(jax.jit, static_argnames=("camera",))
+def _field_kernel(xy, valid, ids, attitude, scale, tol, star_vectors, span, *, camera):
+    """(B,) bool: :func:`field_seen` of each scene, in :data:`FIELD_GROUP`-scene groups (each
+    projects the whole catalog)."""
+    def one(a):
+        xy_i, valid_i, ids_i, att_i, scale_i, tol_i = a
+        fit = CameraFit(att_i, scale_i, None, None, None, tol_i)
+        return field_seen(star_vectors, camera, xy_i, valid_i, ids_i, fit, span)
+
+    return jax.lax.map(one, (xy, valid, ids, attitude, scale, tol), batch_size=min(FIELD_GROUP, xy.shape[0]))
 
 
 def field_seen(star_vectors, camera, xy, valid, ids, fit: CameraFit, span=0.0):
@@ -464,6 +530,11 @@ def rescale_scenes(scenes, camera, scale: float):
     moved = centre + (xy - centre) / np.float32(scale)
     moved = np.where(np.asarray(scenes.valid)[..., None], moved, xy)
     return dataclasses.replace(scenes, xy=jnp.asarray(moved))
+
+
+def _call_size(n: int) -> int:
+    """The padded size of a call of :func:`verify_names`'s kernels holding ``n`` scenes."""
+    return max(CHECK_MIN_CALL, _bucket(n))
 
 
 def _bucket(n: int) -> int:
