@@ -16,6 +16,10 @@ precision). The scale is fitted only from :data:`MIN_SCALE_STARS` names on, and 
 reach away from the principal point (otherwise it is 1). A principal-point offset is not fitted:
 to first order it is a rotation, which the attitude absorbs (a 20 px offset leaves sub-pixel
 residuals on a 20° frame, checked by the probes in ``tests/algorithms/test_camera_errors.py``).
+With :data:`DISTORTION_MIN_STARS` names reaching out into the frame, the verification also fits
+one radial distortion term ``k1`` (:func:`fit_distorted`, :func:`project_scaled`; OpenCV's
+convention) and keeps it where it is significant: a lens whose edge stars sit pixels off the
+pinhole model keeps their names, and ``Identification.distortion_k1`` reports it.
 
 **Robust fit** (:func:`fit_named`). A wrong name among the right ones would pull the fit towards
 itself, so a first fit of the attitude alone ranks the names, the attitude and the scale are then
@@ -48,11 +52,12 @@ from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
+from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
 
-__all__ = ["CameraFit", "check_claims", "check_identification", "field_seen", "fit_named", "fit_scaled",
-           "project_scaled", "rescale_scenes", "search_focal", "unproject_scaled",
-           "verify_names"]
+__all__ = ["CameraFit", "check_claims", "check_identification", "distort_scenes", "field_seen",
+           "fit_distorted", "fit_named", "fit_scaled", "project_scaled", "rescale_scenes", "search_focal",
+           "unproject_scaled", "verify_names"]
 
 ITERATIONS = 4  # Gauss–Newton steps of the joint attitude and scale fit
 MIN_SCALE_STARS = 4  # fewest names from which the focal length is fitted (3 rotation + 1 scale)
@@ -76,6 +81,13 @@ FIELD_GROUP = 32  # scenes per lax.map group of the check (the catalog is projec
 CHECK_CHUNK = 1024  # scenes per call of the check's kernels (each call split over the devices)
 CHECK_MIN_CALL = 64  # … padded to a power of two at least this large (fewer programs to compile)
 CHECK_MIN_WIDTH = 32  # … and cut to a power of two of columns at least this wide
+DISTORTION_MIN_STARS = 12  # fewest inliers from which the radial distortion k1 is fitted
+DISTORTION_MIN_REACH = 0.5  # … the farthest of them at least this share of the half diagonal out
+K1_SIGNIFICANCE = 4.0  # … and kept only this many standard errors away from 0
+K1_RANGE = (-1.0, 1.0)  # the fitted k1 is clipped to this range (normalised coordinates)
+DISTORTION_ITERATIONS = 2  # Gauss–Newton steps of each fit with k1 (from a 4-parameter fit: the
+# residuals are nearly linear in k1 and the scale)
+UNDISTORT_ITERATIONS = 4  # fixed-point steps inverting the radial term (|k1 r²| ≪ 1 on a tracker)
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median / σ of a 2-D Gaussian error's length
 
 
@@ -90,6 +102,7 @@ class CameraFit(NamedTuple):
         inlier: (N,) bool, named and within the fit's tolerance.
         sigma_px: () robust centroid noise σ̂ (px per axis) of the names.
         tol_px: () the inlier radius used (px).
+        k1: () fitted radial distortion (:func:`project_scaled`; 0 where not fitted).
     """
 
     attitude: jax.Array
@@ -98,16 +111,26 @@ class CameraFit(NamedTuple):
     inlier: jax.Array
     sigma_px: jax.Array
     tol_px: jax.Array
+    k1: jax.Array | float = 0.0
 
 
-def unproject_scaled(camera, xy, scale):
-    """Pixels (..., 2) → camera-frame unit vectors (..., 3) with the focal length ``scale · f_px``.
+def unproject_scaled(camera, xy, scale, k1=0.0):
+    """Pixels (..., 2) → camera-frame unit vectors (..., 3) with the focal length ``scale · f_px``
+    and the radial distortion ``k1`` (the inverse of :func:`project_scaled`).
 
-    ``scale`` broadcasts against ``xy[..., 0]`` (a scalar, or one per scene with a trailing axis).
+    ``scale`` and ``k1`` broadcast against ``xy[..., 0]`` (a scalar, or one per scene with a
+    trailing axis). The distortion is undone by :data:`UNDISTORT_ITERATIONS` fixed-point steps
+    ``u ← u_d / (1 + k1 |u|²)`` (each shrinks the error by ``|k1| r²``-fold: 1e-6 after four at
+    ``k1 r² = 0.03``).
     """
     f = camera.f_px * scale
     u = (xy[..., 0] - camera.cx) / f
     v = (xy[..., 1] - camera.cy) / f
+    if not (isinstance(k1, float) and k1 == 0.0):  # static: no distortion, no steps
+        u_d, v_d = u, v
+        for _ in range(UNDISTORT_ITERATIONS):
+            d = 1.0 + k1 * (u**2 + v**2)
+            u, v = u_d / d, v_d / d
     ray = jnp.stack([u, v, jnp.ones_like(u)], axis=-1)
     return ray / jnp.linalg.norm(ray, axis=-1, keepdims=True)
 
@@ -188,8 +211,87 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
     return c, scale, resid
 
 
+def fit_distorted(xy, ref, weights, camera, *, start, iterations: int = DISTORTION_ITERATIONS):
+    """Attitude, focal scale and radial distortion ``k1`` (:func:`project_scaled`) by Gauss–Newton
+    on the pixel residuals, one scene, from ``start`` (a fit of :func:`fit_scaled`; k1 from 0).
+
+    ``k1`` is fitted only from :data:`DISTORTION_MIN_STARS` names on, the farthest of them at least
+    :data:`DISTORTION_MIN_REACH` of the half diagonal from the principal point: the term grows
+    with r³, and names near the centre cannot tell it from the scale. Elsewhere it is held at 0 (a
+    stiff prior), and so is the scale where :func:`fit_scaled` would hold it.
+
+    Args:
+        xy: (N, 2) px. ref: (N, 3) ICRS unit vectors. weights: (N,) float, 0 for left out.
+        camera: the nominal camera (static). start: ``(C, scale)`` or ``(C, scale, k1)`` (a fit of
+            nearly the same names: the steps start near the answer). iterations: steps (static).
+
+    Returns:
+        ``(C, scale, k1, residual_px, fitted)``: (3, 3), (), (), (N,) pixel distances of the
+        detections from their names' projections, and () bool, whether ``k1`` was fitted and
+        lies :data:`K1_SIGNIFICANCE` standard errors from 0 (otherwise the caller keeps the
+        4-parameter fit).
+    """
+    n = jnp.sum(weights > 0)
+    f = camera.f_px
+    centred = xy - jnp.array([[camera.cx, camera.cy]], xy.dtype)
+    radius2 = jnp.sum(centred**2, -1)
+    lever = jnp.sqrt(jnp.sum(weights * radius2) / jnp.maximum(jnp.sum(weights), 1.0))
+    reach = jnp.sqrt(jnp.max(jnp.where(weights > 0, radius2, 0.0))) / f
+    use_scale = (n >= MIN_SCALE_STARS) & (lever > MIN_LEVER * f)
+    use_k1 = ((n >= DISTORTION_MIN_STARS)
+              & (reach >= DISTORTION_MIN_REACH * math.tan(camera.half_diagonal_rad)))
+
+    def linearize(c, scale, k1):  # normal equations of the pixel residuals, (5, 5) and (5,)
+        v = precise.small_matmul(ref, c.T)
+        front = v[:, 2] > 0.5  # a name far outside the frame carries no information here
+        w = jnp.where(front, weights, 0.0)
+        vz = jnp.where(front, v[:, 2], 1.0)
+        u = v[:, :2] / vz[:, None]
+        r2 = jnp.sum(u**2, -1)
+        d = 1.0 + k1 * r2
+        resid = centred - f * scale * u * d[:, None]  # (N, 2) px
+        vx, vy = v[:, 0], v[:, 1]
+        du_dtheta = jnp.stack([
+            jnp.stack([-vx * vy / vz**2, 1.0 + vx**2 / vz**2, -vy / vz], -1),
+            jnp.stack([-(1.0 + vy**2 / vz**2), vx * vy / vz**2, vx / vz], -1)], 1)  # (N, 2, 3)
+        # d(u d(u)) / du = d I + 2 k1 u uᵀ
+        dpu = d[:, None, None] * jnp.eye(2, dtype=u.dtype)[None] + 2.0 * k1 * u[:, :, None] * u[:, None, :]
+        dpu_dtheta = (dpu[:, :, 0, None] * du_dtheta[:, None, 0, :]
+                      + dpu[:, :, 1, None] * du_dtheta[:, None, 1, :])  # (N, 2, 3), written out
+        jac = jnp.concatenate([f * scale * dpu_dtheta,
+                               (f * u * d[:, None])[:, :, None],
+                               (f * scale * u * r2[:, None])[:, :, None]], axis=2)  # (N, 2, 5)
+        normal = precise.einsum("n,nai,naj->ij", w, jac, jac)
+        # a held parameter: a stiff prior on its step
+        big = 1e6 * (jnp.trace(normal) + 1.0)
+        held = jnp.stack([0.0, 0.0, 0.0, jnp.where(use_scale, 0.0, big), jnp.where(use_k1, 0.0, big)])
+        normal = normal + jnp.diag(held) + jnp.eye(5, dtype=normal.dtype) * (1e-9 * jnp.trace(normal) + 1e-12)
+        return normal, precise.einsum("n,nai,na->i", w, jac, resid), resid, front, w
+
+    def step(_, state):
+        c, scale, k1 = state
+        normal, rhs, _, _, _ = linearize(c, scale, k1)
+        delta = jnp.linalg.solve(normal, rhs)
+        delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
+        c = precise.small_matmul(_rotation_from_vector(delta[:3]), c)
+        scale = jnp.clip(scale + delta[3], SCALE_RANGE[0], SCALE_RANGE[1]).astype(jnp.float32)
+        return c, scale, jnp.clip(k1 + delta[4], K1_RANGE[0], K1_RANGE[1]).astype(jnp.float32)
+
+    k1_start = start[2] if len(start) > 2 else jnp.float32(0.0)
+    c, scale, k1 = jax.lax.fori_loop(0, iterations, step, (start[0], start[1], k1_start))
+    normal, _, resid, front, w = linearize(c, scale, k1)
+    r = jnp.linalg.norm(resid, axis=-1)
+    # k1's standard error from the covariance σ̂² N⁻¹: kept only where it is significant, since a
+    # free k1 trades off against the scale where the names lie to one side, and would cost the
+    # scale its precision on a lens without distortion
+    sigma2 = jnp.sum(w * r**2) / jnp.maximum(2.0 * n.astype(jnp.float32) - 5.0, 1.0)
+    k1_se = jnp.sqrt(jnp.maximum(jnp.linalg.inv(normal)[4, 4] * sigma2, 0.0))
+    significant = use_k1 & (jnp.abs(k1) >= K1_SIGNIFICANCE * k1_se)
+    return c, scale, k1, jnp.where(front, r, jnp.inf), significant
+
+
 def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_scale=True,
-              few: bool | None = None) -> CameraFit:
+              few: bool | None = None, fit_distortion: bool = False) -> CameraFit:
     """The robust fit of one scene (module doc): all names, the better half, then the inliers.
 
     Args:
@@ -250,7 +352,23 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
     sigma = jnp.sqrt(jnp.sum(jnp.where(inlier, r**2, 0.0)) / dof)
     tol = jnp.clip(k_sigma * sigma, min_tol_px, max_tol_px)
     inlier = named & (r <= tol)
-    return CameraFit(c, scale, r, inlier, sigma, tol)
+    if not fit_distortion:
+        return CameraFit(c, scale, r, inlier, sigma, tol, jnp.float32(0.0))
+    # a lens's radial distortion moves the edge stars by pixels, which the 4-parameter fit can only
+    # reject: a fit with k1 on the inliers, the inliers chosen again under it, and refitted
+    start, k1_out = (c, scale), jnp.float32(0.0)
+    for _ in range(2):
+        c_d, s_d, k1, r_d, fitted = fit_distorted(xy, ref, inlier.astype(jnp.float32), camera, start=start)
+        dof_d = jnp.maximum(2.0 * jnp.sum(inlier).astype(jnp.float32) - p - 1.0, 1.0)
+        sigma_d = jnp.sqrt(jnp.sum(jnp.where(inlier, r_d**2, 0.0)) / dof_d)
+        tol_d = jnp.clip(k_sigma * sigma_d, min_tol_px, max_tol_px)
+        inlier_d = named & (r_d <= tol_d)
+        start = (c_d, s_d, k1)
+        keep = fitted & (jnp.sum(inlier_d) >= DISTORTION_MIN_STARS)
+        c, scale, r = jnp.where(keep, c_d, c), jnp.where(keep, s_d, scale), jnp.where(keep, r_d, r)
+        sigma, tol = jnp.where(keep, sigma_d, sigma), jnp.where(keep, tol_d, tol)
+        inlier, k1_out = jnp.where(keep, inlier_d, inlier), jnp.where(keep, k1, k1_out)
+    return CameraFit(c, scale, r, inlier, sigma, tol, k1_out)
 
 
 def _trimmed_sigma(r, mask):
@@ -296,7 +414,7 @@ def _few_names_fit(xy, ref, named, camera, fit_scale, *, k_sigma, min_tol_px):
 
 def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K_SIGMA,
                  min_tol_px: float = MIN_TOL_PX, max_tol_px: float = MAX_TOL_PX, max_scale_error: float = 0.1,
-                 min_named: int = 3, fit_scale: bool = True):
+                 min_named: int = 3, fit_scale: bool = True, fit_distortion: bool = True):
     """Fit attitude and focal length to each scene's names and take back the names the fit cannot
     explain (module doc). Batched over scenes.
 
@@ -306,8 +424,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     names fill; only the fits of at most :data:`FIELD_MAX_NAMES` inliers go on to the field check
     (:func:`field_seen`, which projects the catalog once per scene). Calls hold at most
     :data:`CHECK_CHUNK` scenes, padded to a power of two (at least :data:`CHECK_MIN_CALL`: one
-    program per size class), and the fits are split over the devices
-    (:func:`~jstarid.runtime.run_calls`). On RpNet's benchmark (4,096 scenes, 2 CPU cores) this
+    program per size class), on one device. On RpNet's benchmark (4,096 scenes, 2 CPU cores) this
     took the check from 1,751 to ≈ 19,000 scenes/s.
 
     Args:
@@ -321,14 +438,16 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
         max_scale_error: largest ``|s − 1|`` of a solved scene.
         min_named: fewest names a solved scene keeps.
         fit_scale: fit the focal length (False: the nominal camera, attitude only).
+        fit_distortion: with ``fit_scale``, also fit one radial distortion term where a scene's
+            inliers allow it (:func:`fit_distorted`); ``fit.k1`` is 0 elsewhere.
 
     Returns:
         ``(ids, ok, fit)``: (B, N) the kept names (all −1 in a scene that is not solved), (B,) bool,
         and the batched :class:`CameraFit` (its attitude NaN where not solved; scale 1 and residuals,
         σ̂ and radius NaN in scenes that were not claimed).
     """
-    # host copies: the groups are chosen on the host, and each kernel call is split over the
-    # devices by run_calls (scenes sharded by simulate(shard=True) are gathered here)
+    # host copies: the groups are chosen on the host (scenes sharded by simulate(shard=True) are
+    # gathered here)
     star_vectors, xy, valid, ids, ok = (np.asarray(a) for a in (star_vectors, xy, valid, ids, ok))
     xy = xy.astype(np.float32)
     ids = ids.astype(np.int32)
@@ -342,8 +461,11 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     inlier = np.zeros((b, n), bool)
     sigma = np.full(b, np.nan, np.float32)
     tol = np.full(b, np.nan, np.float32)
+    k1 = np.zeros(b, np.float32)
     vectors = jnp.asarray(star_vectors, jnp.float32)
-    static = dict(camera=camera, fit_scale=bool(fit_scale))
+    one = batch_mesh(jax.devices()[:1])
+    static = dict(camera=camera, fit_scale=bool(fit_scale),
+                  fit_distortion=bool(fit_scale and fit_distortion))
     # each scene's names packed first, and each call cut to the columns its names need (a power
     # of two, at most FEW_NAMES for the few-names group): the fits' work follows the names, not
     # the scenes' capacity
@@ -365,40 +487,42 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
             width = columns(call, few)
             return tuple(a[:, :width] for a in take_rows(packed, call))
 
+        # on one device: split over several CPU devices (shard_map around these loops) the
+        # kernels stalled now and then, every device idle (seen in SGM's benchmark)
         fit = CameraFit(*run_calls(
             _fit_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size), args, (vectors, *limits), n_rows=b,
-            tails=[(3, 3), (), (n,), (n,), (), ()], fills=[np.nan, 1.0, np.nan, False, np.nan, np.nan],
-            static=dict(static, few=few)))
+            tails=[(3, 3), (), (n,), (n,), (), (), ()],
+            fills=[np.nan, 1.0, np.nan, False, np.nan, np.nan, 0.0], static=dict(static, few=few), mesh=one))
         attitude[rows], scale[rows] = fit.attitude[rows], fit.scale[rows]
-        sigma[rows], tol[rows] = fit.sigma_px[rows], fit.tol_px[rows]
+        sigma[rows], tol[rows], k1[rows] = fit.sigma_px[rows], fit.tol_px[rows], fit.k1[rows]
         residual[rows[:, None], order[rows]] = fit.residual_px[rows]
         inlier[rows[:, None], order[rows]] = fit.inlier[rows]
     solved = (ok & (inlier.sum(axis=1) >= min_named) & (np.abs(scale - 1.0) <= max_scale_error))
     # the field check only where a handful of names could fit a wrong sky (field_seen)
     rows = np.flatnonzero(solved & (inlier.sum(axis=1) <= FIELD_MAX_NAMES))
     if rows.size:
-        # on one device, in calls of at most CHECK_CHUNK scenes: split over several CPU devices
-        # (shard_map around its lax.map) this kernel stalled, every device idle
         fitted = (xy, valid, np.where(inlier, ids, -1), attitude, scale, tol)
-        for call in chunk_calls(rows, CHECK_CHUNK, size=_call_size):
-            seen = _field_kernel(*take_rows(fitted, call), vectors, jnp.float32(max_scale_error),
-                                 camera=camera)
-            solved[call.rows] &= np.asarray(seen)[call.slots]
+        seen, = run_calls(_field_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size),
+                          functools.partial(take_rows, fitted), (vectors, jnp.float32(max_scale_error)),
+                          n_rows=b, tails=[()], fills=[False], static=dict(camera=camera), mesh=one)
+        solved[rows] &= seen[rows]
     kept = np.where(solved[:, None] & inlier, ids, -1).astype(np.int32)
     fit = CameraFit(attitude=jnp.asarray(np.where(solved[:, None, None], attitude, np.nan)),
                     scale=jnp.asarray(scale), residual_px=jnp.asarray(residual),
                     inlier=jnp.asarray(inlier & solved[:, None]), sigma_px=jnp.asarray(sigma),
-                    tol_px=jnp.asarray(tol))
+                    tol_px=jnp.asarray(tol), k1=jnp.asarray(k1))
     return jnp.asarray(kept), jnp.asarray(solved), fit
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "fit_scale", "few"))
-def _fit_kernel(xy, named, ids, star_vectors, k_sigma, min_tol_px, max_tol_px, *, camera, fit_scale, few):
+@functools.partial(jax.jit, static_argnames=("camera", "fit_scale", "few", "fit_distortion"))
+def _fit_kernel(xy, named, ids, star_vectors, k_sigma, min_tol_px, max_tol_px, *, camera, fit_scale, few,
+                fit_distortion):
     """:func:`fit_named` of each scene (B, N) of :func:`verify_names` (``few``: its static branch)."""
     def one(xy_i, named_i, ids_i):
         ref = star_vectors[jnp.clip(ids_i, 0, star_vectors.shape[0] - 1)]
         return fit_named(xy_i, ref, named_i, camera, k_sigma=k_sigma, min_tol_px=min_tol_px,
-                         max_tol_px=max_tol_px, fit_scale=fit_scale, few=few)
+                         max_tol_px=max_tol_px, fit_scale=fit_scale, few=few,
+                         fit_distortion=fit_distortion and not few)
 
     return jax.vmap(one)(xy, named, ids)
 
@@ -465,14 +589,17 @@ def field_seen(star_vectors, camera, xy, valid, ids, fit: CameraFit, span=0.0):
     return (n < FIELD_MIN) | (seen >= FIELD_FRACTION * n)
 
 
-def project_scaled(camera, v_cam, scale):
+def project_scaled(camera, v_cam, scale, k1=0.0):
     """Camera-frame vectors (..., 3) → ``(xy, in_field)`` with the focal length ``scale · f_px``
-    (:meth:`~jstarid.camera.Camera.project` of the fitted camera)."""
+    and one radial distortion term (Brown–Conrady, OpenCV's ``k1``): the ideal normalised
+    coordinates ``u = (v_x, v_y) / v_z`` land at ``c + scale · f_px · u (1 + k1 |u|²)``."""
     front = v_cam[..., 2] > 0
     vz = jnp.where(front, v_cam[..., 2], 1.0)
     f = camera.f_px * scale
-    x = camera.cx + f * v_cam[..., 0] / vz
-    y = camera.cy + f * v_cam[..., 1] / vz
+    u, v = v_cam[..., 0] / vz, v_cam[..., 1] / vz
+    d = 1.0 + k1 * (u**2 + v**2)
+    x = camera.cx + f * u * d
+    y = camera.cy + f * v * d
     inside = (x >= 0) & (x <= camera.width - 1) & (y >= 0) & (y <= camera.height - 1)
     return jnp.stack([x, y], axis=-1), front & inside
 
@@ -490,7 +617,8 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
 
     Returns:
         The :class:`~jstarid.scene.Identification` with far-off names taken back, scenes whose fit
-        fails unclaimed (ids −1), the fitted attitude and ``focal_scale`` (NaN where not fitted).
+        fails unclaimed (ids −1), the fitted attitude, ``focal_scale`` and ``distortion_k1`` (NaN
+        where not fitted).
     """
     from jstarid.scene import Identification
 
@@ -500,7 +628,8 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
     if result.attitude is not None:
         attitude = jnp.where(enough[:, None, None], attitude, result.attitude)
     return Identification(ids=ids, ok=ok, attitude=jnp.where(ok[:, None, None], attitude, jnp.nan),
-                          focal_scale=jnp.where(enough & ok, fit.scale, jnp.nan))
+                          focal_scale=jnp.where(enough & ok, fit.scale, jnp.nan),
+                          distortion_k1=jnp.where(enough & ok, fit.k1, jnp.nan))
 
 
 def check_claims(star_vectors, camera, scenes, result, *, min_named: int = 3, **kwargs):
@@ -530,6 +659,20 @@ def rescale_scenes(scenes, camera, scale: float):
     moved = centre + (xy - centre) / np.float32(scale)
     moved = np.where(np.asarray(scenes.valid)[..., None], moved, xy)
     return dataclasses.replace(scenes, xy=jnp.asarray(moved))
+
+
+def distort_scenes(scenes, camera, k1: float):
+    """The scenes as a lens with the radial distortion ``k1`` would show them
+    (:func:`project_scaled`): each centroid ``c + f u`` moved to ``c + f u (1 + k1 |u|²)``.
+
+    For probes and tests: the simulator's pinhole scenes seen through a distorting lens.
+    """
+    centre = np.array([camera.cx, camera.cy], np.float32)
+    xy = np.asarray(scenes.xy, np.float32)
+    u = (xy - centre) / np.float32(camera.f_px)
+    moved = centre + (xy - centre) * (1.0 + np.float32(k1) * np.sum(u**2, -1, keepdims=True))
+    moved = np.where(np.asarray(scenes.valid)[..., None], moved, xy)
+    return dataclasses.replace(scenes, xy=jnp.asarray(moved, jnp.float32))
 
 
 def _call_size(n: int) -> int:

@@ -150,7 +150,8 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     # central ones, a weak lever on the focal length); every round's names reach further out
     for k in range(EXTEND_ROUNDS):
         ids = _extend(vectors, star_mag, cells, jnp.where(use[:, None, None], fit.attitude, 0.0),
-                      jnp.where(use, fit.scale, 1.0), use, scenes.xy, scenes.valid, det_mag, ids,
+                      jnp.where(use, fit.scale, 1.0), jnp.where(use, fit.k1, 0.0), use, scenes.xy,
+                      scenes.valid, det_mag, ids,
                       jnp.clip(k_sigma * fit.sigma_px, min(1.0, tol_px), tol_px),
                       jnp.float32(isolation), jnp.float32(mag_tol), jnp.float32(max_scale_error),
                       camera=camera, grid=index.grid,
@@ -166,7 +167,8 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     if result.attitude is not None:
         attitude = jnp.where(enough[:, None, None], attitude, result.attitude)
     return Identification(ids=ids, ok=ok, attitude=attitude,
-                          focal_scale=jnp.where(enough & ok, final.scale, jnp.nan))
+                          focal_scale=jnp.where(enough & ok, final.scale, jnp.nan),
+                          distortion_k1=jnp.where(enough & ok, final.k1, jnp.nan))
 
 
 def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
@@ -184,7 +186,7 @@ def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "grid", "scan"))
-def _extend(star_vec, star_mag, cells, att, scale, use, xy, valid, mag, ids, tol_px, isolation, mag_tol,
+def _extend(star_vec, star_mag, cells, att, scale, k1, use, xy, valid, mag, ids, tol_px, isolation, mag_tol,
             span, *, camera, grid, scan):
     """(B, N) ids with the new names (vmapped over scenes); the tolerances are traced (no recompile).
 
@@ -193,12 +195,12 @@ def _extend(star_vec, star_mag, cells, att, scale, use, xy, valid, mag, ids, tol
     the one nearest 1). Three names cannot fit a scale, and a wrong one puts the frame's edge
     pixels off; the right one names the frame.
     """
-    def one(c, s, use_i, xy_i, valid_i, mag_i, ids_i, tol_i):
+    def one(c, s, k1_i, use_i, xy_i, valid_i, mag_i, ids_i, tol_i):
         rows, vectors, _ = local_stars(cells, star_vec, c[2], grid)  # c[2] = Cᵀ ẑ, the boresight
         have = ids_i >= 0
 
         def names(c_s, s_s):
-            body = unproject_scaled(camera, xy_i, s_s)
+            body = unproject_scaled(camera, xy_i, s_s, k1_i)
             local, named = name_stars(c_s, body, valid_i, vectors, tol_i / (camera.f_px * s_s), isolation)
             row = rows[local]
             taken = jnp.any((ids_i[None, :] == row[:, None]) & have[None, :], axis=1)
@@ -221,4 +223,4 @@ def _extend(star_vec, star_mag, cells, att, scale, use, xy, valid, mag, ids, tol
         row, new = names(c, s)
         return jnp.where(new, row, ids_i).astype(jnp.int32)
 
-    return jax.vmap(one)(att, scale, use, xy, valid, mag, ids, tol_px)
+    return jax.vmap(one)(att, scale, k1, use, xy, valid, mag, ids, tol_px)

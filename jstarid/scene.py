@@ -70,12 +70,16 @@ class Identification:
         attitude: (B, 3, 3) float32 estimated ``C`` or ``None`` when the algorithm gives none.
         focal_scale: (B,) float32 focal length fitted while solving / the camera's
             (:mod:`jstarid.camera_fit`), or ``None`` when not fitted.
+        distortion_k1: (B,) float32 radial distortion fitted while solving (normalised
+            coordinates, OpenCV's ``k1``; 0 where the names could not fit it,
+            :func:`jstarid.camera_fit.fit_distorted`), or ``None`` when not fitted.
     """
 
     ids: jax.Array
     ok: jax.Array
     attitude: jax.Array | None = None
     focal_scale: jax.Array | None = None
+    distortion_k1: jax.Array | None = None
 
     def __getitem__(self, index) -> Identification:
         if isinstance(index, int | np.integer):

@@ -208,3 +208,76 @@ def test_a_right_sky_with_its_brightest_stars_missing_keeps_its_claim(world):
     few = np.where(rank < 6, ids, -1)
     _, ok_few, _ = cf.verify_names(cat.unit_vectors, nominal, scenes.xy, valid, few, np.ones(len(ids), bool))
     assert np.asarray(ok_few)[many].mean() < 0.5
+
+
+def _scipy_fit_distorted(xy, ref, cam):
+    """Least squares over (rotation vector, scale, k1) of the pixel residuals, float64."""
+    def residuals(p):
+        v = Rotation.from_rotvec(p[:3]).apply(ref)
+        u = v[:, :2] / v[:, 2:3]
+        radial = 1.0 + p[4] * np.sum(u**2, 1, keepdims=True)
+        pred = np.array([cam.cx, cam.cy]) + p[3] * cam.f_px * u * radial
+        return (pred - xy).ravel()
+
+    start = Rotation.align_vectors(np.asarray(cam.unproject(jnp.asarray(xy, jnp.float32)), np.float64),
+                                   ref)[0].as_rotvec()
+    return least_squares(residuals, np.r_[start, 1.0, 0.0], xtol=1e-12, ftol=1e-12).x
+
+
+@pytest.mark.parametrize("k1", [-0.3, 0.4])
+def test_fit_distorted_matches_scipy_least_squares(world, k1):
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.01, n=4)
+    scenes = cf.distort_scenes(scenes, nominal, k1)
+    for i in range(4):
+        named = truth[i] >= 0
+        xy = np.asarray(scenes.xy[i], np.float64)[named]
+        ref = cat.unit_vectors[truth[i][named]]
+        xy32, ref32 = jnp.asarray(xy, jnp.float32), jnp.asarray(ref, jnp.float32)
+        ones = jnp.ones(len(xy), jnp.float32)
+        c0, s0, _ = cf.fit_scaled(xy32, ref32, ones, nominal)
+        c, s, k, resid, fitted = cf.fit_distorted(xy32, ref32, ones, nominal, start=(c0, s0))
+        p = _scipy_fit_distorted(xy, ref, nominal)
+        assert bool(fitted)
+        assert abs(float(s) - p[3]) < 5e-5 and abs(float(k) - p[4]) < 5e-3, (float(s), float(k), p[3:])
+        angle = np.linalg.norm((Rotation.from_matrix(np.asarray(c, np.float64))
+                                * Rotation.from_rotvec(p[:3]).inv()).as_rotvec())
+        assert np.degrees(angle) * 3600 < 1.0  # arcsec
+        assert abs(p[3] - 1.01) < 2e-3 and abs(p[4] - k1) < 0.03  # the lens the scenes went through
+        assert np.sqrt(np.mean(np.asarray(resid) ** 2)) < 1.5  # px: the noise alone (σ = 0.5 per axis)
+
+
+def test_project_and_unproject_with_distortion_are_inverse(world):
+    _, cam = world
+    rng = np.random.default_rng(0)
+    xy = jnp.asarray(rng.uniform([0, 0], [cam.width - 1, cam.height - 1], (200, 2)), jnp.float32)
+    for k1 in (-0.4, 0.0, 0.4):
+        back, inside = cf.project_scaled(cam, cf.unproject_scaled(cam, xy, 1.01, k1), 1.01, k1)
+        np.testing.assert_allclose(np.asarray(back), np.asarray(xy), atol=2e-3)
+        assert np.all(np.asarray(inside))
+
+
+def test_a_distorted_lens_keeps_its_edge_names_and_reports_k1(world):
+    """With one radial term in the check's fit, the edge stars of a distorting lens are kept (the
+    4-parameter fit takes them back as far off), none wrong, and the fitted k1 is the lens's."""
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=32)
+    moved = cf.distort_scenes(scenes, nominal, 0.5)  # ≈ 20 px at the corners of this 20° frame
+    ok = np.ones(len(truth), bool)
+    kept_plain, _, _ = cf.verify_names(cat.unit_vectors, nominal, moved.xy, moved.valid, truth, ok,
+                                       fit_distortion=False)
+    kept, solved, fit = cf.verify_names(cat.unit_vectors, nominal, moved.xy, moved.valid, truth, ok)
+    kept, kept_plain = np.asarray(kept), np.asarray(kept_plain)
+    assert np.all(np.asarray(solved))
+    assert np.all(kept[kept >= 0] == truth[kept >= 0])
+    assert (kept >= 0).sum() == (truth >= 0).sum() > (kept_plain >= 0).sum()
+    assert abs(np.median(np.asarray(fit.k1)) - 0.5) < 0.01
+    # name_from_attitude names the rest of the frame through the fitted lens, no name wrong
+    partial = truth.copy()
+    partial[np.cumsum(truth >= 0, axis=1) > 14] = -1
+    out = js.name_from_attitude(cat, nominal, moved, js.Identification(ids=partial, ok=ok))
+    ids = np.asarray(out.ids)
+    assert np.all(ids[ids >= 0] == truth[ids >= 0])
+    assert (ids >= 0).sum() >= 0.97 * (truth >= 0).sum()
+    k1 = np.asarray(out.distortion_k1)
+    assert np.all(np.isfinite(k1)) and abs(np.median(k1) - 0.5) < 0.02

@@ -78,6 +78,8 @@ def _identify(args, scenes, labels: list[str]) -> list[dict]:
         att = np.where(fitted[:, None, None], np.asarray(result.attitude), att)
     scale = (np.full(len(labels), np.nan) if result.focal_scale is None
              else np.asarray(result.focal_scale, np.float64))
+    k1 = (np.full(len(labels), np.nan) if result.distortion_k1 is None
+          else np.asarray(result.distortion_k1, np.float64))
     ra, dec, roll = (np.degrees(np.asarray(a)) for a in js.rotation_to_radec_roll(att))
     ids, xy, ok = np.asarray(result.ids), np.asarray(scenes.xy), np.asarray(result.ok)
     n_det = np.asarray(scenes.valid).sum(axis=1)
@@ -96,6 +98,8 @@ def _identify(args, scenes, labels: list[str]) -> list[dict]:
                 entry.update(focal_scale=float(scale[i]), f_px_fitted=float(cam.f_px * scale[i]),
                              fov_x_deg_fitted=float(np.degrees(2 * np.arctan(cam.width / 2 / (cam.f_px
                                                                                           * scale[i])))))
+            if np.isfinite(k1[i]):
+                entry.update(distortion_k1=float(k1[i]))
         out.append(entry)
     return out
 

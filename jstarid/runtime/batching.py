@@ -92,7 +92,7 @@ def chunk_calls(rows: np.ndarray, chunk: int, *, static: Callable[[np.ndarray], 
 
 def run_calls(kernel, calls: Iterable[Call], args: Callable[[Call], tuple], replicated: tuple = (),
               *, n_rows: int, tails: Sequence[tuple], fills: Sequence[Any], static: dict | None = None,
-              out: list[np.ndarray] | None = None) -> list[np.ndarray]:
+              out: list[np.ndarray] | None = None, mesh=None) -> list[np.ndarray]:
     """Run ``kernel`` over a plan of calls and collect its outputs into host arrays.
 
     Args:
@@ -110,6 +110,8 @@ def run_calls(kernel, calls: Iterable[Call], args: Callable[[Call], tuple], repl
         fills: value of each output for rows no call computed (and past a short trailing axis).
         static: static keyword arguments shared by every call (merged with each call's own).
         out: existing result arrays to write into (rows not in the plan keep their values).
+        mesh: the devices to split each call over (default: all; a one-device mesh runs each call
+            whole on that device).
 
     Returns:
         One NumPy array per kernel output, (n_rows, *tail).
@@ -117,7 +119,7 @@ def run_calls(kernel, calls: Iterable[Call], args: Callable[[Call], tuple], repl
     static = {} if static is None else static
     pending = []
     for call in calls:
-        res = map_batch(kernel, args(call), replicated, static={**static, **dict(call.static)})
+        res = map_batch(kernel, args(call), replicated, static={**static, **dict(call.static)}, mesh=mesh)
         pending.append((call, res if isinstance(res, tuple) else (res,)))
     if out is None:
         out = []
