@@ -2,11 +2,12 @@
 principal point that differs from the camera it was given.
 
 The scenes are simulated with the *true* camera (the nominal one with ``f_px`` scaled, or the
-principal point moved); every algorithm and :func:`jstarid.name_from_attitude` work with the
-*nominal* camera, as a user with an uncalibrated lens or a datasheet focal length would. Per setting
-and algorithm: scenes claimed, claimed scenes with at least one wrong name, the same after
-``name_from_attitude``, and the median focal-length error the camera fit reports (``fitted``, %)
-against the true one (``true``, %).
+principal point moved, or seen through a lens with radial distortion); every algorithm and
+:func:`jstarid.name_from_attitude` work with the *nominal* camera, as a user with an uncalibrated
+lens or a datasheet focal length would. Per setting and algorithm: scenes claimed, claimed scenes
+with at least one wrong name, the same after ``name_from_attitude``, the median focal-length error
+the camera fit reports (``fitted``, %) against the true one (``true``, %), and the median fitted
+distortion ``k1``.
 
 Usage::
 
@@ -26,9 +27,10 @@ import numpy as np
 import jstarid as js
 from jstarid import experiment as ex
 
-SETTINGS = (("f × 0.98", 0.98, 0.0), ("f × 0.99", 0.99, 0.0), ("true camera", 1.0, 0.0),
-            ("f × 1.01", 1.01, 0.0), ("f × 1.02", 1.02, 0.0), ("f × 1.05", 1.05, 0.0),
-            ("principal point + 20 px", 1.0, 20.0))
+# (label, focal scale, principal point shift in x (px), radial distortion k1 of the lens)
+SETTINGS = (("f × 0.98", 0.98, 0.0, 0.0), ("f × 0.99", 0.99, 0.0, 0.0), ("true camera", 1.0, 0.0, 0.0),
+            ("f × 1.01", 1.01, 0.0, 0.0), ("f × 1.02", 1.02, 0.0, 0.0), ("f × 1.05", 1.05, 0.0, 0.0),
+            ("principal point + 20 px", 1.0, 20.0, 0.0), ("lens k1 = +0.2", 1.0, 0.0, 0.2))
 
 
 def parse_args(argv=None):
@@ -61,6 +63,9 @@ def probe(module, db, config, catalog, nominal, scenes, truth_scale) -> dict:
     fitted = np.asarray(scale)[np.asarray(named.ok)] if scale is not None else np.zeros(0)
     row["fitted_focal_error_pct"] = float(100 * (np.median(fitted) - 1)) if fitted.size else None
     row["true_focal_error_pct"] = 100 * (truth_scale - 1)
+    k1 = getattr(named, "distortion_k1", None)
+    k1 = np.asarray(k1)[np.asarray(named.ok)] if k1 is not None else np.zeros(0)
+    row["fitted_k1"] = float(np.median(k1)) if k1.size else None
     return row
 
 
@@ -74,10 +79,12 @@ def main(argv=None) -> dict:
     dbs = {name: js.algorithms.get(name).build_database(catalog, nominal, cfg)
            for name, cfg in entries.items()}
     rows = []
-    for k, (label, scale, shift) in enumerate(SETTINGS):
+    for k, (label, scale, shift, k1) in enumerate(SETTINGS):
         cam = true_camera(nominal, scale, shift)
         scenes = js.simulate(jax.random.fold_in(jax.random.key(args.seed), k), catalog, cam,
                              js.NoiseConfig(position_sigma_px=args.sigma), batch_size=n, shard=True)
+        if k1:
+            scenes = js.camera_fit.distort_scenes(scenes, cam, k1)
         for name in names:
             row = {"setting": label, "algorithm": name, "scenes": n,
                    **probe(js.algorithms.get(name), dbs[name], entries[name], catalog, nominal, scenes,
@@ -90,7 +97,8 @@ def main(argv=None) -> dict:
                ("claimed_named", "claimed, name_from_attitude", "{:,}"),
                ("wrong_named", "… with a wrong name", "{:,}"),
                ("true_focal_error_pct", "true f error %", "{:+.1f}"),
-               ("fitted_focal_error_pct", "fitted f error % (median)", "{:+.2f}")]
+               ("fitted_focal_error_pct", "fitted f error % (median)", "{:+.2f}"),
+               ("fitted_k1", "fitted k1 (median)", "{:+.3f}")]
     table = ex.markdown_table(rows, columns, title=f"Camera errors on {args.camera}, σ = {args.sigma} px",
                               note="Scenes from the true camera, algorithms given the nominal one.")
     ex.write(args.out, config={"scenes": n, "seed": args.seed, "camera": nominal, "sigma": args.sigma,
