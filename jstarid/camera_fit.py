@@ -78,7 +78,7 @@ FIELD_SCALES = 81  # focal scales the field check also tries (0.25 % apart at a 
 FIELD_MIN = 3  # fewer unnamed stars than this in the window: nothing to judge, the check passes
 FIELD_MAX_NAMES = 10  # … and is made only for fits of at most this many names (field_seen)
 FIELD_GROUP = 32  # scenes per lax.map group of the check (the catalog is projected per scene)
-CHECK_CHUNK = 1024  # scenes per call of the check's kernels (each call split over the devices)
+CHECK_CHUNK = 1024  # scenes per call of the check's kernels (on one device, see verify_names)
 CHECK_MIN_CALL = 64  # … padded to a power of two at least this large (fewer programs to compile)
 CHECK_MIN_WIDTH = 32  # … and cut to a power of two of columns at least this wide
 DISTORTION_MIN_STARS = 12  # fewest inliers from which the radial distortion k1 is fitted
@@ -144,6 +144,15 @@ def _rotation_from_vector(theta):
     return jnp.eye(3, dtype=theta.dtype) + jnp.sin(angle) * kx + (1.0 - jnp.cos(angle)) * kx2
 
 
+def _du_dtheta(v, vz):
+    """(N, 2, 3): d(v_x / v_z, v_y / v_z) / dθ for a small rotation ``dv = θ × v`` (the image-plane
+    part of the Gauss–Newton Jacobians of :func:`fit_scaled` and :func:`fit_distorted`)."""
+    vx, vy = v[:, 0], v[:, 1]
+    return jnp.stack([
+        jnp.stack([-vx * vy / vz**2, 1.0 + vx**2 / vz**2, -vy / vz], -1),
+        jnp.stack([-(1.0 + vy**2 / vz**2), vx * vy / vz**2, vx / vz], -1)], 1)
+
+
 def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iterations: int = ITERATIONS):
     """Attitude and focal scale by least squares on the pixel residuals (module doc), one scene.
 
@@ -187,10 +196,7 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
         u = v[:, :2] / vz[:, None]  # (N, 2) ideal image-plane coordinates
         resid = centred - f * scale * u  # (N, 2) px
         # d(v_x / v_z) / dθ for dv = θ × v, times f s; and d/ds = f u
-        vx, vy = v[:, 0], v[:, 1]
-        du_dtheta = jnp.stack([
-            jnp.stack([-vx * vy / vz**2, 1.0 + vx**2 / vz**2, -vy / vz], -1),
-            jnp.stack([-(1.0 + vy**2 / vz**2), vx * vy / vz**2, vx / vz], -1)], 1)  # (N, 2, 3)
+        du_dtheta = _du_dtheta(v, vz)  # (N, 2, 3)
         jac = jnp.concatenate([f * scale * du_dtheta, f * u[:, :, None]], axis=2)  # (N, 2, 4)
         normal = precise.einsum("n,nai,naj->ij", w, jac, jac)
         rhs = precise.einsum("n,nai,na->i", w, jac, resid)
@@ -213,7 +219,8 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
 
 def fit_distorted(xy, ref, weights, camera, *, start, iterations: int = DISTORTION_ITERATIONS):
     """Attitude, focal scale and radial distortion ``k1`` (:func:`project_scaled`) by Gauss–Newton
-    on the pixel residuals, one scene, from ``start`` (a fit of :func:`fit_scaled`; k1 from 0).
+    on the pixel residuals, one scene, from ``start`` (a fit of :func:`fit_scaled`, or an earlier
+    one of this function).
 
     ``k1`` is fitted only from :data:`DISTORTION_MIN_STARS` names on, the farthest of them at least
     :data:`DISTORTION_MIN_REACH` of the half diagonal from the principal point: the term grows
@@ -250,10 +257,7 @@ def fit_distorted(xy, ref, weights, camera, *, start, iterations: int = DISTORTI
         r2 = jnp.sum(u**2, -1)
         d = 1.0 + k1 * r2
         resid = centred - f * scale * u * d[:, None]  # (N, 2) px
-        vx, vy = v[:, 0], v[:, 1]
-        du_dtheta = jnp.stack([
-            jnp.stack([-vx * vy / vz**2, 1.0 + vx**2 / vz**2, -vy / vz], -1),
-            jnp.stack([-(1.0 + vy**2 / vz**2), vx * vy / vz**2, vx / vz], -1)], 1)  # (N, 2, 3)
+        du_dtheta = _du_dtheta(v, vz)  # (N, 2, 3)
         # d(u d(u)) / du = d I + 2 k1 u uᵀ
         dpu = d[:, None, None] * jnp.eye(2, dtype=u.dtype)[None] + 2.0 * k1 * u[:, :, None] * u[:, None, :]
         dpu_dtheta = (dpu[:, :, 0, None] * du_dtheta[:, None, 0, :]
@@ -424,8 +428,9 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     names fill; only the fits of at most :data:`FIELD_MAX_NAMES` inliers go on to the field check
     (:func:`field_seen`, which projects the catalog once per scene). Calls hold at most
     :data:`CHECK_CHUNK` scenes, padded to a power of two (at least :data:`CHECK_MIN_CALL`: one
-    program per size class), on one device. On RpNet's benchmark (4,096 scenes, 2 CPU cores) this
-    took the check from 1,751 to ≈ 19,000 scenes/s.
+    program per size class), on one device. On RpNet's benchmark (4,096 scenes, 2 CPU cores) the
+    grouping took the check from 1,751 to ≈ 19,000 scenes/s with its calls split over both
+    devices (8f28d36, experiments/RESULTS.md), before they stalled there and moved to one.
 
     Args:
         star_vectors: (M, 3) ICRS unit vectors; ``ids`` are rows of it.
@@ -654,11 +659,7 @@ def rescale_scenes(scenes, camera, scale: float):
     Unprojecting the moved centroids with the nominal camera gives the directions the original
     centroids have under the camera of focal length ``scale · f_px``.
     """
-    centre = np.array([camera.cx, camera.cy], np.float32)
-    xy = np.asarray(scenes.xy, np.float32)
-    moved = centre + (xy - centre) / np.float32(scale)
-    moved = np.where(np.asarray(scenes.valid)[..., None], moved, xy)
-    return dataclasses.replace(scenes, xy=jnp.asarray(moved))
+    return _move_about_centre(scenes, camera, lambda offset: offset / np.float32(scale))
 
 
 def distort_scenes(scenes, camera, k1: float):
@@ -667,11 +668,19 @@ def distort_scenes(scenes, camera, k1: float):
 
     For probes and tests: the simulator's pinhole scenes seen through a distorting lens.
     """
+    def distort(offset):
+        r2 = np.sum((offset / np.float32(camera.f_px)) ** 2, -1, keepdims=True)
+        return offset * (1.0 + np.float32(k1) * r2)
+
+    return _move_about_centre(scenes, camera, distort)
+
+
+def _move_about_centre(scenes, camera, move):
+    """The scenes with each valid centroid's offset from the principal point replaced by
+    ``move(offset)`` ((B, N, 2) px → (B, N, 2) px, host arrays)."""
     centre = np.array([camera.cx, camera.cy], np.float32)
     xy = np.asarray(scenes.xy, np.float32)
-    u = (xy - centre) / np.float32(camera.f_px)
-    moved = centre + (xy - centre) * (1.0 + np.float32(k1) * np.sum(u**2, -1, keepdims=True))
-    moved = np.where(np.asarray(scenes.valid)[..., None], moved, xy)
+    moved = np.where(np.asarray(scenes.valid)[..., None], centre + move(xy - centre), xy)
     return dataclasses.replace(scenes, xy=jnp.asarray(moved, jnp.float32))
 
 
