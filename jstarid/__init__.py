@@ -13,6 +13,7 @@ from jstarid.attitude import (
     solve_wahba,
 )
 from jstarid.camera import Camera, camera_preset, preset_names
+from jstarid.camera_files import load_camera, save_camera
 from jstarid.catalog import Catalog, load_catalog, v_from_hp
 from jstarid.centroid import CentroidConfig, extract_centroids, read_image
 from jstarid.compilation_cache import enable_compilation_cache
@@ -21,7 +22,7 @@ from jstarid.engine import Entry, SweepResult, compare, grid, sweep
 from jstarid.engine import load as load_sweep
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.runtime import use_cpu_cores
-from jstarid.scene import Identification, Scene, scenes_from_centroids
+from jstarid.scene import Identification, Scene, scenes_from_centroids, undistort_scenes
 from jstarid.simulator import NoiseConfig, noise_grid, simulate
 
 __version__ = "0.1.0"
@@ -30,9 +31,10 @@ __all__ = [
     "Camera", "Catalog", "CentroidConfig", "Entry", "Identification", "NoiseConfig", "Scene",
     "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",
     "plotting", "runtime", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
-    "estimate_attitude", "evaluate", "extract_centroids", "load_catalog", "name_from_attitude",
+    "estimate_attitude", "evaluate", "extract_centroids", "load_camera", "load_catalog", "name_from_attitude",
     "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation", "read_image",
     "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",
-    "rotation_to_radec_roll", "scene_outcomes", "scenes_from_centroids", "simulate", "solve_wahba",
+    "rotation_to_radec_roll", "save_camera", "scene_outcomes", "scenes_from_centroids", "simulate",
+    "solve_wahba", "undistort_scenes",
     "use_cpu_cores", "v_from_hp",
 ]

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.runtime import map_batch
-from jstarid.scene import Scene
+from jstarid.scene import Scene, undistort_scenes
 
 __all__ = ["CentroidConfig", "extract_centroids", "read_image"]
 
@@ -113,7 +113,7 @@ def read_image(path) -> np.ndarray:
 
 
 def extract_centroids(images, config: CentroidConfig = CentroidConfig(), *,
-                      capacity: int = 64, shard: bool = False) -> Scene:
+                      capacity: int = 64, shard: bool = False, camera=None) -> Scene:
     """Centroids of the stars in a batch of images (module doc), brightest first.
 
     Args:
@@ -122,6 +122,9 @@ def extract_centroids(images, config: CentroidConfig = CentroidConfig(), *,
         capacity: static N, detections kept per image.
         shard: split the batch over every device (:func:`jstarid.runtime.map_batch`); the result is
             the same as the single-device call's.
+        camera: the :class:`~jstarid.Camera` that took the images; its lens distortion, if any, is
+            undone on the centroids (:func:`jstarid.scene.undistort_scenes`), and the images must be
+            its size. ``None``: centroids stay in measured pixels.
 
     Returns:
         A :class:`~jstarid.scene.Scene` of B scenes: ``xy`` (B, N, 2) px, ``mag`` (B, N) from the
@@ -147,10 +150,16 @@ def extract_centroids(images, config: CentroidConfig = CentroidConfig(), *,
                          f"({config.tile_px} px) or the centroid window")
     if not isinstance(capacity, int | np.integer) or capacity < 1:
         raise ValueError(f"capacity must be a positive integer, got {capacity!r}")
+    if camera is not None and (h, w) != (camera.height, camera.width):
+        raise ValueError(f"images are {h}×{w} px but camera {camera.name} is "
+                         f"{camera.height}×{camera.width}")
     batch = jnp.asarray(arr, jnp.float32)
     if shard:
-        return map_batch(_extract_batch, (batch,), static=dict(config=config, capacity=int(capacity)))
-    return _extract_batch(batch, config=config, capacity=int(capacity))
+        scenes = map_batch(_extract_batch, (batch,),
+                           static=dict(config=config, capacity=int(capacity)))
+    else:
+        scenes = _extract_batch(batch, config=config, capacity=int(capacity))
+    return scenes if camera is None else undistort_scenes(scenes, camera)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "capacity"))

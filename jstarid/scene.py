@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Scene", "Identification", "scenes_from_centroids"]
+__all__ = ["Scene", "Identification", "scenes_from_centroids", "undistort_scenes"]
 
 
 @jax.tree_util.register_dataclass
@@ -87,8 +87,20 @@ class Identification:
         return jax.tree_util.tree_map(lambda a: a[index], self)
 
 
+def undistort_scenes(scenes: Scene, camera) -> Scene:
+    """Measured centroids moved to the ideal pinhole frame of ``camera`` (its lens distortion undone,
+    :meth:`jstarid.Camera.undistort`); padding stays zero. Returns ``scenes`` itself for an ideal lens.
+    """
+    if not camera.distortion:
+        return scenes
+    # host copies first: an eager op on arrays sharded over CPU devices could stall (engine notes)
+    xy, valid = np.asarray(scenes.xy), np.asarray(scenes.valid)
+    ideal = np.where(valid[..., None], np.asarray(camera.undistort(xy.astype(np.float64))), 0.0)
+    return dataclasses.replace(scenes, xy=jnp.asarray(ideal, scenes.xy.dtype))
+
+
 def scenes_from_centroids(xy_list: Sequence, mag_list: Sequence | None = None, *,
-                          capacity: int = 64) -> Scene:
+                          capacity: int = 64, camera=None) -> Scene:
     """Pack user centroids (e.g. from a real image) into a :class:`Scene` batch.
 
     Args:
@@ -97,6 +109,8 @@ def scenes_from_centroids(xy_list: Sequence, mag_list: Sequence | None = None, *
             brighter). Without magnitudes, the given order is taken as brightest first.
         capacity: static N. Scenes with more than N centroids keep the brightest N and are flagged
             ``overflow``.
+        camera: the :class:`~jstarid.Camera` that measured them; its lens distortion, if any, is
+            undone (:func:`undistort_scenes`). ``None``: the centroids are taken as pinhole pixels.
 
     Returns:
         A :class:`Scene` with ``truth = −1`` and a NaN ``attitude`` (unknown).
@@ -141,8 +155,9 @@ def scenes_from_centroids(xy_list: Sequence, mag_list: Sequence | None = None, *
         xy_out[i, :n] = xy[order]
         mag_out[i, :n] = mag[order]
         valid[i, :n] = True
-    return Scene(
+    scenes = Scene(
         xy=jnp.asarray(xy_out), mag=jnp.asarray(mag_out),
         truth=jnp.full((b, capacity), -1, jnp.int32), valid=jnp.asarray(valid),
         attitude=jnp.full((b, 3, 3), jnp.nan, jnp.float32), overflow=jnp.asarray(overflow),
     )
+    return scenes if camera is None else undistort_scenes(scenes, camera)

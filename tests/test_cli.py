@@ -58,7 +58,9 @@ def test_reproduce_quick_experiment(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, message", [
     (["demo", "--algorithms", "nope"], "unknown algorithm"),
-    (["demo", "--camera", "nope"], "unknown camera preset"),
+    (["demo", "--camera", "nope"], "unknown camera 'nope'"),
+    (["demo", "--size", "12by3"], "--size must be WIDTHxHEIGHT"),
+    (["identify", "x.csv", "--fov", "-3"], "field of view"),
     (["demo", "--scenes", "0"], "must be ≥ 1"),
     (["demo", "--levels", "-1"], "position_sigma_px"),
     (["demo", "--levels", "a,b"], "comma-separated numbers"),
@@ -192,6 +194,25 @@ def test_identify_centroid_files(tmp_path, capsys):
             j = np.argmin(np.linalg.norm(xy - [star["x"], star["y"]], axis=1))
             assert hip[j] == star["hip"]
     assert "boresight RA" in capsys.readouterr().err
+
+    # a camera file with a distorting lens: centroids measured through it are named the same
+    lens = js.Camera(**{**js.camera_files.camera_to_dict(js.camera_preset("mlv2021")),
+                        "distortion": (0.08,)})
+    camera_file = js.save_camera(lens, tmp_path / "lens.toml")
+    measured = np.asarray(lens.distort(scenes[0][0]))
+    csv.write_text("\n".join(f"{x:.3f}, {y:.3f}, {m:.2f}" for (x, y), m
+                             in zip(measured, scenes[0][1], strict=True)) + "\n")
+    assert cli.main(["identify", str(csv), "--camera", str(camera_file), "--mag-limit", "5.5",
+                     "--out", str(out)]) == 0
+    written = json.loads(out.read_text())
+    assert written["camera"]["distortion"] == [0.08] and written["epoch_source"].startswith("catalog")
+    entry = written["scenes"][0]
+    assert entry["solved"] and len(entry["stars"]) >= 5
+    for star in entry["stars"]:  # reported where they were measured, named as without the lens
+        j = np.argmin(np.linalg.norm(measured - [star["x"], star["y"]], axis=1))
+        assert np.linalg.norm(measured[j] - [star["x"], star["y"]]) < 1e-2
+        assert scenes[0][2][j] == star["hip"]
+    assert "no --epoch given" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("name, text, message", [

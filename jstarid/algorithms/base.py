@@ -134,16 +134,20 @@ def cache_key(algorithm: str, version: int, catalog, camera, fields: Mapping) ->
         algorithm: the registry name (``"sgm"``, ``"mlv"``, …).
         version: the algorithm's database format; bump it when stored arrays change meaning.
         catalog: the :class:`~jstarid.catalog.Catalog` (its ``fingerprint``), or ``None``.
-        camera: the :class:`~jstarid.camera.Camera` (every field), or ``None`` when the database
-            does not depend on it.
+        camera: the :class:`~jstarid.camera.Camera` (every field but its lens distortion, which is
+            undone before any algorithm sees a centroid), or ``None`` when the database does not
+            depend on it.
         fields: the settings that shape the database (``Config.database_fields()``).
 
     Returns:
         20 hex digits of the SHA-256 of the canonical JSON of all of the above.
     """
+    camera_fields = to_json(camera)
+    if isinstance(camera_fields, dict):
+        camera_fields.pop("distortion", None)  # keys as before distortion existed: caches stay valid
     payload = {"algorithm": algorithm, "version": int(version),
                "catalog": None if catalog is None else catalog.fingerprint,
-               "camera": to_json(camera), "fields": to_json(dict(fields))}
+               "camera": camera_fields, "fields": to_json(dict(fields))}
     text = json.dumps(payload, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
 

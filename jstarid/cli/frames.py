@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jstarid.cli.cameras import add_camera_options, camera_from_args
+
 
 def add_commands(sub) -> None:
     i = sub.add_parser(
@@ -31,7 +33,7 @@ def add_commands(sub) -> None:
 
 
 def _frame_options(p, *, camera: str, mag_limit, capacity: int) -> None:
-    p.add_argument("--camera", default=camera, help=f"camera preset (`jstarid list`; default {camera})")
+    add_camera_options(p, default=camera)
     p.add_argument("--algorithm", default="mlv", help="registry name (default mlv)")
     p.add_argument("--mag-limit", type=float, default=mag_limit,
                    help="catalog depth V (default: " + ("the camera's detection limit)"
@@ -52,14 +54,15 @@ def _frame_options(p, *, camera: str, mag_limit, capacity: int) -> None:
                    help="RpNet network (trained for the camera on first use, then cached)")
 
 
-def _identify(args, scenes, labels: list[str]) -> list[dict]:
-    """Identify ``scenes`` and describe each one (names, boresight, roll, residual and, with
-    ``--name-all``, the focal length fitted with the attitude)."""
+def _identify(args, scenes, labels: list[str], measured=None) -> list[dict]:
+    """Identify ``scenes`` (pinhole pixels) and describe each one (names, boresight, roll, residual
+    and, with ``--name-all``, the focal length fitted with the attitude); stars are reported at
+    their ``measured`` pixels (the scenes before the lens distortion was undone)."""
     import jstarid as js
 
     if args.capacity < 1:
         raise ValueError("--capacity must be ≥ 1")
-    cam = js.camera_preset(args.camera)
+    cam = camera_from_args(args).pinhole()  # the scenes' centroids are undistorted already
     limit = cam.mag_limit if args.mag_limit is None else args.mag_limit
     cat = js.load_catalog(limit, epoch=args.epoch)
     algo = js.algorithms.get(args.algorithm)
@@ -81,7 +84,8 @@ def _identify(args, scenes, labels: list[str]) -> list[dict]:
     k1 = (np.full(len(labels), np.nan) if result.distortion_k1 is None
           else np.asarray(result.distortion_k1, np.float64))
     ra, dec, roll = (np.degrees(np.asarray(a)) for a in js.rotation_to_radec_roll(att))
-    ids, xy, ok = np.asarray(result.ids), np.asarray(scenes.xy), np.asarray(result.ok)
+    xy = np.asarray((scenes if measured is None else measured).xy)
+    ids, ok = np.asarray(result.ids), np.asarray(result.ok)
     n_det = np.asarray(scenes.valid).sum(axis=1)
     out = []
     for i, label in enumerate(labels):
@@ -113,10 +117,26 @@ def _summary(entry: dict) -> str:
             + (f", focal length × {entry['focal_scale']:.4f}" if "focal_scale" in entry else ""))
 
 
+def _note_epoch(args) -> None:
+    if args.epoch is None:
+        print("warning: no --epoch given: star positions at the catalog's epoch J1991.25, proper "
+              "motion ignored (give the observation's year, e.g. --epoch 2019.57); the output "
+              "records it",
+              file=sys.stderr)
+
+
+def _epoch_fields(args) -> dict:
+    """The solution file's record of the star positions' epoch (issue: a missing --epoch is stated)."""
+    if args.epoch is None:
+        return {"epoch": 1991.25, "epoch_source": "catalog (no --epoch given; proper motion ignored)"}
+    return {"epoch": args.epoch, "epoch_source": "--epoch (proper motion applied)"}
+
+
 def run_identify(args) -> int:
     import jstarid as js
     from jstarid.centroid_files import read_centroids
 
+    camera = camera_from_args(args)  # a bad camera fails before any file is read
     xy, mag, labels = [], [], []
     for path in args.files:
         x, m = read_centroids(path)
@@ -125,13 +145,14 @@ def run_identify(args) -> int:
         labels += [f"{path}" if len(x) == 1 else f"{path}#{k}" for k in range(len(x))]
     if any(m is None for m in mag) and not all(m is None for m in mag):
         mag = [np.arange(len(x), dtype=float) if m is None else m for x, m in zip(xy, mag, strict=True)]
-    scenes = js.scenes_from_centroids(xy, None if all(m is None for m in mag) else mag,
-                                      capacity=args.capacity)
-    solutions = _identify(args, scenes, labels)
+    measured = js.scenes_from_centroids(xy, None if all(m is None for m in mag) else mag,
+                                        capacity=args.capacity)
+    _note_epoch(args)
+    solutions = _identify(args, js.undistort_scenes(measured, camera), labels, measured)
     for entry in solutions:
         print(_summary(entry), file=sys.stderr)
-    text = json.dumps({"camera": args.camera, "algorithm": args.algorithm, "epoch": args.epoch,
-                       "scenes": solutions}, indent=1)
+    text = json.dumps({"camera": js.camera_files.camera_to_dict(camera), "algorithm": args.algorithm,
+                       **_epoch_fields(args), "scenes": solutions}, indent=1)
     if args.out is None:
         print(text)
     else:
@@ -145,22 +166,22 @@ def run_solve(args) -> int:
     """Raw images → centroids → identification → attitude, one line per image plus a JSON file."""
     import jstarid as js
 
-    cam = js.camera_preset(args.camera)
+    cam = camera_from_args(args)
     images = [js.read_image(p) for p in args.images]
     if len({im.shape for im in images}) != 1 or images[0].shape != (cam.height, cam.width):
         raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "
                          f"got {sorted({im.shape for im in images})}")
-    if args.epoch is None:
-        print("note: no --epoch given: star positions at the catalog's epoch J1991.25 (proper "
-              "motion ignored)", file=sys.stderr)
-    scenes = js.extract_centroids(np.stack(images), capacity=args.capacity, shard=True)
-    solutions = _identify(args, scenes, [str(p) for p in args.images])
+    _note_epoch(args)
+    measured = js.extract_centroids(np.stack(images), capacity=args.capacity, shard=True)
+    solutions = _identify(args, js.undistort_scenes(measured, cam), [str(p) for p in args.images],
+                          measured)
     for entry in solutions:
         entry["image"] = entry.pop("scene")
         print(_summary({**entry, "scene": entry["image"]}))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "solutions.json").write_text(json.dumps({"args": vars(args), "solutions": solutions},
-                                                   indent=1, default=str))
+    (out / "solutions.json").write_text(json.dumps(
+        {"args": vars(args), "camera": js.camera_files.camera_to_dict(cam), **_epoch_fields(args),
+         "solutions": solutions}, indent=1, default=str))
     print(f"wrote {out / 'solutions.json'}")
     return 0 if all(s["solved"] for s in solutions) else 1

@@ -7,6 +7,8 @@ import json
 import time
 from pathlib import Path
 
+from jstarid.cli.cameras import add_camera_options, camera_from_args
+
 DEMO_LEVELS = "0,1,2,3"
 
 
@@ -37,7 +39,7 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
     p.add_argument("--algorithms", default=None,
                    help="comma-separated registry names (default: every registered algorithm "
                         "but the oracle; `jstarid list` shows them)")
-    p.add_argument("--camera", default="sgm2022", help="camera preset (`jstarid list`)")
+    add_camera_options(p, default="sgm2022")
     p.add_argument("--mag-limit", type=float, default=None,
                    help="catalog depth V (default: the camera's detection limit)")
     p.add_argument("--axis", default="position",
@@ -107,7 +109,7 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     if jax.process_index() != 0:  # every process computes its share; process 0 reports and writes
         args.quiet = True
 
-    camera = js.camera_preset(args.camera)
+    camera = camera_from_args(args)
     names = (args.algorithms or ",".join(n for n in js.algorithms.names() if n != "oracle"))
     algorithms = [n.strip() for n in names.split(",") if n.strip()]
     for name in algorithms:
