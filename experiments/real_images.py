@@ -68,15 +68,14 @@ def parse_args(argv=None):
     return args
 
 
-def algorithm_config(name: str, overrides):
-    """``name``'s config for these images, with the ``--set`` items that start with ``name.``."""
+def algorithm_config(name: str, overrides, camera):
+    """``name``'s config for these images (its defaults for ``camera``), with the ``--set`` items
+    that start with ``name.``."""
     algo = js.algorithms.get(name)
     if name == "sgm":
         base = algo.Config(radius_deg=SGM_RADIUS_DEG)
-    elif name == "rpnet":  # trained for this camera on first use (≈ 4 min on 2 cores), then cached
-        base = algo.Config.quick()
-    else:
-        base = algo.Config()
+    else:  # RpNet: the quick network, trained for this camera on first use, then cached
+        base = js.engine.default_config(name, camera=camera)
     return ex.with_overrides(base, [i.split(".", 1)[1] for i in overrides if i.startswith(name + ".")])
 
 
@@ -154,7 +153,7 @@ def main(argv=None):
                 c_ref, reference[name]["boresight_ra_deg"], reference[name]["boresight_dec_deg"]), 1),
             truth=truth.tolist(), algorithms={}))
 
-    timings, configs = {}, {a: algorithm_config(a, args.set) for a in args.algorithms}
+    timings, configs = {}, {a: algorithm_config(a, args.set, camera) for a in args.algorithms}
     for algo_name, cfg in configs.items():
         algo = js.algorithms.get(algo_name)
         db = algo.build_database(catalog, camera, cfg)

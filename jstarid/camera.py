@@ -19,7 +19,7 @@ import math
 
 import jax.numpy as jnp
 
-__all__ = ["Camera", "camera_preset", "preset_names"]
+__all__ = ["Camera", "camera_preset", "preset_names", "tolerance_scales"]
 
 #: Fixed-point steps of :meth:`Camera.undistort` (OpenCV's undistortPoints uses 5 by default; each
 #: step shrinks the error by about the distortion's relative size |k1| r² — at the corner of a 20°
@@ -229,6 +229,10 @@ _PRESETS = {
     "zy3": lambda: Camera.from_optics(1024, 1024, 43.258, 0.015, cx=515.247, cy=513.320,
                                       mag_limit=6.0, name="zy3"),
     "tetra3_test": _tetra3_test,
+    # A simulated twin of a narrow, deep star tracker (issue: any camera): 1392×1040 px at 15.8″/px,
+    # a 6.1° × 4.6° field, 40–130 detections per frame down to V ≈ 10. Its noise (0.8 px, ≤ 2 false
+    # stars) is experiments/narrow_twin.py's TWIN_NOISE.
+    "narrow_twin": lambda: Camera.from_fov(1392, 1040, 6.1, mag_limit=10.0, name="narrow_twin"),
 }
 
 
@@ -251,3 +255,29 @@ def camera_preset(name: str, **overrides) -> Camera:
         raise ValueError(f"unknown camera preset {name!r}; choose one of {', '.join(_PRESETS)}")
     cam = _PRESETS[name]()
     return dataclasses.replace(cam, **overrides) if overrides else cam
+
+
+#: The papers' own cameras: the range of pixel scales and fields their tolerances were chosen for.
+PAPER_CAMERAS = ("sgm2022", "mlv2021", "rpnet2019", "zy3")
+
+
+def _clip_ratio(value: float, low: float, high: float) -> float:
+    """1 inside ``[low, high]``, else ``value / low`` below it or ``value / high`` above it."""
+    return value / low if value < low else value / high if value > high else 1.0
+
+
+def tolerance_scales(camera: Camera) -> tuple[float, float]:
+    """How much a tolerance chosen on the papers' cameras must shrink or grow on ``camera``.
+
+    Returns:
+        ``(pixel, field)``: the camera's pixel scale (arcsec) and diagonal field (deg), each as a
+        ratio to the nearest end of the papers' range (:data:`PAPER_CAMERAS`: 50–89″/px, 20–35°),
+        and 1 inside it, so a paper's values stay as published on every paper's camera. A tolerance
+        that is a centroid error in angle scales by ``pixel``; one that grows with the stars'
+        separations too (a triangle's v1) by ``pixel × field``.
+    """
+    papers = [camera_preset(name) for name in PAPER_CAMERAS]
+    pixels = [c.pixel_scale_arcsec for c in papers]
+    fields = [c.fov_diagonal_deg for c in papers]
+    return (_clip_ratio(camera.pixel_scale_arcsec, min(pixels), max(pixels)),
+            _clip_ratio(camera.fov_diagonal_deg, min(fields), max(fields)))

@@ -66,7 +66,7 @@ def _identify(args, scenes, labels: list[str], measured=None) -> list[dict]:
     limit = cam.mag_limit if args.mag_limit is None else args.mag_limit
     cat = js.load_catalog(limit, epoch=args.epoch)
     algo = js.algorithms.get(args.algorithm)
-    cfg = js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network)
+    cfg = js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network, camera=cam)
     first = getattr(algo, "first_use", None)
     built = first(cat, cam, cfg) if first else None
     if built:

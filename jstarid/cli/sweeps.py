@@ -118,7 +118,8 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     if args.axis2:
         axes[js.engine.axis_field(args.axis2)] = _floats(args.levels2 or "", "--levels2")
     fixed = {k: float(v) for k, v in _settings(args.fixed, "--fixed").items()}
-    algorithms = _with_overrides(js.engine.entries(algorithms, rpnet_network=args.rpnet_network),
+    algorithms = _with_overrides(js.engine.entries(algorithms, rpnet_network=args.rpnet_network,
+                                                   camera=camera),
                                  _settings(args.set, "--set"))
     if grid:
         if len(algorithms) != 1:

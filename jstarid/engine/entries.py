@@ -39,8 +39,10 @@ class Entry(NamedTuple):
     setting: tuple = ()
 
 
-def default_config(name: str, *, rpnet_network: str = "quick"):
-    """The config a sweep uses when none is given: ``Config()``, except RpNet's network.
+def default_config(name: str, *, rpnet_network: str = "quick", camera=None):
+    """The config a sweep uses when none is given: ``Config()`` (``Config.for_camera(camera)``
+    where the algorithm has it and a camera is given: tolerances that follow the camera, the
+    published values on the papers' cameras), except RpNet's network.
 
     RpNet trains a network per camera on first use; ``Config()`` is the paper's Table 3 training
     (about 2 hours on 2 CPU cores), so sweeps default to the ``quick`` preset (about 5 minutes).
@@ -48,17 +50,21 @@ def default_config(name: str, *, rpnet_network: str = "quick"):
     Args:
         name: registry name.
         rpnet_network: ``"quick"`` or ``"table3"``.
+        camera: the :class:`~jstarid.Camera` the config is for (``None``: the published defaults).
     """
     module = algorithms.get(name)
     if name == "rpnet":
         if rpnet_network not in ("quick", "table3"):
             raise ValueError(f"rpnet_network must be 'quick' or 'table3', got {rpnet_network!r}")
         return module.Config.quick() if rpnet_network == "quick" else module.Config()
-    return module.Config()
+    for_camera = getattr(module.Config, "for_camera", None)
+    return module.Config() if camera is None or for_camera is None else for_camera(camera)
 
 
-def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str = "quick") -> list[Entry]:
-    """Entries from registry names (``"sgm,mlv"`` or a list), entries or grids.
+def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str = "quick",
+            camera=None) -> list[Entry]:
+    """Entries from registry names (``"sgm,mlv"`` or a list, each with :func:`default_config` for
+    ``camera``), entries or grids.
 
     Raises:
         ValueError: an unknown algorithm, no algorithm, or a label used twice.
@@ -73,8 +79,8 @@ def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str = "quick")
         elif isinstance(item, list | tuple) and item and all(isinstance(e, Entry) for e in item):
             out.extend(item)
         else:
-            out.append(Entry(str(item), str(item), default_config(str(item),
-                                                                 rpnet_network=rpnet_network)))
+            out.append(Entry(str(item), str(item), default_config(
+                str(item), rpnet_network=rpnet_network, camera=camera)))
     if not out:
         raise ValueError("no algorithm to run")
     labels = [e.label for e in out]
@@ -83,7 +89,7 @@ def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str = "quick")
     return out
 
 
-def grid(algorithm: str, config=None, *, label: str | None = None,
+def grid(algorithm: str, config=None, *, label: str | None = None, camera=None,
          **values: Sequence) -> list[Entry]:
     """One entry per combination of config values (first field slowest).
 
@@ -92,14 +98,14 @@ def grid(algorithm: str, config=None, *, label: str | None = None,
 
     Args:
         algorithm: registry name.
-        config: the base config (default: :func:`default_config`).
+        config: the base config (default: :func:`default_config` for ``camera``).
         label: the label's prefix (default: the algorithm's name).
         **values: ``field=[values]`` of the algorithm's ``Config``.
 
     Raises:
         ValueError: an unknown field or a field without values.
     """
-    base = default_config(algorithm) if config is None else config
+    base = default_config(algorithm, camera=camera) if config is None else config
     fields = {f.name for f in dataclasses.fields(base)}
     for name, vals in values.items():
         if name not in fields:

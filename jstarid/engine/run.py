@@ -23,7 +23,8 @@ import numpy as np
 
 from jstarid.algorithms import get as get_algorithm
 from jstarid.attitude import attitude_errors_arcsec, estimate_attitude
-from jstarid.camera import Camera, camera_preset
+from jstarid.camera import Camera
+from jstarid.camera_files import load_camera
 from jstarid.catalog import load_catalog
 from jstarid.engine import processes
 from jstarid.engine.entries import Entry
@@ -59,7 +60,9 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
     Args:
         algorithms: registry names (``"sgm,mlv"`` or a list), :class:`~jstarid.engine.Entry`
             items, or :func:`~jstarid.engine.grid` lists.
-        camera: a preset name (:func:`jstarid.preset_names`) or a :class:`~jstarid.Camera`.
+        camera: a preset name (:func:`jstarid.preset_names`), a camera file or a
+            :class:`~jstarid.Camera`; algorithms given by name get their defaults for it
+            (:func:`~jstarid.engine.entries.default_config`).
         axes: one or two noise axes ``{axis: levels}`` (default ``{"position_sigma_px": [0, 1, 2,
             3]}``); axis names as in :func:`~jstarid.engine.levels.axis_field`.
         fixed: other :class:`~jstarid.NoiseConfig` settings for every scene.
@@ -85,7 +88,8 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
     _check_positive(chunk_size=chunk_size)
     if criterion not in CRITERIA:
         raise ValueError(f"unknown criterion {criterion!r}; choose one of {CRITERIA}")
-    entries = make_entries(algorithms, rpnet_network=rpnet_network)
+    camera = load_camera(camera)
+    entries = make_entries(algorithms, rpnet_network=rpnet_network, camera=camera)
     drawn = simulate_levels(camera, axes=axes, fixed=fixed, scenes=scenes, seed=seed,
                             catalog=catalog, capacity=capacity, boresight=boresight,
                             progress=progress)
@@ -122,7 +126,7 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
     ceiling) draws the scenes here and passes them to :func:`compare` and to its own code.
     """
     axes = {"position_sigma_px": [0.0, 1.0, 2.0, 3.0]} if axes is None else axes
-    camera = camera_preset(camera) if isinstance(camera, str) else camera
+    camera = load_camera(camera)
     _check_positive(scenes=scenes, capacity=capacity)
     candidates = None
     if not isinstance(boresight, str):  # the catalog rows a boresight star is drawn from
@@ -177,7 +181,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
     Returns:
         A :class:`~jstarid.engine.result.SweepResult`.
     """
-    entries = make_entries(algorithms, rpnet_network=rpnet_network)
+    entries = make_entries(algorithms, rpnet_network=rpnet_network, camera=camera)
     _check_positive(chunk_size=chunk_size)
     n_total = scenes.batch_size
     level_of = np.zeros(n_total, np.int32) if level_of is None else np.asarray(level_of, np.int32)
@@ -246,7 +250,7 @@ def plan(algorithms: Sequence | str, catalog, camera: Camera, *, rpnet_network: 
     """
     items = []
     names = set()
-    for entry in make_entries(algorithms, rpnet_network=rpnet_network):
+    for entry in make_entries(algorithms, rpnet_network=rpnet_network, camera=camera):
         names.add(entry.algorithm)
         first_use = getattr(get_algorithm(entry.algorithm), "first_use", None)
         item = first_use(catalog, camera, entry.config) if first_use else None

@@ -753,6 +753,7 @@ def _guide_scenes(tiny, seed, **noise):
                        boresight_ids=np.asarray(db.guide_rows))
 
 
+@pytest.mark.slow  # two more compiled configs (≈ 20 s each); the pool test stays
 def test_more_pair_trials_only_add_scenes(tiny):
     """The next-best pairs run only where the best pair was not confirmed (σ 1 px, 2 missing stars)."""
     _, _, cfg, db, _ = tiny
@@ -762,6 +763,7 @@ def test_more_pair_trials_only_add_scenes(tiny):
     _assert_only_adds(s, one, three, 1)
 
 
+@pytest.mark.slow  # two more compiled configs (≈ 20 s each); the pool test stays
 def test_fallback_triples_only_add_scenes(tiny):
     """Later triples (extension) run only where S1–S3 confirmed nothing: false stars crowding the
     centre do not fail the scene."""

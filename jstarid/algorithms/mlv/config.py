@@ -9,7 +9,13 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from jstarid.camera import tolerance_scales
+
 __all__ = ["Config", "Tuning"]
+
+#: The settings that are centroid errors expressed as angles or feature bins (:meth:`Config.for_camera`).
+_PIXEL_TOLERANCES = ("dv2", "eps_deg", "side_tol_deg", "residual_min_deg", "residual_max_deg",
+                     "ambiguity_deg")
 
 
 class Tuning(NamedTuple):
@@ -165,6 +171,30 @@ class Config:
         no focal search."""
         return cls(**{"vertex_match": False, "attitude_check": False, "field_check": False,
                       "fit_focal": False, "focal_search": (), **overrides})
+
+    @classmethod
+    def for_camera(cls, camera, **overrides) -> Config:
+        """The defaults, with every tolerance that is really a centroid error following ``camera``.
+
+        With ``(pixel, field) =`` :func:`jstarid.camera.tolerance_scales` (1 and 1 on the papers'
+        cameras, so ``Config()`` there): Δv2, ε, the side tolerance and the attitude check's
+        residual bounds and ambiguity radius scale by ``pixel`` (a pixel moves a pair angle, and v2,
+        by one pixel's angle), Δv1 by ``pixel × field`` (v1 ≈ √3 − (v2² + v3²)/(2√3), so a pixel
+        moves it by that angle times the triangle's size). On the narrow twin (15.8″/px, 7.6°
+        diagonal): ×0.31 and ×0.12 — without them every triangle of a scene matched more than
+        1,024 database triangles and half the scenes failed (docs/design/mlv.md).
+
+        Args:
+            camera: the :class:`~jstarid.Camera`.
+            **overrides: fields to set after scaling.
+        """
+        pixel, field = tolerance_scales(camera)
+        base = cls()
+        scaled = {name: getattr(base, name) * pixel for name in _PIXEL_TOLERANCES}
+        scaled["dv1"] = base.dv1 * pixel * field
+        if pixel == 1.0 and field == 1.0:
+            scaled = {}  # exactly the published values
+        return dataclasses.replace(base, **{**scaled, **overrides})
 
     def tuning(self) -> Tuning:
         """This config's traced tolerances as a :class:`Tuning` of scalars (Th1, Th2 in bins; ε and the side
