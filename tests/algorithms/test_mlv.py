@@ -394,3 +394,41 @@ def test_false_star_near_undetected_star_not_named(catalog, database):
         t = truth_list[b]
         named = ids[b, : len(t)]
         assert np.all((named == -1) | (named == t)), (b, named, t)
+
+
+def test_checks_on_the_stars_near_the_field_equal_the_whole_catalog(catalog, database):
+    """The attitude and field checks search the sky index's stars near the cluster's field
+    (``Database.sky_cells``); on noisy clusters with wrong and swapped members they decide as a
+    search of the whole catalog does."""
+    from jstarid.algorithms.mlv.verify import attitude_check, field_check, fit_attitude
+    from jstarid.sky_index import local_stars
+
+    noise = js.NoiseConfig(position_sigma_px=1.5, n_false=2)
+    scenes = js.simulate(jax.random.key(31), catalog, CAM, noise, batch_size=64, capacity=12)
+    rng = np.random.default_rng(31)
+    truth = np.asarray(scenes.truth).copy()
+    for b in range(truth.shape[0]):  # a wrong candidate in half the scenes, a swap in a quarter
+        if b % 2 == 0:
+            truth[b, rng.integers(0, 12)] = rng.integers(0, len(catalog))
+        if b % 4 == 1:
+            truth[b, [0, 1]] = truth[b, [1, 0]]
+    members = jnp.asarray((truth >= 0) & np.asarray(scenes.valid))
+    rows = jnp.asarray(np.maximum(truth, 0), jnp.int32)
+    vec = CAM.unproject(scenes.xy)
+    kw = dict(sigmas=4.0, min_tol_rad=math.radians(0.05), max_tol_rad=math.radians(0.2),
+              ambiguity_rad=math.radians(0.2), outlier_sigmas=3.0)
+
+    def both(v, m, r, valid):
+        att = fit_attitude(v, m, r, database.catalog_vectors)
+        near = local_stars(database.sky_cells, database.catalog_vectors, att[2], database.sky_grid)
+        everything = attitude_check(v, m, r, database.catalog_vectors, **kw)
+        local = attitude_check(v, m, r, database.catalog_vectors, nearby=near[:2], **kw)
+        field_all = field_check(att, v, valid, database.catalog_vectors, CAM, 10, math.radians(0.2))
+        field_local = field_check(att, v, valid, near[1], CAM, 10, math.radians(0.2))
+        return everything, local, jnp.stack(field_all), jnp.stack(field_local)
+
+    everything, local, field_all, field_local = jax.jit(jax.vmap(both))(vec, members, rows,
+                                                                       scenes.valid)
+    np.testing.assert_array_equal(np.asarray(local), np.asarray(everything))
+    np.testing.assert_array_equal(np.asarray(field_local), np.asarray(field_all))
+    assert 0 < int(np.asarray(everything).any(axis=1).sum()) < 64  # some pass, some fail

@@ -38,6 +38,11 @@ __all__ = ["Database", "build_database", "fibonacci_sphere", "database_from_tria
 _DB_VERSION = 1
 _GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 _BUILD_CHUNK = 4096  # boresights per vectorized step
+#: Reach of the sky index beyond the frame's half diagonal: 10 % of it (a focal-length retry
+#: rescales centroids by up to 2 %, the camera fit accepts up to ``max_focal_error``) plus 1°
+#: (the check's tolerances, at most a few tenths of a degree, and the cluster fit's error).
+SKY_MARGIN_DEG = 1.0
+_SKY_GRID = 32  # cube-face cells per side: 2.8° cells (24 MB of lists at V ≤ 10, 6° field)
 
 
 @jax.tree_util.register_dataclass
@@ -54,9 +59,13 @@ class Database:
         star_rows: (S,) int32 catalog row of each reference-catalog star.
         star_vectors: (S, 3) float32 ICRS unit vectors of the reference stars.
         catalog_vectors: (M, 3) float32 ICRS unit vectors of the whole catalog (attitude check).
+        sky_cells: (6·G·G, K) int32 :class:`~jstarid.sky_index.SkyIndex` lists of the catalog stars
+            that can be near the field of a boresight in each cell (the checks search these K, not
+            all M stars; see :data:`SKY_MARGIN_DEG`).
         v1_offset: smallest v̂1 in the table (static int).
         stride: max v̂2 + 1 (static int); v̂2 ∈ [0, stride).
         n_rows: number of v̂1 rows, max v̂1 − v1_offset + 1 (static int).
+        sky_grid: G of ``sky_cells`` (static int).
         camera: the static :class:`~jstarid.camera.Camera` it was built for (centroids → directions).
         dv1, dv2: the discretization units Δv1, Δv2 of the keys (static).
         info: build statistics (static): triangles, stars, bytes, build seconds, cache path.
@@ -69,10 +78,12 @@ class Database:
     star_rows: jax.Array
     star_vectors: jax.Array
     catalog_vectors: jax.Array
+    sky_cells: jax.Array
     v1_offset: int = dataclasses.field(metadata={"static": True})
     stride: int = dataclasses.field(metadata={"static": True})
     n_rows: int = dataclasses.field(metadata={"static": True})
     camera: Camera = dataclasses.field(metadata={"static": True})
+    sky_grid: int = dataclasses.field(metadata={"static": True})
     dv1: float = dataclasses.field(metadata={"static": True})
     dv2: float = dataclasses.field(metadata={"static": True})
     info: tuple = dataclasses.field(default=(), metadata={"static": True})
@@ -103,7 +114,7 @@ class Database:
         """Bytes of the arrays as held for identification (int32 / float32)."""
         return int(sum(np.asarray(a).nbytes for a in
                        (self.keys, self.triangles, self.sides, self.star_rows, self.star_vectors,
-                 self.catalog_vectors)))
+                 self.catalog_vectors, self.sky_cells)))
 
     def info_dict(self) -> dict:
         return dict(self.info)
@@ -231,6 +242,8 @@ def database_from_triangles(catalog, camera: Camera, triangles: np.ndarray, dv1:
     tri_ref = np.take_along_axis(tri_ref, by_side, axis=1)
     opposite = np.take_along_axis(opposite, by_side, axis=1)
     info = dict(info or {})
+    sky = build_sky_index(vec, 1.1 * camera.half_diagonal_rad + math.radians(SKY_MARGIN_DEG),
+                          grid=_SKY_GRID, key=f"mlv-{catalog.fingerprint}")
     db = Database(
         keys=jnp.asarray(keys[order], jnp.int32),
         triangles=jnp.asarray(tri_ref[order], jnp.int32),
@@ -238,6 +251,7 @@ def database_from_triangles(catalog, camera: Camera, triangles: np.ndarray, dv1:
         star_rows=jnp.asarray(star_rows, jnp.int32),
         star_vectors=jnp.asarray(vec[star_rows], jnp.float32),
         catalog_vectors=jnp.asarray(vec, jnp.float32),
+        sky_cells=jnp.asarray(sky.cells), sky_grid=sky.grid,
         v1_offset=v1_offset, stride=stride, n_rows=n_rows, camera=camera,
         dv1=float(dv1), dv2=float(dv2), info=(),
     )

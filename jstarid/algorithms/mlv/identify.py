@@ -56,6 +56,7 @@ from jstarid.algorithms.mlv.voting import (
 from jstarid.camera_fit import check_identification, search_focal
 from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, take_rows
 from jstarid.scene import Identification, Scene
+from jstarid.sky_index import local_stars
 
 __all__ = ["Diagnostics", "SceneResult", "default_pool", "identify", "identify_grid", "identify_scene"]
 
@@ -230,6 +231,10 @@ def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_x
     first, common, size = largest_cluster(agree)
     members = (common if config.require_unique_cluster else first) & has_cand
     if config.attitude_check:
+        # the stars near the cluster's field: the check's searches run over these K, not all M
+        cluster_att = fit_attitude(vec, members, db.star_rows[cand], db.catalog_vectors)
+        near_rows, near_vectors, _ = local_stars(db.sky_cells, db.catalog_vectors, cluster_att[2],
+                                                 db.sky_grid)
         members = attitude_check(
             vec, members, db.star_rows[cand], db.catalog_vectors, sigmas=config.residual_sigmas,
             min_tol_rad=math.radians(config.residual_min_deg),
@@ -238,13 +243,14 @@ def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_x
             scene_vectors=None if all_xy is None else db.camera.unproject(all_xy),
             scene_valid=all_valid,
             outlier_sigmas=config.outlier_sigmas if config.outlier_sigmas > 0 else None,
-            outlier_min_others=config.outlier_min_others)
+            outlier_min_others=config.outlier_min_others, nearby=(near_rows, near_vectors))
     ok = jnp.sum(members) >= config.ver_min
     att = fit_attitude(vec, members, db.star_rows[cand], db.catalog_vectors)
     if config.field_check:
         scene_vec = vec if all_xy is None else db.camera.unproject(all_xy)
         scene_ok = valid if all_xy is None else all_valid
-        n_pred, n_seen = field_check(att, scene_vec, scene_ok, db.catalog_vectors, db.camera, n,
+        _, field_vectors, _ = local_stars(db.sky_cells, db.catalog_vectors, att[2], db.sky_grid)
+        n_pred, n_seen = field_check(att, scene_vec, scene_ok, field_vectors, db.camera, n,
                                      math.radians(config.residual_max_deg))
         ok &= n_seen >= jnp.ceil(config.field_check_fraction * n_pred)
     else:

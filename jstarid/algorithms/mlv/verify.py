@@ -95,7 +95,7 @@ def _wahba(v_cam, r_icrs, weights):
 def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: float,
                    min_tol_rad: float, max_tol_rad: float, ambiguity_rad: float,
                    scene_vectors=None, scene_valid=None, outlier_sigmas: float | None = None,
-                   outlier_min_others: int = 5):
+                   outlier_min_others: int = 5, nearby=None):
     """Final check of a verified cluster against the attitude it implies (extension).
 
     Each member is predicted from a Wahba fit to the *other* members (leave-one-out: a wrong member
@@ -128,6 +128,12 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
         scene_valid: (m,) bool, real detections among ``scene_vectors``.
         outlier_sigmas: the outlier test's tolerance in units of σ̂ᵢ; ``None``: no outlier test.
         outlier_min_others: the outlier test applies to a member with at least this many others.
+        nearby: ``(rows, vectors)``, (K,) int32 catalog rows and (K, 3) ICRS vectors of every star
+            that can lie near the field (:func:`jstarid.sky_index.local_stars` around the cluster's
+            boresight; padding vectors far from it): the nearest-star and ambiguity tests search
+            these instead of the whole catalog (same answer wherever a member can pass: its star
+            and every star within the tolerance of it are near the field), K ≪ M on a deep
+            catalog. ``None``: the whole catalog.
 
     Returns:
         (n,) bool members that pass.
@@ -144,10 +150,13 @@ def attitude_check(det_vectors, members, cand_rows, catalog_vectors, *, sigmas: 
     loo_w = w[None, :] * (1.0 - jnp.eye(n, dtype=w.dtype))  # (n, n): fit without member i
     loo = jax.vmap(_wahba, in_axes=(None, None, 0))(det_vectors, r, loo_w)  # (n, 3, 3)
     pred = precise.einsum("ni,nij->nj", det_vectors, loo)  # rows: C_iᵀ v_i in ICRS
-    cos = precise.matmul(pred, catalog_vectors.T)  # (n, M)
-    near = jnp.argmax(cos, axis=1)  # two argmax passes: cheaper than top_k on CPU
-    cos2 = jnp.max(jnp.where(jnp.arange(cos.shape[1])[None, :] == near[:, None], -2.0, cos), axis=1)
-    ang1 = angle_between(pred, catalog_vectors[near])
+    search_rows, search_vectors = ((jnp.arange(catalog_vectors.shape[0]), catalog_vectors)
+                                   if nearby is None else nearby)
+    cos = precise.matmul(pred, search_vectors.T)  # (n, K)
+    nearest = jnp.argmax(cos, axis=1)  # two argmax passes: cheaper than top_k on CPU
+    cos2 = jnp.max(jnp.where(jnp.arange(cos.shape[1])[None, :] == nearest[:, None], -2.0, cos), axis=1)
+    ang1 = angle_between(pred, search_vectors[nearest])
+    near = search_rows[nearest]
     # cos2 only decides "within ambiguity_rad": compare cosines (no precision needed here)
     if scene_vectors is None:
         scene_vectors, scene_valid = det_vectors, members
@@ -189,7 +198,9 @@ def field_check(att, scene_vectors, scene_valid, catalog_vectors, camera, n: int
     Args:
         att: (3, 3) attitude C (v = C r).
         scene_vectors: (m, 3) all detections (camera frame); scene_valid: (m,) bool.
-        catalog_vectors: (M, 3) ICRS catalog, rows sorted brightest first.
+        catalog_vectors: (M, 3) ICRS catalog, rows sorted brightest first, or the stars near the
+            field in that order (:func:`jstarid.sky_index.local_stars`: same answer, padding behind
+            the camera).
         camera: the :class:`~jstarid.camera.Camera` (static).
         n: how many predicted stars to test.
         tol_rad: a detection within this angle (rad) confirms a predicted star.
