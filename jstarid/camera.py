@@ -96,6 +96,12 @@ class Camera:
         """Angle (arcsec) one pixel spans at the principal point."""
         return math.degrees(1.0 / self.f_px) * 3600.0
 
+    def database_fields(self) -> dict:
+        """Every field but the lens distortion: what a database or a trained network depends on
+        (distortion is undone before any algorithm sees a centroid), their cache keys as before
+        cameras had it."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "distortion"}
+
     def pinhole(self) -> Camera:
         """This camera with an ideal lens (the frame scenes and algorithms work in)."""
         return dataclasses.replace(self, distortion=()) if self.distortion else self

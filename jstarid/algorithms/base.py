@@ -142,9 +142,7 @@ def cache_key(algorithm: str, version: int, catalog, camera, fields: Mapping) ->
     Returns:
         20 hex digits of the SHA-256 of the canonical JSON of all of the above.
     """
-    camera_fields = to_json(camera)
-    if isinstance(camera_fields, dict):
-        camera_fields.pop("distortion", None)  # keys as before distortion existed: caches stay valid
+    camera_fields = None if camera is None else to_json(camera.database_fields())
     payload = {"algorithm": algorithm, "version": int(version),
                "catalog": None if catalog is None else catalog.fingerprint,
                "camera": camera_fields, "fields": to_json(dict(fields))}

@@ -14,7 +14,6 @@ network-shaping config, guide list) that every checkpoint and snapshot carries (
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import hashlib
 import json
@@ -272,7 +271,7 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
 
 def checkpoint_meta(catalog, camera, config: Config, guide_rows) -> dict[str, str]:
     """What a checkpoint is tied to: catalog, camera and config fingerprints, and the class list."""
-    cam = {f.name: getattr(camera, f.name) for f in dataclasses.fields(camera)}
+    cam = camera.database_fields()
     rows = np.ascontiguousarray(np.asarray(guide_rows, np.int32))
     return {
         "catalog": catalog.fingerprint,
