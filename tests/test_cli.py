@@ -229,3 +229,27 @@ def test_identify_bad_centroid_files(tmp_path, capsys, name, text, message):
     assert message in err and err.count("\n") == 1, err
     assert cli.main(["identify", str(tmp_path / "missing.csv")]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+def test_train_builds_ahead_and_says_so(tmp_path, capsys, monkeypatch):
+    """`jstarid train` says what it builds before building it, then finds it built."""
+    monkeypatch.setenv("JSTARID_CACHE", str(tmp_path))  # nothing built yet
+    argv = ["train", "mlv", "--camera", "mlv2021", "--mag-limit", "5.5", "--set", "n_boresights=3000"]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("Building MLV triangle database for mlv2021") and "built for camera" in out
+    assert cli.main(argv) == 0
+    assert "already built" in capsys.readouterr().out
+    # RpNet: the estimate comes first and the network is built for the camera of the options
+    from jstarid.algorithms import rpnet
+
+    calls = []
+
+    def build_database(catalog, camera, config=None, *, progress=True):
+        calls.append(camera)
+
+    monkeypatch.setattr(rpnet, "build_database", build_database)
+    assert cli.main(["train", "rpnet", "--camera", "sgm2022", "--size", "640x480", "--fov", "9"]) == 0
+    assert "min on 2 CPU cores" in capsys.readouterr().out.splitlines()[0]
+    assert (calls[0].width, calls[0].height) == (640, 480) and abs(calls[0].fov_x_deg - 9) < 1e-9
+    assert cli.main(["train", "nope"]) == 2

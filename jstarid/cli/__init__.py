@@ -3,7 +3,8 @@
 Commands: ``demo`` (every algorithm on a position-noise sweep), ``sweep`` (any axis, camera or
 parameter grid), ``reproduce`` (the papers' experiments), ``report`` (one markdown page of saved
 results), ``identify`` (centroid files → names and attitude), ``solve`` (raw images → names and
-attitude), ``list`` and ``catalog``. Bad arguments print one line and exit with status 2.
+attitude), ``train`` (a database or network built ahead of time), ``list`` and ``catalog``. Bad
+arguments print one line and exit with status 2.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from jstarid.cli import frames, info, papers, sweeps
+from jstarid.cli import build, frames, info, papers, sweeps
 
 __all__ = ["build_parser", "main"]
 
@@ -33,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     sweeps.add_commands(sub)
     papers.add_commands(sub)
     frames.add_commands(sub)
+    build.add_commands(sub)
     info.add_commands(sub)
     return p
 

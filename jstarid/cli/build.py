@@ -1,0 +1,53 @@
+"""``jstarid train``: build an algorithm's database for a camera ahead of time (RpNet: train its
+network), so the first identification does not wait for it."""
+
+from __future__ import annotations
+
+import time
+
+from jstarid.cli.cameras import add_camera_options, camera_from_args
+
+
+def add_commands(sub) -> None:
+    t = sub.add_parser(
+        "train", help="build an algorithm's database for a camera ahead of time (RpNet: train its "
+                      "network); says first what it builds and about how long it takes",
+        description="Build and cache what ALGORITHM needs for a camera: RpNet's networks (trained; "
+                    "an interrupted training resumes), MLV's triangle database, SGM's neighbor "
+                    "graphs. Later commands on the same camera and catalog load them.")
+    t.add_argument("algorithm", help="registry name (`jstarid list`), e.g. rpnet")
+    add_camera_options(t, default="sgm2022")
+    t.add_argument("--mag-limit", type=float, default=None,
+                   help="catalog depth V (default: the camera's detection limit)")
+    t.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
+                   help="RpNet: the quick network (minutes) or the paper's Table 3 schedule (hours)")
+    t.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="Config overrides, VALUE in JSON (e.g. n_boresights=50000)")
+    t.set_defaults(func=run_train)
+
+
+def run_train(args) -> int:
+    import jstarid as js
+    from jstarid.experiment import with_overrides
+
+    module = js.algorithms.get(args.algorithm)
+    camera = camera_from_args(args).pinhole()
+    config = with_overrides(js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network,
+                                                     camera=camera), args.set)
+    catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit)
+    first_use = getattr(module, "first_use", None)
+    planned = first_use(catalog, camera, config) if first_use else None
+    if first_use is not None and planned is None:
+        print(f"{args.algorithm}: already built for camera {camera.name} (catalog V ≤ "
+              f"{catalog.mag_limit:g}); nothing to do.", flush=True)
+        return 0
+    if planned is not None:
+        print(f"Building {planned[0]} — about {max(planned[1], 1.0) / 60:.0f} min on 2 CPU cores.",
+              flush=True)
+    t0 = time.perf_counter()
+    database = module.build_database(catalog, camera, config, progress=True)
+    info = getattr(database, "info_dict", lambda: {})()
+    where = info.get("cache_path") or getattr(database, "path", "") or ""
+    print(f"{args.algorithm}: built for camera {camera.name} in {time.perf_counter() - t0:.0f} s"
+          + (f" ({where})" if where else ""), flush=True)
+    return 0
