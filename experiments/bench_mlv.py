@@ -3,6 +3,7 @@
     python experiments/bench_mlv.py --batch 1000 --repeats 3
     python experiments/bench_mlv.py --set batch_chunk=2048 map_batch=256
     python experiments/bench_mlv.py --paper          # the paper's algorithm alone
+    python experiments/bench_mlv.py --camera narrow_twin  # V ≤ 10, the twin's noise, its defaults
 
 ``experiments/benchmark.py`` runs it in a subprocess and reads its rows from ``--json``. Writes
 results/bench_mlv/{config.json, results.json, table.md}.
@@ -18,6 +19,7 @@ import numpy as np
 import jstarid as js
 from jstarid import experiment as ex
 from jstarid.algorithms import mlv
+from jstarid.papers import narrow_twin as twin
 
 COLUMNS = [("batch", "B", "{}"), ("noise", "noise", "{}"), ("paper", "paper alone", "{}"),
            ("scenes_per_s", "scenes/s", "{}"), ("compile_s", "compile s", "{}"),
@@ -32,24 +34,45 @@ def parse_args(argv=None):
                    help="start from Config.paper(): the paper's algorithm alone")
     p.add_argument("--batch", type=int, default=1000, help="scenes per timed call (≥ 1000)")
     p.add_argument("--repeats", type=int, default=3, help="timed calls after the compile call")
-    p.add_argument("--position-sigma", type=float, default=1.0, help="px")
-    p.add_argument("--magnitude-sigma", type=float, default=0.3, help="mag")
+    p.add_argument("--camera", default="mlv2021",
+                   help="mlv2021 (the paper's, V ≤ 5.5) or narrow_twin (V ≤ 10, the noise of "
+                        "experiments/narrow_twin.py, 128 detections per scene); MLV with "
+                        "Config.for_camera")
+    p.add_argument("--position-sigma", type=float, default=None, help="px (default 1, twin 0.8)")
+    p.add_argument("--magnitude-sigma", type=float, default=None, help="mag (default 0.3, twin 0.2)")
     p.add_argument("--devices", type=int, default=None,
                    help="JAX CPU devices (default: one per core; 1 keeps each chunk on one device)")
     p.add_argument("--json", default=None, help="also write the rows to this file")
     return p.parse_args(argv)
 
 
+def settings(args):
+    """``(camera, catalog depth, noise, capacity, config)`` of the benchmark."""
+    camera = js.camera_preset(args.camera)
+    if args.camera == "narrow_twin":
+        noise = {**twin.NOISE,
+                 **{k: v for k, v in (("position_sigma_px", args.position_sigma),
+                                      ("magnitude_sigma", args.magnitude_sigma)) if v is not None}}
+        noise, depth, capacity = js.NoiseConfig(**noise), twin.MAG_LIMIT, twin.CAPACITY
+    elif args.camera == "mlv2021":
+        noise = js.NoiseConfig(position_sigma_px=1.0 if args.position_sigma is None else args.position_sigma,
+                               magnitude_sigma=0.3 if args.magnitude_sigma is None else args.magnitude_sigma)
+        depth, capacity = 5.5, 64
+    else:
+        raise ValueError(f"--camera must be mlv2021 or narrow_twin, got {args.camera!r}")
+    base = mlv.Config.paper() if args.paper else mlv.Config.for_camera(camera)
+    return camera, depth, noise, capacity, ex.with_overrides(base, args.set)
+
+
 def run(args) -> list[dict]:
-    """Benchmark MLV on the mlv2021 camera; returns one row of timings (s), rates and DB size."""
-    cfg = ex.with_overrides(mlv.Config.paper() if args.paper else mlv.Config(), args.set)
-    catalog = js.load_catalog(5.5)
-    camera = js.camera_preset("mlv2021")
+    """Benchmark MLV on one camera; returns one row of timings (s), rates and DB size."""
+    camera, depth, noise, capacity, cfg = settings(args)
+    catalog = js.load_catalog(depth)
     with ex.Stopwatch() as build:
         db = mlv.build_database(catalog, camera, cfg, progress=False)
-    noise = js.NoiseConfig(position_sigma_px=args.position_sigma, magnitude_sigma=args.magnitude_sigma)
     keys = jax.random.split(jax.random.key(args.seed), args.repeats + 1)
-    batches = [js.simulate(k, catalog, camera, noise, batch_size=args.batch, capacity=64) for k in keys]
+    batches = [js.simulate(k, catalog, camera, noise, batch_size=args.batch, capacity=capacity)
+               for k in keys]
     jax.block_until_ready(batches[-1].xy)
     results = {}
 
@@ -61,7 +84,8 @@ def run(args) -> list[dict]:
     reports = [js.evaluate(batches[i], results[i], "mlv") for i in range(1, args.repeats + 1)]
     return [{
         "benchmark": "mlv", "camera": camera.name, "batch": args.batch,
-        "noise": f"pos {args.position_sigma} px, mag {args.magnitude_sigma}",
+        "noise": f"pos {noise.position_sigma_px} px, mag {noise.magnitude_sigma}"
+                 + (f", {noise.n_false} false" if noise.n_false else ""),
         "scenes_per_s": round(args.batch / steady), "compile_s": round(max(first - steady, 0.0), 2),
         "peak_rss_mb": round(ex.peak_rss_mb()), "backend": jax.default_backend(),
         "batch_chunk": cfg.batch_chunk, "map_batch": cfg.map_batch,
@@ -80,9 +104,9 @@ def main(argv=None) -> list[dict]:
     rows = run(args)
     print(json.dumps(rows, indent=1))
     ex.dump_json(args.json, rows)
-    cfg = ex.with_overrides(mlv.Config.paper() if args.paper else mlv.Config(), args.set)
+    cfg = settings(args)[-1]
     ex.write(args.out, config={"args": vars(args), "mlv_config": cfg}, results={"rows": rows},
-             table=ex.markdown_table(rows, COLUMNS, title="MLV throughput (mlv2021)"))
+             table=ex.markdown_table(rows, COLUMNS, title=f"MLV throughput ({args.camera})"))
     return rows
 
 

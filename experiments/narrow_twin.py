@@ -1,10 +1,10 @@
 """A narrow, deep camera: every algorithm with its defaults on a simulated twin of a real one.
 
 The ``narrow_twin`` preset copies a real star tracker a user brought (1392×1040 px, 6.1° × 4.6°,
-15.8″/px, 40–130 detections per frame down to V ≈ 10); :data:`TWIN_NOISE` copies its frames
-(0.8 px centroid noise, 0.2 mag of brightness scatter, two false stars of V 6–10). The catalog is
-Hipparcos to V 10 (complete to V ≈ 8: fainter real stars are missing from it, as they would be
-from the database of any user of this catalog). Each algorithm runs through the sweep engine on
+15.8″/px, 40–130 detections per frame down to V ≈ 10); ``jstarid.papers.narrow_twin.NOISE`` copies
+its frames (0.8 px centroid noise, 0.2 mag of brightness scatter, two false stars of V 6–10). The
+catalog is Hipparcos to V 10 (complete to V ≈ 8: fainter real stars are missing from it, as they
+would be from the database of any user of this catalog). Each algorithm runs through the sweep engine on
 the same scenes, with its defaults for this camera (``Config.for_camera`` where it has one) and,
 for comparison, the published defaults (``… (paper tolerances)`` rows).
 
@@ -22,10 +22,7 @@ import argparse
 
 import jstarid as js
 from jstarid import experiment as ex
-
-#: The twin's frames: centroid noise, brightness scatter and false stars of the real camera.
-TWIN_NOISE = {"position_sigma_px": 0.8, "magnitude_sigma": 0.2, "n_false": 2,
-              "false_mag_min": 6.0, "false_mag_max": 10.0}
+from jstarid.papers import narrow_twin as twin
 
 
 def parse_args(argv=None):
@@ -35,7 +32,7 @@ def parse_args(argv=None):
     p.add_argument("--algorithms", default="mlv", help="comma-separated registry names")
     p.add_argument("--paper-rows", action=argparse.BooleanOptionalAction, default=True,
                    help="also run each algorithm with its published defaults")
-    p.add_argument("--capacity", type=int, default=128, help="detections kept per scene")
+    p.add_argument("--capacity", type=int, default=twin.CAPACITY, help="detections kept per scene")
     return p.parse_args(argv)
 
 
@@ -52,12 +49,12 @@ def entries(names, camera, paper_rows: bool) -> list[js.Entry]:
 def main(argv=None):
     args = parse_args(argv)
     js.use_cpu_cores()
-    camera = js.camera_preset("narrow_twin")
+    camera = js.camera_preset(twin.CAMERA)
     names = [n.strip() for n in args.algorithms.split(",") if n.strip()]
-    position = TWIN_NOISE["position_sigma_px"]
-    fixed = {k: v for k, v in TWIN_NOISE.items() if k != "position_sigma_px"}
+    fixed = {k: v for k, v in twin.NOISE.items() if k != "position_sigma_px"}
     result = js.sweep(entries(names, camera, args.paper_rows), camera,
-                      axes={"position_sigma_px": [position]}, fixed=fixed,
+                      axes={"position_sigma_px": [twin.NOISE["position_sigma_px"]]}, fixed=fixed,
+                      catalog=js.load_catalog(twin.MAG_LIMIT),
                       scenes=200 if args.quick else args.scenes, seed=args.seed,
                       capacity=args.capacity, criterion="strict", progress=True)
     out = result.save(args.out, title="Narrow twin (1392×1040 px, 6.1° × 4.6°, V ≤ 10)")

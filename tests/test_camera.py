@@ -81,3 +81,17 @@ def test_contains_with_inset():
                     [cam.width - 5.9, 500.0], [500.0, cam.height]])
     np.testing.assert_array_equal(cam.contains(xy), [True, True, True, True, True, False])
     np.testing.assert_array_equal(cam.contains(xy, 5.0), [False, False, True, True, False, False])
+
+
+def test_tolerance_scales_keep_the_papers_cameras_and_follow_others():
+    from jstarid.camera import PAPER_CAMERAS, tolerance_scales
+
+    for name in PAPER_CAMERAS:
+        assert tolerance_scales(js.camera_preset(name)) == (1.0, 1.0)
+    twin = js.camera_preset("narrow_twin")
+    pixel, field = tolerance_scales(twin)
+    finest = min(js.camera_preset(n).pixel_scale_arcsec for n in PAPER_CAMERAS)
+    assert pixel == pytest.approx(twin.pixel_scale_arcsec / finest) and 0.3 < pixel < 0.33
+    assert 0.37 < field < 0.39
+    coarse = js.Camera.from_fov(512, 512, 40.0)  # 290″/px, 55° diagonal: both grow
+    assert all(s > 1.5 for s in tolerance_scales(coarse))

@@ -432,3 +432,30 @@ def test_checks_on_the_stars_near_the_field_equal_the_whole_catalog(catalog, dat
     np.testing.assert_array_equal(np.asarray(local), np.asarray(everything))
     np.testing.assert_array_equal(np.asarray(field_local), np.asarray(field_all))
     assert 0 < int(np.asarray(everything).any(axis=1).sum()) < 64  # some pass, some fail
+
+
+def test_for_camera_keeps_the_paper_values_on_the_papers_cameras():
+    for name in ("sgm2022", "mlv2021", "rpnet2019", "zy3"):
+        assert mlv.Config.for_camera(js.camera_preset(name)) == mlv.Config()
+    twin = js.camera_preset("narrow_twin")
+    pixel, field = js.camera.tolerance_scales(twin)
+    cfg = mlv.Config.for_camera(twin, th1=2)
+    assert cfg.eps_deg == pytest.approx(0.2 * pixel) and cfg.dv2 == pytest.approx(5e-4 * pixel)
+    assert cfg.dv1 == pytest.approx(5e-5 * pixel * field) and cfg.th1 == 2
+    assert cfg.residual_max_deg == pytest.approx(0.2 * pixel) and cfg.n_stars == 10
+
+
+@pytest.mark.slow
+def test_narrow_twin_identified_with_the_defaults_for_its_camera():
+    """The narrow twin (15.8″/px, V ≤ 10, 0.8 px, 2 false stars): ≥ 95 % identified, none wrong,
+    with Config.for_camera."""
+    from jstarid.papers import narrow_twin as twin
+
+    cam = js.camera_preset(twin.CAMERA)
+    cat = js.load_catalog(twin.MAG_LIMIT)
+    scenes = js.simulate(jax.random.key(35), cat, cam, js.NoiseConfig(**twin.NOISE), batch_size=200,
+                         capacity=twin.CAPACITY)
+    cfg = mlv.Config.for_camera(cam)
+    result = mlv.identify(mlv.build_database(cat, cam, cfg, progress=False), scenes, cfg)
+    report = js.evaluate(scenes, result, "strict")
+    assert report["identification_rate"] >= 0.95 and report["misid_rate"] == 0.0
