@@ -60,6 +60,8 @@ def test_reproduce_quick_experiment(tmp_path, capsys):
     (["demo", "--algorithms", "nope"], "unknown algorithm"),
     (["demo", "--camera", "nope"], "unknown camera 'nope'"),
     (["demo", "--size", "12by3"], "--size must be WIDTHxHEIGHT"),
+    (["sweep", "--algorithms", "sgm,mlv", "--camera", "narrow_twin"], "sgm: SGM's neighbor circle"),
+    (["train", "sgm", "--camera", "tetra3_test"], "does not fit the 4.28° half field"),
     (["identify", "x.csv", "--fov", "-3"], "field of view"),
     (["demo", "--scenes", "0"], "must be ≥ 1"),
     (["demo", "--levels", "-1"], "position_sigma_px"),

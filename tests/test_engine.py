@@ -164,3 +164,14 @@ def test_sgm_criterion_is_scored_on_the_entry_s_own_circle():
     wide = _score(scenes, result, cat, cam, "sgm")["outcome"]
     assert np.all(narrow == js.metrics.CORRECT)
     assert np.all(wide == js.metrics.INCOMPLETE)  # stars between 3° and 6° left unnamed
+
+
+def test_an_algorithm_that_cannot_work_on_the_camera_stops_everything_first(monkeypatch):
+    """SGM's published 6° circle on a 6° × 4.6° field: one clear error before any scene or database."""
+    from jstarid.engine import run
+
+    monkeypatch.setattr(run, "simulate_levels", lambda *a, **k: pytest.fail("simulated anyway"))
+    with pytest.raises(ValueError, match=r"sgm: SGM's neighbor circle r = 6° does not fit the 2\.28°"):
+        js.sweep("mlv,sgm", "narrow_twin", scenes=2)
+    small = js.engine.entries([js.Entry("sgm small", "sgm", js.algorithms.get("sgm").Config(radius_deg=2.0))])
+    js.engine.check_camera(small, js.camera_preset("narrow_twin"))  # fits: no error

@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 from jstarid.cli.cameras import add_camera_options, camera_from_args
+from jstarid.cli.frames import algorithm_settings
 
 
 def add_commands(sub) -> None:
@@ -21,7 +22,7 @@ def add_commands(sub) -> None:
                    help="catalog depth V (default: the camera's detection limit)")
     t.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet: the quick network (minutes) or the paper's Table 3 schedule (hours)")
-    t.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+    t.add_argument("--set", nargs="*", default=[], metavar="[ALGORITHM.]FIELD=VALUE",
                    help="Config overrides, VALUE in JSON (e.g. n_boresights=50000)")
     t.set_defaults(func=run_train)
 
@@ -33,7 +34,8 @@ def run_train(args) -> int:
     module = js.algorithms.get(args.algorithm)
     camera = camera_from_args(args).pinhole()
     config = with_overrides(js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network,
-                                                     camera=camera), args.set)
+                                                     camera=camera), algorithm_settings(args))
+    js.engine.check_camera([js.Entry(args.algorithm, args.algorithm, config)], camera)
     catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit)
     first_use = getattr(module, "first_use", None)
     planned = first_use(catalog, camera, config) if first_use else None

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from jstarid.cli.cameras import add_camera_options, camera_from_args
+from jstarid.experiment import with_overrides
 
 
 def add_commands(sub) -> None:
@@ -52,6 +53,8 @@ def _frame_options(p, *, camera: str, mag_limit, capacity: int) -> None:
                         "--name-all may make before a frame counts as not solved (default 0.1)")
     p.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet network (trained for the camera on first use, then cached)")
+    p.add_argument("--set", nargs="*", default=[], metavar="[ALGORITHM.]FIELD=VALUE",
+                   help="Config overrides of --algorithm, VALUE in JSON (e.g. sgm.radius_deg=3.8)")
 
 
 def _identify(args, scenes, labels: list[str], measured=None) -> list[dict]:
@@ -66,7 +69,9 @@ def _identify(args, scenes, labels: list[str], measured=None) -> list[dict]:
     limit = cam.mag_limit if args.mag_limit is None else args.mag_limit
     cat = js.load_catalog(limit, epoch=args.epoch)
     algo = js.algorithms.get(args.algorithm)
-    cfg = js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network, camera=cam)
+    cfg = with_overrides(js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network,
+                                                  camera=cam), algorithm_settings(args))
+    js.engine.check_camera([js.Entry(args.algorithm, args.algorithm, cfg)], cam)
     first = getattr(algo, "first_use", None)
     built = first(cat, cam, cfg) if first else None
     if built:
@@ -115,6 +120,19 @@ def _summary(entry: dict) -> str:
             f"boresight RA {entry['ra_deg']:.4f}°, Dec {entry['dec_deg']:+.4f}°, roll "
             f"{entry['roll_deg']:+.3f}°, residual {entry['residual_arcsec']:.1f}″"
             + (f", focal length × {entry['focal_scale']:.4f}" if "focal_scale" in entry else ""))
+
+
+def algorithm_settings(args) -> list[str]:
+    """``--set`` items for ``--algorithm`` (an ``ALGORITHM.`` prefix naming another is refused)."""
+    out = []
+    for item in args.set:
+        target, dot, rest = item.partition(".")
+        if dot and "=" not in target:
+            if target != args.algorithm:
+                raise ValueError(f"--set {item}: this command runs {args.algorithm}, not {target}")
+            item = rest
+        out.append(item)
+    return out
 
 
 def _note_epoch(args) -> None:

@@ -21,12 +21,12 @@ Usage::
                     axes={"position_sigma_px": [1.0, 2.5]})
 """
 
-from jstarid.engine.entries import Entry, default_config, entries, grid
+from jstarid.engine.entries import Entry, check_camera, default_config, entries, grid
 from jstarid.engine.levels import AXES, axis_field, level_grid, level_noise
 from jstarid.engine.processes import initialize
 from jstarid.engine.result import SweepResult, load
 from jstarid.engine.run import BORESIGHTS, Levels, compare, plan, simulate_levels, sweep
 
-__all__ = ["AXES", "BORESIGHTS", "Entry", "Levels", "SweepResult", "axis_field", "compare",
+__all__ = ["AXES", "BORESIGHTS", "Entry", "Levels", "SweepResult", "axis_field", "check_camera", "compare",
            "default_config", "entries", "grid", "initialize", "level_grid", "level_noise", "load",
            "plan", "simulate_levels", "sweep"]

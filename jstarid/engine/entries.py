@@ -89,6 +89,23 @@ def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str = "quick",
     return out
 
 
+def check_camera(items: Sequence[Entry], camera) -> None:
+    """Stop before anything is built when an entry's algorithm cannot work on ``camera`` (its
+    optional ``camera_problem(camera, config)``, e.g. SGM's neighbor circle wider than the frame).
+
+    Raises:
+        ValueError: one line per entry that cannot work, each naming the entry.
+    """
+    problems = []
+    for entry in items:
+        problem = getattr(algorithms.get(entry.algorithm), "camera_problem", None)
+        text = problem(camera, entry.config) if problem else None
+        if text:
+            problems.append(f"{entry.label}: {text}")
+    if problems:
+        raise ValueError("; ".join(dict.fromkeys(problems)))
+
+
 def grid(algorithm: str, config=None, *, label: str | None = None, camera=None,
          **values: Sequence) -> list[Entry]:
     """One entry per combination of config values (first field slowest).

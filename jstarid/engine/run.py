@@ -27,7 +27,7 @@ from jstarid.camera import Camera
 from jstarid.camera_files import load_camera
 from jstarid.catalog import load_catalog
 from jstarid.engine import processes
-from jstarid.engine.entries import Entry
+from jstarid.engine.entries import Entry, check_camera
 from jstarid.engine.entries import entries as make_entries
 from jstarid.engine.levels import level_grid, level_noise
 from jstarid.engine.result import SweepResult
@@ -90,6 +90,7 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
         raise ValueError(f"unknown criterion {criterion!r}; choose one of {CRITERIA}")
     camera = load_camera(camera)
     entries = make_entries(algorithms, rpnet_network=rpnet_network, camera=camera)
+    check_camera(entries, camera)
     drawn = simulate_levels(camera, axes=axes, fixed=fixed, scenes=scenes, seed=seed,
                             catalog=catalog, capacity=capacity, boresight=boresight,
                             progress=progress)
@@ -182,6 +183,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
         A :class:`~jstarid.engine.result.SweepResult`.
     """
     entries = make_entries(algorithms, rpnet_network=rpnet_network, camera=camera)
+    check_camera(entries, camera)
     _check_positive(chunk_size=chunk_size)
     n_total = scenes.batch_size
     level_of = np.zeros(n_total, np.int32) if level_of is None else np.asarray(level_of, np.int32)

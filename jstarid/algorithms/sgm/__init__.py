@@ -9,9 +9,9 @@ check — our addition, on by default), ``identify``, ``tuning`` (c × ε_δ gri
 """
 
 from jstarid.algorithms.sgm.config import Config, Tuning
-from jstarid.algorithms.sgm.database import Database, build_database, first_use
+from jstarid.algorithms.sgm.database import Database, build_database, camera_problem, first_use
 from jstarid.algorithms.sgm.identify import Diagnostics, identify
 from jstarid.algorithms.sgm.tuning import identify_grid
 
-__all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "first_use", "identify",
-           "identify_grid"]
+__all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "camera_problem", "first_use",
+           "identify", "identify_grid"]

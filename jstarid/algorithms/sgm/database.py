@@ -165,15 +165,13 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
         :class:`Database`.
 
     Raises:
-        ValueError: an explicit ``neighbor_capacity`` smaller than the largest neighbor graph.
+        ValueError: an explicit ``neighbor_capacity`` smaller than the largest neighbor graph, or a
+            camera whose frame the neighbor circle does not fit (:func:`camera_problem`).
     """
     config = Config() if config is None else config
-    half_fov = math.degrees(math.atan(min(camera.cx, camera.cy, camera.width - 1 - camera.cx,
-                                          camera.height - 1 - camera.cy) / camera.f_px))
-    if config.radius_deg > half_fov:
-        import warnings
-        warnings.warn(f"neighbor circle r={config.radius_deg}° exceeds the half field of view "
-                      f"({half_fov:.2f}°): image graphs will be cut by the frame", stacklevel=2)
+    problem = camera_problem(camera, config)
+    if problem:
+        raise ValueError(problem)
     key = _cache_key(catalog, config)
     path = cache_dir() / f"sgm-{key}.npz"
     t0 = time.perf_counter()
@@ -198,6 +196,24 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
         radius_deg=float(config.radius_deg), camera=camera, catalog=catalog,
         build_seconds=elapsed, nbytes=int(sum(a.nbytes for a in arrays.values())),
         from_cache=from_cache, key=key)
+
+
+def camera_problem(camera, config: Config | None = None) -> str | None:
+    """Why SGM cannot work on ``camera`` with ``config`` (one line), or ``None``.
+
+    The neighbor graph of the main star needs the whole circle of radius r around it inside the
+    frame (§3.1): a circle wider than the half field (the principal point to the nearest edge)
+    cuts every image graph, and no database graph can match it. Said before anything is built.
+    """
+    config = Config() if config is None else config
+    half_fov = math.degrees(math.atan(min(camera.cx, camera.cy, camera.width - 1 - camera.cx,
+                                          camera.height - 1 - camera.cy) / camera.f_px))
+    if config.radius_deg <= half_fov:
+        return None
+    return (f"SGM's neighbor circle r = {config.radius_deg:g}° does not fit the {half_fov:.2f}° half "
+            f"field of camera {camera.name}: every image graph would be cut by the frame; give "
+            f"radius_deg ≤ {math.floor(half_fov * 100) / 100:g} (e.g. --set sgm.radius_deg="
+            f"{math.floor(half_fov * 0.9 * 10) / 10:g}) or leave SGM out")
 
 
 def first_use(catalog, camera, config: Config | None = None) -> tuple[str, float] | None:
