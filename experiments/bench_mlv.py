@@ -19,7 +19,7 @@ import numpy as np
 import jstarid as js
 from jstarid import experiment as ex
 from jstarid.algorithms import mlv
-from jstarid.papers import narrow_twin as twin
+from jstarid.papers import narrow_field as twin
 
 COLUMNS = [("batch", "B", "{}"), ("noise", "noise", "{}"), ("paper", "paper alone", "{}"),
            ("scenes_per_s", "scenes/s", "{}"), ("compile_s", "compile s", "{}"),

@@ -1,7 +1,7 @@
 """A narrow, deep camera: every algorithm with its defaults on a simulated twin of a real one.
 
 The ``narrow_twin`` preset copies a real star tracker a user brought (1392×1040 px, 6.1° × 4.6°,
-15.8″/px, 40–130 detections per frame down to V ≈ 10); ``jstarid.papers.narrow_twin.NOISE`` copies
+15.8″/px, 40–130 detections per frame down to V ≈ 10); ``jstarid.papers.narrow_field.NOISE`` copies
 its frames (0.8 px centroid noise, 0.2 mag of brightness scatter, two false stars of V 6–10). The
 catalog is Hipparcos to V 10 (complete to V ≈ 8: fainter real stars are missing from it, as they
 would be from the database of any user of this catalog). Each algorithm runs through the sweep engine on
@@ -22,7 +22,7 @@ import argparse
 
 import jstarid as js
 from jstarid import experiment as ex
-from jstarid.papers import narrow_twin as twin
+from jstarid.papers import narrow_field as twin
 
 
 def parse_args(argv=None):

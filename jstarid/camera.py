@@ -237,7 +237,7 @@ _PRESETS = {
     "tetra3_test": _tetra3_test,
     # A simulated twin of a narrow, deep star tracker (issue: any camera): 1392×1040 px at 15.8″/px,
     # a 6.1° × 4.6° field, 40–130 detections per frame down to V ≈ 10. Its noise (0.8 px, ≤ 2 false
-    # stars) is jstarid.papers.narrow_twin.NOISE.
+    # stars) is jstarid.papers.narrow_field.NOISE.
     "narrow_twin": lambda: Camera.from_fov(1392, 1040, 6.1, mag_limit=10.0, name="narrow_twin"),
 }
 

@@ -449,7 +449,7 @@ def test_for_camera_keeps_the_paper_values_on_the_papers_cameras():
 def test_narrow_twin_identified_with_the_defaults_for_its_camera():
     """The narrow twin (15.8″/px, V ≤ 10, 0.8 px, 2 false stars): ≥ 95 % identified, none wrong,
     with Config.for_camera."""
-    from jstarid.papers import narrow_twin as twin
+    from jstarid.papers import narrow_field as twin
 
     cam = js.camera_preset(twin.CAMERA)
     cat = js.load_catalog(twin.MAG_LIMIT)
