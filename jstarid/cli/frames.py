@@ -22,23 +22,23 @@ def add_commands(sub) -> None:
                     "blank lines or a leading 'scene' column; JSON: [[x, y, mag], …], a list of "
                     "those, or {\"scenes\": [...]}. Prints JSON (or writes --out).")
     i.add_argument("files", nargs="+", type=Path, help="centroid files (.csv, .txt or .json)")
-    _frame_options(i, camera="sgm2022", mag_limit=None, capacity=64)
+    _frame_options(i, camera="sgm2022", capacity=64)
     i.add_argument("--out", type=Path, default=None, help="write the JSON here instead of stdout")
     i.set_defaults(func=run_identify)
     s = sub.add_parser("solve", help="identify the stars of raw images (TIFF/PNG) and print the "
                                      "attitude; exit 1 when an image is not solved")
     s.add_argument("images", nargs="+", help="grayscale image files, all from one camera")
-    _frame_options(s, camera="tetra3_test", mag_limit=7.0, capacity=24)
+    _frame_options(s, camera="tetra3_test", capacity=24)
     s.add_argument("--out", default="results/solve", help="results directory (default results/solve)")
     s.set_defaults(func=run_solve)
 
 
-def _frame_options(p, *, camera: str, mag_limit, capacity: int) -> None:
+def _frame_options(p, *, camera: str, capacity: int) -> None:
     add_camera_options(p, default=camera)
     p.add_argument("--algorithm", default="mlv", help="registry name (default mlv)")
-    p.add_argument("--mag-limit", type=float, default=mag_limit,
-                   help="catalog depth V (default: " + ("the camera's detection limit)"
-                                                        if mag_limit is None else f"{mag_limit})"))
+    p.add_argument("--mag-limit", type=float, default=None,
+                   help="catalog depth V (default: the camera's detection limit, 7.0 for "
+                        "tetra3_test)")
     p.add_argument("--epoch", type=float, default=None,
                    help="Julian year of the observation, for proper motion (e.g. 2019.57); "
                         "default: the catalog's epoch J1991.25")
