@@ -18,8 +18,8 @@ def add_commands(sub) -> None:
         description="Run every registered algorithm (the oracle aside) on the same simulated scenes "
                     "at 0–3 px of centroid noise; print the table and write results/demo/ "
                     "(config.json, results.json, table.md, rates.png, scenes.npz). The first run "
-                    "builds databases, trains RpNet's quick network and compiles (≈ 10 min on 2 "
-                    "cores); later runs take about a minute.")
+                    "builds databases, trains RpNet's quick network and compiles (5–13 min on 2 "
+                    "cores, by host); later runs take 1–2.5 minutes.")
     _scene_options(d, out="results/demo", scenes=200, levels=DEMO_LEVELS)
     d.set_defaults(func=run_demo)
     s = sub.add_parser(
