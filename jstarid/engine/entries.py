@@ -94,7 +94,7 @@ def check_camera(items: Sequence[Entry], camera) -> None:
     optional ``camera_problem(camera, config)``, e.g. SGM's neighbor circle wider than the frame).
 
     Raises:
-        ValueError: one line per entry that cannot work, each naming the entry.
+        ValueError: one line naming every entry that cannot work and why.
     """
     problems = []
     for entry in items:

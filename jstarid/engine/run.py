@@ -82,8 +82,9 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
         A :class:`~jstarid.engine.result.SweepResult` (rows, per-scene outcomes, settings).
 
     Raises:
-        ValueError: an unknown algorithm, camera, axis or criterion, scenes or chunk size < 1, or
-            out-of-range noise.
+        ValueError: an unknown algorithm, camera, axis or criterion, scenes or chunk size < 1,
+            out-of-range noise, or an algorithm that cannot work on the camera
+            (:func:`~jstarid.engine.entries.check_camera`), all before anything is simulated.
     """
     _check_positive(chunk_size=chunk_size)
     if criterion not in CRITERIA:
