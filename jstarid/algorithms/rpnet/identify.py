@@ -360,7 +360,7 @@ def _verify_pair(a, b, row_a, row_b, xy, body, valid, star_vectors, cells, th: T
     sigma = jnp.where(robust, sigma_i, sigma)
     # last pass: the tolerance follows the centroid noise
     tol2 = jnp.clip(th.match_sigmas * sigma, th.match_tol_min_px, th.match_tol_px)
-    rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / f_px)
+    rows1, named1 = name_stars(c1, body, valid, loc_vec, tol2 / f_px, config.name_isolation)
     # the pair's two detections were named by the network and the pair check, not by proximity:
     # they keep their name out to pair_sigmas · σ̂ (a 3.5 σ̂ radius drops 0.2 % of true stars; at
     # 8 σ̂ none are lost even where σ̂ from ≈ 10 stars comes out low), not further: a false star
