@@ -109,7 +109,8 @@ def test_distortion_matches_opencv_model_and_inverts():
     np.testing.assert_allclose(back, ideal, atol=2e-3)
     assert js.Camera(64, 48, 50.0, distortion=(0.1, 0.0)).distortion == (0.1,)
     plain = js.Camera(64, 48, 50.0)
-    assert plain.undistort(ideal) is not None and plain.pinhole() is plain
+    np.testing.assert_array_equal(np.asarray(plain.undistort(ideal)), np.asarray(ideal, np.float32))
+    assert plain.pinhole() is plain
 
 
 def test_distortion_leaves_database_keys_alone():
