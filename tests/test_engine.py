@@ -167,11 +167,17 @@ def test_sgm_criterion_is_scored_on_the_entry_s_own_circle():
 
 
 def test_an_algorithm_that_cannot_work_on_the_camera_stops_everything_first(monkeypatch):
-    """SGM's published 6° circle on a 6° × 4.6° field: one clear error before any scene or database."""
+    """SGM on a 6° × 4.6° field: its published 6° circle, or (the circle that fits) a V ≤ 10
+    database of 3.6 GiB: one clear error before any scene or database."""
     from jstarid.engine import run
 
+    sgm = js.algorithms.get("sgm")
     monkeypatch.setattr(run, "simulate_levels", lambda *a, **k: pytest.fail("simulated anyway"))
-    with pytest.raises(ValueError, match=r"sgm: SGM's neighbor circle r = 6° does not fit the 2\.28°"):
+    with pytest.raises(ValueError, match=r"sgm: SGM's database for camera narrow_twin would hold "
+                                         r"106,172 neighbor graphs of up to 95 stars \(r = 2°"):
         js.sweep("mlv,sgm", "narrow_twin", scenes=2)
-    small = js.engine.entries([js.Entry("sgm small", "sgm", js.algorithms.get("sgm").Config(radius_deg=2.0))])
-    js.engine.check_camera(small, js.camera_preset("narrow_twin"))  # fits: no error
+    published = js.engine.entries([js.Entry("sgm 6°", "sgm", sgm.Config())])
+    with pytest.raises(ValueError, match=r"sgm 6°: SGM's neighbor circle r = 6° does not fit the 2\.28°"):
+        js.sweep(published, "narrow_twin", scenes=2)
+    small = js.engine.entries([js.Entry("sgm small", "sgm", sgm.Config(radius_deg=2.0))])
+    js.engine.check_camera(small, js.camera_preset("narrow_twin"), js.load_catalog(6.0))  # fits

@@ -33,8 +33,9 @@ An algorithm is a module (usually a subpackage of :mod:`jstarid.algorithms`) exp
 
 Optional: ``first_use(catalog, camera, config) -> str | None`` says what ``build_database`` will
     build and about how long it takes (``None`` when it is cached), so a command can say so up
-    front; ``camera_problem(camera, config) -> str | None`` says in one line why the algorithm
-    cannot work on a camera (the engine and the CLI stop before building anything);
+    front; ``camera_problem(camera, config, catalog=None) -> str | None`` says in one line why the
+    algorithm cannot work on a camera and catalog (the engine and the CLI stop before building
+    anything);
     ``identify_grid(database, scenes, configs) -> list[Identification]`` runs a parameter
     grid in one batch (:func:`jstarid.engine.grid` uses it; without it, one call per config).
 

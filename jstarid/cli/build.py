@@ -35,8 +35,8 @@ def run_train(args) -> int:
     camera = camera_from_args(args).pinhole()
     config = with_overrides(js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network,
                                                      camera=camera), algorithm_settings(args))
-    js.engine.check_camera([js.Entry(args.algorithm, args.algorithm, config)], camera)
     catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit)
+    js.engine.check_camera([js.Entry(args.algorithm, args.algorithm, config)], camera, catalog)
     first_use = getattr(module, "first_use", None)
     planned = first_use(catalog, camera, config) if first_use else None
     if first_use is not None and planned is None:

@@ -126,10 +126,10 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
             raise ValueError("--grid needs exactly one algorithm in --algorithms")
         algorithms = js.grid(algorithms[0].algorithm, algorithms[0].config, **grid)
     js.engine.level_noise(js.engine.level_grid(axes), 1, fixed)  # bad levels fail here, not later
-    js.engine.check_camera(algorithms, camera)  # before anything is built
     if args.scenes < 1 or args.chunk_size < 1 or args.capacity < 1:
         raise ValueError("--scenes, --chunk-size and --capacity must be ≥ 1")
     catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit)
+    js.engine.check_camera(algorithms, camera, catalog)  # before anything is built
     cache = Path(jax.config.jax_compilation_cache_dir or js.catalog.cache_dir() / "xla")
     compiled_before = cache.exists() and any(cache.iterdir())
     steps = js.engine.plan(algorithms, catalog, camera, rpnet_network=args.rpnet_network,

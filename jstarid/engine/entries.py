@@ -89,9 +89,10 @@ def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str = "quick",
     return out
 
 
-def check_camera(items: Sequence[Entry], camera) -> None:
-    """Stop before anything is built when an entry's algorithm cannot work on ``camera`` (its
-    optional ``camera_problem(camera, config)``, e.g. SGM's neighbor circle wider than the frame).
+def check_camera(items: Sequence[Entry], camera, catalog=None) -> None:
+    """Stop before anything is built when an entry's algorithm cannot work on ``camera`` and
+    ``catalog`` (default: the camera's detection limit) — its optional
+    ``camera_problem(camera, config, catalog)``, e.g. SGM's neighbor circle wider than the frame.
 
     Raises:
         ValueError: one line naming every entry that cannot work and why.
@@ -99,7 +100,7 @@ def check_camera(items: Sequence[Entry], camera) -> None:
     problems = []
     for entry in items:
         problem = getattr(algorithms.get(entry.algorithm), "camera_problem", None)
-        text = problem(camera, entry.config) if problem else None
+        text = problem(camera, entry.config, catalog) if problem else None
         if text:
             problems.append(f"{entry.label}: {text}")
     if problems:

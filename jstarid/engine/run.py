@@ -91,7 +91,7 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
         raise ValueError(f"unknown criterion {criterion!r}; choose one of {CRITERIA}")
     camera = load_camera(camera)
     entries = make_entries(algorithms, rpnet_network=rpnet_network, camera=camera)
-    check_camera(entries, camera)
+    check_camera(entries, camera, catalog)
     drawn = simulate_levels(camera, axes=axes, fixed=fixed, scenes=scenes, seed=seed,
                             catalog=catalog, capacity=capacity, boresight=boresight,
                             progress=progress)
@@ -184,7 +184,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
         A :class:`~jstarid.engine.result.SweepResult`.
     """
     entries = make_entries(algorithms, rpnet_network=rpnet_network, camera=camera)
-    check_camera(entries, camera)
+    check_camera(entries, camera, catalog)
     _check_positive(chunk_size=chunk_size)
     n_total = scenes.batch_size
     level_of = np.zeros(n_total, np.int32) if level_of is None else np.asarray(level_of, np.int32)

@@ -66,6 +66,36 @@ def test_registry_and_database(setup):
                            progress=False)
 
 
+def test_cache_holds_no_adjacency_and_loading_rebuilds_it_exactly(setup, tmp_path, monkeypatch):
+    """The cache stores the graphs' members, not their adjacency (99 % of the bytes): loading
+    recomputes it, bit for bit what the build computed; graph_sizes counts the same members."""
+    cat, cam, cfg, db = setup
+    monkeypatch.setenv("JSTARID_CACHE", str(tmp_path))
+    built = sgm.build_database(cat, cam, cfg, progress=False)
+    loaded = sgm.build_database(cat, cam, cfg, progress=False)
+    assert not built.from_cache and loaded.from_cache
+    with np.load(next(tmp_path.glob("sgm-*.npz"))) as f:
+        assert "adj" not in f.files
+    for name in ("main", "members", "n", "adj", "w"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(built, name))
+        np.testing.assert_array_equal(getattr(db, name), getattr(built, name))
+    sizes = sgm.database.graph_sizes(cat, cfg.radius_deg)
+    np.testing.assert_array_equal(sizes[db.main], db.n)
+
+
+def test_for_camera_keeps_the_paper_values_and_fits_the_circle_to_the_field():
+    for name in ("sgm2022", "mlv2021", "rpnet2019", "zy3"):
+        assert sgm.Config.for_camera(js.camera_preset(name)) == sgm.Config()
+    cam = js.camera_preset("tetra3_test")  # 4.28° half field, 40″/px
+    pixel, _ = js.camera.tolerance_scales(cam)
+    cfg = sgm.Config.for_camera(cam, verify_k=3.0)
+    assert cfg.radius_deg == 3.8 and sgm.camera_problem(cam, cfg) is None
+    assert cfg.max_error_deg == pytest.approx(0.4 * pixel) and cfg.c == pytest.approx(1.74 / pixel)
+    assert cfg.dw_max_deg == pytest.approx(6.0 * pixel) and cfg.n_levels == sgm.Config().n_levels
+    assert cfg.verify_cap_deg == pytest.approx(0.3 * pixel) and cfg.verify_k == 3.0
+    assert "does not fit the 4.28° half field" in sgm.camera_problem(cam, sgm.Config())
+
+
 def test_noise_free_scenes_all_correct_including_twins(setup):
     cat, cam, cfg, db = setup
     twins = [r for rows in _twin_rows(db)[:3] for r in rows[:1]]

@@ -8,7 +8,25 @@ from typing import NamedTuple
 
 import jax
 
-__all__ = ["Config", "Tuning"]
+from jstarid.camera import tolerance_scales
+
+__all__ = ["Config", "Tuning", "half_field_deg"]
+
+# Angles that are really centroid errors (or sums of them: the MST weight window), so they scale
+# with the pixel's angle (Config.for_camera); c, in 1/deg, scales inversely.
+_PIXEL_TOLERANCES = ("dw0_deg", "dw_step_deg", "dw_max_deg", "max_error_deg", "leftover_tol_deg",
+                     "verify_floor_deg", "verify_cap_deg", "verify_ambiguity_deg",
+                     "focal_search_dw_max_deg")
+# The neighbor circle's share of the half field when the published r does not fit (room for the
+# centroid noise and the focal-length search's ±2 % at the edge).
+RADIUS_FILL = 0.9
+
+
+def half_field_deg(camera) -> float:
+    """The largest circle about the principal point that lies inside ``camera``'s frame (deg):
+    the principal point to the nearest edge."""
+    edge = min(camera.cx, camera.cy, camera.width - 1 - camera.cx, camera.height - 1 - camera.cy)
+    return math.degrees(math.atan(edge / camera.f_px))
 
 
 class Tuning(NamedTuple):
@@ -53,6 +71,8 @@ class Config:
         min_matched: fewest matched vertex pairs for a candidate to count; fewer → infinite error
             (eq. 5 divides by min(n_I, n_J): a 1-vertex graph would match with error 0).
         memory_budget_mb: bound on the affinity matrices held at once by one matching call (MiB).
+        max_database_mb: bound on the database's adjacency matrices (MiB): a camera and catalog
+            that need more are refused before anything is built (:func:`.database.camera_problem`).
         size_bucket: graph sizes are padded to a multiple of this, to bound recompilation (a pair costs
             ∝ (p·q)² in padded sizes; 4 runs faster but compiles more kernels).
         vertex_check_deg: extension, off (``None``): a matched vertex whose median edge residual
@@ -124,6 +144,7 @@ class Config:
     min_stars: int = 3
     min_matched: int = 3
     memory_budget_mb: int = 1024
+    max_database_mb: int = 1024
     size_bucket: int = 8
     vertex_check_deg: float | None = None
     leftover_tol_deg: float | None = 0.3
@@ -156,8 +177,10 @@ class Config:
             raise ValueError("neighbor_capacity must be ≥ 2")
         if self.power_tol < 0 or self.prune_max_skip < 0:
             raise ValueError("power_tol and prune_max_skip must be ≥ 0")
-        if min(self.chunk_size, self.power_iterations, self.size_bucket, self.memory_budget_mb) < 1:
-            raise ValueError("chunk_size, power_iterations, size_bucket, memory_budget_mb must be ≥ 1")
+        if min(self.chunk_size, self.power_iterations, self.size_bucket, self.memory_budget_mb,
+               self.max_database_mb) < 1:
+            raise ValueError("chunk_size, power_iterations, size_bucket, memory_budget_mb and "
+                             "max_database_mb must be ≥ 1")
         if self.min_stars < 1 or self.min_matched < 1:
             raise ValueError("min_stars and min_matched must be ≥ 1")
         object.__setattr__(self, "focal_search", tuple(float(f) for f in self.focal_search))
@@ -197,6 +220,35 @@ class Config:
         """
         return cls(**{"verify": False, "leftover_tol_deg": None, "focal_search": (), "fit_focal": False,
                       **overrides})
+
+    @classmethod
+    def for_camera(cls, camera, **overrides) -> Config:
+        """The defaults, with the circle and every tolerance that is really a centroid error following
+        ``camera``; ``Config()`` on the papers' cameras.
+
+        * r: the published 6° where it fits the half field (:func:`half_field_deg`), else
+          ``RADIUS_FILL`` × the half field, rounded down to 0.1° (``tetra3_test``: 3.8°). Why: a
+          circle that the frame cuts gives image graphs no database graph matches (§3.1).
+        * With ``pixel`` from :func:`jstarid.camera.tolerance_scales` (1 on the papers' cameras):
+          Δw₀, h_Δw, Δw_max, ε_δ and the verification's angles scale by ``pixel`` (a pixel moves
+          every edge, and so the MST weight and eq. 5's error, by one pixel's angle), c of eq. 2
+          by ``1 / pixel`` (it turns an edge difference into a similarity: one pixel keeps its
+          weight).
+
+        Args:
+            camera: the :class:`~jstarid.Camera`.
+            **overrides: fields to set after scaling.
+        """
+        base = cls()
+        pixel, _ = tolerance_scales(camera)
+        changed = {}
+        fit = math.floor(RADIUS_FILL * half_field_deg(camera) * 10) / 10
+        if base.radius_deg > half_field_deg(camera) and fit > 0:
+            changed["radius_deg"] = fit
+        if pixel != 1.0:
+            changed.update({name: getattr(base, name) * pixel for name in _PIXEL_TOLERANCES})
+            changed["c"] = base.c / pixel
+        return dataclasses.replace(base, **{**changed, **overrides})
 
     def tuning(self) -> Tuning:
         """This config's sweepable tolerances as a :class:`Tuning` of scalars."""

@@ -21,15 +21,16 @@ from tqdm.auto import tqdm
 
 from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.sgm.bound import row_table, sorted_edges
-from jstarid.algorithms.sgm.config import Config
-from jstarid.algorithms.sgm.graph import catalog_neighbors, mst_weight
+from jstarid.algorithms.sgm.config import Config, half_field_deg
+from jstarid.algorithms.sgm.graph import adjacency_deg, catalog_neighbors, mst_weight
 from jstarid.catalog import cache_dir, temporary_path
 from jstarid.geometry import KVector, build_kvector
 from jstarid.runtime import device_cache
 
 __all__ = ["Database", "build_database"]
 
-_FORMAT = 1  # bump when the stored arrays change meaning
+_FORMAT = 2  # bump when the stored arrays change meaning (2: adjacency recomputed on load)
+_STORED = ("main", "members", "n", "w")
 
 
 @functools.partial(jax.tree_util.register_dataclass,
@@ -52,7 +53,7 @@ class Database:
         camera: the camera the scenes come from (for ``unproject``).
         catalog: the catalog whose rows ``main``/``members`` refer to.
         build_seconds: time spent building (0 when loaded from the cache … then ``load_seconds``).
-        nbytes: bytes of the stored arrays.
+        nbytes: bytes of the arrays in memory (the adjacency included).
         from_cache: loaded from disk.
         key: :meth:`cache_key`, the name of its cache file.
     """
@@ -121,21 +122,15 @@ def _build_arrays(catalog, config: Config, progress: bool):
              for j in tqdm(range(n_stars), desc="SGM neighbor graphs", disable=not progress)]
     counts = np.array([len(x) for x in neigh], np.int32)
     largest = int(counts.max())
-    if config.neighbor_capacity is None:
-        cap = _round_up(max(largest, 2), config.size_bucket)
-    else:
-        cap = int(config.neighbor_capacity)
-        if largest > cap:
-            worst = int(np.argmax(counts))
-            raise ValueError(f"neighbor_capacity={cap} is too small: catalog row {worst} has "
-                             f"{largest} stars within r={config.radius_deg}°; use ≥ {largest} or None")
+    cap = _capacity(largest, config)
+    if largest > cap:  # an explicit neighbor_capacity too small
+        worst = int(np.argmax(counts))
+        raise ValueError(f"neighbor_capacity={cap} is too small: catalog row {worst} has "
+                         f"{largest} stars within r={config.radius_deg}°; use ≥ {largest} or None")
     members = np.full((n_stars, cap), -1, np.int32)
-    adj = np.zeros((n_stars, cap, cap), np.float32)
     for j, rows in enumerate(neigh):
         members[j, :rows.size] = rows
-        v = vec[rows]
-        cross = np.linalg.norm(np.cross(v[:, None, :], v[None, :, :]), axis=-1)
-        adj[j, :rows.size, :rows.size] = np.degrees(np.arctan2(cross, np.matmul(v, v.T)))
+    adj = _adjacency(catalog, members, counts)
     mask = np.arange(cap)[None, :] < counts[:, None]
     # MST weights with the same jnp Prim routine the scenes use (identical arithmetic for w_I, w_J)
     mst = jax.jit(jax.vmap(mst_weight))
@@ -146,6 +141,36 @@ def _build_arrays(catalog, config: Config, progress: bool):
     order = np.argsort(w, kind="stable")
     return {"main": order.astype(np.int32), "members": members[order], "n": counts[order],
             "adj": adj[order], "w": w[order]}
+
+
+_BLOCK = 512  # graphs per adjacency call (one compiled shape per capacity)
+
+
+@jax.jit
+def _block_adjacency(vecs, mask):
+    return jax.vmap(adjacency_deg)(jnp.where(mask[..., None], vecs, 0.0), mask)
+
+
+def _adjacency(catalog, members: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(D, K, K) float32 adjacency A_J (deg, 0 on padding) of every database graph.
+
+    Computed by the image graphs' own :func:`~.graph.adjacency_deg` in float32 (the same arithmetic
+    on both sides of eq. 2), in blocks of ``_BLOCK`` graphs. Not stored in the cache but recomputed
+    on load: it is 99 % of the database (327 of 332 MB for ``tetra3_test``, V ≤ 7, r = 3.8°) and takes
+    about a second to rebuild from ``members``.
+    """
+    vec = jnp.asarray(np.asarray(catalog.unit_vectors), jnp.float32)
+    cap = members.shape[1]
+    mask = np.arange(cap)[None, :] < n[:, None]
+    out = np.empty((members.shape[0], cap, cap), np.float32)
+    for lo in range(0, members.shape[0], _BLOCK):
+        rows = members[lo:lo + _BLOCK]
+        pad = _BLOCK - rows.shape[0]
+        take = np.pad(np.maximum(rows, 0), ((0, pad), (0, 0)))
+        keep = np.pad(mask[lo:lo + _BLOCK], ((0, pad), (0, 0)))
+        out[lo:lo + rows.shape[0]] = np.asarray(_block_adjacency(vec[take], jnp.asarray(keep)))[
+            :rows.shape[0]]
+    return out
 
 
 def build_database(catalog, camera, config: Config | None = None, *, use_cache: bool = True,
@@ -169,7 +194,7 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
             camera whose frame the neighbor circle does not fit (:func:`camera_problem`).
     """
     config = Config() if config is None else config
-    problem = camera_problem(camera, config)
+    problem = camera_problem(camera, config, catalog)
     if problem:
         raise ValueError(problem)
     key = _cache_key(catalog, config)
@@ -178,13 +203,14 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
     arrays, from_cache = None, False
     if use_cache and path.exists():
         with np.load(path) as f:
-            arrays = {k: f[k] for k in ("main", "members", "n", "adj", "w")}
+            arrays = {k: f[k] for k in _STORED}
+        arrays["adj"] = _adjacency(catalog, arrays["members"], arrays["n"])
         from_cache = True
     if arrays is None:
         arrays = _build_arrays(catalog, config, progress)
         if use_cache:
             tmp = temporary_path(path)
-            np.savez(tmp, **arrays)
+            np.savez(tmp, **{k: arrays[k] for k in _STORED})
             tmp.replace(path)
     kv, order = build_kvector(arrays["w"])
     if not np.array_equal(order, np.arange(order.size)):  # stored sorted; stable sort keeps it
@@ -198,22 +224,60 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
         from_cache=from_cache, key=key)
 
 
-def camera_problem(camera, config: Config | None = None) -> str | None:
-    """Why SGM cannot work on ``camera`` with ``config`` (one line), or ``None``.
+def camera_problem(camera, config: Config | None = None, catalog=None) -> str | None:
+    """Why SGM cannot work on ``camera`` with ``config`` (one line), or ``None``. Said before
+    anything is built.
 
-    The neighbor graph of the main star needs the whole circle of radius r around it inside the
-    frame (§3.1): a circle wider than the half field (the principal point to the nearest edge)
-    cuts every image graph, and no database graph can match it. Said before anything is built.
+    * The neighbor graph of the main star needs the whole circle of radius r around it inside the
+      frame (§3.1): a circle wider than the half field (the principal point to the nearest edge)
+      cuts every image graph, and no database graph can match it.
+    * The database holds a (K, K) adjacency per catalog star, K the largest neighbor graph: past
+      ``config.max_database_mb`` it does not fit a laptop (the narrow twin, V ≤ 10 and r = 2°:
+      106,172 graphs of up to 95 stars, 3.6 GiB), and eq. 2's (pq)² affinity per candidate grows
+      with it.
+
+    Args:
+        camera: the :class:`~jstarid.Camera`.
+        config: SGM's :class:`Config` (default ``Config()``).
+        catalog: the catalog the database would be built from (default: ``camera.mag_limit``'s).
     """
     config = Config() if config is None else config
-    half_fov = math.degrees(math.atan(min(camera.cx, camera.cy, camera.width - 1 - camera.cx,
-                                          camera.height - 1 - camera.cy) / camera.f_px))
-    if config.radius_deg <= half_fov:
+    half_fov = half_field_deg(camera)
+    if config.radius_deg > half_fov:
+        return (f"SGM's neighbor circle r = {config.radius_deg:g}° does not fit the {half_fov:.2f}° "
+                f"half field of camera {camera.name}: every image graph would be cut by the frame; "
+                f"give radius_deg ≤ {math.floor(half_fov * 100) / 100:g} (e.g. --set "
+                f"sgm.radius_deg={math.floor(half_fov * 0.9 * 10) / 10:g}) or leave SGM out")
+    if catalog is None:
+        from jstarid.catalog import load_catalog
+
+        catalog = load_catalog(camera.mag_limit)
+    sizes = graph_sizes(catalog, config.radius_deg)
+    cap = _capacity(int(sizes.max()), config)
+    mib = sizes.size * cap * cap * 4 / 2**20
+    if mib <= config.max_database_mb:
         return None
-    return (f"SGM's neighbor circle r = {config.radius_deg:g}° does not fit the {half_fov:.2f}° half "
-            f"field of camera {camera.name}: every image graph would be cut by the frame; give "
-            f"radius_deg ≤ {math.floor(half_fov * 100) / 100:g} (e.g. --set sgm.radius_deg="
-            f"{math.floor(half_fov * 0.9 * 10) / 10:g}) or leave SGM out")
+    return (f"SGM's database for camera {camera.name} would hold {sizes.size:,} neighbor graphs of "
+            f"up to {int(sizes.max())} stars (r = {config.radius_deg:g}°, catalog V ≤ "
+            f"{catalog.mag_limit:g}): {mib / 1024:.1f} GiB of adjacency, over max_database_mb = "
+            f"{config.max_database_mb}; use a brighter catalog (--mag-limit), a smaller radius_deg or a "
+            f"larger max_database_mb (--set sgm.max_database_mb=…), or leave SGM out")
+
+
+def graph_sizes(catalog, radius_deg: float) -> np.ndarray:
+    """(D,) int vertex count of each catalog star's neighbor graph (itself included) at radius r."""
+    from scipy.spatial import cKDTree
+
+    vec = np.asarray(catalog.unit_vectors, np.float64)
+    chord = 2.0 * math.sin(math.radians(radius_deg) / 2.0)
+    return np.asarray(cKDTree(vec).query_ball_point(vec, chord, return_length=True), np.int64)
+
+
+def _capacity(largest: int, config: Config) -> int:
+    """K: ``neighbor_capacity``, or the largest graph rounded up to ``size_bucket``."""
+    if config.neighbor_capacity is not None:
+        return int(config.neighbor_capacity)
+    return _round_up(max(largest, 2), config.size_bucket)
 
 
 def first_use(catalog, camera, config: Config | None = None) -> tuple[str, float] | None:
