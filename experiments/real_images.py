@@ -17,15 +17,15 @@ and :func:`jstarid.estimate_attitude`. The results are checked against an indepe
   it is unlabelled: a failure is better than a guess);
 - **boresight error**: the angle between our boresight and the reference's RA/Dec (arcsec).
 
-``--set ALGORITHM.FIELD=VALUE`` changes one algorithm's config (SGM starts at ``radius_deg`` 4°:
-the paper's 6° neighbor circle is wider than this 8.6°-high frame allows; RpNet uses the ``quick``
-network, trained for this camera on first use, ≈ 4 min on 2 cores, then cached).
+``--set ALGORITHM.FIELD=VALUE`` changes one algorithm's config. Each starts from its defaults for
+the camera (SGM's neighbor circle 3.8°: the paper's 6° is wider than this 8.6°-high frame allows;
+RpNet uses the ``quick`` network, trained for this camera on first use, then cached).
 
 Usage::
 
     python experiments/real_images.py                       # MLV, RpNet (quick) and SGM
     python experiments/real_images.py --algorithms mlv --mag-limit 6.5
-    python experiments/real_images.py --algorithms sgm --set sgm.radius_deg=5
+    python experiments/real_images.py --algorithms sgm --set sgm.radius_deg=4
 
 Writes results/real_images/{config.json, results.json, table.md} and one figure per image
 (``<image>.png``: the frame, the kept detections, the names and whether each is right).
@@ -48,12 +48,11 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 IMAGE_EPOCH = 2019.57  # 2019-07-29, the date in the file names (Julian years)
 TRUTH_MAG_LIMIT = 9.0  # truth labels from Hipparcos to V 9 (the images reach V ≈ 7.5–8)
 REFERENCE_ORIGIN_PX = -0.5  # cedar-solve's pixel origin (a corner) → ours (a pixel centre)
-SGM_RADIUS_DEG = 4.0  # the paper's 6° neighbor circle is wider than this 8.6°-high frame allows
 
 
 def parse_args(argv=None):
     p = ex.parser(__doc__.splitlines()[0], out="results/real_images")
-    p.epilog = "--set takes ALGORITHM.FIELD=VALUE here, e.g. sgm.radius_deg=5 (SGM starts at 4)."
+    p.epilog = "--set takes ALGORITHM.FIELD=VALUE here, e.g. sgm.radius_deg=4 (SGM starts at 3.8)."
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder of images + reference.json")
     p.add_argument("--algorithms", nargs="+", default=["mlv", "rpnet", "sgm"])
     p.add_argument("--mag-limit", type=float, default=7.0, help="catalog depth (V)")
@@ -71,11 +70,8 @@ def parse_args(argv=None):
 def algorithm_config(name: str, overrides, camera):
     """``name``'s config for these images (its defaults for ``camera``), with the ``--set`` items
     that start with ``name.``."""
-    algo = js.algorithms.get(name)
-    if name == "sgm":
-        base = algo.Config(radius_deg=SGM_RADIUS_DEG)
-    else:  # RpNet: the quick network, trained for this camera on first use, then cached
-        base = js.engine.default_config(name, camera=camera)
+    # RpNet: the quick network, trained for this camera on first use, then cached
+    base = js.engine.default_config(name, camera=camera)
     return ex.with_overrides(base, [i.split(".", 1)[1] for i in overrides if i.startswith(name + ".")])
 
 
