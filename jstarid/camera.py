@@ -122,6 +122,14 @@ class Camera:
         return math.degrees(2.0 * math.atan(math.hypot(self.width, self.height) / 2.0 / self.f_px))
 
     @property
+    def inscribed_half_field_deg(self) -> float:
+        """Radius (deg) of the largest circle about the principal point inside the frame: the
+        principal point to the nearest edge (a pattern or neighbor circle of this radius about a
+        central star is never cut by the frame)."""
+        edge = min(self.cx, self.cy, self.width - 1 - self.cx, self.height - 1 - self.cy)
+        return math.degrees(math.atan(edge / self.f_px))
+
+    @property
     def half_diagonal_rad(self) -> float:
         """Largest angle (rad) between the boresight and any pixel of the frame (to the pixel-grid corner
         farthest from the principal point); bounds the catalog stars that may fall in the frame.
@@ -270,6 +278,22 @@ PAPER_CAMERAS = ("sgm2022", "mlv2021", "rpnet2019", "zy3")
 def _clip_ratio(value: float, low: float, high: float) -> float:
     """1 inside ``[low, high]``, else ``value / low`` below it or ``value / high`` above it."""
     return value / low if value < low else value / high if value > high else 1.0
+
+
+#: Share of the inscribed half field a circle about a central star takes when the published radius
+#: does not fit (room for the star's offset from the centre and the focal-length search's ±2 %).
+CIRCLE_FILL = 0.9
+
+
+def radius_that_fits(camera: Camera, radius_deg: float) -> float:
+    """``radius_deg`` where it fits ``camera``'s inscribed half field, else :data:`CIRCLE_FILL` × that
+    half field rounded down to 0.1° (deg): SGM's neighbor circle, RpNet's pattern radius. A circle
+    the frame cuts gives patterns no catalog star's pattern matches (``tetra3_test``: 6° → 3.8°).
+    """
+    half = camera.inscribed_half_field_deg
+    if radius_deg <= half:
+        return float(radius_deg)
+    return max(math.floor(CIRCLE_FILL * half * 10) / 10, 0.1)
 
 
 def tolerance_scales(camera: Camera) -> tuple[float, float]:

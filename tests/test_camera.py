@@ -83,6 +83,17 @@ def test_contains_with_inset():
     np.testing.assert_array_equal(cam.contains(xy, 5.0), [False, False, True, True, False, False])
 
 
+def test_inscribed_half_field_and_the_radius_that_fits():
+    from jstarid.camera import radius_that_fits
+
+    cam = js.camera_preset("tetra3_test")  # 1024 × 768: the nearest edge is 383.5 px above the centre
+    assert cam.inscribed_half_field_deg == pytest.approx(math.degrees(math.atan(383.5 / cam.f_px)))
+    assert radius_that_fits(cam, 6.0) == 3.8 and radius_that_fits(cam, 4.0) == 4.0
+    off = js.Camera(1024, 1024, 2000.0, cx=100.0)  # principal point 100 px from the left edge
+    assert off.inscribed_half_field_deg == pytest.approx(math.degrees(math.atan(100.0 / 2000.0)))
+    assert radius_that_fits(js.camera_preset("rpnet2019"), 6.0) == 6.0
+
+
 def test_tolerance_scales_keep_the_papers_cameras_and_follow_others():
     from jstarid.camera import PAPER_CAMERAS, tolerance_scales
 

@@ -249,10 +249,16 @@ def test_train_builds_ahead_and_says_so(tmp_path, capsys, monkeypatch):
     calls = []
 
     def build_database(catalog, camera, config=None, *, progress=True):
-        calls.append(camera)
+        calls.append((camera, catalog, config))
 
     monkeypatch.setattr(rpnet, "build_database", build_database)
-    assert cli.main(["train", "rpnet", "--camera", "sgm2022", "--size", "640x480", "--fov", "9"]) == 0
+    assert cli.main(["train", "rpnet", "--camera", "sgm2022", "--size", "640x480", "--fov", "9",
+                     "--epoch", "2019.57"]) == 0
     assert "min on 2 CPU cores" in capsys.readouterr().out.splitlines()[0]
-    assert (calls[0].width, calls[0].height) == (640, 480) and abs(calls[0].fov_x_deg - 9) < 1e-9
+    camera, catalog, config = calls[0]
+    assert (camera.width, camera.height) == (640, 480) and abs(camera.fov_x_deg - 9) < 1e-9
+    # the catalog `solve --epoch 2019.57` will load; the pattern radius fits the 3.4° half field
+    assert catalog.fingerprint == js.load_catalog(6.0, epoch=2019.57).fingerprint
+    assert config == rpnet.Config.for_camera(camera, training=rpnet.Training.quick())
+    assert config.rho_deg == 3.0
     assert cli.main(["train", "nope"]) == 2

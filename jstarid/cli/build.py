@@ -20,6 +20,9 @@ def add_commands(sub) -> None:
     add_camera_options(t, default="sgm2022")
     t.add_argument("--mag-limit", type=float, default=None,
                    help="catalog depth V (default: the camera's detection limit)")
+    t.add_argument("--epoch", type=float, default=None,
+                   help="Julian year the images will be taken at, as later given to `jstarid solve "
+                        "--epoch` (a database is built for one catalog epoch; default J1991.25)")
     t.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet: the quick network (minutes) or the paper's Table 3 schedule (hours)")
     t.add_argument("--set", nargs="*", default=[], metavar="[ALGORITHM.]FIELD=VALUE",
@@ -35,7 +38,8 @@ def run_train(args) -> int:
     camera = camera_from_args(args).pinhole()
     config = with_overrides(js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network,
                                                      camera=camera), algorithm_settings(args))
-    catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit)
+    catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit,
+                              epoch=args.epoch)
     js.engine.check_camera([js.Entry(args.algorithm, args.algorithm, config)], camera, catalog)
     first_use = getattr(module, "first_use", None)
     planned = first_use(catalog, camera, config) if first_use else None

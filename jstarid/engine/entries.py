@@ -56,7 +56,10 @@ def default_config(name: str, *, rpnet_network: str = "quick", camera=None):
     if name == "rpnet":
         if rpnet_network not in ("quick", "table3"):
             raise ValueError(f"rpnet_network must be 'quick' or 'table3', got {rpnet_network!r}")
-        return module.Config.quick() if rpnet_network == "quick" else module.Config()
+        training = module.Training.quick() if rpnet_network == "quick" else module.Training()
+        if camera is None:
+            return module.Config(training=training)
+        return module.Config.for_camera(camera, training=training)
     for_camera = getattr(module.Config, "for_camera", None)
     return module.Config() if camera is None or for_camera is None else for_camera(camera)
 

@@ -89,6 +89,18 @@ def test_config_sizes():
     np.testing.assert_allclose(th.position_weights, [0.5, 0.3, 0.2])
 
 
+def test_for_camera_keeps_the_paper_values_and_fits_the_pattern_to_the_field():
+    for name in ("sgm2022", "mlv2021", "rpnet2019", "zy3"):
+        assert rpnet.Config.for_camera(js.camera_preset(name)) == rpnet.Config()
+    cam = js.camera_preset("tetra3_test")  # 4.28° inscribed half field, 40.3″/px
+    pixel, _ = js.camera.tolerance_scales(cam)
+    cfg = rpnet.Config.for_camera(cam, training=rpnet.Training.quick())
+    assert cfg.rho_deg == 3.8 and cfg.e_deg == pytest.approx(0.03 * pixel) and cfg.n_bins == 157
+    assert cfg.training == rpnet.Training.quick() and cfg.match_tol_px == rpnet.Config().match_tol_px
+    assert js.engine.default_config("rpnet", camera=cam) == cfg
+    assert js.engine.default_config("rpnet") == rpnet.Config.quick()
+
+
 def test_initial_input_hand_made():
     """Exact bins for a hand-made set: neighbours at known angles from the guide along +x / +y."""
     def at(deg, phi_deg):

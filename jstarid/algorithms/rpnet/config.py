@@ -17,6 +17,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jstarid.camera import radius_that_fits, tolerance_scales
+
 __all__ = ["Config", "Training", "Tuning"]
 
 
@@ -311,6 +313,27 @@ class Config:
     def quick(cls, **overrides) -> Config:
         """Paper network and input with the :meth:`Training.quick` schedule."""
         return cls(training=Training.quick(), **overrides)
+
+    @classmethod
+    def for_camera(cls, camera, **overrides) -> Config:
+        """The defaults with the pattern following ``camera``; ``Config()`` on the papers' cameras.
+
+        * ρ: :func:`jstarid.camera.radius_that_fits` — the published 6° where it fits the inscribed
+          half field, else 0.9 × that half field (``tetra3_test``: 3.8°). Why: a pattern the frame
+          cuts depends on the roll and on where S1–S3 sit, which the network never saw in training
+          (guide at the principal point, §II-C).
+        * e (eq. 3's bin) × ``pixel`` of :func:`jstarid.camera.tolerance_scales`: a bin stays
+          ≈ 2.2 px, as on the paper's camera (0.03° at 50″/px).
+
+        The identification tolerances are in pixels already. ``overrides`` are set after (e.g.
+        ``training=Training.quick()``).
+        """
+        base = cls()
+        pixel, _ = tolerance_scales(camera)
+        changed = {"rho_deg": radius_that_fits(camera, base.rho_deg)}
+        if pixel != 1.0:
+            changed["e_deg"] = base.e_deg * pixel
+        return dataclasses.replace(base, **{**changed, **overrides})
 
     @classmethod
     def paper(cls, **overrides) -> Config:

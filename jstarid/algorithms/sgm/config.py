@@ -8,25 +8,15 @@ from typing import NamedTuple
 
 import jax
 
-from jstarid.camera import tolerance_scales
+from jstarid.camera import radius_that_fits, tolerance_scales
 
-__all__ = ["Config", "Tuning", "half_field_deg"]
+__all__ = ["Config", "Tuning"]
 
 # Angles that are really centroid errors (or sums of them: the MST weight window), so they scale
 # with the pixel's angle (Config.for_camera); c, in 1/deg, scales inversely.
 _PIXEL_TOLERANCES = ("dw0_deg", "dw_step_deg", "dw_max_deg", "max_error_deg", "leftover_tol_deg",
                      "verify_floor_deg", "verify_cap_deg", "verify_ambiguity_deg",
                      "focal_search_dw_max_deg")
-# The neighbor circle's share of the half field when the published r does not fit (room for the
-# centroid noise and the focal-length search's ±2 % at the edge).
-RADIUS_FILL = 0.9
-
-
-def half_field_deg(camera) -> float:
-    """The largest circle about the principal point that lies inside ``camera``'s frame (deg):
-    the principal point to the nearest edge."""
-    edge = min(camera.cx, camera.cy, camera.width - 1 - camera.cx, camera.height - 1 - camera.cy)
-    return math.degrees(math.atan(edge / camera.f_px))
 
 
 class Tuning(NamedTuple):
@@ -226,9 +216,9 @@ class Config:
         """The defaults, with the circle and every tolerance that is really a centroid error following
         ``camera``; ``Config()`` on the papers' cameras.
 
-        * r: the published 6° where it fits the half field (:func:`half_field_deg`), else
-          ``RADIUS_FILL`` × the half field, rounded down to 0.1° (``tetra3_test``: 3.8°). Why: a
-          circle that the frame cuts gives image graphs no database graph matches (§3.1).
+        * r: :func:`jstarid.camera.radius_that_fits` — the published 6° where it fits the half field,
+          else 0.9 × the half field (``tetra3_test``: 3.8°). Why: a circle that the frame cuts gives
+          image graphs no database graph matches (§3.1).
         * With ``pixel`` from :func:`jstarid.camera.tolerance_scales` (1 on the papers' cameras):
           Δw₀, h_Δw, Δw_max, ε_δ and the verification's angles scale by ``pixel`` (a pixel moves
           every edge, and so the MST weight and eq. 5's error, by one pixel's angle), c of eq. 2
@@ -241,10 +231,7 @@ class Config:
         """
         base = cls()
         pixel, _ = tolerance_scales(camera)
-        changed = {}
-        fit = math.floor(RADIUS_FILL * half_field_deg(camera) * 10) / 10
-        if base.radius_deg > half_field_deg(camera) and fit > 0:
-            changed["radius_deg"] = fit
+        changed = {"radius_deg": radius_that_fits(camera, base.radius_deg)}
         if pixel != 1.0:
             changed.update({name: getattr(base, name) * pixel for name in _PIXEL_TOLERANCES})
             changed["c"] = base.c / pixel

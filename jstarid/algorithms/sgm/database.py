@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.sgm.bound import row_table, sorted_edges
-from jstarid.algorithms.sgm.config import Config, half_field_deg
+from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import adjacency_deg, catalog_neighbors, mst_weight
 from jstarid.catalog import cache_dir, temporary_path
 from jstarid.geometry import KVector, build_kvector
@@ -242,7 +242,7 @@ def camera_problem(camera, config: Config | None = None, catalog=None) -> str | 
         catalog: the catalog the database would be built from (default: ``camera.mag_limit``'s).
     """
     config = Config() if config is None else config
-    half_fov = half_field_deg(camera)
+    half_fov = camera.inscribed_half_field_deg
     if config.radius_deg > half_fov:
         return (f"SGM's neighbor circle r = {config.radius_deg:g}° does not fit the {half_fov:.2f}° "
                 f"half field of camera {camera.name}: every image graph would be cut by the frame; "
