@@ -23,6 +23,7 @@ from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.sgm.bound import row_table, sorted_edges
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import adjacency_deg, catalog_neighbors, mst_weight
+from jstarid.camera import radius_that_fits
 from jstarid.catalog import cache_dir, temporary_path
 from jstarid.geometry import KVector, build_kvector
 from jstarid.runtime import device_cache
@@ -247,7 +248,7 @@ def camera_problem(camera, config: Config | None = None, catalog=None) -> str | 
         return (f"SGM's neighbor circle r = {config.radius_deg:g}° does not fit the {half_fov:.2f}° "
                 f"half field of camera {camera.name}: every image graph would be cut by the frame; "
                 f"give radius_deg ≤ {math.floor(half_fov * 100) / 100:g} (e.g. --set "
-                f"sgm.radius_deg={math.floor(half_fov * 0.9 * 10) / 10:g}) or leave SGM out")
+                f"sgm.radius_deg={radius_that_fits(camera, config.radius_deg):g}) or leave SGM out")
     if catalog is None:
         from jstarid.catalog import load_catalog
 
