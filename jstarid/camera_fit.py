@@ -34,6 +34,13 @@ back; a scene keeps its claim only with ``min_named`` names left, a fitted focal
 ``max_scale_error`` of the nominal one (``--fov-max-error`` in tetra3's terms), and a field that
 looks like the fitted sky (:func:`field_seen`, for fits of at most ten names: most of the brightest
 stars it puts in the frame were detected). A failure is always better than a wrong name.
+
+**Brightness** (:func:`check_claims` with the catalog magnitudes). Before the fit, a name whose
+detection is far brighter than its star — beyond the scene's zero point by :data:`BRIGHTER_MAG`,
+or :data:`BRIGHTER_SIGMAS` robust σ of the names' offsets where magnitudes scatter more — is taken
+back: a bright false star next to the spot of an undetected faint star fits the geometry to a
+pixel, never the brightness (found on RpNet at 1 px on ``tetra3_test``). Fainter is allowed:
+saturated stars read fainter than their V.
 """
 
 from __future__ import annotations
@@ -50,7 +57,7 @@ import numpy as np
 from jstarid.attitude import solve_wahba
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
-from jstarid.robust import masked_median
+from jstarid.robust import brighter_than_named, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
@@ -89,6 +96,10 @@ DISTORTION_ITERATIONS = 2  # Gauss–Newton steps of each fit with k1 (from a 4-
 # residuals are nearly linear in k1 and the scale)
 UNDISTORT_ITERATIONS = 4  # fixed-point steps inverting the radial term (|k1 r²| ≪ 1 on a tracker)
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median / σ of a 2-D Gaussian error's length
+BRIGHTER_MAG = 2.0  # a name observed this much brighter than its star (beyond the zero point) is
+# taken back (robust.brighter_than_named): above blends (0.75 mag for an equal pair) and the colour
+# term of an unfiltered sensor on a red star (≈ 1 mag)
+BRIGHTER_SIGMAS = 5.0  # … and beyond this many σ̂ of the scene's named offsets (noisy magnitudes)
 
 
 class CameraFit(NamedTuple):
@@ -619,7 +630,7 @@ def project_scaled(camera, v_cam, scale, k1=0.0):
 
 
 def check_identification(star_vectors, camera, scenes, result, *, max_scale_error: float = 0.1,
-                         min_named: int = 3, k_sigma: float = K_SIGMA):
+                         min_named: int = 3, k_sigma: float = K_SIGMA, star_mags=None):
     """An algorithm's last step: :func:`verify_names` on the scenes it claims with at least
     ``min_named`` names (fewer cannot be checked: those are returned as they are).
 
@@ -628,6 +639,8 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
         camera: the nominal camera. scenes: (B, N) scenes. result: the algorithm's
             :class:`~jstarid.scene.Identification`.
         max_scale_error, min_named, k_sigma: as in :func:`verify_names`.
+        star_mags: (M,) catalog V of those rows (mag); given, names far brighter than their star
+            are taken back first (:func:`check_claims`).
 
     Returns:
         The :class:`~jstarid.scene.Identification` with far-off names taken back, scenes whose fit
@@ -637,7 +650,8 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
     from jstarid.scene import Identification
 
     ids, ok, fit, enough = check_claims(star_vectors, camera, scenes, result, k_sigma=k_sigma,
-                                        max_scale_error=max_scale_error, min_named=min_named)
+                                        max_scale_error=max_scale_error, min_named=min_named,
+                                        star_mags=star_mags)
     attitude = fit.attitude
     if result.attitude is not None:
         attitude = jnp.where(enough[:, None, None], attitude, result.attitude)
@@ -646,19 +660,37 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
                           distortion_k1=jnp.where(enough & ok, fit.k1, jnp.nan))
 
 
-def check_claims(star_vectors, camera, scenes, result, *, min_named: int = 3, **kwargs):
+def check_claims(star_vectors, camera, scenes, result, *, min_named: int = 3, star_mags=None, **kwargs):
     """:func:`verify_names` on the claimed scenes with at least ``min_named`` names, the others as
     given.
+
+    With ``star_mags`` ((M,) catalog V, mag), a claimed scene's names observed far brighter than
+    their star (:func:`~jstarid.robust.brighter_than_named`: by :data:`BRIGHTER_MAG`, or
+    :data:`BRIGHTER_SIGMAS` σ̂ of the scene's magnitude offsets where they scatter more, from 4
+    names on) are taken back before the fit: a bright false star or planet next to the position of
+    an undetected faint star fits the geometry, not the brightness.
 
     Returns:
         ``(ids, ok, fit, checked)``: (B, N), (B,), the :class:`CameraFit` of :func:`verify_names`,
         and (B,) bool, the scenes that were checked.
     """
     given = jnp.where(scenes.valid, result.ids, -1)
+    if star_mags is not None:
+        given = _drop_brighter(jnp.asarray(scenes.mag, jnp.float32), given,
+                               jnp.asarray(star_mags, jnp.float32), result.ok)
     checked = result.ok & (jnp.sum(given >= 0, axis=1) >= min_named)
     ids, ok, fit = verify_names(star_vectors, camera, scenes.xy, scenes.valid, given, checked,
                                 min_named=min_named, **kwargs)
     return jnp.where(checked[:, None], ids, result.ids), jnp.where(checked, ok, result.ok), fit, checked
+
+
+@jax.jit
+def _drop_brighter(mag, ids, star_mags, ok):
+    """(B, N) ids without the names of claimed scenes far brighter than their star (check_claims)."""
+    named = (ids >= 0) & ok[:, None]
+    far = jax.vmap(functools.partial(brighter_than_named, tol_mag=BRIGHTER_MAG, sigmas=BRIGHTER_SIGMAS))(
+        mag, star_mags[jnp.maximum(ids, 0)], named)
+    return jnp.where(far, -1, ids)
 
 
 def rescale_scenes(scenes, camera, scale: float):

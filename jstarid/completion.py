@@ -35,7 +35,7 @@ from jstarid.attitude import solve_wahba
 from jstarid.camera_fit import check_claims, unproject_scaled, verify_names
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
-from jstarid.robust import masked_median
+from jstarid.robust import magnitude_offsets
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
 
@@ -136,7 +136,7 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     result = jax.tree.map(np.asarray, result)
     # a scene with fewer names than min_named can be neither checked nor extended: left alone
     ids, ok, fit, enough = check_claims(vectors, camera, scenes, result, max_scale_error=max_scale_error,
-                                        min_named=int(min_named), fit_scale=fit_scale)
+                                        min_named=int(min_named), fit_scale=fit_scale, star_mags=catalog.mag)
     # a fitted focal length can put stars slightly beyond the nominal field into the frame
     margin = math.atan(isolation * tol_px / camera.f_px) + max_scale_error * camera.half_diagonal_rad
     index = build_sky_index(catalog.unit_vectors, camera.half_diagonal_rad, margin_rad=margin,
@@ -173,16 +173,14 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
 
 def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
     """(N,) bool: ``candidate`` names whose magnitude difference (detection − catalog) lies within
-    ``max(mag_tol, 3 σ̂)`` of the median difference of the ``named`` detections (σ̂ = 1.4826 × MAD).
+    ``max(mag_tol, 3 σ̂)`` of the median difference of the ``named`` detections
+    (:func:`jstarid.robust.magnitude_offsets`).
 
     Instrumental magnitudes (any zero point) are fine: only differences from the median count.
     Fewer than 4 names: every candidate agrees (no zero point to trust).
     """
-    diff = det_mag - star_mag
-    zero = masked_median(diff, named)
-    spread = 1.4826 * masked_median(jnp.abs(diff - zero), named)
-    tol = jnp.maximum(mag_tol, 3.0 * spread)
-    return candidate & ((jnp.sum(named) < 4) | (jnp.abs(diff - zero) <= tol))
+    offset, spread, count = magnitude_offsets(det_mag, star_mag, named)
+    return candidate & ((count < 4) | (jnp.abs(offset) <= jnp.maximum(mag_tol, 3.0 * spread)))
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "grid", "scan"))

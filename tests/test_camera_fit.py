@@ -96,6 +96,33 @@ def test_a_wrong_sky_fails_the_field_check(world):
     assert np.all(np.asarray(ok_true))
 
 
+def test_a_name_far_brighter_than_its_star_is_taken_back(world):
+    """The RpNet case: a bright false star on the spot of an undetected faint star fits the geometry.
+    Each scene's faintest name is made 3 mag brighter; with the catalog magnitudes only it goes,
+    under any zero point, and a bright star read 3 mag too faint (saturation) keeps its name."""
+    cat, nominal = world
+    scenes = js.simulate(jax.random.key(4), cat, nominal,
+                         js.NoiseConfig(position_sigma_px=0.5, magnitude_sigma=0.2), batch_size=16)
+    truth = np.where(np.asarray(scenes.valid), np.asarray(scenes.truth), -1)
+    rows = np.arange(16)
+    faintest = truth.shape[1] - 1 - np.argmax((truth >= 0)[:, ::-1], axis=1)
+    brightest = np.argmax(truth >= 0, axis=1)
+    mag = np.array(scenes.mag)
+    mag[rows, faintest] -= 3.0
+    mag[rows, brightest] += 3.0
+    moved = dataclasses.replace(scenes, mag=jnp.asarray(mag + 12.5))  # instrumental zero point
+    claim = js.Identification(ids=jnp.asarray(truth), ok=jnp.ones(16, bool))
+    ids, ok, _, _ = cf.check_claims(cat.unit_vectors, nominal, moved, claim, star_mags=cat.mag)
+    ids = np.asarray(ids)
+    assert np.all(np.asarray(ok)) and np.all((ids < 0) | (ids == truth))
+    assert np.all(ids[rows, faintest] == -1) and np.all(ids[rows, brightest] == truth[rows, brightest])
+    others = (truth >= 0)
+    others[rows, faintest] = False
+    assert np.sum(ids[others] >= 0) >= 0.995 * others.sum()
+    geometry_only, _, _, _ = cf.check_claims(cat.unit_vectors, nominal, moved, claim)
+    assert np.all(np.asarray(geometry_only)[rows, faintest] == truth[rows, faintest])
+
+
 def test_rescaled_scenes_read_as_the_scaled_camera(world):
     cat, nominal = world
     scenes, _ = _scenes(cat, nominal, 1.0, n=2)

@@ -59,6 +59,7 @@ class Database:
         star_rows: (S,) int32 catalog row of each reference-catalog star.
         star_vectors: (S, 3) float32 ICRS unit vectors of the reference stars.
         catalog_vectors: (M, 3) float32 ICRS unit vectors of the whole catalog (attitude check).
+        catalog_mags: (M,) float32 their V magnitudes (the brightness test of the camera check).
         sky_cells: (6·G·G, K) int32 :class:`~jstarid.sky_index.SkyIndex` lists of the catalog stars
             that can be near the field of a boresight in each cell (the checks search these K, not
             all M stars; see :data:`SKY_MARGIN_DEG`).
@@ -78,6 +79,7 @@ class Database:
     star_rows: jax.Array
     star_vectors: jax.Array
     catalog_vectors: jax.Array
+    catalog_mags: jax.Array
     sky_cells: jax.Array
     v1_offset: int = dataclasses.field(metadata={"static": True})
     stride: int = dataclasses.field(metadata={"static": True})
@@ -114,7 +116,7 @@ class Database:
         """Bytes of the arrays as held for identification (int32 / float32)."""
         return int(sum(np.asarray(a).nbytes for a in
                        (self.keys, self.triangles, self.sides, self.star_rows, self.star_vectors,
-                 self.catalog_vectors, self.sky_cells)))
+                 self.catalog_vectors, self.catalog_mags, self.sky_cells)))
 
     def info_dict(self) -> dict:
         return dict(self.info)
@@ -251,6 +253,7 @@ def database_from_triangles(catalog, camera: Camera, triangles: np.ndarray, dv1:
         star_rows=jnp.asarray(star_rows, jnp.int32),
         star_vectors=jnp.asarray(vec[star_rows], jnp.float32),
         catalog_vectors=jnp.asarray(vec, jnp.float32),
+        catalog_mags=jnp.asarray(catalog.mag, jnp.float32),
         sky_cells=jnp.asarray(sky.cells), sky_grid=sky.grid,
         v1_offset=v1_offset, stride=stride, n_rows=n_rows, camera=camera,
         dv1=float(dv1), dv2=float(dv2), info=(),

@@ -359,7 +359,8 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
         result = search_focal(run, result, scenes, database.camera, config.focal_search)
     if scenes.batch_size and config.fit_focal:
         result = check_identification(database.catalog_vectors, database.camera, scenes, result,
-                                      max_scale_error=config.max_focal_error)
+                                      max_scale_error=config.max_focal_error,
+                                      star_mags=database.catalog_mags)
     return (result, diag) if diagnostics else result
 
 

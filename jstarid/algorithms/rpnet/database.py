@@ -34,7 +34,7 @@ __all__ = ["Database", "build_database", "checkpoint_path", "database_from_varia
 
 
 @functools.partial(jax.tree_util.register_dataclass,
-                   data_fields=["guide_rows", "star_vectors", "variables"],
+                   data_fields=["guide_rows", "star_vectors", "star_mags", "variables"],
                    meta_fields=["config", "camera", "catalog_fingerprint", "history", "path", "key"])
 @dataclasses.dataclass(frozen=True, eq=False)
 class Database:
@@ -47,6 +47,7 @@ class Database:
         catalog_fingerprint: the catalog's fingerprint (ids are its rows).
         guide_rows: (K,) int32 catalog row of each class.
         star_vectors: (N, 3) float32 ICRS unit vectors of the whole catalog (naming the other stars).
+        star_mags: (N,) float32 their V magnitudes (the brightness test of the final check).
         variables: network variables (see :mod:`~jstarid.algorithms.rpnet.train`).
         history: training history when trained in this call, else ``None``.
         path: the checkpoint file, when cached.
@@ -58,6 +59,7 @@ class Database:
     catalog_fingerprint: str
     guide_rows: np.ndarray
     star_vectors: jax.Array
+    star_mags: jax.Array
     variables: dict
     history: dict | None = None
     path: Path | None = None
@@ -157,7 +159,8 @@ def _template(config: Config, n_classes: int) -> dict:
 def _database(catalog, camera, config, rows, variables, history, path) -> Database:
     return Database(config=config, camera=camera, catalog_fingerprint=catalog.fingerprint,
                     guide_rows=np.asarray(rows, np.int32),
-                    star_vectors=jnp.asarray(catalog.unit_vectors, jnp.float32), variables=variables,
+                    star_vectors=jnp.asarray(catalog.unit_vectors, jnp.float32),
+                    star_mags=jnp.asarray(catalog.mag, jnp.float32), variables=variables,
                     history=history, path=path, key=database_key(catalog, camera, config))
 
 

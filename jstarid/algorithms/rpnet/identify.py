@@ -564,7 +564,7 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
                               result, scenes, database.camera, config.focal_search)
     if scenes.batch_size and config.fit_focal:  # every name checked on a fit of attitude and scale
         result = check_identification(database.star_vectors, database.camera, scenes, result,
-                                      max_scale_error=config.max_focal_error)
+                                      max_scale_error=config.max_focal_error, star_mags=database.star_mags)
     return (result, diag) if diagnostics else result
 
 

@@ -151,7 +151,8 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
                               result, scenes, db.camera, config.focal_search)
     if scenes.batch_size and config.fit_focal:
         checked = check_identification(jnp.asarray(db.catalog.unit_vectors, jnp.float32), db.camera,
-                                       scenes, result, max_scale_error=config.max_focal_error)
+                                       scenes, result, max_scale_error=config.max_focal_error,
+                                       star_mags=db.catalog.mag)
         result = checked if with_attitude else dataclasses.replace(checked, attitude=None)
     return (result, diag) if diagnostics else result
 
