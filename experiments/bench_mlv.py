@@ -4,6 +4,7 @@
     python experiments/bench_mlv.py --set batch_chunk=2048 map_batch=256
     python experiments/bench_mlv.py --paper          # the paper's algorithm alone
     python experiments/bench_mlv.py --camera narrow_twin  # V ≤ 10, the twin's noise, its defaults
+    python experiments/bench_mlv.py --camera tetra3_test --set max_candidate_capacity=null  # all vote
 
 ``experiments/benchmark.py`` runs it in a subprocess and reads its rows from ``--json``. Writes
 results/bench_mlv/{config.json, results.json, table.md}.
@@ -35,7 +36,8 @@ def parse_args(argv=None):
     p.add_argument("--batch", type=int, default=1000, help="scenes per timed call (≥ 1000)")
     p.add_argument("--repeats", type=int, default=3, help="timed calls after the compile call")
     p.add_argument("--camera", default="mlv2021",
-                   help="mlv2021 (the paper's, V ≤ 5.5) or narrow_twin (V ≤ 10, the noise of "
+                   help="mlv2021 (the paper's, V ≤ 5.5), tetra3_test (the real frames' camera, "
+                        "V ≤ 7, 24 detections per scene) or narrow_twin (V ≤ 10, the noise of "
                         "experiments/narrow_twin.py, 128 detections per scene); MLV with "
                         "Config.for_camera")
     p.add_argument("--position-sigma", type=float, default=None, help="px (default 1, twin 0.8)")
@@ -58,8 +60,12 @@ def settings(args):
         noise = js.NoiseConfig(position_sigma_px=1.0 if args.position_sigma is None else args.position_sigma,
                                magnitude_sigma=0.3 if args.magnitude_sigma is None else args.magnitude_sigma)
         depth, capacity = 5.5, 64
+    elif args.camera == "tetra3_test":
+        noise = js.NoiseConfig(position_sigma_px=1.0 if args.position_sigma is None else args.position_sigma,
+                               magnitude_sigma=0.2 if args.magnitude_sigma is None else args.magnitude_sigma)
+        depth, capacity = 7.0, 24
     else:
-        raise ValueError(f"--camera must be mlv2021 or narrow_twin, got {args.camera!r}")
+        raise ValueError(f"--camera must be mlv2021, tetra3_test or narrow_twin, got {args.camera!r}")
     base = mlv.Config.paper() if args.paper else mlv.Config.for_camera(camera)
     return camera, depth, noise, capacity, ex.with_overrides(base, args.set)
 

@@ -15,8 +15,15 @@ Usage::
 """
 
 from jstarid.algorithms.mlv.config import Config, Tuning
-from jstarid.algorithms.mlv.database import Database, build_database, first_use
-from jstarid.algorithms.mlv.identify import Diagnostics, default_pool, identify, identify_grid
+from jstarid.algorithms.mlv.database import Database, build_database, first_use, window_counts
+from jstarid.algorithms.mlv.identify import (
+    Buffers,
+    Diagnostics,
+    candidate_buffers,
+    default_pool,
+    identify,
+    identify_grid,
+)
 
-__all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "default_pool",
-           "first_use", "identify", "identify_grid"]
+__all__ = ["Buffers", "Config", "Database", "Diagnostics", "Tuning", "build_database",
+           "candidate_buffers", "default_pool", "first_use", "identify", "identify_grid", "window_counts"]

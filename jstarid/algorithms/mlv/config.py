@@ -54,14 +54,23 @@ class Config:
             of σ px moves v̂1 by ≈ 1 bin and v̂2 by < 1 bin per px.
         eps_deg: verification tolerance ε on pair angles (eq. 8, deg); a pair angle's error is
             ≈ √2·σ px, and the attitude check pays back the looseness of 0.2°.
-        candidate_capacity: K, the most candidates a triangle may have and still vote. A triangle with
-            more is flagged (``Diagnostics.candidate_overflow``) and casts no vote;
+        candidate_capacity: K, the candidate buffer of a triangle in the first pass. A triangle with
+            more is flagged (``Diagnostics.candidate_overflow``) and
             :func:`~jstarid.algorithms.mlv.identify` recomputes the chunk with a doubled K up to
-            ``max_candidate_capacity``, so nothing is silently dropped below that bound.
-        max_candidate_capacity: the largest K the host retry may reach.
+            ``max_candidate_capacity``. ``None``: from the database
+            (:func:`~jstarid.algorithms.mlv.identify.candidate_buffers`: 256, or where every
+            triangle votes the power of two above 99 % of its own triangles' windows).
+        max_candidate_capacity: the most candidates a triangle may match and still vote (extension;
+            the count of those that do not is in the diagnostics). A narrow field's database packs
+            hundreds of triangles into one window (``tetra3_test``: a median of 790, a tenth of its
+            triangles over 1,024); one matching more than 1,024 spreads its vote over thousands of
+            stars, and letting every such triangle vote cost the narrow twin 40 % of its
+            throughput for the same identification rate (docs/design/mlv.md). ``None`` (the paper:
+            every triangle votes): the most candidates any of the database's own triangles'
+            windows holds, at least 1,024; a query beyond even that is warned about.
         candidate_pool: P, one shared candidate buffer per scene for all its triangles (``None``:
-            :func:`~jstarid.algorithms.mlv.identify.default_pool`). Scenes with more candidates are
-            recomputed with a doubled P, up to T·K: P changes the speed, never the result.
+            :func:`~jstarid.algorithms.mlv.identify.candidate_buffers`). Scenes with more candidates
+            are recomputed with a doubled P, up to T·K: P changes the speed, never the result.
         batch_chunk: scenes per compiled call (one host synchronisation each, for the buffer checks).
         map_batch: scenes vmapped together inside a call (``jax.lax.map`` over groups), so the
             (group, P) candidate arrays stay in the CPU cache. Speed only.
@@ -110,8 +119,8 @@ class Config:
     th1: int = 1
     th2: int = 1
     eps_deg: float = 0.2
-    candidate_capacity: int = 256
-    max_candidate_capacity: int = 1024
+    candidate_capacity: int | None = None
+    max_candidate_capacity: int | None = 1024
     candidate_pool: int | None = None
     batch_chunk: int = 500
     map_batch: int = 50
@@ -146,8 +155,11 @@ class Config:
             raise ValueError(f"ver_min must be ≥ 2, got {self.ver_min}")
         if self.candidate_pool is not None and int(self.candidate_pool) < 1:
             raise ValueError("candidate_pool must be ≥ 1 or None")
-        if int(self.candidate_capacity) < 1 or int(self.batch_chunk) < 1 or int(self.map_batch) < 1:
-            raise ValueError("candidate_capacity, batch_chunk and map_batch must be ≥ 1")
+        for name in ("candidate_capacity", "max_candidate_capacity"):
+            if getattr(self, name) is not None and int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be ≥ 1 or None")
+        if int(self.batch_chunk) < 1 or int(self.map_batch) < 1:
+            raise ValueError("batch_chunk and map_batch must be ≥ 1")
         if int(self.n_boresights) < 1:
             raise ValueError("n_boresights must be ≥ 1")
         if not 0.0 <= self.max_focal_error < 0.5:
@@ -168,9 +180,10 @@ class Config:
     @classmethod
     def paper(cls, **overrides) -> Config:
         """The paper's algorithm alone (Table 1): no vertex matching, attitude, field or camera check,
-        no focal search."""
+        no focal search, and every triangle votes (``max_candidate_capacity=None``)."""
         return cls(**{"vertex_match": False, "attitude_check": False, "field_check": False,
-                      "fit_focal": False, "focal_search": (), **overrides})
+                      "fit_focal": False, "focal_search": (), "max_candidate_capacity": None,
+                      **overrides})
 
     @classmethod
     def for_camera(cls, camera, **overrides) -> Config:

@@ -33,7 +33,7 @@ from jstarid.catalog import cache_dir, temporary_path
 from jstarid.geometry import precise
 from jstarid.sky_index import build_sky_index, cell_of
 
-__all__ = ["Database", "build_database", "fibonacci_sphere", "database_from_triangles"]
+__all__ = ["Database", "build_database", "fibonacci_sphere", "database_from_triangles", "window_counts"]
 
 _DB_VERSION = 1
 _GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
@@ -261,6 +261,36 @@ def database_from_triangles(catalog, camera: Camera, triangles: np.ndarray, dv1:
     info.update(n_triangles=db.n_triangles, n_reference_stars=db.n_reference_stars,
                 nbytes=db.nbytes, device_nbytes=db.device_nbytes)
     return dataclasses.replace(db, info=tuple(sorted(info.items())))
+
+
+def window_counts(database: Database, th1: int, th2: int) -> np.ndarray:
+    """How many database triangles lie in each database triangle's own eq. 7 window (host, exact).
+
+    A query triangle is a noisy copy of database triangles, so these counts are the candidates a
+    query meets: their distribution sizes the candidate buffers
+    (:func:`~jstarid.algorithms.mlv.identify.candidate_buffers`). A narrow field packs far more
+    triangles into the same feature bins (``tetra3_test``: median 790 per window at Th = 1,
+    ``mlv2021``: 23).
+
+    Args:
+        database: the :class:`Database`.
+        th1, th2: the window's half-widths Th1, Th2 (bins).
+
+    Returns:
+        (T,) int64 counts (each at least 1: the triangle itself).
+    """
+    keys = np.asarray(database.keys, np.int64)
+    stride = database.stride
+    row, v2 = keys // stride, keys % stride
+    lo2, hi2 = np.maximum(v2 - th2, 0), np.minimum(v2 + th2, stride - 1)
+    total = np.zeros(keys.shape, np.int64)
+    for d1 in range(-int(th1), int(th1) + 1):  # one contiguous key range per v̂1 row (module doc)
+        r = row + d1
+        inside = (r >= 0) & (r < database.n_rows)
+        count = (np.searchsorted(keys, r * stride + hi2, side="right")
+                 - np.searchsorted(keys, r * stride + lo2, side="left"))
+        total += np.where(inside, count, 0)
+    return total
 
 
 def build_database(catalog, camera: Camera, config: Config | None = None, *,

@@ -36,7 +36,7 @@ import numpy as np
 
 from jstarid.algorithms.base import check_scenes
 from jstarid.algorithms.mlv.config import Config, Tuning
-from jstarid.algorithms.mlv.database import Database
+from jstarid.algorithms.mlv.database import Database, window_counts
 from jstarid.algorithms.mlv.features import discretize, singular_values, triangle_combinations
 from jstarid.algorithms.mlv.verify import (
     agreement,
@@ -54,11 +54,12 @@ from jstarid.algorithms.mlv.voting import (
     observed_sides,
 )
 from jstarid.camera_fit import check_identification, search_focal
-from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, take_rows
+from jstarid.runtime import chunk_calls, device_cache, grow_until, on_every_device, run_calls, take_rows
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import local_stars
 
-__all__ = ["Diagnostics", "SceneResult", "default_pool", "identify", "identify_grid", "identify_scene"]
+__all__ = ["Buffers", "Diagnostics", "SceneResult", "candidate_buffers", "default_pool", "identify",
+           "identify_grid", "identify_scene"]
 
 
 class SceneResult(NamedTuple):
@@ -126,27 +127,30 @@ _REDO = 8  # scenes per recomputation with the full candidate buffer
 
 
 def default_pool(config: Config, th1_max: int | None = None, th2_max: int | None = None,
-                 capacity: int | None = None, n_db_triangles: int | None = None) -> int:
+                 capacity: int | None = None, n_db_triangles: int | None = None,
+                 window_mean: float | None = None) -> int:
     """Default P of the shared per-scene candidate buffer (:func:`~.voting.gather_pool`).
 
     About 7 slots per query triangle per feature-window cell ((2·Th1 + 1)(2·Th2 + 1) cells; P = 8,192
     for the default database at N = 10, Th = 1, docs/design/mlv.md), scaled by Δv1·Δv2 (the cell's area)
     and by ``n_db_triangles`` relative to the default mlv2021 database's 167,655 (``None``: no scaling);
-    never more than T·K, which always suffices.
+    at least 1.25 × T × ``window_mean`` (the database's mean window, :func:`candidate_buffers`)
+    where given; never more than T·K, which always suffices.
 
     Args:
         config: the :class:`Config` (``n_stars``, ``dv1``, ``dv2``, ``th1``, ``th2``,
             ``candidate_capacity``, ``candidate_pool``).
         th1_max, th2_max: the largest Th1, Th2 of the batch (bins); ``None``: the config's.
-        capacity: K; ``None``: ``config.candidate_capacity``.
+        capacity: K; ``None``: ``config.candidate_capacity`` (256 where that is ``None``).
         n_db_triangles: triangles in the database.
+        window_mean: mean candidates per query triangle (:class:`Buffers`).
 
     Returns:
         P (slots), a multiple of 1,024 unless capped at T·K or set by ``config.candidate_pool``.
     """
     th1 = int(config.th1 if th1_max is None else th1_max)
     th2 = int(config.th2 if th2_max is None else th2_max)
-    k = int(config.candidate_capacity if capacity is None else capacity)
+    k = int(capacity if capacity is not None else config.candidate_capacity or CAPACITY_FLOOR)
     t = math.comb(int(config.n_stars), 3)
     if config.candidate_pool is not None:
         return min(int(config.candidate_pool), t * k)
@@ -154,7 +158,61 @@ def default_pool(config: Config, th1_max: int | None = None, th2_max: int | None
     if n_db_triangles is not None:  # …and with the size of the database
         density *= n_db_triangles / 167_655
     p = int(7 * t * (2 * th1 + 1) * (2 * th2 + 1) * density)
+    if window_mean is not None:  # a dense database: its own windows say how many come
+        p = max(p, int(1.25 * t * window_mean))
     return min(-(-p // 1024) * 1024, t * k)
+
+
+CAPACITY_FLOOR = 256  # K where the database asks for less (the default mlv2021 database: 159 at most)
+MAX_CAPACITY_FLOOR = 1024  # … and the largest K of the retries
+
+
+class Buffers(NamedTuple):
+    """The candidate buffers of one :func:`identify` call (host ints).
+
+    Attributes:
+        capacity: K of the first pass. max_capacity: the largest K of the retries.
+        window_mean: mean candidates per query triangle the database predicts (sizes P).
+    """
+
+    capacity: int
+    max_capacity: int
+    window_mean: float
+
+
+def _power_of_two(n) -> int:
+    return 1 << max(int(math.ceil(n)) - 1, 0).bit_length()
+
+
+def candidate_buffers(database: Database, config: Config, th1_max: int | None = None,
+                      th2_max: int | None = None) -> Buffers:
+    """K, its retry bound and the expected window size, from the config or the database's density.
+
+    ``max_candidate_capacity=None`` (every triangle votes, the paper) sets the bound from the
+    database's own triangles (:func:`~jstarid.algorithms.mlv.database.window_counts` at the batch's
+    largest Th1, Th2): the power of two above their maximum, at least :data:`MAX_CAPACITY_FLOOR`;
+    ``candidate_capacity=None`` then starts K at the power of two above their 99th percentile
+    rather than climbing there by recompilations (``tetra3_test``: 4,096), and the shared buffer
+    P follows the mean window (:func:`default_pool`). Under a set bound (the default: 256 up to
+    1,024) the triangles over K cast no vote and take no room, so the small K and P of the papers'
+    database are the fastest (narrow twin, 1,000 scenes: 8.3 s; 13–14 s with P from its windows).
+    On the papers' cameras both give 256 and 1,024. Counted once per database and window, on the
+    host.
+    """
+    th1 = int(config.th1 if th1_max is None else th1_max)
+    th2 = int(config.th2 if th2_max is None else th2_max)
+    counts = device_cache.cached(database, f"mlv-window-counts-{th1}-{th2}",
+                                 lambda: window_counts(database, th1, th2))
+    k_max = config.max_candidate_capacity
+    if k_max is None:
+        k_max = max(MAX_CAPACITY_FLOOR, _power_of_two(counts.max()))
+    k = config.candidate_capacity
+    if k is None:  # where every triangle votes, start where the database's windows say
+        k = CAPACITY_FLOOR
+        if config.max_candidate_capacity is None:
+            k = max(k, _power_of_two(np.percentile(counts, 99)))
+    k = min(int(k), int(k_max))
+    return Buffers(capacity=int(k), max_capacity=max(int(k_max), int(k)), window_mean=float(counts.mean()))
 
 
 def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_xy=None,
@@ -318,9 +376,10 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
 
     Chunks of ``config.batch_chunk`` scenes (the last padded: one compilation for any larger batch).
     A chunk with a candidate overflow (a triangle with more than K candidates) is recomputed with a
-    doubled K up to ``config.max_candidate_capacity`` (what remains is reported in the diagnostics and
-    warned about); scenes that exceed the shared buffer P (:func:`default_pool`) are recomputed with a
-    doubled P up to T·K, so the result never depends on P.
+    doubled K up to the largest K (:func:`candidate_buffers`: the config's, or what the database's
+    own windows hold; what remains is reported in the diagnostics and warned about); scenes that
+    exceed the shared buffer P (:func:`default_pool`) are recomputed with a doubled P up to T·K, so
+    the result never depends on P.
 
     Extensions (``Config.focal_search``, ``Config.fit_focal``; off in ``Config.paper()``): the scenes
     left unsolved are tried again as if the focal length were each factor of ``focal_search`` × the
@@ -369,6 +428,7 @@ def _identify(database: Database, scenes: Scene, config: Config, *, diagnostics:
     """:func:`identify`'s voting and verification on one set of centroids (no focal search)."""
     # build statistics are static metadata: drop them so cached and fresh databases share a compile
     stripped = dataclasses.replace(database, info=(), key="")
+    caller_database = database  # the buffers' counts are kept with the caller's database
     # placed on every device once (kept on the caller's database), not copied on each chunk's call
     database = (on_every_device(database, "mlv_identify", lambda: stripped) if jax.local_device_count() > 1
                 else stripped)
@@ -383,6 +443,7 @@ def _identify(database: Database, scenes: Scene, config: Config, *, diagnostics:
     if bool(jnp.any(tuning.th1 < 0)) or bool(jnp.any(tuning.th2 < 0)):
         raise ValueError("th1 and th2 must be ≥ 0")
     th1_max, th2_max = int(jnp.max(tuning.th1)), int(jnp.max(tuning.th2))
+    buffers = candidate_buffers(caller_database, config, th1_max, th2_max)
     xy, valid = _brightest(scenes, config.n_stars)
     all_xy, all_valid = scenes.xy.astype(jnp.float32), scenes.valid
     if all_xy.shape[1] < config.n_stars:
@@ -408,11 +469,12 @@ def _identify(database: Database, scenes: Scene, config: Config, *, diagnostics:
         return SceneResult(*out).overflow[rows]
 
     # a triangle with more than K candidates is flagged: those scenes run again with a doubled K,
-    # up to max_candidate_capacity (K changes nothing for scenes that never overflow it)
+    # up to the largest K (K changes nothing for scenes that never overflow it)
     k_used = grow_until(
-        lambda k, rows: run(rows, k, default_pool(config, th1_max, th2_max, k, database.n_triangles),
-                            chunk),
-        np.arange(b), config.candidate_capacity, config.max_candidate_capacity)
+        lambda k, rows: run(rows, k, default_pool(
+            config, th1_max, th2_max, k, database.n_triangles,
+            buffers.window_mean if config.max_candidate_capacity is None else None), chunk),
+        np.arange(b), buffers.capacity, buffers.max_capacity)
     # rare (≈ 0.2 % of scenes): candidates beyond the shared buffer P; those scenes run again with a
     # doubled P, up to P = T·K (which cannot overflow), _REDO scenes per call
     while True:
@@ -425,9 +487,11 @@ def _identify(database: Database, scenes: Scene, config: Config, *, diagnostics:
                 sub = rows[pool_of[rows] == pool]
                 run(sub, int(k), int(min(2 * pool, t * k)), _REDO)
     out = SceneResult(*(jnp.asarray(value) for value in out))
-    if bool(jnp.any(out.overflow)):
+    # a bound the config sets is a rule (too ambiguous to vote, counted in the diagnostics); the
+    # database's own bound should hold every window, so a triangle beyond it is news
+    if config.max_candidate_capacity is None and bool(jnp.any(out.overflow)):
         warnings.warn(f"MLV: {int(jnp.sum(out.overflow))} scenes had triangles with more than "
-                      f"{config.max_candidate_capacity} candidates (those triangles cast no vote)",
+                      f"{buffers.max_capacity} candidates (those triangles cast no vote)",
                       stacklevel=2)
     n = config.n_stars
     ids = jnp.full((b, cap), -1, jnp.int32).at[:, : min(n, cap)].set(out.ids[:, :cap])
@@ -458,7 +522,7 @@ def _empty(capacity: int, config: Config, overflow, diagnostics: bool):
         candidate_overflow=jnp.zeros((0,), bool), n_overflow_triangles=zeros((0,)),
         triangle_candidates=zeros((0, t)), candidates=zeros((0, n)), votes=zeros((0, n)),
         cluster_size=zeros((0,)), field_predicted=zeros((0,)), field_seen=zeros((0,)),
-        capacity=config.candidate_capacity)
+        capacity=config.candidate_capacity or CAPACITY_FLOOR)
 
 
 # the Config fields behind Tuning's leaves (Config.tuning)
