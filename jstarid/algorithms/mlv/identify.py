@@ -172,12 +172,13 @@ class Buffers(NamedTuple):
 
     Attributes:
         capacity: K of the first pass. max_capacity: the largest K of the retries.
-        window_mean: mean candidates per query triangle the database predicts (sizes P).
+        window_mean: mean candidates per query triangle the database predicts (sizes P); ``None``
+            under a set bound (not counted).
     """
 
     capacity: int
     max_capacity: int
-    window_mean: float
+    window_mean: float | None
 
 
 def _power_of_two(n) -> int:
@@ -194,25 +195,24 @@ def candidate_buffers(database: Database, config: Config, th1_max: int | None = 
     ``candidate_capacity=None`` then starts K at the power of two above their 99th percentile
     rather than climbing there by recompilations (``tetra3_test``: 4,096), and the shared buffer
     P follows the mean window (:func:`default_pool`). Under a set bound (the default: 256 up to
-    1,024) the triangles over K cast no vote and take no room, so the small K and P of the papers'
-    database are the fastest (narrow twin, 1,000 scenes: 8.3 s; 13–14 s with P from its windows).
-    On the papers' cameras both give 256 and 1,024. Counted once per database and window, on the
-    host.
+    1,024) the database is not consulted: the triangles over K cast no vote and take no room, so
+    the small K and P of the papers' database are the fastest (narrow twin, 1,000 scenes: 8.3 s;
+    13–14 s with P from its windows). On the papers' cameras both give 256 and 1,024. Counted once
+    per database and window, on the host.
     """
+    k = config.candidate_capacity
+    if config.max_candidate_capacity is not None:  # a set bound: the database is not consulted
+        k_max = int(config.max_candidate_capacity)
+        k = min(CAPACITY_FLOOR, k_max) if k is None else int(k)
+        return Buffers(capacity=k, max_capacity=max(k_max, k), window_mean=None)
     th1 = int(config.th1 if th1_max is None else th1_max)
     th2 = int(config.th2 if th2_max is None else th2_max)
     counts = device_cache.cached(database, f"mlv-window-counts-{th1}-{th2}",
                                  lambda: window_counts(database, th1, th2))
-    k_max = config.max_candidate_capacity
-    if k_max is None:
-        k_max = max(MAX_CAPACITY_FLOOR, _power_of_two(counts.max()))
-    k = config.candidate_capacity
-    if k is None:  # where every triangle votes, start where the database's windows say
-        k = CAPACITY_FLOOR
-        if config.max_candidate_capacity is None:
-            k = max(k, _power_of_two(np.percentile(counts, 99)))
-    k = min(int(k), int(k_max))
-    return Buffers(capacity=int(k), max_capacity=max(int(k_max), int(k)), window_mean=float(counts.mean()))
+    k_max = max(MAX_CAPACITY_FLOOR, _power_of_two(counts.max()))
+    if k is None:  # every triangle votes: start where the database's windows say
+        k = min(max(CAPACITY_FLOOR, _power_of_two(np.percentile(counts, 99))), k_max)
+    return Buffers(capacity=int(k), max_capacity=max(k_max, int(k)), window_mean=float(counts.mean()))
 
 
 def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_xy=None,
@@ -376,10 +376,11 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
 
     Chunks of ``config.batch_chunk`` scenes (the last padded: one compilation for any larger batch).
     A chunk with a candidate overflow (a triangle with more than K candidates) is recomputed with a
-    doubled K up to the largest K (:func:`candidate_buffers`: the config's, or what the database's
-    own windows hold; what remains is reported in the diagnostics and warned about); scenes that
-    exceed the shared buffer P (:func:`default_pool`) are recomputed with a doubled P up to T·K, so
-    the result never depends on P.
+    doubled K up to the largest K (:func:`candidate_buffers`: the config's bound, whose excess is a
+    rule counted in the diagnostics, or, where every triangle votes, what the database's own
+    windows hold, whose excess is also warned about); scenes that exceed the shared buffer P
+    (:func:`default_pool`) are recomputed with a doubled P up to T·K, so the result never depends
+    on P.
 
     Extensions (``Config.focal_search``, ``Config.fit_focal``; off in ``Config.paper()``): the scenes
     left unsolved are tried again as if the focal length were each factor of ``focal_search`` × the
@@ -471,9 +472,8 @@ def _identify(database: Database, scenes: Scene, config: Config, *, diagnostics:
     # a triangle with more than K candidates is flagged: those scenes run again with a doubled K,
     # up to the largest K (K changes nothing for scenes that never overflow it)
     k_used = grow_until(
-        lambda k, rows: run(rows, k, default_pool(
-            config, th1_max, th2_max, k, database.n_triangles,
-            buffers.window_mean if config.max_candidate_capacity is None else None), chunk),
+        lambda k, rows: run(rows, k, default_pool(config, th1_max, th2_max, k, database.n_triangles,
+                                                  buffers.window_mean), chunk),
         np.arange(b), buffers.capacity, buffers.max_capacity)
     # rare (≈ 0.2 % of scenes): candidates beyond the shared buffer P; those scenes run again with a
     # doubled P, up to P = T·K (which cannot overflow), _REDO scenes per call
