@@ -18,7 +18,7 @@ import pytest
 
 import jstarid as js
 from jstarid.algorithms import rpnet
-from jstarid.algorithms.rpnet import checkpoint, data, inference, model, pattern, train
+from jstarid.algorithms.rpnet import checkpoint, data, guide_catalog, inference, model, pattern, train
 from jstarid.algorithms.rpnet.identify import (
     PAIRS,
     _identify,
@@ -99,6 +99,50 @@ def test_for_camera_keeps_the_paper_values_and_fits_the_pattern_to_the_field():
     assert cfg.training == rpnet.Training.quick() and cfg.match_tol_px == rpnet.Config().match_tol_px
     assert js.engine.default_config("rpnet", camera=cam) == cfg
     assert js.engine.default_config("rpnet") == rpnet.Config.quick()
+    # the extensions stay out of the cache key when off: published networks keep their checkpoints
+    assert set(rpnet.Config().database_fields()) == {"rho_deg", "m", "e_deg", "guide_mag_limit",
+                                                     "guide_min_sep_deg", "gen_widths", "clf_width",
+                                                     "training"}
+
+
+def test_for_camera_gives_a_narrow_field_guides_per_sky_cell():
+    cam = js.camera_preset("narrow_twin")  # 6.1° × 4.6°: ≈ 3.4 published V ≤ 6 guides per frame
+    cfg = rpnet.Config.for_camera(cam, training=rpnet.Training.quick())
+    assert cfg.guide_mag_limit == cam.mag_limit and cfg.guides_per_cell == 2
+    assert cfg.guide_order == "brightness" and cfg.guide_in_frame
+    # cells of about a third of the frame: ≈ 6 guides per frame
+    cell_area = 41253 / (6 * cfg.guide_cell_grid ** 2)
+    assert cell_area == pytest.approx(cam.fov_x_deg * cam.fov_y_deg / 3, rel=0.1)
+    # the classifier keeps about the published size: 2 guides in each of 6 G² cells
+    n_guides = 12 * cfg.guide_cell_grid ** 2
+    assert cfg.clf_width * n_guides <= 3_200_000 < 2 * cfg.clf_width * n_guides
+    assert cfg.training.sim_capacity == 128 and cfg.training.dae_steps == rpnet.Training.quick().dae_steps
+    assert {"guides_per_cell", "guide_cell_grid", "guide_in_frame"} <= set(cfg.database_fields())
+    with pytest.raises(ValueError, match="guide_order"):
+        rpnet.Config(guide_order="nearest")
+    with pytest.raises(ValueError, match="guides_per_cell"):
+        rpnet.Config(guides_per_cell=2)
+
+
+@pytest.mark.parametrize("grid,per_cell", [(3, 1), (5, 2), (8, 3)])
+def test_brightest_per_cell_matches_a_plain_loop(grid, per_cell):
+    cat = js.load_catalog(5.0)
+    rows = np.arange(len(cat))  # brightest first
+    kept = guide_catalog.brightest_per_cell(cat.unit_vectors, grid, per_cell, rows)
+    # reference: walk the stars brightest first, counting per cell in a dict
+    vec = np.asarray(cat.unit_vectors, np.float64)
+    count, want = {}, []
+    for r in rows:
+        axis = int(np.argmax(np.abs(vec[r])))
+        face = 2 * axis + int(vec[r, axis] < 0)
+        u, v = (vec[r, i] / abs(vec[r, axis]) for i in range(3) if i != axis)
+        iu, iv = (min(int(np.floor((w + 1) / 2 * grid)), grid - 1) for w in (u, v))
+        c = (face, iu, iv)
+        if count.get(c, 0) < per_cell:
+            want.append(r)
+        count[c] = count.get(c, 0) + 1
+    np.testing.assert_array_equal(kept, want)
+    assert len(count) == 6 * grid * grid or per_cell * len(count) >= len(kept)
 
 
 def test_initial_input_hand_made():
@@ -227,6 +271,52 @@ def test_clean_table_matches_noise_free_scenes(tiny, clean_scenes):
                                      **pattern.config_kwargs(cfg))
     diff = np.abs(np.asarray(got) - np.asarray(tables.clean)).sum(1)
     assert np.mean(diff == 0) > 0.95 and diff.max() <= 2
+
+
+def test_guide_in_frame_drops_the_neighbours_the_frame_cuts(tiny, clean_scenes):
+    """A guide shifted in the frame: its input is the input of the neighbours still in the frame."""
+    _, cam, cfg, db, _ = tiny
+    s = clean_scenes[:8]
+    kw = pattern.config_kwargs(cfg)
+    shift = jnp.asarray(np.random.default_rng(0).uniform(-480, 480, (8, 2)), jnp.float32)
+    got = np.asarray(data.scene_training_inputs(s.xy, s.valid, s.truth, jnp.asarray(db.guide_rows[:8]),
+                                                shift, camera=cam, **kw))
+    vec = cam.unproject(s.xy)
+    guide = cam.unproject(jnp.array([cam.cx, cam.cy], jnp.float32))
+    xy = np.asarray(s.xy) + np.asarray(shift)[:, None, :]
+    inside = (xy[..., 0] >= 0) & (xy[..., 0] <= cam.width - 1) & (xy[..., 1] >= 0) & (xy[..., 1] <= cam.height - 1)
+    cut = 0
+    for b in range(8):
+        mask = np.asarray(s.valid[b]) & (np.asarray(s.truth[b]) != db.guide_rows[b]) & inside[b]
+        want = pattern.initial_input(guide, vec[b], jnp.asarray(mask), **kw)
+        np.testing.assert_array_equal(got[b], np.asarray(want))
+        cut += int(np.sum(np.asarray(s.valid[b]) & ~inside[b]))
+    assert cut > 0  # the shifts do cut some neighbours
+    batch_cfg = dataclasses.replace(cfg, guide_in_frame=True)
+    tables = data.build_tables(tiny[0], cam, batch_cfg, db.guide_rows)
+    batch = data.make_batch(jax.random.key(3), tiny[0], cam, batch_cfg, tables, 64)
+    plain = data.make_batch(jax.random.key(3), tiny[0], cam, cfg, tables, 64)
+    np.testing.assert_array_equal(np.asarray(batch.label), np.asarray(plain.label))
+    assert np.asarray(batch.noisy).sum() < np.asarray(plain.noisy).sum()  # fewer neighbours counted
+
+
+def test_brightness_order_takes_the_brightest_detections_as_guides(tiny, clean_scenes):
+    _, cam, cfg, db, _ = tiny
+    cfg = dataclasses.replace(cfg, guide_order="brightness")
+    s = clean_scenes[:16]
+    with pytest.raises(ValueError, match="magnitudes"):
+        network_candidates(s.xy, s.valid, db.inference_weights, camera=cam, config=cfg,
+                           n_classes=db.n_classes)
+    mag = np.asarray(s.mag, np.float64)
+    mag[~np.asarray(s.valid)] = np.inf
+    for triple in (0, 1):
+        near, _, _ = network_candidates(s.xy, s.valid, db.inference_weights, triple, camera=cam,
+                                        config=cfg, n_classes=db.n_classes, mag=s.mag)
+        ranks = slice(3 * triple, 3 * triple + 3)
+        np.testing.assert_array_equal(np.sort(mag, 1)[:, ranks], np.take_along_axis(mag, np.asarray(near), 1))
+    result = rpnet.identify(db, clean_scenes, cfg)  # the whole identification runs on that order
+    rep = js.evaluate(clean_scenes, result, "rpnet", camera=cam)
+    assert rep["n_wrong"] == 0 and rep["identification_rate"] > 0.5, rep
 
 
 def test_scene_inputs_jit_vmap_agree(tiny, clean_scenes):

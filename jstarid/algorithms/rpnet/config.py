@@ -19,7 +19,22 @@ import jax.numpy as jnp
 
 from jstarid.camera import radius_that_fits, tolerance_scales
 
-__all__ = ["Config", "Training", "Tuning"]
+__all__ = ["Config", "GUIDE_ORDERS", "Training", "Tuning"]
+
+GUIDE_ORDERS = ("centre", "brightness")
+
+#: Fewer guides of the published V ≤ 6 catalog than this in a camera's frame (on average) make
+#: :meth:`Config.for_camera` switch to guides thinned per sky cell (a narrow, deep field).
+MIN_GUIDES_PER_FRAME = 6.0
+#: The published guide catalog's density: 5,044 stars of V ≤ 6 on 41,253 deg² (per deg²).
+PAPER_GUIDE_DENSITY = 5044 / 41253
+#: Guides per sky cell and the cells' size (≈ 3 guides' worth of frame area each) in that case.
+GUIDES_PER_CELL = 2
+#: Detections simulated per training scene for a camera with per-cell guides (brightest first).
+DEEP_SIM_CAPACITY = 128
+#: Largest classifier layer (hidden width × classes) :meth:`Config.for_camera` keeps; a larger
+#: guide list halves the hidden width so that training keeps its cost (quick: ≈ 5 minutes).
+MAX_CLASSIFIER_WEIGHTS = 3_200_000
 
 
 class Tuning(NamedTuple):
@@ -147,6 +162,16 @@ class Config:
         guide_mag_limit: faintest guide star (V 6.0).
         guide_min_sep_deg: guides closer than this to a brighter guide are dropped (0 = keep every
             catalog star; the catalog's own close-pair removal, ``double_sep_deg``, already applies).
+        guides_per_cell, guide_cell_grid: (extension, narrow deep fields) keep only the
+            ``guides_per_cell`` brightest guides of each cell of a cube map with ``guide_cell_grid``
+            cells per face side (:func:`jstarid.sky_index.cell_of`), so that the guides cover the sky
+            evenly and are the locally brightest stars (0 = off, the paper's magnitude cut alone).
+        guide_order: which detections are the guides S1, S2, S3 and the later triples: ``"centre"``
+            (the paper's eq. 7: nearest the principal point) or ``"brightness"`` (extension: brightest
+            first, for guides thinned per cell, which are the brightest stars around).
+        guide_in_frame: (extension) training puts the guide at a uniformly random position of the
+            frame and drops its neighbours outside the frame (a pattern the frame cuts), instead of
+            the paper's guide at the principal point with its whole circle in view.
 
     Network (Table 1, Table 2):
         gen_widths: star pattern generator widths (512, 1024): FC1 400→512, ReLU, FC2 512→1024.
@@ -227,6 +252,10 @@ class Config:
     e_deg: float = 0.03
     guide_mag_limit: float = 6.0
     guide_min_sep_deg: float = 0.0
+    guides_per_cell: int = 0
+    guide_cell_grid: int = 0
+    guide_order: str = "centre"
+    guide_in_frame: bool = False
     gen_widths: tuple[int, int] = (512, 1024)
     clf_width: int = 512
     training: Training = Training()
@@ -276,6 +305,11 @@ class Config:
             raise ValueError(f"n_pool_pairs must be ≥ 0, got {self.n_pool_pairs}")
         if self.n_guide_triples < 1:
             raise ValueError(f"n_guide_triples must be ≥ 1, got {self.n_guide_triples}")
+        if self.guide_order not in GUIDE_ORDERS:
+            raise ValueError(f"guide_order must be one of {GUIDE_ORDERS}, got {self.guide_order!r}")
+        if self.guides_per_cell < 0 or (self.guides_per_cell > 0) != (self.guide_cell_grid > 0):
+            raise ValueError("guides_per_cell and guide_cell_grid must both be > 0 (thinning per cell) "
+                             f"or both 0, got {self.guides_per_cell} and {self.guide_cell_grid}")
         if self.n_candidates != 3 or len(self.position_weights) != 3 or len(self.probability_weights) != 3:
             raise ValueError("the weight search uses three detections and three candidates (Table 5)")
 
@@ -325,6 +359,15 @@ class Config:
         * e (eq. 3's bin) × ``pixel`` of :func:`jstarid.camera.tolerance_scales`: a bin stays
           ≈ 2.2 px, as on the paper's camera (0.03° at 50″/px).
 
+        * A narrow field (fewer than :data:`MIN_GUIDES_PER_FRAME` of the published V ≤ 6 guides in
+          a frame on average, e.g. the narrow twin's 6.1° × 4.6°: 3.4) gets guides from the whole
+          catalog depth, the :data:`GUIDES_PER_CELL` brightest of each sky cell, with cells of about
+          a third of the frame's area (≈ 6 guides per frame, anywhere on the sky); the guides are
+          then the brightest detections (``guide_order="brightness"``) and sit anywhere in the frame,
+          so training places them anywhere (``guide_in_frame``) and simulates
+          :data:`DEEP_SIM_CAPACITY` detections; a classifier over more than
+          :data:`MAX_CLASSIFIER_WEIGHTS` weights gets half the hidden width (docs/design/rpnet.md).
+
         The identification tolerances are in pixels already. ``overrides`` are set after (e.g.
         ``training=Training.quick()``).
         """
@@ -333,7 +376,22 @@ class Config:
         changed = {"rho_deg": radius_that_fits(camera, base.rho_deg)}
         if pixel != 1.0:
             changed["e_deg"] = base.e_deg * pixel
-        return dataclasses.replace(base, **{**changed, **overrides})
+        area = camera.fov_x_deg * camera.fov_y_deg  # deg² (flat-sky approximation)
+        narrow = PAPER_GUIDE_DENSITY * area < MIN_GUIDES_PER_FRAME
+        if narrow:
+            grid = max(1, round(90.0 / math.sqrt(area / 3.0)))  # cube-face side 90°, cells ≈ area / 3
+            n_guides = 6 * grid * grid * GUIDES_PER_CELL
+            width = base.clf_width
+            while width > 64 and width * n_guides > MAX_CLASSIFIER_WEIGHTS:
+                width //= 2
+            changed.update(guide_mag_limit=float(camera.mag_limit), guides_per_cell=GUIDES_PER_CELL,
+                           guide_cell_grid=grid, guide_order="brightness", guide_in_frame=True,
+                           clf_width=width)
+        config = dataclasses.replace(base, **{**changed, **overrides})
+        if narrow and config.training.sim_capacity < DEEP_SIM_CAPACITY:
+            config = dataclasses.replace(config, training=dataclasses.replace(
+                config.training, sim_capacity=DEEP_SIM_CAPACITY))
+        return config
 
     @classmethod
     def paper(cls, **overrides) -> Config:
@@ -350,6 +408,10 @@ class Config:
         """The settings that shape the trained network (identification-time ones left out)."""
         keep = ("rho_deg", "m", "e_deg", "guide_mag_limit", "guide_min_sep_deg", "gen_widths", "clf_width")
         out = {k: getattr(self, k) for k in keep}
+        # the extensions enter only when on, so that the published settings keep their cache keys
+        for name in ("guides_per_cell", "guide_cell_grid", "guide_in_frame"):
+            if getattr(self, name):
+                out[name] = getattr(self, name)
         out["training"] = dataclasses.asdict(self.training)
         return out
 

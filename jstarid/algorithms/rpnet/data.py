@@ -16,6 +16,10 @@ The guide S is noise-free as in the paper: the guide vector is the boresight and
 (by ``truth``) is left out of the neighbours. Departure: the missing-star family may remove S's own
 detection, which then removes one neighbour fewer than asked.
 
+Extension (``Config.guide_in_frame``, narrow fields): the guide sits at a uniform random position
+of the frame and the neighbours that position puts outside the frame are dropped from the noisy
+input, as for a guide anywhere in a real frame; the clean target keeps the whole circle.
+
 The clean input (the DAE target) is built once per catalog from catalog vectors: the stars within ρ
 of the guide with V ≤ the camera's limit (ρ = 6° < the 7.1° half side of the rpnet2019 field, so
 the whole pattern circle is in view at any roll).
@@ -113,12 +117,17 @@ def family_noise(batch_size: int, camera, config: Config) -> tuple[js.NoiseConfi
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "rho_rad", "e_rad", "m", "n_bins"))
-def scene_training_inputs(xy, valid, truth, guide_row, *, camera, rho_rad, e_rad, m, n_bins):
+def scene_training_inputs(xy, valid, truth, guide_row, shift=None, *, camera, rho_rad, e_rad, m, n_bins):
     """Inputs of mode-(b) scenes: guide at the principal point, its own detection left out.
 
     Args:
         xy: (B, N, 2) centroids (px); valid: (B, N) bool; truth: (B, N) int32 catalog rows.
         guide_row: (B,) int32 catalog row on the boresight of each scene.
+        shift: optional (B, 2) px: where the guide sits in the frame, minus the principal point
+            (``Config.guide_in_frame``); neighbours that the shift moves out of the frame are
+            dropped. The shift is a translation in pixels, not a rotation of the camera: on the
+            narrow fields it serves, the two put the frame's edge within a fraction of a pixel of
+            each other near the guide.
 
     Returns:
         (B, 2·n_bins) float32 inputs.
@@ -126,6 +135,8 @@ def scene_training_inputs(xy, valid, truth, guide_row, *, camera, rho_rad, e_rad
     vec = camera.unproject(xy)
     guide = camera.unproject(jnp.array([camera.cx, camera.cy], jnp.float32))  # the boresight (0, 0, 1)
     mask = valid & (truth != guide_row[:, None])
+    if shift is not None:
+        mask = mask & camera.contains(xy + shift[:, None, :])
     fn = functools.partial(initial_input, rho_rad=rho_rad, e_rad=e_rad, m=m, n_bins=n_bins)
     return jax.vmap(fn, in_axes=(None, 0, 0))(guide, vec, mask)
 
@@ -154,6 +165,11 @@ def make_batch(key, catalog, camera, config: Config, tables: Tables, batch_size:
     noise, fam = family_noise(batch_size, camera, config)
     scenes = js.simulate(k_sim, catalog, camera, noise, capacity=config.training.sim_capacity,
                          boresight_ids=rows)
+    shift = None
+    if config.guide_in_frame:  # the guide anywhere in the frame: a uniform pixel position
+        where = jax.random.uniform(jax.random.fold_in(key, 2), (batch_size, 2),
+                                   maxval=jnp.array([camera.width, camera.height], jnp.float32))
+        shift = where - jnp.array([camera.cx, camera.cy], jnp.float32)
     noisy = scene_training_inputs(scenes.xy, scenes.valid, scenes.truth, jnp.asarray(rows, jnp.int32),
-                                  camera=camera, **config_kwargs(config))
+                                  shift, camera=camera, **config_kwargs(config))
     return Batch(noisy=noisy, clean=tables.clean[label], label=label, family=jnp.asarray(fam))

@@ -8,7 +8,10 @@ stars in dense areas" (5,045 guides). Here (docs/design/rpnet.md):
 * guides are the catalog rows with V ≤ ``Config.guide_mag_limit``;
 * optional thinning: a guide closer than ``Config.guide_min_sep_deg`` to a brighter guide is dropped
   (default 0). The dense-area deletion is not reproduced; every catalog star still appears as a
-  *neighbour* in the inputs, only the class list shrinks.
+  *neighbour* in the inputs, only the class list shrinks;
+* narrow, deep fields (extension, ``Config.guides_per_cell``): only the brightest few guides of each
+  cube-map sky cell are kept, so the classes cover the sky evenly whatever the star density, and a
+  frame's brightest detections are mostly guides.
 
 Class k of the network is catalog row ``guide_rows[k]``.
 """
@@ -20,7 +23,7 @@ import numpy as np
 import jstarid as js
 from jstarid.algorithms.rpnet.config import Config
 
-__all__ = ["guide_rows", "load_guide_catalog"]
+__all__ = ["brightest_per_cell", "guide_rows", "load_guide_catalog"]
 
 PAPER_DOUBLE_SEP_DEG = 0.1  # close-pair threshold used for the RpNet catalog (≈ 7 px at f_px ≈ 4106)
 
@@ -40,7 +43,8 @@ def guide_rows(catalog: js.Catalog, config: Config | None = None) -> np.ndarray:
 
     Args:
         catalog: the identification catalog (rows sorted brightest first).
-        config: uses ``guide_mag_limit`` (V) and ``guide_min_sep_deg`` (deg).
+        config: uses ``guide_mag_limit`` (V), ``guides_per_cell`` and ``guide_cell_grid`` (the
+            brightest few per sky cell, applied first) and ``guide_min_sep_deg`` (deg).
 
     Returns:
         (K,) int32 catalog rows; class k ↔ row ``guide_rows[k]``.
@@ -51,6 +55,9 @@ def guide_rows(catalog: js.Catalog, config: Config | None = None) -> np.ndarray:
     config = Config() if config is None else config
     rows = np.nonzero(np.asarray(catalog.mag) <= config.guide_mag_limit)[0]
     rows = rows[np.argsort(np.asarray(catalog.mag)[rows], kind="stable")]
+    if config.guides_per_cell > 0:
+        rows = brightest_per_cell(np.asarray(catalog.unit_vectors)[rows], config.guide_cell_grid,
+                                  config.guides_per_cell, rows)
     if config.guide_min_sep_deg > 0 and len(rows) > 1:
         from scipy.spatial import cKDTree
 
@@ -68,3 +75,27 @@ def guide_rows(catalog: js.Catalog, config: Config | None = None) -> np.ndarray:
     if rows.size == 0:
         raise ValueError(f"no catalog star with V ≤ {config.guide_mag_limit}")
     return rows.astype(np.int32)
+
+
+def brightest_per_cell(vectors, grid: int, per_cell: int, rows) -> np.ndarray:
+    """The first ``per_cell`` of ``rows`` (sorted brightest first) in each cube-map sky cell.
+
+    Args:
+        vectors: (R, 3) unit vectors of ``rows``.
+        grid: cells per cube-face side (:func:`jstarid.sky_index.cell_of`; 6·grid² cells).
+        per_cell: stars kept per cell.
+        rows: (R,) catalog rows, brightest first.
+
+    Returns:
+        (≤ R,) int32 the kept rows, in their input order (brightest first).
+    """
+    from jstarid.sky_index import cell_of
+
+    rows = np.asarray(rows)
+    cell = np.asarray(cell_of(np.asarray(vectors, np.float64), grid))
+    order = np.argsort(cell, kind="stable")  # by cell, brightest first within each cell
+    sorted_cells = cell[order]
+    first = np.searchsorted(sorted_cells, sorted_cells, side="left")
+    rank = np.empty(len(rows), np.int64)
+    rank[order] = np.arange(len(rows)) - first  # brightness rank of each star within its cell
+    return rows[rank < per_cell].astype(np.int32)

@@ -2,7 +2,8 @@
 
 Per scene (written once, batched with ``vmap``):
 
-1. S1, S2, S3: the three valid detections nearest the principal point (eq. 7);
+1. S1, S2, S3: the three valid detections nearest the principal point (eq. 7), or (extension for
+   guides thinned per sky cell, ``Config.guide_order = "brightness"``) the three brightest;
 2. their initial inputs (eq. 3) → generator → classifier → softmax (eq. 4); the three most probable
    guide stars of each are its candidates, p_i1 > p_i2 > p_i3 (eq. 8);
 3. weight search over the 27 candidate pairs S_ij ↔ S_kl (i < k; eqs. 9–11, Table 5 weights): a pair
@@ -163,8 +164,12 @@ def anchor_names(c, body, valid, obs_a, obs_b, ref_a, ref_b, star_vectors, tol_r
     return best.astype(jnp.int32), named & (jnp.sum(same, axis=1) == 1)
 
 
-def _candidates(xy, valid, weights, *, camera, config: Config, n_classes: int, triple=0, count: int = 3):
+def _candidates(xy, valid, weights, *, camera, config: Config, n_classes: int, triple=0, count: int = 3,
+                mag=None):
     """Steps 1–2 for a batch: S1–S3 (eq. 7), their inputs (eq. 3), network, top-3 (eqs. 4, 8).
+
+    S1–S3 are the detections nearest the principal point (eq. 7), or the brightest ones by ``mag``
+    ((B, N) mag) under ``Config.guide_order = "brightness"``.
 
     One matmul chain over all ``3 B`` inputs through the folded network
     (:mod:`~jstarid.algorithms.rpnet.inference`). ``triple = t`` (traced int32: one compilation for
@@ -178,10 +183,15 @@ def _candidates(xy, valid, weights, *, camera, config: Config, n_classes: int, t
     kw = config_kwargs(config)
     n = xy.shape[1]
     centre = jnp.array([camera.cx, camera.cy], jnp.float32)
+    by_brightness = config.guide_order == "brightness"
+    if by_brightness and mag is None:
+        raise ValueError('guide_order="brightness" needs the detections\' magnitudes')
+    mag = jnp.zeros(xy.shape[:2], jnp.float32) if mag is None else mag
 
-    def one(xy_s, valid_s):
+    def one(xy_s, valid_s, mag_s):
         body = camera.unproject(xy_s)  # (N, 3) camera frame
-        d2 = jnp.where(valid_s, jnp.sum((xy_s - centre[None, :]) ** 2, -1), jnp.inf)
+        key = mag_s if by_brightness else jnp.sum((xy_s - centre[None, :]) ** 2, -1)
+        d2 = jnp.where(valid_s, key, jnp.inf)
         # S1, S2, S3 (eq. 7) for triple 0; invalid detections come last (an invalid S_i makes its
         # pairs inadmissible). A static top-k over every triple's ranks, not an argsort: XLA's sort
         # is slow on CPU (docs/design/rpnet.md).
@@ -190,7 +200,7 @@ def _candidates(xy, valid, weights, *, camera, config: Config, n_classes: int, t
         inputs = jax.vmap(lambda g: initial_input(body[g], body, valid_s & (jnp.arange(n) != g), **kw))(near)
         return near, inputs
 
-    near, inputs = jax.vmap(one)(xy, valid)
+    near, inputs = jax.vmap(one)(xy, valid, mag)
     logits = inference_logits(weights, inputs, bf16=use_bf16(config.network_bf16))  # (B, C, K)
     if logits.shape[-1] != n_classes:
         raise ValueError(f"the network has {logits.shape[-1]} classes, the database {n_classes}")
@@ -451,7 +461,7 @@ def _name_one(xy, valid, overflow, near, p, cls, guide_rows, star_vectors, cells
                             grid=grid)
 
 
-def network_candidates(xy, valid, weights, triple=0, *, camera, config: Config, n_classes: int):
+def network_candidates(xy, valid, weights, triple=0, *, camera, config: Config, n_classes: int, mag=None):
     """The network part of identification alone (benchmarks, the weight-grid search).
 
     Args:
@@ -459,23 +469,24 @@ def network_candidates(xy, valid, weights, triple=0, *, camera, config: Config, 
         weights: the folded networks (``database.inference_weights``).
         triple: int32 scalar t: the detections of distance rank 3t … 3t + 2 (0: S1–S3).
         camera, config, n_classes: static.
+        mag: (B, N) detection magnitudes (needed under ``Config.guide_order = "brightness"``).
 
     Returns:
         ``(near, probs, classes)``: (B, 3) int32 detection index of S1, S2, S3 (eq. 7), (B, 3, 3)
         float32 top-3 softmax probabilities p_ij (eq. 8) and (B, 3, 3) int32 their classes.
     """
     return _network_candidates(xy, valid, weights, triple=triple, camera=camera,
-                               config=config.compiled(), n_classes=n_classes)
+                               config=config.compiled(), n_classes=n_classes, mag=mag)
 
 
 _network_candidates = jax.jit(_candidates, static_argnames=("camera", "config", "n_classes", "count"))
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid", "trials"))
-def _identify_chunk(xy, valid, overflow, weights, guide_rows, star_vectors, cells, th, triple, *, camera,
-                    config, n_classes, grid, trials):
+def _identify_chunk(xy, valid, overflow, mag, weights, guide_rows, star_vectors, cells, th, triple, *,
+                    camera, config, n_classes, grid, trials):
     near, p, cls = _candidates(xy, valid, weights, camera=camera, config=config, n_classes=n_classes,
-                               triple=triple)
+                               triple=triple, mag=mag)
     fn = functools.partial(_name_one, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
                            th=th, camera=camera, config=config, grid=grid, trials=trials)
     # naming in small vmapped groups: its (N × local stars) intermediates stay in cache
@@ -484,10 +495,10 @@ def _identify_chunk(xy, valid, overflow, weights, guide_rows, star_vectors, cell
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid"))
-def _identify_pool_chunk(xy, valid, overflow, weights, guide_rows, star_vectors, cells, th, *, camera,
+def _identify_pool_chunk(xy, valid, overflow, mag, weights, guide_rows, star_vectors, cells, th, *, camera,
                          config, n_classes, grid):
     near, p, cls = _candidates(xy, valid, weights, camera=camera, config=config, n_classes=n_classes,
-                               count=3 * config.n_guide_triples)
+                               count=3 * config.n_guide_triples, mag=mag)
     fn = functools.partial(_name_pool, guide_rows=guide_rows, star_vectors=star_vectors, cells=cells,
                            th=th, camera=camera, config=config, grid=grid)
     return jax.lax.map(lambda a: fn(*a), (xy, valid, overflow, near, p, cls),
@@ -579,6 +590,7 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
     # detections than the capacity. Results are put back in the input order.
     valid_all, xy_all = np.asarray(scenes.valid), np.asarray(scenes.xy)
     overflow_all = np.asarray(scenes.overflow)
+    mag_all = np.asarray(scenes.mag, np.float32)
     last = np.where(valid_all.any(1), n - np.argmax(valid_all[:, ::-1], axis=1), 0)
     ids_out = np.full((b, n), -1, np.int32)
     ok_out = np.zeros((b,), bool)
@@ -602,7 +614,7 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
     def args(call):
         # the chunk's columns cut to its widest scene, rounded up to a multiple of WIDTH_STEP
         width = int(min(n, max(WIDTH_STEP, -(-int(last[call.rows].max()) // WIDTH_STEP) * WIDTH_STEP)))
-        return take_rows((xy_all[:, :width], valid_all[:, :width], overflow_all), call)
+        return take_rows((xy_all[:, :width], valid_all[:, :width], overflow_all, mag_all[:, :width]), call)
 
     def run(subset, trials, chunk, triple=0, pool=False):
         n_pairs[subset] += config.n_pool_pairs if pool else trials[1] - trials[0]
