@@ -3,11 +3,13 @@
     python experiments/bench_rpnet.py                       # quick checkpoint, batch 4096
     python experiments/bench_rpnet.py --network table3 --batch 8192
     python experiments/bench_rpnet.py --precision both      # bfloat16 and float32 network, same scenes
+    python experiments/bench_rpnet.py --camera narrow_twin --train-steps 0  # V ≤ 10, the twin's frames
 
 Rows (``benchmark``, ``scenes_per_s``, ``compile_s``, ``peak_rss_mb`` and details):
 
 * ``rpnet``: ``rpnet.identify`` on mode-(b) ``rpnet2019`` scenes (guide star at the boresight, position
-  σ 0.5 px), median of ``repeats`` timed calls after a first (compiling) call; compile time is the
+  σ 0.5 px; with ``--camera narrow_twin``: random attitudes, the noise and 128 detections of
+  ``experiments/narrow_twin.py``, Hipparcos to V 10, ``Config.for_camera``), median of ``repeats`` timed calls after a first (compiling) call; compile time is the
   first call minus the steady call; a batch below 4,096 is raised to 4,096 and the row says so.
   ``network_scenes_per_s`` times the network part alone (three inputs → logits → top-3) for
   reference. With ``--precision both`` the row is measured twice, as ``rpnet_bf16`` and
@@ -39,6 +41,7 @@ from jstarid.algorithms.rpnet import data as rp_data
 from jstarid.algorithms.rpnet import train as rp_train
 from jstarid.algorithms.rpnet.identify import network_candidates
 from jstarid.algorithms.rpnet.model import use_bf16
+from jstarid.papers import narrow_field as twin
 
 MIN_BATCH = 4096
 COLUMNS = [("benchmark", "row", "{}"), ("batch", "B", "{}"), ("scenes_per_s", "scenes (samples)/s", "{}"),
@@ -53,7 +56,9 @@ def parse_args(argv=None):
     p.add_argument("--network", choices=("quick", "table3"), default="quick", help="trained network preset")
     p.add_argument("--batch", type=int, default=MIN_BATCH, help=f"scenes per timed call (≥ {MIN_BATCH})")
     p.add_argument("--repeats", type=int, default=3, help="timed calls after the compile call")
-    p.add_argument("--position-sigma", type=float, default=0.5, help="px")
+    p.add_argument("--camera", choices=("rpnet2019", "narrow_twin"), default="rpnet2019",
+                   help="rpnet2019 (the paper's) or narrow_twin (random attitudes, the twin's noise)")
+    p.add_argument("--position-sigma", type=float, default=None, help="px (default 0.5, twin 0.8)")
     p.add_argument("--train-steps", type=int, default=5, help="timed train steps per stage (0: skip)")
     p.add_argument("--precision", choices=("config", "both"), default="config",
                    help="network matmuls: the config's (Config.network_bf16), or both bfloat16 and "
@@ -65,19 +70,31 @@ def parse_args(argv=None):
 
 
 def make_config(args) -> rpnet.Config:
-    base = rpnet.Config.quick() if args.network == "quick" else rpnet.Config()
+    training = rpnet.Training.quick() if args.network == "quick" else rpnet.Training()
+    base = rpnet.Config.for_camera(js.camera_preset(args.camera), training=training)
     return ex.with_overrides(base, args.set)
+
+
+def draw_scenes(key, rows, catalog, camera, args, batch: int):
+    """One timed batch: mode (b) on the guide ``rows`` (rpnet2019), random attitudes (narrow twin)."""
+    if args.camera == "narrow_twin":
+        noise = dict(twin.NOISE)
+        if args.position_sigma is not None:
+            noise["position_sigma_px"] = args.position_sigma
+        return js.simulate(key, catalog, camera, js.NoiseConfig(**noise), batch_size=batch,
+                           capacity=twin.CAPACITY)
+    sigma = 0.5 if args.position_sigma is None else args.position_sigma
+    return js.simulate(key, catalog, camera, js.NoiseConfig(position_sigma_px=sigma), capacity=96,
+                       boresight_ids=rows)
 
 
 def bench_identify(db, catalog, camera, cfg, args, batch: int, note: str, name: str = "rpnet") -> dict:
     """One row named ``name``: identify scenes/s at batch ``batch``."""
     rng = np.random.default_rng(args.seed)
-    noise = js.NoiseConfig(position_sigma_px=args.position_sigma)
     sets = []
     for i in range(args.repeats + 1):
         rows = rng.choice(db.guide_rows, batch)
-        sets.append(js.simulate(jax.random.key(args.seed + i), catalog, camera, noise, capacity=96,
-                                boresight_ids=rows))
+        sets.append(draw_scenes(jax.random.key(args.seed + i), rows, catalog, camera, args, batch))
     jax.block_until_ready(sets[-1].xy)
     results = {}
 
@@ -91,13 +108,14 @@ def bench_identify(db, catalog, camera, cfg, args, batch: int, note: str, name: 
     def net(i):  # the network part alone: three central detections → inputs → logits → top-3 (one jit)
         s = sets[i]
         return network_candidates(s.xy, s.valid, db.inference_weights, camera=camera, config=cfg,
-                                  n_classes=db.n_classes)
+                                  n_classes=db.n_classes, mag=s.mag)
 
     net_first, net_steady = ex.time_call(net, args.repeats)
     return {
         "benchmark": name, "camera": camera.name, "network_bf16": use_bf16(cfg.network_bf16),
         "config": args.network, "batch": batch, "batch_note": note,
-        "noise": f"pos {args.position_sigma} px, guide at boresight",
+        "noise": (f"the twin's ({twin.NOISE}), random attitudes" if args.camera == "narrow_twin" else
+                  f"pos {0.5 if args.position_sigma is None else args.position_sigma} px, guide at boresight"),
         "scenes_per_s": round(batch / steady), "compile_s": round(max(first - steady, 0.0), 2),
         "peak_rss_mb": round(ex.peak_rss_mb()), "backend": jax.default_backend(),
         "batch_chunk": cfg.batch_chunk, "seconds_per_batch": round(steady, 3),
@@ -171,15 +189,15 @@ def _train_row(name, fn, bs, args) -> dict:
 
 
 def run(args) -> list[dict]:
-    """Benchmark RpNet on the rpnet2019 camera: the identify row(s) and the two training rows."""
+    """Benchmark RpNet on one camera: the identify row(s) and the two training rows."""
     batch, note = args.batch, ""
     if batch < MIN_BATCH:
         note = f"batch {batch} raised to {MIN_BATCH} for rpnet"
         print(f"(rpnet: {note})", flush=True)
         batch = MIN_BATCH
     cfg = make_config(args)
-    catalog = rpnet.load_guide_catalog(cfg)
-    camera = js.camera_preset("rpnet2019")
+    camera = js.camera_preset(args.camera)
+    catalog = js.load_catalog(twin.MAG_LIMIT) if args.camera == "narrow_twin" else rpnet.load_guide_catalog(cfg)
     db = rpnet.build_database(catalog, camera, cfg, progress=False)
     if args.precision == "both":
         variants = [(dataclasses.replace(cfg, network_bf16=bf16), "rpnet_bf16" if bf16 else "rpnet_f32")
@@ -203,7 +221,7 @@ def main(argv=None) -> list[dict]:
     print(json.dumps(rows, indent=1))
     ex.dump_json(args.json, rows)
     ex.write(args.out, config={"args": vars(args), "rpnet_config": make_config(args)}, results={"rows": rows},
-             table=ex.markdown_table(rows, COLUMNS, title=f"RpNet throughput (`{args.network}` network)"))
+             table=ex.markdown_table(rows, COLUMNS, title=f"RpNet throughput (`{args.network}` network, {args.camera})"))
     return rows
 
 

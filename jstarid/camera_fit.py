@@ -74,6 +74,7 @@ K_SIGMA = 6.0  # a name is taken back beyond this many σ̂ from its star (a rig
 MIN_TOL_PX = 2.5  # … and never within this radius (px): σ̂ of ten names can come out at half σ
 MAX_TOL_PX = 10.0  # largest verification radius (px): 5 σ at 2 px per axis, beyond any real tracker
 LADDER_MIN_NAMES = 6  # fewest names of a solution found under a rescaled focal length
+FEW_RETRIES = 64  # search_focal: up to this many retries (scenes × factors) run in one call
 FEW_NAMES = 10  # up to this many names the robust fit tests each name by leaving it out
 DROP_STEPS = 2  # … and drops at most this many
 DELETION_RATIO = 3.0  # … each time the others' RMS residual shrinks at least this many times
@@ -738,6 +739,8 @@ def _bucket(n: int) -> int:
 def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER_MIN_NAMES):
     """Retry the scenes ``result`` leaves unsolved as if the focal length were each of ``scales`` ×
     the nominal one in turn (:func:`rescale_scenes`), keeping the first solution of each scene.
+    Where at most :data:`FEW_RETRIES` retries are left (scenes × factors), they run in one call
+    with the same outcome.
 
     For methods whose features are angles (triangle singular values, pair distances, network
     patterns), a focal length off by more than their tolerance (≈ 1 % for MLV's) loses the scene;
@@ -760,6 +763,28 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
     """
     ids, ok = np.array(result.ids), np.array(result.ok)
     att = None if result.attitude is None else np.array(result.attitude)
+    todo = np.flatnonzero(~ok)
+    if 0 < todo.size * len(scales) <= FEW_RETRIES:
+        # few scenes left: every factor in one call (a call's fixed cost dominates there), then
+        # each scene keeps the first factor, in order, that solved it: the sequential outcome
+        factor = np.repeat(np.asarray(scales, np.float32), todo.size)
+        rows = np.tile(todo, len(scales))
+        padded = np.concatenate([rows, np.full(_bucket(rows.size) - rows.size, rows[-1])])
+        factor = np.concatenate([factor, np.full(padded.size - rows.size, factor[-1])])
+        moved = _move_about_centre(scenes[padded], camera, lambda offset: offset / factor[:, None, None])
+        retry = run(moved, padded)
+        retry_ids = np.asarray(retry.ids)[: rows.size].reshape(len(scales), todo.size, -1)
+        solved = (np.asarray(retry.ok)[: rows.size].reshape(len(scales), todo.size)
+                  & (np.sum(retry_ids >= 0, axis=2) >= min_named))
+        first = np.argmax(solved, axis=0)  # the first factor that solved each scene
+        hit = solved.any(axis=0)
+        pick = first[hit], np.flatnonzero(hit)
+        ids[todo[hit]], ok[todo[hit]] = retry_ids[pick], True
+        if att is not None and retry.attitude is not None:
+            att[todo[hit]] = np.asarray(retry.attitude)[: rows.size].reshape(
+                len(scales), todo.size, 3, 3)[pick]
+        relieve()
+        scales = ()
     for scale in scales:
         todo = np.flatnonzero(~ok)
         if not todo.size:

@@ -133,7 +133,8 @@ def test_rescaled_scenes_read_as_the_scaled_camera(world):
                                np.asarray(scaled.unproject(scenes.xy))[valid], atol=2e-6)
 
 
-def test_search_focal_retries_only_unsolved_scenes(world):
+def test_search_focal_retries_only_unsolved_scenes(world, monkeypatch):
+    monkeypatch.setattr(cf, "FEW_RETRIES", 0)  # one call per factor
     cat, nominal = world
     scenes, truth = _scenes(cat, nominal, 1.0, n=4)
     calls = []
@@ -150,6 +151,49 @@ def test_search_focal_retries_only_unsolved_scenes(world):
     np.testing.assert_array_equal(np.asarray(out.ok), [True, True, True, False])
     np.testing.assert_array_equal(np.asarray(out.ids[1]), truth[1])
     assert np.all(np.asarray(out.ids[3]) == -1)
+
+
+def test_search_focal_in_one_call_keeps_the_first_factor_that_solves(world, monkeypatch):
+    """Few retries run every factor in one call; each scene gets what the sequential ladder gives."""
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=6)
+    scales = (0.99, 1.01, 0.98)
+    # which factor solves which scene: scene 1 by 1.01 and 0.98 (1.01 comes first), scene 3 by
+    # 0.98 alone, scene 5 by none; the ids tell the factor apart
+    solves = {(1, 1.01), (1, 0.98), (3, 0.98)}
+
+    def run(moved, rows):
+        # the factor of each row, read back from how far the moved centroid left the centre
+        centre = np.array([nominal.cx, nominal.cy])
+        valid = np.asarray(moved.valid)
+        k = np.argmax(valid, axis=1)
+        orig = np.asarray(scenes.xy)[rows, k] - centre
+        now = np.asarray(moved.xy)[np.arange(len(rows)), k] - centre
+        factor = np.round(np.linalg.norm(orig, axis=1) / np.linalg.norm(now, axis=1), 4)
+        ok = np.array([(int(r), float(f)) in solves for r, f in zip(rows, factor, strict=True)])
+        ids = np.where(ok[:, None], truth[rows], -1)
+        ids = np.where((factor[:, None] == 0.98) & (ids >= 0), ids + 1000, ids)
+        calls.append(len(rows))
+        return js.Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok),
+                                 attitude=jnp.asarray(np.broadcast_to(factor[:, None, None], (len(rows), 3, 3))))
+
+    first = js.Identification(ids=jnp.full(truth.shape, -1), ok=jnp.array([True, False, True, False, True, False]),
+                              attitude=jnp.full((6, 3, 3), np.nan))
+    results = []
+    for few in (64, 0):  # one call, then one call per factor
+        monkeypatch.setattr(cf, "FEW_RETRIES", few)
+        calls = []
+        results.append(cf.search_focal(run, first, scenes, nominal, scales, min_named=1))
+        assert len(calls) == (1 if few else 3)
+    one, ladder = results
+    for got in (one, ladder):
+        np.testing.assert_array_equal(np.asarray(got.ok), [True, True, True, True, True, False])
+        np.testing.assert_array_equal(np.asarray(got.ids[1]), truth[1])  # 1.01 before 0.98
+        np.testing.assert_array_equal(np.asarray(got.ids[3]), np.where(truth[3] >= 0, truth[3] + 1000, -1))
+        assert np.asarray(got.attitude)[1, 0, 0] == pytest.approx(1.01)
+        assert np.asarray(got.attitude)[3, 0, 0] == pytest.approx(0.98)
+    for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(ladder), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def _displaced(scenes, truth, nominal, keep, move, shift_px, tangential=False):

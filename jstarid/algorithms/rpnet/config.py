@@ -30,6 +30,9 @@ MIN_GUIDES_PER_FRAME = 6.0
 PAPER_GUIDE_DENSITY = 5044 / 41253
 #: Guides per sky cell and the cells' size (≈ 3 guides' worth of frame area each) in that case.
 GUIDES_PER_CELL = 2
+#: Guide triples on such a camera (the 12 brightest detections, and the pool pass across them);
+#: one pair per triple. On the narrow twin the further triples and pairs named no more frames.
+NARROW_GUIDE_TRIPLES = 4
 #: Detections simulated per training scene for a camera with per-cell guides (brightest first).
 DEEP_SIM_CAPACITY = 128
 #: Largest classifier layer (hidden width × classes) :meth:`Config.for_camera` keeps; a larger
@@ -366,7 +369,8 @@ class Config:
           then the brightest detections (``guide_order="brightness"``) and sit anywhere in the frame,
           so training places them anywhere (``guide_in_frame``) and simulates
           :data:`DEEP_SIM_CAPACITY` detections; a classifier over more than
-          :data:`MAX_CLASSIFIER_WEIGHTS` weights gets half the hidden width (docs/design/rpnet.md).
+          :data:`MAX_CLASSIFIER_WEIGHTS` weights gets half the hidden width; identification tries
+          :data:`NARROW_GUIDE_TRIPLES` triples of one pair each (docs/design/rpnet.md).
 
         The identification tolerances are in pixels already. ``overrides`` are set after (e.g.
         ``training=Training.quick()``).
@@ -386,7 +390,7 @@ class Config:
                 width //= 2
             changed.update(guide_mag_limit=float(camera.mag_limit), guides_per_cell=GUIDES_PER_CELL,
                            guide_cell_grid=grid, guide_order="brightness", guide_in_frame=True,
-                           clf_width=width)
+                           clf_width=width, n_pair_trials=1, n_guide_triples=NARROW_GUIDE_TRIPLES)
         config = dataclasses.replace(base, **{**changed, **overrides})
         if narrow and config.training.sim_capacity < DEEP_SIM_CAPACITY:
             config = dataclasses.replace(config, training=dataclasses.replace(

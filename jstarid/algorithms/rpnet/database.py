@@ -164,9 +164,12 @@ def _database(catalog, camera, config, rows, variables, history, path) -> Databa
                     history=history, path=path, key=database_key(catalog, camera, config))
 
 
-# seconds per training step per 256 samples on a 2-core CPU (quick: 6,000 steps in ≈ 180 s on an
-# idle machine, 289 s on a shared one; Table 3: 78,813 steps of 512 in 7,336 s, shared)
-_SECONDS_PER_STEP_256 = 0.035
+# Seconds per training step per 256 samples on a 2-core CPU: the data and the DAE, plus the
+# classifier's last layer per million weights (hidden width × classes). Measured (Intel Xeon host):
+# quick on rpnet2019 / tetra3_test (5,044 × 512 weights) 6,000 steps in 4 min 51 s; on the narrow
+# twin (10,800 × 256) the DAE at 30 steps/s, the classifier at 15 steps/s.
+_SECONDS_PER_STEP_256 = 0.033
+_SECONDS_PER_STEP_256_PER_MWEIGHT = 0.012
 
 
 def first_use(catalog, camera, config: Config | None = None) -> tuple[str, float] | None:
@@ -175,6 +178,10 @@ def first_use(catalog, camera, config: Config | None = None) -> tuple[str, float
     config = Config() if config is None else config
     if checkpoint_path(catalog, camera, config).exists():
         return None
-    steps = sum(config.training.steps(len(guide_rows(catalog, config))))
-    seconds = steps * config.training.batch_size / 256 * _SECONDS_PER_STEP_256
-    return f"RpNet networks trained for {camera.name} ({steps:,} steps; resumable)", seconds
+    n_guides = len(guide_rows(catalog, config))
+    dae, clf = config.training.steps(n_guides)
+    weights_m = config.clf_width * n_guides / 1e6
+    per_256 = _SECONDS_PER_STEP_256 * (dae + clf) + _SECONDS_PER_STEP_256_PER_MWEIGHT * weights_m * clf
+    seconds = per_256 * config.training.batch_size / 256
+    return (f"RpNet networks trained for {camera.name} ({dae + clf:,} steps, {n_guides:,} guide "
+            f"stars; resumable)", seconds)

@@ -54,6 +54,7 @@ from jstarid.algorithms.rpnet.inference import inference_logits
 from jstarid.algorithms.rpnet.model import use_bf16
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.attitude import solve_wahba
+from jstarid.camera import tolerance_scales
 from jstarid.camera_fit import (
     check_identification,
     fit_scaled,
@@ -509,11 +510,14 @@ def _local_index(database, config: Config):
     """Sky index of the catalog stars a pair attitude can name (memoised per catalog and reach).
 
     Reach about the pair's boresight: half diagonal + anchor radius + match tolerance + 1° for the pair
-    attitude's error; every star within ``match_tol_px`` or ``anchor_radius_px`` of a detection is in
-    the list, so naming against it equals naming against the whole catalog.
+    attitude's error (≈ 72 px on the papers' cameras; scaled with the pixel scale like the other
+    tolerances, :func:`jstarid.camera.tolerance_scales`: 0.32° on the narrow twin, whose lists it
+    shortens by a quarter); every star within ``match_tol_px`` or ``anchor_radius_px`` of a
+    detection is in the list, so naming against it equals naming against the whole catalog.
     """
     cam = database.camera
-    margin = (config.anchor_radius_px + config.match_tol_px) / cam.f_px + np.radians(1.0)
+    pixel, _ = tolerance_scales(cam)
+    margin = (config.anchor_radius_px + config.match_tol_px) / cam.f_px + np.radians(1.0) * pixel
     return build_sky_index(np.asarray(database.star_vectors, np.float64), cam.half_diagonal_rad,
                            margin_rad=float(margin), key=f"rpnet-{database.catalog_fingerprint}")
 
