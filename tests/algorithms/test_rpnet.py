@@ -110,8 +110,8 @@ def test_for_camera_gives_a_narrow_field_guides_per_sky_cell():
     cfg = rpnet.Config.for_camera(cam, training=rpnet.Training.quick())
     assert cfg.guide_mag_limit == cam.mag_limit and cfg.guides_per_cell == 2
     assert cfg.guide_order == "brightness" and cfg.guide_in_frame
-    # cells of about a third of the frame: ≈ 6 guides per frame
-    cell_area = 41253 / (6 * cfg.guide_cell_grid ** 2)
+    # cells of about a third of the frame (a cell at a cube face's centre): ≈ 6 guides per frame
+    cell_area = (90.0 / cfg.guide_cell_grid) ** 2
     assert cell_area == pytest.approx(cam.fov_x_deg * cam.fov_y_deg / 3, rel=0.1)
     # the classifier keeps about the published size: 2 guides in each of 6 G² cells
     n_guides = 12 * cfg.guide_cell_grid ** 2

@@ -383,7 +383,8 @@ class Config:
         area = camera.fov_x_deg * camera.fov_y_deg  # deg² (flat-sky approximation)
         narrow = PAPER_GUIDE_DENSITY * area < MIN_GUIDES_PER_FRAME
         if narrow:
-            grid = max(1, round(90.0 / math.sqrt(area / 3.0)))  # cube-face side 90°, cells ≈ area / 3
+            # a cube face spans 90° at its centre: cells there ≈ area / 3 (smaller towards corners)
+            grid = max(1, round(90.0 / math.sqrt(area / 3.0)))
             n_guides = 6 * grid * grid * GUIDES_PER_CELL
             width = base.clf_width
             while width > 64 and width * n_guides > MAX_CLASSIFIER_WEIGHTS:

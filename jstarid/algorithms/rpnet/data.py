@@ -168,8 +168,8 @@ def make_batch(key, catalog, camera, config: Config, tables: Tables, batch_size:
     shift = None
     if config.guide_in_frame:  # the guide anywhere in the frame: a uniform pixel position
         where = jax.random.uniform(jax.random.fold_in(key, 2), (batch_size, 2),
-                                   maxval=jnp.array([camera.width, camera.height], jnp.float32))
-        shift = where - jnp.array([camera.cx, camera.cy], jnp.float32)
+                                   maxval=jnp.array([[camera.width, camera.height]], jnp.float32))
+        shift = where - jnp.array([[camera.cx, camera.cy]], jnp.float32)
     noisy = scene_training_inputs(scenes.xy, scenes.valid, scenes.truth, jnp.asarray(rows, jnp.int32),
                                   shift, camera=camera, **config_kwargs(config))
     return Batch(noisy=noisy, clean=tables.clean[label], label=label, family=jnp.asarray(fam))
