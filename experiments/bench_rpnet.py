@@ -9,7 +9,8 @@ Rows (``benchmark``, ``scenes_per_s``, ``compile_s``, ``peak_rss_mb`` and detail
 
 * ``rpnet``: ``rpnet.identify`` on mode-(b) ``rpnet2019`` scenes (guide star at the boresight, position
   σ 0.5 px; with ``--camera narrow_twin``: random attitudes, the noise and 128 detections of
-  ``experiments/narrow_twin.py``, Hipparcos to V 10, ``Config.for_camera``), median of ``repeats`` timed calls after a first (compiling) call; compile time is the
+  ``experiments/narrow_twin.py``, Hipparcos to V 10, ``Config.for_camera``), median of ``repeats``
+  timed calls after a first (compiling) call; compile time is the
   first call minus the steady call; a batch below 4,096 is raised to 4,096 and the row says so.
   ``network_scenes_per_s`` times the network part alone (three inputs → logits → top-3) for
   reference. With ``--precision both`` the row is measured twice, as ``rpnet_bf16`` and
@@ -75,6 +76,11 @@ def make_config(args) -> rpnet.Config:
     return ex.with_overrides(base, args.set)
 
 
+def position_sigma(args) -> float:
+    """The rpnet2019 rows' centroid noise (px)."""
+    return 0.5 if args.position_sigma is None else args.position_sigma
+
+
 def draw_scenes(key, rows, catalog, camera, args, batch: int):
     """One timed batch: mode (b) on the guide ``rows`` (rpnet2019), random attitudes (narrow twin)."""
     if args.camera == "narrow_twin":
@@ -83,7 +89,7 @@ def draw_scenes(key, rows, catalog, camera, args, batch: int):
             noise["position_sigma_px"] = args.position_sigma
         return js.simulate(key, catalog, camera, js.NoiseConfig(**noise), batch_size=batch,
                            capacity=twin.CAPACITY)
-    sigma = 0.5 if args.position_sigma is None else args.position_sigma
+    sigma = position_sigma(args)
     return js.simulate(key, catalog, camera, js.NoiseConfig(position_sigma_px=sigma), capacity=96,
                        boresight_ids=rows)
 
@@ -115,7 +121,7 @@ def bench_identify(db, catalog, camera, cfg, args, batch: int, note: str, name: 
         "benchmark": name, "camera": camera.name, "network_bf16": use_bf16(cfg.network_bf16),
         "config": args.network, "batch": batch, "batch_note": note,
         "noise": (f"the twin's ({twin.NOISE}), random attitudes" if args.camera == "narrow_twin" else
-                  f"pos {0.5 if args.position_sigma is None else args.position_sigma} px, guide at boresight"),
+                  f"pos {position_sigma(args)} px, guide at boresight"),
         "scenes_per_s": round(batch / steady), "compile_s": round(max(first - steady, 0.0), 2),
         "peak_rss_mb": round(ex.peak_rss_mb()), "backend": jax.default_backend(),
         "batch_chunk": cfg.batch_chunk, "seconds_per_batch": round(steady, 3),
@@ -197,7 +203,8 @@ def run(args) -> list[dict]:
         batch = MIN_BATCH
     cfg = make_config(args)
     camera = js.camera_preset(args.camera)
-    catalog = js.load_catalog(twin.MAG_LIMIT) if args.camera == "narrow_twin" else rpnet.load_guide_catalog(cfg)
+    twin_camera = args.camera == "narrow_twin"
+    catalog = js.load_catalog(twin.MAG_LIMIT) if twin_camera else rpnet.load_guide_catalog(cfg)
     db = rpnet.build_database(catalog, camera, cfg, progress=False)
     if args.precision == "both":
         variants = [(dataclasses.replace(cfg, network_bf16=bf16), "rpnet_bf16" if bf16 else "rpnet_f32")
@@ -221,7 +228,8 @@ def main(argv=None) -> list[dict]:
     print(json.dumps(rows, indent=1))
     ex.dump_json(args.json, rows)
     ex.write(args.out, config={"args": vars(args), "rpnet_config": make_config(args)}, results={"rows": rows},
-             table=ex.markdown_table(rows, COLUMNS, title=f"RpNet throughput (`{args.network}` network, {args.camera})"))
+             table=ex.markdown_table(rows, COLUMNS,
+                                     title=f"RpNet throughput (`{args.network}` network, {args.camera})"))
     return rows
 
 

@@ -174,10 +174,11 @@ def test_search_focal_in_one_call_keeps_the_first_factor_that_solves(world, monk
         ids = np.where(ok[:, None], truth[rows], -1)
         ids = np.where((factor[:, None] == 0.98) & (ids >= 0), ids + 1000, ids)
         calls.append(len(rows))
-        return js.Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok),
-                                 attitude=jnp.asarray(np.broadcast_to(factor[:, None, None], (len(rows), 3, 3))))
+        att = np.broadcast_to(factor[:, None, None], (len(rows), 3, 3))
+        return js.Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=jnp.asarray(att))
 
-    first = js.Identification(ids=jnp.full(truth.shape, -1), ok=jnp.array([True, False, True, False, True, False]),
+    first = js.Identification(ids=jnp.full(truth.shape, -1),
+                              ok=jnp.array([True, False, True, False, True, False]),
                               attitude=jnp.full((6, 3, 3), np.nan))
     results = []
     for few in (64, 0):  # one call, then one call per factor

@@ -284,7 +284,8 @@ def test_guide_in_frame_drops_the_neighbours_the_frame_cuts(tiny, clean_scenes):
     vec = cam.unproject(s.xy)
     guide = cam.unproject(jnp.array([cam.cx, cam.cy], jnp.float32))
     xy = np.asarray(s.xy) + np.asarray(shift)[:, None, :]
-    inside = (xy[..., 0] >= 0) & (xy[..., 0] <= cam.width - 1) & (xy[..., 1] >= 0) & (xy[..., 1] <= cam.height - 1)
+    inside = ((xy[..., 0] >= 0) & (xy[..., 0] <= cam.width - 1)
+              & (xy[..., 1] >= 0) & (xy[..., 1] <= cam.height - 1))
     cut = 0
     for b in range(8):
         mask = np.asarray(s.valid[b]) & (np.asarray(s.truth[b]) != db.guide_rows[b]) & inside[b]
