@@ -1,5 +1,6 @@
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -188,7 +189,11 @@ def test_batch_equals_per_scene(catalog6, sgm_camera, narrow):
     # Rebuild the per-scene inputs exactly as `simulate` does and call the per-scene function.
     from jstarid.sky_index import _MEMO
 
-    index = [v for k, v in _MEMO.items() if k[0].startswith(catalog6.fingerprint)][-1]
+    # the index simulate built for this catalog and this camera's field (other tests may have
+    # memoised indexes of the same catalog for other cameras)
+    faint_cut = camera.mag_limit + math.ceil(55.0 * 0.2) / 10.0  # as simulate's, for σ_m = 0.2
+    (index,) = [v for k, v in _MEMO.items() if k[0] == f"{catalog6.fingerprint}-sim-{faint_cut:.1f}"
+                and k[1] == round(camera.half_diagonal_rad, 9)]
     tables = sim_module._device_tables(catalog6)
     keys = jax.random.split(key, n_batch)
     per = noise.broadcast(n_batch)
