@@ -116,6 +116,9 @@ def test_for_camera_gives_a_narrow_field_guides_per_sky_cell():
     # the classifier keeps about the published size: 2 guides in each of 6 G² cells
     n_guides = 12 * cfg.guide_cell_grid ** 2
     assert cfg.clf_width * n_guides <= 3_200_000 < 2 * cfg.clf_width * n_guides
+    # a 2° field keeps the guide list bounded
+    tiny_field = rpnet.Config.for_camera(js.Camera.from_fov(4096, 3072, 2.0, mag_limit=10.0))
+    assert tiny_field.guide_cell_grid == 32 and tiny_field.guides_per_cell == 2
     assert cfg.training.sim_capacity == 128 and cfg.training.dae_steps == rpnet.Training.quick().dae_steps
     assert {"guides_per_cell", "guide_cell_grid", "guide_in_frame"} <= set(cfg.database_fields())
     with pytest.raises(ValueError, match="guide_order"):

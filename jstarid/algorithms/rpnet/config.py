@@ -35,9 +35,14 @@ GUIDES_PER_CELL = 2
 NARROW_GUIDE_TRIPLES = 4
 #: Detections simulated per training scene for a camera with per-cell guides (brightest first).
 DEEP_SIM_CAPACITY = 128
-#: Largest classifier layer (hidden width × classes) :meth:`Config.for_camera` keeps; a larger
-#: guide list halves the hidden width so that training keeps its cost (quick: ≈ 5 minutes).
+#: Largest classifier layer (hidden width × classes) :meth:`Config.for_camera` keeps, ≈ 1.25 × the
+#: published 512 × 5,044; a longer guide list halves the hidden width until it fits, so that
+#: training keeps its cost (quick: ≈ 5 minutes on 2 cores). On the narrow twin a width of 128
+#: instead of 256 trained no faster (5 min 23 s against 5 min 11 s) to 77.9 % instead of 81.9 %.
 MAX_CLASSIFIER_WEIGHTS = 3_200_000
+#: Finest cell grid for per-cell guides (cells per cube-face side): at most 6 · 32² · 2 = 12,288
+#: guides, whatever the field (a 2° field would otherwise ask for ≈ 97,000).
+MAX_GUIDE_CELL_GRID = 32
 
 
 class Tuning(NamedTuple):
@@ -384,7 +389,7 @@ class Config:
         narrow = PAPER_GUIDE_DENSITY * area < MIN_GUIDES_PER_FRAME
         if narrow:
             # a cube face spans 90° at its centre: cells there ≈ area / 3 (smaller towards corners)
-            grid = max(1, round(90.0 / math.sqrt(area / 3.0)))
+            grid = min(MAX_GUIDE_CELL_GRID, max(1, round(90.0 / math.sqrt(area / 3.0))))
             n_guides = 6 * grid * grid * GUIDES_PER_CELL
             width = base.clf_width
             while width > 64 and width * n_guides > MAX_CLASSIFIER_WEIGHTS:
