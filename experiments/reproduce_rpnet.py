@@ -78,7 +78,7 @@ def run_sweep(name, seed, catalog, camera, db, cfg, n, capacity, sim_catalog=Non
     for start in range(0, scenes.batch_size, cfg.batch_chunk):
         part = scenes[start:start + cfg.batch_chunk]
         near, _, cls = network_candidates(part.xy, part.valid, db.inference_weights, camera=camera,
-                                          config=cfg, n_classes=db.n_classes)
+                                          config=cfg, n_classes=db.n_classes, mag=part.mag)
         s1 = np.asarray(near)[:, 0]
         truth = np.take_along_axis(np.asarray(part.truth), s1[:, None], 1)[:, 0]
         top1.append(np.asarray(db.guide_rows)[np.asarray(cls)[:, 0, 0]] == truth)

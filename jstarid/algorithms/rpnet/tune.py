@@ -86,7 +86,7 @@ def pair_tables(database, scenes, config: Config | None = None) -> dict[str, np.
     for start in range(0, scenes.batch_size, chunk):
         part = scenes[start:start + chunk]
         near, probs, cls = network_candidates(part.xy, part.valid, database.inference_weights, camera=camera,
-                                              config=config, n_classes=database.n_classes)
+                                              config=config, n_classes=database.n_classes, mag=part.mag)
         ok, correct, top = _tables_chunk(part.xy, part.valid, part.truth, near, cls, guide_rows,
                                          database.star_vectors, config.tuning().pair_tol_px,
                                          camera=camera)
