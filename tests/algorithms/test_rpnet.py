@@ -145,7 +145,7 @@ def test_brightest_per_cell_matches_a_plain_loop(grid, per_cell):
             want.append(r)
         count[c] = count.get(c, 0) + 1
     np.testing.assert_array_equal(kept, want)
-    assert len(count) == 6 * grid * grid or per_cell * len(count) >= len(kept)
+    assert len(count) > 6 and len(kept) < len(rows)  # many cells, and some stars thinned out
 
 
 def test_initial_input_hand_made():
