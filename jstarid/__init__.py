@@ -23,7 +23,7 @@ from jstarid.engine import load as load_sweep
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.runtime import use_cpu_cores
 from jstarid.scene import Identification, Scene, scenes_from_centroids, undistort_scenes
-from jstarid.simulator import NoiseConfig, noise_grid, simulate
+from jstarid.simulator import NoiseConfig, SceneSampler, noise_grid, scene_sampler, simulate
 
 __version__ = "0.1.0"
 
@@ -34,7 +34,8 @@ __all__ = [
     "estimate_attitude", "evaluate", "extract_centroids", "load_camera", "load_catalog", "name_from_attitude",
     "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation", "read_image",
     "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",
-    "rotation_to_radec_roll", "save_camera", "scene_outcomes", "scenes_from_centroids", "simulate",
+    "rotation_to_radec_roll", "save_camera", "scene_outcomes", "scene_sampler", "scenes_from_centroids",
+    "SceneSampler", "simulate",
     "solve_wahba", "undistort_scenes",
     "use_cpu_cores", "v_from_hp",
 ]

@@ -34,6 +34,7 @@ import dataclasses
 import functools
 import math
 import warnings
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -46,7 +47,7 @@ from jstarid.runtime import device_cache, map_batch, map_by_width, on_every_devi
 from jstarid.scene import Scene
 from jstarid.sky_index import build_sky_index, cell_of
 
-__all__ = ["NoiseConfig", "simulate", "noise_grid"]
+__all__ = ["NoiseConfig", "SceneSampler", "noise_grid", "scene_sampler", "simulate"]
 
 
 @jax.tree_util.register_dataclass
@@ -182,10 +183,7 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         ValueError: inconsistent batch settings, a bad capacity, out-of-range noise or rows, or a
             key that is not a PRNG key.
     """
-    noise = NoiseConfig() if noise is None else noise
-    noise.validate()
-    if not isinstance(capacity, int | np.integer) or capacity < 1:
-        raise ValueError(f"capacity must be a positive integer, got {capacity!r}")
+    noise = _checked(noise, capacity)
     if boresight_ids is not None:
         rows = np.asarray(boresight_ids)
         if rows.ndim != 1 or not np.issubdtype(rows.dtype, np.integer):
@@ -200,11 +198,105 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
     if not isinstance(batch_size, int | np.integer) or batch_size < 1:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     check_key(key)
+    plan = _plan(catalog, camera, noise, batch_size=int(batch_size), capacity=int(capacity),
+                 mode_b=boresight_ids is not None)
+    rows = (jnp.zeros((batch_size,), jnp.int32) if boresight_ids is None
+            else jnp.asarray(boresight_ids, jnp.int32))
+    if shard and jax.local_device_count() > 1:
+        # both stages split over the devices, the tables placed on each device once (they are
+        # long-lived: the index is memoised, the tables kept on the catalog)
+        tables = _device_tables(catalog)
+        cat_vec = on_every_device(catalog, "simulator_catalog", lambda: tables[3])
+        replicated = (*on_every_device(plan.index, "device_arrays", plan.index.device_arrays),
+                      *on_every_device(catalog, "simulator_stars", lambda: tables[:3]))
+        first = map_batch(_attitudes_of, (_scene_keys(key, batch_size), rows), (cat_vec,),
+                          static=plan.stage1)
+        return map_batch(_stage2, (*first, plan.arrays[0]), replicated, static=plan.statics)
+    return _draw(plan.arrays, key, rows, batch_size=int(batch_size), stage1=plan.stage1,
+                 statics=plan.statics)
+
+
+class SceneSampler(NamedTuple):
+    """:func:`simulate` for one setting, its host-side work done (:func:`scene_sampler`).
+
+    Attributes:
+        arrays: the device arrays a draw reads (broadcast noise, sky index, star tables): a pytree.
+        draw: ``draw(arrays, key, rows) -> Scene``, pure and traceable; pass ``arrays`` as an
+            argument of an enclosing ``jax.jit`` rather than closing over them (they are large).
+    """
+
+    arrays: tuple
+    draw: Callable
+
+    def __call__(self, key, rows=None) -> Scene:
+        """``draw(arrays, key, rows)``."""
+        return self.draw(self.arrays, key, rows)
+
+
+def scene_sampler(catalog, camera, noise: NoiseConfig | None = None, *, batch_size: int,
+                  capacity: int = 64, mode_b: bool = False) -> SceneSampler:
+    """The host-side work of :func:`simulate` done once, for a loop that draws many batches.
+
+    ``sampler(key, rows)`` returns the batch that
+    ``simulate(key, catalog, camera, noise, capacity=capacity, boresight_ids=rows)``
+    (``mode_b``) or ``simulate(key, …, batch_size=batch_size)`` (``rows`` ignored) returns;
+    ``sampler.draw(sampler.arrays, key, rows)`` is the same as a pure function, to be traced inside
+    a caller's ``jax.jit`` (a training step drawing its own batch: no host round trip, no
+    per-call validation).
+
+    Args:
+        catalog, camera, noise, capacity: as for :func:`simulate`.
+        batch_size: B, the batch every draw makes.
+        mode_b: each draw takes (B,) int32 catalog rows for the boresights; else random attitudes.
+
+    Returns:
+        :class:`SceneSampler`.
+
+    Raises:
+        ValueError: as :func:`simulate` for bad settings.
+    """
+    noise = _checked(noise, capacity)
+    if not isinstance(batch_size, int | np.integer) or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+    plan = _plan(catalog, camera, noise, batch_size=int(batch_size), capacity=int(capacity),
+                 mode_b=bool(mode_b))
+    return SceneSampler(plan.arrays, functools.partial(_draw, batch_size=int(batch_size),
+                                                       stage1=plan.stage1, statics=plan.statics))
+
+
+def _draw(arrays, key, rows, *, batch_size, stage1, statics):
+    noise_b, index_arrays, star_tables, cat_vec = arrays
+    if not stage1["mode_b"] or rows is None:
+        rows = jnp.zeros((batch_size,), jnp.int32)
+    seeds, att, cell = _attitudes(key, rows, cat_vec, **stage1)
+    return _stage2(seeds, att, cell, noise_b, *index_arrays, *star_tables, **statics)
+
+
+def _checked(noise: NoiseConfig | None, capacity) -> NoiseConfig:
+    """The noise (default: none), validated, and the capacity checked."""
+    noise = NoiseConfig() if noise is None else noise
+    noise.validate()
+    if not isinstance(capacity, int | np.integer) or capacity < 1:
+        raise ValueError(f"capacity must be a positive integer, got {capacity!r}")
+    return noise
+
+
+class _Plan(NamedTuple):
+    """What :func:`simulate` decides on the host for a setting: the sky index, compile-time sizes
+    and the arrays a draw reads (:class:`SceneSampler`)."""
+
+    index: object
+    stage1: dict
+    statics: dict
+    arrays: tuple
+
+
+def _plan(catalog, camera, noise: NoiseConfig, *, batch_size: int, capacity: int, mode_b: bool) -> _Plan:
     sim_limit = catalog.mag_limit + catalog.settings["sim_margin"]
     if camera.mag_limit > sim_limit + 1e-6:
         warnings.warn(f"camera limit V {camera.mag_limit} is deeper than the catalog's simulation "
                       f"list (V ≤ {sim_limit}); stars in between are missing from the scenes",
-                      stacklevel=2)
+                      stacklevel=3)
 
     margin = math.atan(1.0 / camera.f_px)  # a pixel of slack against rounding at the border
     # Stars fainter than the limit by more than 5.5 σ_m (detection odds < 2e-8) are left out of the
@@ -216,27 +308,14 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
                             subset=subset, key=f"{catalog.fingerprint}-sim-{faint_cut:.1f}")
     tables = _device_tables(catalog)
     statics = dict(
-        camera=camera, capacity=int(capacity),
-        false_capacity=_false_capacity(noise, int(capacity)),
+        camera=camera, capacity=capacity,
+        false_capacity=_false_capacity(noise, capacity),
         max_missing=int(np.max(np.asarray(noise.n_missing))),
         false_disk=bool(np.any(np.isfinite(np.asarray(noise.false_radius_px)))),
+        n_candidates=index.capacity,
     )
-    rows = (jnp.zeros((batch_size,), jnp.int32) if boresight_ids is None
-            else jnp.asarray(boresight_ids, jnp.int32))
-    noise_b = noise.broadcast(batch_size)
-    statics["n_candidates"] = index.capacity
-    stage1 = dict(grid=index.grid, mode_b=boresight_ids is not None)
-    if shard and jax.local_device_count() > 1:
-        # both stages split over the devices, the tables placed on each device once (they are
-        # long-lived: the index is memoised, the tables kept on the catalog)
-        cat_vec = on_every_device(catalog, "simulator_catalog", lambda: tables[3])
-        replicated = (*on_every_device(index, "device_arrays", index.device_arrays),
-                      *on_every_device(catalog, "simulator_stars", lambda: tables[:3]))
-        first = map_batch(_attitudes_of, (_scene_keys(key, batch_size), rows), (cat_vec,),
-                          static=stage1)
-        return map_batch(_stage2, (*first, noise_b), replicated, static=statics)
-    seeds, att, cell = _attitudes(key, rows, tables[3], **stage1)
-    return _stage2(seeds, att, cell, noise_b, *index.device_arrays(), *tables[:3], **statics)
+    arrays = (noise.broadcast(batch_size), tuple(index.device_arrays()), tuple(tables[:3]), tables[3])
+    return _Plan(index, dict(grid=index.grid, mode_b=mode_b), statics, arrays)
 
 
 def _stage2(seeds, att, cell, noise_b, cells, counts, star_vec, star_mag, star_row, *, n_candidates,

@@ -143,3 +143,44 @@ def test_relieve_drops_compiled_kernels_only_past_the_limit(monkeypatch):
     assert not js.runtime.relieve(1_000) and double._cache_size() == 1
     assert js.runtime.relieve(999) and double._cache_size() == 0
     assert memory_maps.map_limit() > 0 and memory_maps.map_count() > 0  # Linux: /proc is there
+
+
+def test_prefetch_yields_the_sequential_items_in_order():
+    from jstarid.runtime.prefetch import prefetch
+
+    key = jax.random.key(3)
+
+    def make(i):
+        return jax.random.normal(jax.random.fold_in(key, i), (4,))
+
+    got = list(prefetch(make, range(2, 9), depth=2))
+    want = [make(i) for i in range(2, 9)]
+    assert len(got) == len(want)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    assert list(prefetch(make, range(0))) == []
+
+
+def test_prefetch_raises_the_makers_error_at_its_item_and_stops_when_closed():
+    import threading
+
+    from jstarid.runtime.prefetch import prefetch
+
+    def make(i):
+        if i == 3:
+            raise KeyError("item 3")
+        return i
+
+    items = prefetch(make, range(10))
+    assert [next(items) for _ in range(3)] == [0, 1, 2]
+    with pytest.raises(KeyError, match="item 3"):
+        next(items)
+
+    made = []
+    items = prefetch(lambda i: made.append(i) or i, range(10**6), depth=1)
+    assert next(items) == 0
+    items.close()  # the consumer stops early: the thread ends, a few items made at most
+    assert not any(t.name == "jstarid-prefetch" for t in threading.enumerate())
+    assert len(made) <= 3
+    with pytest.raises(ValueError, match="depth"):
+        next(prefetch(make, range(3), depth=0))

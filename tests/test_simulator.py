@@ -306,6 +306,24 @@ def test_chunked_large_batch_equals_direct_path(catalog6, sgm_camera, monkeypatc
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
 
 
+def test_scene_sampler_draws_what_simulate_draws_also_inside_jit(catalog6, sgm_camera):
+    noise = js.NoiseConfig(position_sigma_px=np.linspace(0, 2, 12).astype(np.float32), n_false=1,
+                           magnitude_sigma=0.1)
+    key = jax.random.key(23)
+    rows = np.arange(0, 1200, 100, dtype=np.int32)
+    for mode_b, kwargs in ((True, dict(boresight_ids=rows)), (False, dict(batch_size=12))):
+        want = js.simulate(key, catalog6, sgm_camera, noise, capacity=32, **kwargs)
+        sampler = js.scene_sampler(catalog6, sgm_camera, noise, batch_size=12, capacity=32,
+                                   mode_b=mode_b)
+        eager = sampler(key, jnp.asarray(rows))
+        traced = jax.jit(sampler.draw)(sampler.arrays, key, jnp.asarray(rows))
+        for got in (eager, traced):
+            for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+                np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
+    with pytest.raises(ValueError, match="batch_size"):
+        js.scene_sampler(catalog6, sgm_camera, noise, batch_size=0)
+
+
 def test_sharded_simulation_equals_single_device(catalog6, sgm_camera, several_devices):
     noise = js.noise_grid(5, position_sigma_px=[0.0, 1.0, 2.0], n_false=1)
     key = jax.random.key(31)

@@ -39,6 +39,7 @@ import numpy as np
 import jstarid as js
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
+from jstarid.runtime import device_cache
 
 __all__ = ["Batch", "Tables", "build_tables", "family_noise", "make_batch", "scene_training_inputs"]
 
@@ -158,18 +159,39 @@ def make_batch(key, catalog, camera, config: Config, tables: Tables, batch_size:
     """
     if batch_size % 4:
         raise ValueError(f"batch_size must be a multiple of 4, got {batch_size}")
-    k_label, k_sim = jax.random.split(key)
-    n_classes = len(tables.guide_rows)
-    label = jax.random.randint(k_label, (batch_size,), 0, n_classes, dtype=jnp.int32)
-    rows = np.asarray(tables.guide_rows)[np.asarray(label)]
+    drawers = device_cache.cached(tables, "rpnet_batch_drawers", dict)  # kept while the tables live
+    setting = (catalog.fingerprint, camera, config, int(batch_size))
+    if setting not in drawers:
+        drawers[setting] = _batch_drawer(catalog, camera, config, tables, int(batch_size))
+    draw, arrays = drawers[setting]
+    return draw(arrays, key)
+
+
+def _batch_drawer(catalog, camera, config: Config, tables: Tables, batch_size: int):
+    """``(draw, arrays)``: ``draw(arrays, key)`` is the whole batch as one compiled call (labels,
+    scenes, inputs), so a training loop dispatches one call per step and never waits on the host;
+    the tables travel as arguments, not as constants folded into the program."""
     noise, fam = family_noise(batch_size, camera, config)
-    scenes = js.simulate(k_sim, catalog, camera, noise, capacity=config.training.sim_capacity,
-                         boresight_ids=rows)
-    shift = None
-    if config.guide_in_frame:  # the guide anywhere in the frame: a uniform pixel position
-        where = jax.random.uniform(jax.random.fold_in(key, 2), (batch_size, 2),
-                                   maxval=jnp.array([[camera.width, camera.height]], jnp.float32))
-        shift = where - jnp.array([[camera.cx, camera.cy]], jnp.float32)
-    noisy = scene_training_inputs(scenes.xy, scenes.valid, scenes.truth, jnp.asarray(rows, jnp.int32),
-                                  shift, camera=camera, **config_kwargs(config))
-    return Batch(noisy=noisy, clean=tables.clean[label], label=label, family=jnp.asarray(fam))
+    sampler = js.scene_sampler(catalog, camera, noise, batch_size=batch_size,
+                               capacity=config.training.sim_capacity, mode_b=True)
+    arrays = (sampler.arrays, jnp.asarray(tables.guide_rows, jnp.int32), tables.clean, jnp.asarray(fam))
+    size = jnp.array([[camera.width, camera.height]], jnp.float32)
+    centre = jnp.array([[camera.cx, camera.cy]], jnp.float32)
+    kw = config_kwargs(config)
+
+    @jax.jit
+    def draw(arrays, key):
+        sim_arrays, guide_rows, clean, family = arrays
+        k_label, k_sim = jax.random.split(key)
+        label = jax.random.randint(k_label, (batch_size,), 0, guide_rows.shape[0], dtype=jnp.int32)
+        rows = guide_rows[label]
+        scenes = sampler.draw(sim_arrays, k_sim, rows)
+        shift = None
+        if config.guide_in_frame:  # the guide anywhere in the frame: a uniform pixel position
+            where = jax.random.uniform(jax.random.fold_in(key, 2), (batch_size, 2), maxval=size)
+            shift = where - centre
+        noisy = scene_training_inputs(scenes.xy, scenes.valid, scenes.truth, rows, shift,
+                                      camera=camera, **kw)
+        return Batch(noisy=noisy, clean=clean[label], label=label, family=family)
+
+    return draw, arrays

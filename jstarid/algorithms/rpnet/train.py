@@ -14,6 +14,7 @@ network-shaping config, guide list) that every checkpoint and snapshot carries (
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
@@ -37,6 +38,7 @@ from jstarid.algorithms.rpnet.model import (
     l2_penalty,
     mse_loss,
 )
+from jstarid.runtime.prefetch import prefetch
 
 __all__ = ["batch_source", "checkpoint_meta", "clf_learning_rate", "clf_loss_fn", "dae_loss_fn",
            "init_variables", "predict_logits", "train"]
@@ -220,17 +222,18 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
     dae_step, dae_eval = _make_dae_step(config, n_classes, tx_dae)
     bar = tqdm(range(start, dae_steps), desc="RpNet stage 1 (DAE)", disable=not progress, initial=start,
                total=dae_steps)
-    for s in bar:
-        batch = next_batch(k_dae, s)
-        dae_params, opt_state, mse = dae_step(dae_params, opt_state, batch.noisy, batch.clean)
-        history["dae_loss"].append(float(mse))
-        if (s + 1) % t.eval_every == 0 or s + 1 == dae_steps:
-            ev = float(dae_eval(dae_params, held_out.noisy, held_out.clean))
-            history["dae_eval"].append((s + 1, ev))
-            bar.set_postfix(mse=f"{history['dae_loss'][-1]:.4f}", held_out=f"{ev:.4f}")
-        if (s + 1) % snapshot_every == 0 and s + 1 < dae_steps:
-            variables = {**variables, **dae_params}
-            snapshot(1, s + 1, opt_state)
+    batches = prefetch(functools.partial(next_batch, k_dae), range(start, dae_steps))
+    with contextlib.closing(batches):
+        for s, batch in zip(bar, batches, strict=True):
+            dae_params, opt_state, mse = dae_step(dae_params, opt_state, batch.noisy, batch.clean)
+            history["dae_loss"].append(float(mse))
+            if (s + 1) % t.eval_every == 0 or s + 1 == dae_steps:
+                ev = float(dae_eval(dae_params, held_out.noisy, held_out.clean))
+                history["dae_eval"].append((s + 1, ev))
+                bar.set_postfix(mse=f"{history['dae_loss'][-1]:.4f}", held_out=f"{ev:.4f}")
+            if (s + 1) % snapshot_every == 0 and s + 1 < dae_steps:
+                variables = {**variables, **dae_params}
+                snapshot(1, s + 1, opt_state)
     variables = {**variables, **dae_params}
 
     # Stage 2: classifier on frozen generator codes (eq. 6).
@@ -247,21 +250,22 @@ def train(catalog, camera, config: Config, guide_rows, *, progress: bool = True,
             snapshot(2, 0, opt_state, best)  # stage 1 is safe from here on
     bar = tqdm(range(start, clf_steps), desc="RpNet stage 2 (classifier)", disable=not progress,
                initial=start, total=clf_steps)
-    for s in bar:
-        batch = next_batch(k_clf, s)
-        clf_params, batch_stats, opt_state, ce = clf_step(clf_params, batch_stats, opt_state,
-                                                         variables["generator"], batch.noisy, batch.label)
-        history["clf_loss"].append(float(ce))
-        if (s + 1) % t.eval_every == 0 or s + 1 == clf_steps:
-            current = {"params": clf_params, "batch_stats": batch_stats}
-            acc, per_family = _accuracy({**variables, "classifier": current}, held_out, config, n_classes)
-            history["clf_eval"].append((s + 1, acc, per_family))
-            if acc > best[0] or not t.early_stop:
-                best = (acc, current)
-            bar.set_postfix(ce=f"{history['clf_loss'][-1]:.3f}", held_out_acc=f"{acc:.3f}")
-        if (s + 1) % snapshot_every == 0 and s + 1 < clf_steps:
-            variables = {**variables, "classifier": {"params": clf_params, "batch_stats": batch_stats}}
-            snapshot(2, s + 1, opt_state, best)
+    batches = prefetch(functools.partial(next_batch, k_clf), range(start, clf_steps))
+    with contextlib.closing(batches):
+        for s, batch in zip(bar, batches, strict=True):
+            clf_params, batch_stats, opt_state, ce = clf_step(clf_params, batch_stats, opt_state,
+                                                             variables["generator"], batch.noisy, batch.label)
+            history["clf_loss"].append(float(ce))
+            if (s + 1) % t.eval_every == 0 or s + 1 == clf_steps:
+                current = {"params": clf_params, "batch_stats": batch_stats}
+                acc, per_family = _accuracy({**variables, "classifier": current}, held_out, config, n_classes)
+                history["clf_eval"].append((s + 1, acc, per_family))
+                if acc > best[0] or not t.early_stop:
+                    best = (acc, current)
+                bar.set_postfix(ce=f"{history['clf_loss'][-1]:.3f}", held_out_acc=f"{acc:.3f}")
+            if (s + 1) % snapshot_every == 0 and s + 1 < clf_steps:
+                variables = {**variables, "classifier": {"params": clf_params, "batch_stats": batch_stats}}
+                snapshot(2, s + 1, opt_state, best)
     if clf_steps == 0:
         best = (-1.0, {"params": clf_params, "batch_stats": batch_stats})
     variables = {**variables, "classifier": best[1]}
