@@ -208,3 +208,18 @@ def test_tune_rpnet_training_tiny(tmp_path):
     assert len(rows) == 2 and {r["dae_lr"] for r in rows} == {1e-3, 3e-3}
     assert all(r["end_to_end"]["misid_rate"] == 0.0 for r in rows)
     assert (tmp_path / "held_out.png").exists() and "| identified % |" in (tmp_path / "table.md").read_text()
+
+
+@pytest.mark.slow
+def test_camera_range_measures_a_build_in_its_own_process(tmp_path):
+    """One build through ``jstarid train`` in a fresh process: its first line, peak and cache bytes."""
+    mod = _load("camera_range")
+    mod.main(["--algorithms", "sgm", "--only", "2deg_512", "--out", str(tmp_path)])
+    res = json.loads((tmp_path / "results.json").read_text())
+    (rec,) = res["records"]
+    assert rec["camera"] == "2deg_512" and rec["returncode"] == 0, rec
+    assert rec["first_line"].startswith("Building SGM") and 50 < rec["peak_mb"] < 4000
+    assert 0 < rec["cache_mb"] < 100
+    assert "| built |" in (tmp_path / "table.md").read_text()
+    assert not (tmp_path / "cache").exists()  # the build cache is the run's own, and goes
+    assert mod.cameras(mod.parse_args(["--only", "40deg_4096"]))[0][1].width == 4096

@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 from jstarid.cli.cameras import add_camera_options, camera_from_args
+from jstarid.cli.first_use import about
 from jstarid.cli.frames import algorithm_settings
 
 
@@ -48,7 +49,7 @@ def run_train(args) -> int:
               f"{catalog.mag_limit:g}); nothing to do.", flush=True)
         return 0
     if planned is not None:
-        print(f"Building {planned[0]} — about {max(planned[1], 1.0) / 60:.0f} min on 2 CPU cores.",
+        print(f"Building {planned[0]} — {about(planned[1])} on 2 CPU cores.",
               flush=True)
     t0 = time.perf_counter()
     database = module.build_database(catalog, camera, config, progress=True)

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from jstarid.cli.cameras import add_camera_options, camera_from_args
+from jstarid.cli.first_use import about
 
 DEMO_LEVELS = "0,1,2,3"
 
@@ -142,7 +143,7 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
               f"({', '.join(axes)}; camera {camera.name}).", flush=True)
         if steps:
             total = sum(s for _, s in steps) + 30  # + simulating, identifying, writing
-            print(f"First use builds: {'; '.join(t for t, _ in steps)} — about {total / 60:.0f} min in "
+            print(f"First use builds: {'; '.join(t for t, _ in steps)} — {about(total)} in "
                   "all on 2 CPU cores, once; later runs reuse them.", flush=True)
         else:
             print("Everything it needs is built and cached.", flush=True)
