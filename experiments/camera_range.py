@@ -82,7 +82,9 @@ def build(algorithm: str, camera_file: Path, cache: Path, timeout: float,
         run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
         out, code = run.stdout + run.stderr, run.returncode
     except subprocess.TimeoutExpired as err:
-        out, code = f"{err.stdout or ''}\nstopped after {timeout:.0f} s", None
+        partial = err.stdout or b""
+        partial = partial.decode(errors="replace") if isinstance(partial, bytes) else partial
+        out, code = f"{partial}\nstopped after {timeout:.0f} s", None
     seconds = time.perf_counter() - t0
     peak = [ln.split()[1] for ln in out.splitlines() if ln.startswith("PEAK_KB")]
     lines = [ln.strip() for ln in out.replace("\r", "\n").splitlines()
