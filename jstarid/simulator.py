@@ -247,7 +247,8 @@ def scene_sampler(catalog, camera, noise: NoiseConfig | None = None, *, batch_si
     Args:
         catalog, camera, noise, capacity: as for :func:`simulate`.
         batch_size: B, the batch every draw makes.
-        mode_b: each draw takes (B,) int32 catalog rows for the boresights; else random attitudes.
+        mode_b: each draw takes (B,) int32 catalog rows for the boresights (their range is not
+            checked per draw: give rows of ``catalog``); else random attitudes.
 
     Returns:
         :class:`SceneSampler`.
@@ -266,8 +267,11 @@ def scene_sampler(catalog, camera, noise: NoiseConfig | None = None, *, batch_si
 
 def _draw(arrays, key, rows, *, batch_size, stage1, statics):
     noise_b, index_arrays, star_tables, cat_vec = arrays
-    if not stage1["mode_b"] or rows is None:
+    if not stage1["mode_b"]:
         rows = jnp.zeros((batch_size,), jnp.int32)
+    elif rows is None or jnp.shape(rows) != (batch_size,):  # shapes are static: checked under jit too
+        raise ValueError(f"this sampler puts the boresights on catalog rows: give rows of shape "
+                         f"({batch_size},), got {None if rows is None else jnp.shape(rows)}")
     seeds, att, cell = _attitudes(key, rows, cat_vec, **stage1)
     return _stage2(seeds, att, cell, noise_b, *index_arrays, *star_tables, **statics)
 

@@ -1,6 +1,5 @@
 import dataclasses
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -186,14 +185,9 @@ def test_batch_equals_per_scene(catalog6, sgm_camera, narrow):
         n_stars = np.asarray(batch.n_stars)
         assert np.median(n_stars) <= 8
         check.append(int(np.argmax(n_stars)))
-    # Rebuild the per-scene inputs exactly as `simulate` does and call the per-scene function.
-    from jstarid.sky_index import _MEMO
-
-    # the index simulate built for this catalog and this camera's field (other tests may have
-    # memoised indexes of the same catalog for other cameras)
-    faint_cut = camera.mag_limit + math.ceil(55.0 * 0.2) / 10.0  # as simulate's, for σ_m = 0.2
-    (index,) = [v for k, v in _MEMO.items() if k[0] == f"{catalog6.fingerprint}-sim-{faint_cut:.1f}"
-                and k[1] == round(camera.half_diagonal_rad, 9)]
+    # Rebuild the per-scene inputs exactly as `simulate` does (its own plan: the sky index it
+    # chose for this camera and noise) and call the per-scene function.
+    index = sim_module._plan(catalog6, camera, noise, batch_size=n_batch, capacity=64, mode_b=False).index
     tables = sim_module._device_tables(catalog6)
     keys = jax.random.split(key, n_batch)
     per = noise.broadcast(n_batch)
@@ -322,6 +316,11 @@ def test_scene_sampler_draws_what_simulate_draws_also_inside_jit(catalog6, sgm_c
                 np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
     with pytest.raises(ValueError, match="batch_size"):
         js.scene_sampler(catalog6, sgm_camera, noise, batch_size=0)
+    sampler = js.scene_sampler(catalog6, sgm_camera, noise, batch_size=12, mode_b=True)
+    with pytest.raises(ValueError, match="rows"):  # a mode-b sampler needs its boresight rows
+        sampler(key)
+    with pytest.raises(ValueError, match="rows"):
+        sampler(key, jnp.zeros((5,), jnp.int32))
 
 
 def test_sharded_simulation_equals_single_device(catalog6, sgm_camera, several_devices):
