@@ -45,6 +45,8 @@ def parse_args(argv=None):
                    help="a camera file to add to the corners (repeatable)")
     p.add_argument("--only", default=None, help="comma-separated corner names to keep (e.g. 2deg_512)")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds before a build is stopped")
+    p.add_argument("--keep-cache", action="store_true",
+                   help="keep what the builds wrote (OUT/cache), e.g. to identify with the networks")
     return p.parse_args(argv)
 
 
@@ -129,7 +131,8 @@ def main(argv=None):
             print(f"  {outcome(rec)}; {rec['seconds']} s, peak {rec['peak_mb']} MB, cache "
                   f"{rec['cache_mb']} MB", flush=True)
             records.append(rec)
-    shutil.rmtree(cache, ignore_errors=True)
+    if not args.keep_cache:
+        shutil.rmtree(cache, ignore_errors=True)
     rows = ["| camera | field | px | V ≤ | algorithm | outcome | what it said first | s | peak MB "
             "| cache MB |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in records:

@@ -99,6 +99,14 @@ def test_for_camera_keeps_the_paper_values_and_fits_the_pattern_to_the_field():
     assert cfg.training == rpnet.Training.quick() and cfg.match_tol_px == rpnet.Config().match_tol_px
     assert js.engine.default_config("rpnet", camera=cam) == cfg
     assert js.engine.default_config("rpnet") == rpnet.Config.quick()
+    assert not cfg.crop_training_frame  # a field inside the papers' range
+    # a field wider than the papers' simulates its training scenes about the pattern circle only
+    wide = rpnet.Config.for_camera(js.Camera.from_fov(512, 512, 40.0))
+    assert wide.crop_training_frame and wide.rho_deg == 6.0
+    assert "crop_training_frame" in wide.database_fields()
+    # a fine pixel scale: the bin follows it, but the input stays at most 2 × 256 long
+    fine = rpnet.Config.for_camera(js.Camera.from_fov(4096, 4096, 40.0))
+    assert fine.n_bins == rpnet.config.MAX_INPUT_BINS and fine.e_deg == pytest.approx(6.0 / 256)
     # the extensions stay out of the cache key when off: published networks keep their checkpoints
     assert set(rpnet.Config().database_fields()) == {"rho_deg", "m", "e_deg", "guide_mag_limit",
                                                      "guide_min_sep_deg", "gen_widths", "clf_width",
@@ -302,6 +310,33 @@ def test_guide_in_frame_drops_the_neighbours_the_frame_cuts(tiny, clean_scenes):
     plain = data.make_batch(jax.random.key(3), tiny[0], cam, cfg, tables, 64)
     np.testing.assert_array_equal(np.asarray(batch.label), np.asarray(plain.label))
     assert np.asarray(batch.noisy).sum() < np.asarray(plain.noisy).sum()  # fewer neighbours counted
+
+
+def test_cropped_training_frame_gives_the_inputs_of_the_whole_frame(tiny, clean_scenes):
+    """Noise-free scenes in the pattern-circle crop give the same inputs as in the whole frame."""
+    cat, cam, cfg, db, tables = tiny
+    crop_cfg = dataclasses.replace(cfg, crop_training_frame=True)
+    crop = data.training_camera(cam, crop_cfg)
+    half = math.ceil(cam.f_px * math.tan(math.radians(cfg.rho_deg))) + data.CROP_MARGIN_PX
+    assert (crop.width, crop.height, crop.cx, crop.cy, crop.f_px) == (2 * half + 1, 2 * half + 1, half,
+                                                                     half, cam.f_px)
+    assert crop.width < cam.width and data.training_camera(cam, cfg) is cam
+    kw = pattern.config_kwargs(cfg)
+    rows = jnp.asarray(db.guide_rows)
+    cropped = js.simulate(jax.random.key(11), cat, crop, js.NoiseConfig(), capacity=48,
+                          boresight_ids=np.asarray(db.guide_rows))
+    assert not np.any(np.asarray(cropped.overflow)) and not np.any(np.asarray(clean_scenes.overflow))
+    assert np.asarray(cropped.valid).sum() < np.asarray(clean_scenes.valid).sum()  # fewer stars drawn
+    got = np.asarray(data.scene_training_inputs(cropped.xy, cropped.valid, cropped.truth, rows,
+                                                camera=crop, **kw))
+    whole = np.asarray(data.scene_training_inputs(clean_scenes.xy, clean_scenes.valid, clean_scenes.truth,
+                                                  rows, camera=cam, **kw))
+    diff = np.abs(got - whole).sum(1)
+    assert np.mean(diff == 0) > 0.98 and diff.max() <= 2  # a distance on a bin edge may round over
+    batch = data.make_batch(jax.random.key(3), cat, cam, crop_cfg, tables, 64)
+    assert batch.noisy.shape == (64, cfg.input_size)
+    with pytest.raises(ValueError, match="crop_training_frame"):
+        dataclasses.replace(cfg, crop_training_frame=True, guide_in_frame=True)
 
 
 def test_brightness_order_takes_the_brightest_detections_as_guides(tiny, clean_scenes):

@@ -43,6 +43,11 @@ MAX_CLASSIFIER_WEIGHTS = 3_200_000
 #: Finest cell grid for per-cell guides (cells per cube-face side): at most 6 · 32² · 2 = 12,288
 #: guides, whatever the field (a 2° field would otherwise ask for ≈ 97,000).
 MAX_GUIDE_CELL_GRID = 32
+#: Longest D_sn / D_nn (bins each) :meth:`Config.for_camera` makes: the bin follows the pixel scale,
+#: but on a fine camera (``2° × 4096 px``: 1.8″/px) that would give 571 bins and an input layer
+#: that doubles the DAE's step cost; 256 keeps the published pattern's resolution (ρ / e = 200
+#: levels of distance) and more. The papers' cameras, ``tetra3_test`` and the narrow twin are below it.
+MAX_INPUT_BINS = 256
 
 
 class Tuning(NamedTuple):
@@ -180,6 +185,12 @@ class Config:
         guide_in_frame: (extension) training puts the guide at a uniformly random position of the
             frame and drops its neighbours outside the frame (a pattern the frame cuts), instead of
             the paper's guide at the principal point with its whole circle in view.
+        crop_training_frame: (extension, wide fields) training scenes are simulated in the square
+            about the principal point that holds the pattern circle (:func:`.data.training_camera`)
+            instead of the whole frame: the pattern reads nothing beyond ρ, a 40° frame holds
+            ≈ 11 × that square's stars, and with the brightest 96 kept the whole frame's
+            faint stars fell out of the patterns. The missing-star family then removes pattern
+            neighbours, as on the paper's camera, whose frame hardly exceeds the circle.
 
     Network (Table 1, Table 2):
         gen_widths: star pattern generator widths (512, 1024): FC1 400→512, ReLU, FC2 512→1024.
@@ -264,6 +275,7 @@ class Config:
     guide_cell_grid: int = 0
     guide_order: str = "centre"
     guide_in_frame: bool = False
+    crop_training_frame: bool = False
     gen_widths: tuple[int, int] = (512, 1024)
     clf_width: int = 512
     training: Training = Training()
@@ -318,6 +330,9 @@ class Config:
         if self.guides_per_cell < 0 or (self.guides_per_cell > 0) != (self.guide_cell_grid > 0):
             raise ValueError("guides_per_cell and guide_cell_grid must both be > 0 (thinning per cell) "
                              f"or both 0, got {self.guides_per_cell} and {self.guide_cell_grid}")
+        if self.crop_training_frame and self.guide_in_frame:
+            raise ValueError("crop_training_frame needs the guide at the principal point "
+                             "(guide_in_frame=False)")
         if self.n_candidates != 3 or len(self.position_weights) != 3 or len(self.probability_weights) != 3:
             raise ValueError("the weight search uses three detections and three candidates (Table 5)")
 
@@ -365,7 +380,12 @@ class Config:
           cuts depends on the roll and on where S1–S3 sit, which the network never saw in training
           (guide at the principal point, §II-C).
         * e (eq. 3's bin) × ``pixel`` of :func:`jstarid.camera.tolerance_scales`: a bin stays
-          ≈ 2.2 px, as on the paper's camera (0.03° at 50″/px).
+          ≈ 2.2 px, as on the paper's camera (0.03° at 50″/px), but no finer than ρ /
+          :data:`MAX_INPUT_BINS` (2° × 4096 px: 4.8 px).
+        * A field wider than the papers' (``field`` of :func:`~jstarid.camera.tolerance_scales`
+          above 1: a diagonal over 35°) simulates its training scenes only about the pattern
+          circle (``crop_training_frame``): on 40° × 40° a training batch took 26 ms to draw
+          instead of 8.
 
         * A narrow field (fewer than :data:`MIN_GUIDES_PER_FRAME` of the published V ≤ 6 guides in
           a frame on average, e.g. the narrow twin's 6.1° × 4.6°: 3.4) gets guides from the whole
@@ -381,10 +401,10 @@ class Config:
         ``training=Training.quick()``).
         """
         base = cls()
-        pixel, _ = tolerance_scales(camera)
+        pixel, field = tolerance_scales(camera)
         changed = {"rho_deg": radius_that_fits(camera, base.rho_deg)}
         if pixel != 1.0:
-            changed["e_deg"] = base.e_deg * pixel
+            changed["e_deg"] = max(base.e_deg * pixel, changed["rho_deg"] / MAX_INPUT_BINS)
         area = camera.fov_x_deg * camera.fov_y_deg  # deg² (flat-sky approximation)
         narrow = PAPER_GUIDE_DENSITY * area < MIN_GUIDES_PER_FRAME
         if narrow:
@@ -397,6 +417,8 @@ class Config:
             changed.update(guide_mag_limit=float(camera.mag_limit), guides_per_cell=GUIDES_PER_CELL,
                            guide_cell_grid=grid, guide_order="brightness", guide_in_frame=True,
                            clf_width=width, n_pair_trials=1, n_guide_triples=NARROW_GUIDE_TRIPLES)
+        elif field > 1.0:
+            changed["crop_training_frame"] = True
         config = dataclasses.replace(base, **{**changed, **overrides})
         if narrow and config.training.sim_capacity < DEEP_SIM_CAPACITY:
             config = dataclasses.replace(config, training=dataclasses.replace(
@@ -419,7 +441,7 @@ class Config:
         keep = ("rho_deg", "m", "e_deg", "guide_mag_limit", "guide_min_sep_deg", "gen_widths", "clf_width")
         out = {k: getattr(self, k) for k in keep}
         # the extensions enter only when on, so that the published settings keep their cache keys
-        for name in ("guides_per_cell", "guide_cell_grid", "guide_in_frame"):
+        for name in ("guides_per_cell", "guide_cell_grid", "guide_in_frame", "crop_training_frame"):
             if getattr(self, name):
                 out[name] = getattr(self, name)
         out["training"] = dataclasses.asdict(self.training)

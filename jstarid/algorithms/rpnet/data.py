@@ -16,6 +16,9 @@ The guide S is noise-free as in the paper: the guide vector is the boresight and
 (by ``truth``) is left out of the neighbours. Departure: the missing-star family may remove S's own
 detection, which then removes one neighbour fewer than asked.
 
+Extension (``Config.crop_training_frame``, wide fields): the scenes are simulated in the square about
+the principal point that just holds the pattern circle (:func:`training_camera`), not the whole frame.
+
 Extension (``Config.guide_in_frame``, narrow fields): the guide sits at a uniform random position
 of the frame and the neighbours that position puts outside the frame are dropped from the noisy
 input, as for a guide anywhere in a real frame; the clean target keeps the whole circle.
@@ -41,9 +44,13 @@ from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.runtime import device_cache
 
-__all__ = ["Batch", "Tables", "build_tables", "family_noise", "make_batch", "scene_training_inputs"]
+__all__ = ["Batch", "Tables", "build_tables", "family_noise", "make_batch", "scene_training_inputs",
+           "training_camera"]
 
 FAMILIES = ("position", "magnitude", "missing", "false")
+#: Pixels the cropped training frame reaches past the pattern circle: a star just outside ρ that
+#: position noise (σ ≤ 1.6 px) moves inside is still simulated.
+CROP_MARGIN_PX = 8
 
 
 class Batch(NamedTuple):
@@ -98,6 +105,30 @@ def build_tables(catalog, camera, config: Config, guide_rows) -> Tables:
     clean = fn(jnp.asarray(vec[guide_rows], jnp.float32), jnp.asarray(vec[nbr], jnp.float32),
                jnp.asarray(mask))
     return Tables(guide_rows=guide_rows, clean=clean)
+
+
+def training_camera(camera, config: Config):
+    """The camera the training scenes are simulated with: ``camera`` itself, or with
+    ``config.crop_training_frame`` a square frame of the same focal length centred on the principal
+    point, just holding the pattern circle (radius f·tan ρ px, plus :data:`CROP_MARGIN_PX`). Mode (b)
+    puts the guide on the principal point, so the cropped frame holds every star the pattern can
+    read; a frame that is no wider than the square stays as it is.
+
+    Args:
+        camera: :class:`~jstarid.camera.Camera` (pinhole).
+        config: :class:`Config`.
+
+    Returns:
+        :class:`~jstarid.camera.Camera`.
+    """
+    if not config.crop_training_frame:
+        return camera
+    half = math.ceil(camera.f_px * math.tan(math.radians(config.rho_deg))) + CROP_MARGIN_PX
+    side = 2 * half + 1
+    if side >= min(camera.width, camera.height):
+        return camera
+    return dataclasses.replace(camera, width=side, height=side, cx=float(half), cy=float(half),
+                               name=f"{camera.name} (pattern crop)")
 
 
 def family_noise(batch_size: int, camera, config: Config) -> tuple[js.NoiseConfig, np.ndarray]:
@@ -171,6 +202,7 @@ def _batch_drawer(catalog, camera, config: Config, tables: Tables, batch_size: i
     """``(draw, arrays)``: ``draw(arrays, key)`` is the whole batch as one compiled call (labels,
     scenes, inputs), so a training loop dispatches one call per step and never waits on the host;
     the tables travel as arguments, not as constants folded into the program."""
+    camera = training_camera(camera, config)
     noise, fam = family_noise(batch_size, camera, config)
     sampler = js.scene_sampler(catalog, camera, noise, batch_size=batch_size,
                                capacity=config.training.sim_capacity, mode_b=True)
