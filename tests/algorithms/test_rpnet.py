@@ -99,11 +99,10 @@ def test_for_camera_keeps_the_paper_values_and_fits_the_pattern_to_the_field():
     assert cfg.training == rpnet.Training.quick() and cfg.match_tol_px == rpnet.Config().match_tol_px
     assert js.engine.default_config("rpnet", camera=cam) == cfg
     assert js.engine.default_config("rpnet") == rpnet.Config.quick()
-    assert not cfg.crop_training_frame  # a field inside the papers' range
-    # a field wider than the papers' simulates its training scenes about the pattern circle only
+    assert not cfg.sim_by_family  # a field inside the papers' range
+    # a field wider than the papers' simulates the families without magnitude noise apart
     wide = rpnet.Config.for_camera(js.Camera.from_fov(512, 512, 40.0))
-    assert wide.crop_training_frame and wide.rho_deg == 6.0
-    assert "crop_training_frame" in wide.database_fields()
+    assert wide.sim_by_family and wide.rho_deg == 6.0 and "sim_by_family" in wide.database_fields()
     # a fine pixel scale: the bin follows it, but the input stays at most 2 × 256 long
     fine = rpnet.Config.for_camera(js.Camera.from_fov(4096, 4096, 40.0))
     assert fine.n_bins == rpnet.config.MAX_INPUT_BINS and fine.e_deg == pytest.approx(6.0 / 256)
@@ -312,31 +311,23 @@ def test_guide_in_frame_drops_the_neighbours_the_frame_cuts(tiny, clean_scenes):
     assert np.asarray(batch.noisy).sum() < np.asarray(plain.noisy).sum()  # fewer neighbours counted
 
 
-def test_cropped_training_frame_gives_the_inputs_of_the_whole_frame(tiny, clean_scenes):
-    """Noise-free scenes in the pattern-circle crop give the same inputs as in the whole frame."""
-    cat, cam, cfg, db, tables = tiny
-    crop_cfg = dataclasses.replace(cfg, crop_training_frame=True)
-    crop = data.training_camera(cam, crop_cfg)
-    half = math.ceil(cam.f_px * math.tan(math.radians(cfg.rho_deg))) + data.CROP_MARGIN_PX
-    assert (crop.width, crop.height, crop.cx, crop.cy, crop.f_px) == (2 * half + 1, 2 * half + 1, half,
-                                                                     half, cam.f_px)
-    assert crop.width < cam.width and data.training_camera(cam, cfg) is cam
-    kw = pattern.config_kwargs(cfg)
-    rows = jnp.asarray(db.guide_rows)
-    cropped = js.simulate(jax.random.key(11), cat, crop, js.NoiseConfig(), capacity=48,
-                          boresight_ids=np.asarray(db.guide_rows))
-    assert not np.any(np.asarray(cropped.overflow)) and not np.any(np.asarray(clean_scenes.overflow))
-    assert np.asarray(cropped.valid).sum() < np.asarray(clean_scenes.valid).sum()  # fewer stars drawn
-    got = np.asarray(data.scene_training_inputs(cropped.xy, cropped.valid, cropped.truth, rows,
-                                                camera=crop, **kw))
-    whole = np.asarray(data.scene_training_inputs(clean_scenes.xy, clean_scenes.valid, clean_scenes.truth,
-                                                  rows, camera=cam, **kw))
-    diff = np.abs(got - whole).sum(1)
-    assert np.mean(diff == 0) > 0.98 and diff.max() <= 2  # a distance on a bin edge may round over
-    batch = data.make_batch(jax.random.key(3), cat, cam, crop_cfg, tables, 64)
-    assert batch.noisy.shape == (64, cfg.input_size)
-    with pytest.raises(ValueError, match="crop_training_frame"):
-        dataclasses.replace(cfg, crop_training_frame=True, guide_in_frame=True)
+def test_families_simulated_apart_keep_the_batch_layout(tiny):
+    """``sim_by_family``: the magnitude family from the deep list, the rest from the stars to the
+    limit, reassembled in the batch's layout: noise-free samples give the clean inputs of their own
+    labels, noisy families differ from them, as in the one-sampler batch."""
+    cat, cam, cfg, _, tables = tiny
+    quiet = dataclasses.replace(cfg.training, position_sigmas_px=(0.0,), magnitude_sigmas=(0.0,))
+    for split in (False, True):
+        c = dataclasses.replace(cfg, training=quiet, sim_by_family=split)
+        batch = data.make_batch(jax.random.key(4), cat, cam, c, tables, 128)
+        fam = np.asarray(batch.family)
+        np.testing.assert_array_equal(fam, np.arange(128) % 4)
+        same = np.all(np.asarray(batch.noisy) == np.asarray(batch.clean), axis=1)
+        assert same[fam <= 1].mean() > 0.95, split  # positions and magnitudes without noise
+        assert same[fam == 3].mean() < 0.2, split  # false stars inside ρ
+    plain = data.make_batch(jax.random.key(4), cat, cam, dataclasses.replace(cfg, training=quiet), tables,
+                            128)
+    np.testing.assert_array_equal(np.asarray(batch.label), np.asarray(plain.label))
 
 
 def test_brightness_order_takes_the_brightest_detections_as_guides(tiny, clean_scenes):

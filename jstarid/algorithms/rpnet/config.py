@@ -185,12 +185,11 @@ class Config:
         guide_in_frame: (extension) training puts the guide at a uniformly random position of the
             frame and drops its neighbours outside the frame (a pattern the frame cuts), instead of
             the paper's guide at the principal point with its whole circle in view.
-        crop_training_frame: (extension, wide fields) training scenes are simulated in the square
-            about the principal point that holds the pattern circle (:func:`.data.training_camera`)
-            instead of the whole frame: the pattern reads nothing beyond ρ, a 40° frame holds
-            ≈ 11 × that square's stars, and with the brightest 96 kept the whole frame's
-            faint stars fell out of the patterns. The missing-star family then removes pattern
-            neighbours, as on the paper's camera, whose frame hardly exceeds the circle.
+        sim_by_family: (extension, wide fields) the three noise families without magnitude noise
+            draw their scenes from the stars to the camera's limit only, the magnitude family alone
+            from the deeper simulation list (:mod:`.data`): the same scenes in distribution (a star
+            fainter than the limit is never detected without magnitude noise) at a third of the
+            candidate stars per scene (a 40° frame: 1,042 of V ≤ 7 in the median).
 
     Network (Table 1, Table 2):
         gen_widths: star pattern generator widths (512, 1024): FC1 400→512, ReLU, FC2 512→1024.
@@ -275,7 +274,7 @@ class Config:
     guide_cell_grid: int = 0
     guide_order: str = "centre"
     guide_in_frame: bool = False
-    crop_training_frame: bool = False
+    sim_by_family: bool = False
     gen_widths: tuple[int, int] = (512, 1024)
     clf_width: int = 512
     training: Training = Training()
@@ -330,9 +329,6 @@ class Config:
         if self.guides_per_cell < 0 or (self.guides_per_cell > 0) != (self.guide_cell_grid > 0):
             raise ValueError("guides_per_cell and guide_cell_grid must both be > 0 (thinning per cell) "
                              f"or both 0, got {self.guides_per_cell} and {self.guide_cell_grid}")
-        if self.crop_training_frame and self.guide_in_frame:
-            raise ValueError("crop_training_frame needs the guide at the principal point "
-                             "(guide_in_frame=False)")
         if self.n_candidates != 3 or len(self.position_weights) != 3 or len(self.probability_weights) != 3:
             raise ValueError("the weight search uses three detections and three candidates (Table 5)")
 
@@ -383,9 +379,8 @@ class Config:
           ≈ 2.2 px, as on the paper's camera (0.03° at 50″/px), but no finer than ρ /
           :data:`MAX_INPUT_BINS` (2° × 4096 px: 4.8 px).
         * A field wider than the papers' (``field`` of :func:`~jstarid.camera.tolerance_scales`
-          above 1: a diagonal over 35°) simulates its training scenes only about the pattern
-          circle (``crop_training_frame``): on 40° × 40° a training batch took 26 ms to draw
-          instead of 8.
+          above 1: a diagonal over 35°) simulates three of the four noise families from the
+          stars to its limit only (``sim_by_family``): a whole 40° frame holds many stars.
 
         * A narrow field (fewer than :data:`MIN_GUIDES_PER_FRAME` of the published V ≤ 6 guides in
           a frame on average, e.g. the narrow twin's 6.1° × 4.6°: 3.4) gets guides from the whole
@@ -418,7 +413,7 @@ class Config:
                            guide_cell_grid=grid, guide_order="brightness", guide_in_frame=True,
                            clf_width=width, n_pair_trials=1, n_guide_triples=NARROW_GUIDE_TRIPLES)
         elif field > 1.0:
-            changed["crop_training_frame"] = True
+            changed["sim_by_family"] = True
         config = dataclasses.replace(base, **{**changed, **overrides})
         if narrow and config.training.sim_capacity < DEEP_SIM_CAPACITY:
             config = dataclasses.replace(config, training=dataclasses.replace(
@@ -441,7 +436,7 @@ class Config:
         keep = ("rho_deg", "m", "e_deg", "guide_mag_limit", "guide_min_sep_deg", "gen_widths", "clf_width")
         out = {k: getattr(self, k) for k in keep}
         # the extensions enter only when on, so that the published settings keep their cache keys
-        for name in ("guides_per_cell", "guide_cell_grid", "guide_in_frame", "crop_training_frame"):
+        for name in ("guides_per_cell", "guide_cell_grid", "guide_in_frame", "sim_by_family"):
             if getattr(self, name):
                 out[name] = getattr(self, name)
         out["training"] = dataclasses.asdict(self.training)

@@ -16,8 +16,8 @@ The guide S is noise-free as in the paper: the guide vector is the boresight and
 (by ``truth``) is left out of the neighbours. Departure: the missing-star family may remove S's own
 detection, which then removes one neighbour fewer than asked.
 
-Extension (``Config.crop_training_frame``, wide fields): the scenes are simulated in the square about
-the principal point that just holds the pattern circle (:func:`training_camera`), not the whole frame.
+Extension (``Config.sim_by_family``, wide fields): the magnitude family's scenes and the other three
+families' scenes come from two samplers, the latter over the stars to the camera's limit only.
 
 Extension (``Config.guide_in_frame``, narrow fields): the guide sits at a uniform random position
 of the frame and the neighbours that position puts outside the frame are dropped from the noisy
@@ -44,13 +44,9 @@ from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.runtime import device_cache
 
-__all__ = ["Batch", "Tables", "build_tables", "family_noise", "make_batch", "scene_training_inputs",
-           "training_camera"]
+__all__ = ["Batch", "Tables", "build_tables", "family_noise", "make_batch", "scene_training_inputs"]
 
 FAMILIES = ("position", "magnitude", "missing", "false")
-#: Pixels the cropped training frame reaches past the pattern circle: a star just outside ρ that
-#: position noise (σ ≤ 1.6 px) moves inside is still simulated.
-CROP_MARGIN_PX = 8
 
 
 class Batch(NamedTuple):
@@ -105,30 +101,6 @@ def build_tables(catalog, camera, config: Config, guide_rows) -> Tables:
     clean = fn(jnp.asarray(vec[guide_rows], jnp.float32), jnp.asarray(vec[nbr], jnp.float32),
                jnp.asarray(mask))
     return Tables(guide_rows=guide_rows, clean=clean)
-
-
-def training_camera(camera, config: Config):
-    """The camera the training scenes are simulated with: ``camera`` itself, or with
-    ``config.crop_training_frame`` a square frame of the same focal length centred on the principal
-    point, just holding the pattern circle (radius f·tan ρ px, plus :data:`CROP_MARGIN_PX`). Mode (b)
-    puts the guide on the principal point, so the cropped frame holds every star the pattern can
-    read; a frame that is no wider than the square stays as it is.
-
-    Args:
-        camera: :class:`~jstarid.camera.Camera` (pinhole).
-        config: :class:`Config`.
-
-    Returns:
-        :class:`~jstarid.camera.Camera`.
-    """
-    if not config.crop_training_frame:
-        return camera
-    half = math.ceil(camera.f_px * math.tan(math.radians(config.rho_deg))) + CROP_MARGIN_PX
-    side = 2 * half + 1
-    if side >= min(camera.width, camera.height):
-        return camera
-    return dataclasses.replace(camera, width=side, height=side, cx=float(half), cy=float(half),
-                               name=f"{camera.name} (pattern crop)")
 
 
 def family_noise(batch_size: int, camera, config: Config) -> tuple[js.NoiseConfig, np.ndarray]:
@@ -202,11 +174,19 @@ def _batch_drawer(catalog, camera, config: Config, tables: Tables, batch_size: i
     """``(draw, arrays)``: ``draw(arrays, key)`` is the whole batch as one compiled call (labels,
     scenes, inputs), so a training loop dispatches one call per step and never waits on the host;
     the tables travel as arguments, not as constants folded into the program."""
-    camera = training_camera(camera, config)
     noise, fam = family_noise(batch_size, camera, config)
-    sampler = js.scene_sampler(catalog, camera, noise, batch_size=batch_size,
-                               capacity=config.training.sim_capacity, mode_b=True)
-    arrays = (sampler.arrays, jnp.asarray(tables.guide_rows, jnp.int32), tables.clean, jnp.asarray(fam))
+    capacity = config.training.sim_capacity
+    if config.sim_by_family:
+        # the magnitude family needs the stars past the limit; the others only those within it
+        # (the simulator's list stops at the limit where σ_m = 0)
+        parts = [np.nonzero(fam == 1)[0], np.nonzero(fam != 1)[0]]
+        order = np.argsort(np.concatenate(parts), kind="stable")  # back to the batch's layout
+    else:
+        parts, order = [np.arange(batch_size)], None
+    samplers = [js.scene_sampler(catalog, camera, _noise_subset(noise, idx), batch_size=len(idx),
+                                 capacity=capacity, mode_b=True) for idx in parts]
+    arrays = (tuple(s.arrays for s in samplers), jnp.asarray(tables.guide_rows, jnp.int32), tables.clean,
+              jnp.asarray(fam))
     size = jnp.array([[camera.width, camera.height]], jnp.float32)
     centre = jnp.array([[camera.cx, camera.cy]], jnp.float32)
     kw = config_kwargs(config)
@@ -217,13 +197,27 @@ def _batch_drawer(catalog, camera, config: Config, tables: Tables, batch_size: i
         k_label, k_sim = jax.random.split(key)
         label = jax.random.randint(k_label, (batch_size,), 0, guide_rows.shape[0], dtype=jnp.int32)
         rows = guide_rows[label]
-        scenes = sampler.draw(sim_arrays, k_sim, rows)
+        if order is None:
+            scenes = samplers[0].draw(sim_arrays[0], k_sim, rows)
+            xy, valid, truth = scenes.xy, scenes.valid, scenes.truth
+        else:
+            drawn = [s.draw(a, jax.random.fold_in(k_sim, i), rows[idx])
+                     for i, (s, a, idx) in enumerate(zip(samplers, sim_arrays, parts, strict=True))]
+            xy, valid, truth = (jnp.concatenate([getattr(d, f) for d in drawn])[order]
+                                for f in ("xy", "valid", "truth"))
         shift = None
         if config.guide_in_frame:  # the guide anywhere in the frame: a uniform pixel position
             where = jax.random.uniform(jax.random.fold_in(key, 2), (batch_size, 2), maxval=size)
             shift = where - centre
-        noisy = scene_training_inputs(scenes.xy, scenes.valid, scenes.truth, rows, shift,
-                                      camera=camera, **kw)
+        noisy = scene_training_inputs(xy, valid, truth, rows, shift, camera=camera, **kw)
         return Batch(noisy=noisy, clean=clean[label], label=label, family=family)
 
     return draw, arrays
+
+
+def _noise_subset(noise: js.NoiseConfig, idx) -> js.NoiseConfig:
+    """The per-sample settings of ``noise`` at the batch positions ``idx`` (scalars kept)."""
+    if len(idx) == np.size(noise.position_sigma_px):
+        return noise
+    return js.NoiseConfig(**{f.name: (np.asarray(v)[idx] if np.ndim(v) == 1 else v)
+                             for f in dataclasses.fields(noise) for v in [getattr(noise, f.name)]})
