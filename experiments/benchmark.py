@@ -2,9 +2,9 @@
 
     python experiments/benchmark.py                       # all benchmarks
     python experiments/benchmark.py --only simulate --batch 10000
-    python experiments/benchmark.py --only centroid --images 32
+    python experiments/benchmark.py --only render,centroid --images 64
 
-``simulate`` and ``centroid`` run here; ``sgm``, ``mlv`` and ``rpnet`` run
+``simulate``, ``render`` and ``centroid`` run here; ``sgm``, ``mlv`` and ``rpnet`` run
 ``experiments/bench_<name>.py`` in a subprocess each (``--batch``, ``--repeats``, ``--devices``,
 ``--seed`` and, to MLV, ``--mag-sigma`` passed on; SGM keeps its own batch of 1,000) and their rows
 join the table. Each benchmark reports compile time (first call) apart from steady-state throughput
@@ -15,6 +15,7 @@ Writes results/benchmark/{config.json, results.json, table.md}.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -33,8 +34,9 @@ SCRIPTS = ("sgm", "mlv", "rpnet")  # experiments/bench_<name>.py
 
 def parse_args(argv=None):
     p = ex.parser(__doc__.splitlines()[0], out="results/benchmark", seed=0)
-    p.add_argument("--only", default="simulate,centroid,sgm,mlv,rpnet", help="comma-separated benchmarks")
-    p.add_argument("--images", type=int, default=32, help="frames per centroid-extraction call")
+    p.add_argument("--only", default="simulate,render,centroid,sgm,mlv,rpnet",
+                   help="comma-separated benchmarks")
+    p.add_argument("--images", type=int, default=32, help="frames per render and centroid-extraction call")
     p.add_argument("--sample-stride", type=int, default=2,
                    help="CentroidConfig.sample_stride of the centroid benchmark (1: full medians)")
     p.add_argument("--batch", type=int, default=10_000,
@@ -76,27 +78,41 @@ def bench_simulate(args) -> list[dict]:
     return rows
 
 
+def bench_render(args) -> list[dict]:
+    """``js.render`` frames/s: ``--images`` frames per call of each camera, its default sensor
+    (``js.sensor_for_camera``), stars simulated to V 9 on ``tetra3_test`` (as its real frames show)."""
+    rows = []
+    for name in args.cameras.split(",") + ["tetra3_test"]:
+        cam = js.camera_preset(name)
+        deep = dataclasses.replace(cam, mag_limit=9.0) if name == "tetra3_test" else cam
+        scenes = js.simulate(jax.random.key(args.seed), js.load_catalog(deep.mag_limit), deep,
+                             batch_size=args.images, capacity=256)
+        sensor = js.sensor_for_camera(cam)
+        for shard in [False, True] if jax.device_count() > 1 else [False]:
+            def run(i, shard=shard, scenes=scenes, deep=deep, sensor=sensor):
+                return js.render(jax.random.key(i), scenes, deep, sensor, shard=shard)
+            first, steady = ex.time_call(run, args.repeats)
+            stars = round(float(np.asarray(scenes.valid).sum(1).mean()))
+            rows.append({"benchmark": "render", "camera": name, "size": f"{cam.width}x{cam.height}",
+                         "batch": args.images, "devices": jax.device_count() if shard else 1,
+                         "stars_per_frame": stars, "compile_s": round(first - steady, 2),
+                         "scenes_per_s": round(args.images / steady, 1),
+                         "peak_rss_mb": round(ex.peak_rss_mb())})
+            print(rows[-1], flush=True)
+    return rows
+
+
 def bench_centroid(args) -> list[dict]:
     """``js.extract_centroids`` images/s on ``--images`` 1024×768 frames (``tetra3_test`` size).
 
-    The frames are rendered from simulated scenes (Gaussian PSFs, sky 1000, read noise 10 counts), so
-    the benchmark needs no image files; the real test images are of the same size.
+    The frames are rendered (``js.render``, the ``tetra3_test`` sensor fitted to the real frames) from
+    scenes simulated to V 9, so the benchmark needs no image files.
     """
     cam = js.camera_preset("tetra3_test")
-    cat = js.load_catalog(7.0)
-    scenes = js.simulate(jax.random.key(args.seed), cat, cam, batch_size=args.images, capacity=64)
-    rng = np.random.default_rng(args.seed)
-    images = np.empty((args.images, cam.height, cam.width), np.float32)
-    yy, xx = np.mgrid[0:15, 0:15]
-    for i in range(args.images):
-        img = 1000.0 + rng.normal(0.0, 10.0, (cam.height + 14, cam.width + 14))
-        for (x, y), m, v in zip(np.asarray(scenes.xy[i]), np.asarray(scenes.mag[i]),
-                                np.asarray(scenes.valid[i]), strict=True):
-            if v:
-                x0, y0 = int(x), int(y)
-                psf = np.exp(-((xx - 7 - (x - x0)) ** 2 + (yy - 7 - (y - y0)) ** 2) / (2 * 0.8 ** 2))
-                img[y0:y0 + 15, x0:x0 + 15] += 10 ** (-0.4 * (m - 16.7)) * psf / psf.sum()
-        images[i] = img[7:-7, 7:-7]
+    deep = dataclasses.replace(cam, mag_limit=9.0)
+    scenes = js.simulate(jax.random.key(args.seed), js.load_catalog(9.0), deep, batch_size=args.images,
+                         capacity=256)
+    images = np.asarray(js.render(jax.random.key(args.seed + 1), scenes, deep, js.sensor_for_camera(cam)))
     rows = []
     cfg = js.CentroidConfig(sample_stride=args.sample_stride)
     for shard in [False, True] if jax.device_count() > 1 else [False]:
@@ -137,6 +153,8 @@ def main(argv=None) -> int:
             rows += bench_simulate(args)
         elif name == "centroid":
             rows += bench_centroid(args)
+        elif name == "render":
+            rows += bench_render(args)
         elif name in SCRIPTS:
             rows += bench_script(name, args)
         else:

@@ -21,6 +21,7 @@ from jstarid.completion import name_from_attitude
 from jstarid.engine import Entry, SweepResult, compare, grid, sweep
 from jstarid.engine import load as load_sweep
 from jstarid.metrics import evaluate, scene_outcomes
+from jstarid.render import SensorConfig, mean_electrons, render, sensor_for_camera
 from jstarid.runtime import use_cpu_cores
 from jstarid.scene import Identification, Scene, scenes_from_centroids, undistort_scenes
 from jstarid.simulator import NoiseConfig, SceneSampler, noise_grid, scene_sampler, simulate
@@ -29,6 +30,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Camera", "Catalog", "CentroidConfig", "Entry", "Identification", "NoiseConfig", "Scene",
+    "SensorConfig", "mean_electrons", "render", "sensor_for_camera",
     "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",
     "plotting", "runtime", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
     "estimate_attitude", "evaluate", "extract_centroids", "load_camera", "load_catalog", "name_from_attitude",
