@@ -33,6 +33,20 @@ def test_sweep_with_a_grid_and_overrides(tmp_path):
     assert config["settings"]["fixed"] == {"position_sigma_px": 2.5}
 
 
+def test_sweep_from_pixels_over_a_sensor_axis(tmp_path):
+    out = tmp_path / "pixels"
+    assert cli.main(["sweep", "--algorithms", "oracle", "--camera", "sgm2022", "--size", "256x256",
+                     "--pixels", "--axis", "exposure", "--levels", "0.0003,0.1", "--sensor",
+                     "read_noise_e=5", "--centroid", "threshold_sigma=6", "--scenes", "4",
+                     "--out", str(out), "--quiet"]) == 0
+    config = json.loads((out / "config.json").read_text())["settings"]
+    assert [s["exposure_s"] for s in config["sensors"]] == [0.0003, 0.1]
+    assert {s["read_noise_e"] for s in config["sensors"]} == {5.0}
+    assert config["centroid"]["threshold_sigma"] == 6
+    rows = json.loads((out / "results.json").read_text())["rows"]
+    assert rows[0]["identification_rate"] < rows[1]["identification_rate"] == 1.0
+
+
 def test_report_collects_saved_sweeps(tmp_path):
     demo = tmp_path / "demo"
     assert cli.main(["demo", "--algorithms", "oracle", "--scenes", "3", "--levels", "1",
@@ -67,7 +81,11 @@ def test_reproduce_quick_experiment(tmp_path, capsys):
     (["demo", "--scenes", "0"], "must be ≥ 1"),
     (["demo", "--levels", "-1"], "position_sigma_px"),
     (["demo", "--levels", "a,b"], "comma-separated numbers"),
-    (["sweep", "--axis", "wobble"], "unknown noise axis"),
+    (["sweep", "--axis", "wobble"], "unknown axis"),
+    (["sweep", "--axis", "exposure", "--levels", "0.1"], "sensor axis needs a sweep from pixels"),
+    (["sweep", "--sensor", "exposure_s=0.1"], "--sensor and --centroid need --pixels"),
+    (["sweep", "--pixels", "--sensor", "exposure=0.1"], "SensorConfig has no field 'exposure'"),
+    (["sweep", "--pixels", "--sensor", "exposure_s=-1"], "exposure_s must be a positive"),
     (["sweep", "--algorithms", "mlv,sgm", "--grid", "th1=0,1"], "exactly one algorithm"),
     (["sweep", "--set", "no_such_field=1"], "no algorithm in the run has"),
     (["demo", "--bogus"], "unrecognized arguments"),

@@ -44,7 +44,7 @@ def test_level_grid_is_the_product_first_axis_slowest():
 
 @pytest.mark.parametrize("axes, match", [
     ({}, "one or two"), ({"a": [1], "b": [1], "c": [1]}, "one or two"),
-    ({"wobble": [1]}, "unknown noise axis"), ({"position": []}, "no values"),
+    ({"wobble": [1]}, "unknown axis"), ({"position": []}, "no values"),
     ({"position": [0, 1], "position_sigma_px": [2]}, "repeat"),
 ])
 def test_level_grid_rejects_bad_axes(axes, match):
@@ -181,3 +181,69 @@ def test_an_algorithm_that_cannot_work_on_the_camera_stops_everything_first(monk
         js.sweep(published, "narrow_twin", scenes=2)
     small = js.engine.entries([js.Entry("sgm small", "sgm", sgm.Config(radius_deg=2.0))])
     js.engine.check_camera(small, js.camera_preset("narrow_twin"), js.load_catalog(6.0))  # fits
+
+
+# --- sweeps from pixels (engine.pixels) ---------------------------------------------------------------
+
+PIXEL_CAMERA = js.Camera(256, 256, 128.0 / np.tan(np.radians(10.0)), mag_limit=6.0, name="small20")
+
+
+def test_label_detections_takes_the_nearest_star_within_reach():
+    from jstarid.engine.pixels import label_detections
+
+    rng = np.random.default_rng(0)
+    stars = rng.uniform(0, 100, (3, 20, 2))
+    star_valid = np.arange(20)[None, :] < np.array([[20], [12], [0]])
+    truth = rng.integers(-1, 500, (3, 20))
+    det = np.concatenate([stars[:, :8] + rng.normal(0, 0.5, (3, 8, 2)), rng.uniform(0, 100, (3, 4, 2))], 1)
+    det_valid = np.ones((3, 12), bool)
+    det_valid[1, 10:] = False
+    got = np.asarray(label_detections(det, det_valid, stars, star_valid, truth))
+    for b in range(3):
+        for n in range(12):
+            d = np.where(star_valid[b], np.linalg.norm(det[b, n] - stars[b], axis=1), np.inf)
+            want = truth[b, np.argmin(d)] if det_valid[b, n] and d.min() <= 1.5 else -1
+            assert got[b, n] == want
+
+
+@pytest.fixture(scope="module")
+def pixel_sweep():
+    return js.sweep(["oracle"], PIXEL_CAMERA, axes={"exposure_s": [0.0003, 0.1]}, scenes=6, seed=2,
+                    pixels=True, progress=False)
+
+
+def test_sweep_from_pixels_follows_the_exposure(pixel_sweep):
+    rows = pixel_sweep.rows()
+    assert [r["exposure_s"] for r in rows] == [0.0003, 0.1]
+    # at 0.1 s every star to the limit gives ≥ 500 e⁻: the oracle names what the pixels show
+    assert rows[1]["identification_rate"] == 1.0
+    # 1.5 e⁻ at the limit: too few stars are detected
+    assert rows[0]["identification_rate"] < rows[1]["identification_rate"]
+    s = pixel_sweep.settings
+    assert s["pixels"] and [x["exposure_s"] for x in s["sensors"]] == [0.0003, 0.1]
+    assert s["sky_overflow"] == 0
+
+
+def test_sweep_from_pixels_equals_compare_on_its_scenes_and_repeats(pixel_sweep):
+    drawn = js.engine.simulate_levels(PIXEL_CAMERA, axes={"exposure_s": [0.0003, 0.1]}, scenes=6,
+                                      seed=2, pixels=True)
+    scenes = jax.device_get(drawn.scenes)
+    truth, valid = np.asarray(scenes.truth), np.asarray(scenes.valid)
+    # bright frames: most detections are catalog stars, labelled; none labelled where not valid
+    assert np.all(truth[~valid] == -1) and np.mean(truth[6:][valid[6:]] >= 0) > 0.7
+    again = js.compare(drawn.scenes, ["oracle"], drawn.catalog, drawn.camera, level_of=drawn.level_of,
+                       levels=drawn.levels, progress=False)
+    for a, b in zip(again.rows(), pixel_sweep.rows(), strict=True):
+        assert a["identification_rate"] == b["identification_rate"] and a["scenes"] == b["scenes"]
+    twice = js.engine.simulate_levels(PIXEL_CAMERA, axes={"exposure_s": [0.0003, 0.1]}, scenes=6,
+                                      seed=2, pixels=True)
+    np.testing.assert_array_equal(np.asarray(twice.scenes.xy), np.asarray(scenes.xy))
+
+
+def test_sensor_settings_need_a_sweep_from_pixels():
+    with pytest.raises(ValueError, match="sensor axis needs a sweep from pixels"):
+        js.sweep(["oracle"], PIXEL_CAMERA, axes={"exposure": [0.1]}, scenes=2, progress=False)
+    with pytest.raises(ValueError, match="for sweeps from pixels"):
+        js.sweep(["oracle"], PIXEL_CAMERA, scenes=2, sensor=js.SensorConfig(), progress=False)
+    with pytest.raises(ValueError, match="exposure_s must be a positive"):
+        js.sweep(["oracle"], PIXEL_CAMERA, axes={"exposure": [-1.0]}, scenes=2, pixels=True, progress=False)

@@ -45,12 +45,22 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
                    help="catalog depth V (default: the camera's detection limit)")
     p.add_argument("--axis", default="position",
                    help="noise axis: position (px), magnitude (mag), missing, false (stars per "
-                        "scene) or false-ratio")
+                        "scene) or false-ratio; with --pixels also a sensor axis: exposure (s), "
+                        "read-noise (e⁻), defocus (px), smear (px), psf_sigma_px, sky_e_per_s, "
+                        "dark_e_per_s, hot_pixels")
     p.add_argument("--levels", default=levels, help=f"comma-separated levels of --axis (default {levels})")
     p.add_argument("--axis2", default=None, help="a second noise axis (every combination is a level)")
     p.add_argument("--levels2", default=None, help="levels of --axis2")
     p.add_argument("--fixed", nargs="*", default=[], metavar="FIELD=VALUE",
                    help="other NoiseConfig settings for every scene, e.g. magnitude_sigma=0.3")
+    g = p.add_argument_group("from pixels (render → extract centroids → identify)")
+    g.add_argument("--pixels", action="store_true",
+                   help="render every scene into a frame (js.render, the camera's default sensor) and "
+                        "identify the centroids extracted from it, instead of simulated centroids")
+    g.add_argument("--sensor", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="SensorConfig settings with --pixels, e.g. read_noise_e=20 exposure_s=0.05")
+    g.add_argument("--centroid", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="CentroidConfig settings with --pixels, e.g. threshold_sigma=4 window_px=2")
     p.add_argument("--scenes", type=int, default=scenes, help=f"scenes per level (default {scenes})")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed of the scenes (default 0)")
     p.add_argument("--capacity", type=int, default=96,
@@ -115,9 +125,7 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     algorithms = [n.strip() for n in names.split(",") if n.strip()]
     for name in algorithms:
         js.algorithms.get(name)  # unknown names fail before anything is built
-    axes = {js.engine.axis_field(args.axis): _floats(args.levels, "--levels")}
-    if args.axis2:
-        axes[js.engine.axis_field(args.axis2)] = _floats(args.levels2 or "", "--levels2")
+    axes = _axes_of(args)
     fixed = {k: float(v) for k, v in _settings(args.fixed, "--fixed").items()}
     algorithms = _with_overrides(js.engine.entries(algorithms, rpnet_network=args.rpnet_network,
                                                    camera=camera),
@@ -127,6 +135,7 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
             raise ValueError("--grid needs exactly one algorithm in --algorithms")
         algorithms = js.grid(algorithms[0].algorithm, algorithms[0].config, **grid)
     js.engine.level_noise(js.engine.level_grid(axes), 1, fixed)  # bad levels fail here, not later
+    sensor, centroid = _pixel_options(args, camera)
     if args.scenes < 1 or args.chunk_size < 1 or args.capacity < 1:
         raise ValueError("--scenes, --chunk-size and --capacity must be ≥ 1")
     catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit)
@@ -151,7 +160,8 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     result = js.sweep(algorithms, camera, axes=axes, fixed=fixed, scenes=args.scenes, seed=args.seed,
                       catalog=catalog, capacity=args.capacity, boresight=args.boresight,
                       criterion=args.criterion, chunk_size=args.chunk_size,
-                      rpnet_network=args.rpnet_network, progress=not args.quiet)
+                      rpnet_network=args.rpnet_network, progress=not args.quiet,
+                      pixels=args.pixels, sensor=sensor, centroid=centroid)
     if jax.process_index() != 0:
         return 0
     out = result.save(args.out, title=f"jstarid {title}")
@@ -159,6 +169,32 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     print(f"wrote {out}/ (table.md, rates.png, results.json, config.json, scenes.npz) in "
           f"{time.perf_counter() - t0:.0f} s", flush=True)
     return 0
+
+
+def _pixel_options(args, camera):
+    """``(sensor, centroid)`` of ``--pixels`` from ``--sensor`` / ``--centroid`` (``None``, ``None``
+    without ``--pixels``); bad fields or values fail here, before anything is built."""
+
+    import jstarid as js
+    from jstarid.experiment import with_overrides
+
+    if not args.pixels:
+        if args.sensor or args.centroid:
+            raise ValueError("--sensor and --centroid need --pixels")
+        return None, None
+    sensor = js.sensor_for_camera(camera)
+    if args.sensor:
+        sensor = with_overrides(sensor, args.sensor)
+    return sensor, with_overrides(js.CentroidConfig(), args.centroid)
+
+
+def _axes_of(args) -> dict:
+    import jstarid as js
+
+    axes = {js.engine.axis_field(args.axis): _floats(args.levels, "--levels")}
+    if args.axis2:
+        axes[js.engine.axis_field(args.axis2)] = _floats(args.levels2 or "", "--levels2")
+    return axes
 
 
 def _with_overrides(entries, overrides: dict):

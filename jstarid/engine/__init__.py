@@ -6,6 +6,7 @@
 - :mod:`.run`: :func:`sweep` = :func:`simulate_levels` (every level in one simulate call) +
   :func:`compare` (every entry on given scenes, in memory-bounded chunks);
 - :mod:`.result`: :class:`SweepResult`, the tidy table with Wilson intervals, save and :func:`load`;
+- :mod:`.pixels`: sweeps from rendered frames (render → extract → label), sensor axes;
 - :mod:`.processes`: a process's share of the scenes and the gather, under ``jax.distributed``.
 
 Usage::
@@ -21,6 +22,7 @@ Usage::
                     axes={"position_sigma_px": [1.0, 2.5]})
 """
 
+from jstarid.engine import pixels
 from jstarid.engine.entries import Entry, check_camera, default_config, entries, grid
 from jstarid.engine.levels import AXES, axis_field, level_grid, level_noise
 from jstarid.engine.processes import initialize
@@ -29,4 +31,4 @@ from jstarid.engine.run import BORESIGHTS, Levels, compare, plan, simulate_level
 
 __all__ = ["AXES", "BORESIGHTS", "Entry", "Levels", "SweepResult", "axis_field", "check_camera", "compare",
            "default_config", "entries", "grid", "initialize", "level_grid", "level_noise", "load",
-           "plan", "simulate_levels", "sweep"]
+           "pixels", "plan", "simulate_levels", "sweep"]

@@ -1,9 +1,10 @@
 """Noise axes and their levels: what a sweep varies, as one :class:`~jstarid.NoiseConfig` batch.
 
-A sweep varies one or two :class:`~jstarid.NoiseConfig` fields (its *axes*); every combination of
-their values is a *level*, and each level gets the same number of scenes. The whole sweep is one
-(L · n,) noise batch, level-major (the scenes of level 0 first), so one ``simulate`` call draws
-every level.
+A sweep varies one or two :class:`~jstarid.NoiseConfig` fields (its *axes*; a sweep from pixels
+may also vary :class:`~jstarid.SensorConfig` fields, :data:`~jstarid.engine.pixels.SENSOR_AXES`);
+every combination of their values is a *level*, and each level gets the same number of scenes. The
+whole sweep is one (L · n,) noise batch, level-major (the scenes of level 0 first), so one
+``simulate`` call draws every level.
 """
 
 from __future__ import annotations
@@ -13,33 +14,38 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from jstarid.engine.pixels import SENSOR_AXES
 from jstarid.simulator import NoiseConfig
 
-__all__ = ["AXES", "axis_field", "level_grid", "level_noise", "level_label"]
+__all__ = ["AXES", "NOISE_AXES", "axis_field", "level_grid", "level_noise", "level_label"]
 
 # NoiseConfig field → how a figure labels it
-AXES = {
+NOISE_AXES = {
     "position_sigma_px": "position noise σ (px)",
     "magnitude_sigma": "magnitude noise σ (mag)",
     "n_missing": "missing stars per scene",
     "n_false": "false stars per scene",
     "false_ratio": "false-star ratio",
 }
+AXES = {**NOISE_AXES, **SENSOR_AXES}  # every axis a sweep may vary (sensor axes: from pixels only)
 # the short names the command line accepts
 _SHORT = {"position": "position_sigma_px", "magnitude": "magnitude_sigma", "missing": "n_missing",
           "false": "n_false", "false-ratio": "false_ratio", "false_ratio": "false_ratio"}
-_INTEGER = ("n_missing", "n_false")
+_SHORT.update({"exposure": "exposure_s", "read-noise": "read_noise_e", "defocus": "defocus_px",
+               "smear": "smear_px"})
+_INTEGER = ("n_missing", "n_false", "hot_pixels")
 
 
 def axis_field(name: str) -> str:
-    """The :class:`~jstarid.NoiseConfig` field an axis name means (``"position"`` or the field name).
+    """The field an axis name means (``"position"``, ``"exposure"`` or the field name): a
+    :class:`~jstarid.NoiseConfig` field or, for sweeps from pixels, a :class:`~jstarid.SensorConfig` one.
 
     Raises:
-        ValueError: not a noise axis (the message lists them).
+        ValueError: not an axis (the message lists them).
     """
     field = _SHORT.get(name, name)
     if field not in AXES:
-        raise ValueError(f"unknown noise axis {name!r}; choose one of "
+        raise ValueError(f"unknown axis {name!r}; choose one of "
                          f"{', '.join(sorted(set(_SHORT) | set(AXES)))}")
     return field
 
@@ -76,7 +82,7 @@ def level_noise(levels: Sequence[Mapping[str, float]], scenes_per_level: int,
         ValueError: a fixed field that is also an axis, an unknown field, or out-of-range values.
     """
     fixed = dict(fixed or {})
-    swept = set(levels[0])
+    swept = set(levels[0]) & set(NOISE_AXES)  # sensor fields are the renderer's (engine.pixels)
     clash = swept & set(fixed)
     if clash:
         raise ValueError(f"{', '.join(sorted(clash))} is both a noise axis and a fixed setting")

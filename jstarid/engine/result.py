@@ -132,6 +132,10 @@ class SweepResult:
                 "wall time per process, compilation of the shapes a level meets first included "
                 "(experiments/benchmark.py measures steady throughput); peak MB: the process's "
                 "resident peak after the algorithm ran.")
+        if s.get("pixels"):
+            note += (f" From pixels: frames rendered (sky to the camera's limit + "
+                     f"{s.get('render_depth_mag', '?')} mag) and their centroids extracted, "
+                     f"{s.get('render_extract_seconds', 0):.0f} s in all.")
         return experiment.markdown_table(rows, columns, title=title, note=note)
 
     def save(self, out: str | Path, *, title: str | None = None, figure: bool = True) -> Path:

@@ -13,12 +13,14 @@ meets first included; the entry's first call is recorded apart); scenes/s are pe
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms import get as get_algorithm
@@ -26,13 +28,16 @@ from jstarid.attitude import attitude_errors_arcsec, estimate_attitude
 from jstarid.camera import Camera
 from jstarid.camera_files import load_camera
 from jstarid.catalog import load_catalog
+from jstarid.centroid import CentroidConfig
 from jstarid.engine import processes
 from jstarid.engine.entries import Entry, check_camera
 from jstarid.engine.entries import entries as make_entries
 from jstarid.engine.levels import level_grid, level_noise
+from jstarid.engine.pixels import RENDER_DEPTH_MAG, SENSOR_AXES, default_sensor, detect_scenes, sensor_levels
 from jstarid.engine.result import SweepResult
 from jstarid.experiment import peak_rss_mb
 from jstarid.metrics import CRITERIA, scene_outcomes
+from jstarid.render import SensorConfig
 from jstarid.runtime.memory_maps import relieve
 from jstarid.scene import Identification, Scene
 from jstarid.simulator import simulate
@@ -45,6 +50,7 @@ BORESIGHTS = ("random", "stars")
 # op after its sharded pair kernels at 1,000-scene calls (seen five times, JAX 0.10.2; cause open,
 # issue 37) and never at 200-scene calls in about ten runs.
 CHUNK_SIZE = 256
+SKY_CAPACITY = 512  # stars rendered per frame in a sweep from pixels (more: the sky's overflow count)
 # what is kept per scene and entry (the table is computed from these alone)
 SCORES = {"outcome": np.int8, "n_correct": np.int16, "n_wrong": np.int16, "n_identified": np.int16,
           "boresight_err_arcsec": np.float32, "roll_err_arcsec": np.float32}
@@ -54,7 +60,8 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
           axes: Mapping[str, Sequence[float]] | None = None, fixed: Mapping | None = None,
           scenes: int = 200, seed: int = 0, catalog=None, capacity: int = 64,
           boresight: str = "random", criterion: str = "strict", chunk_size: int = CHUNK_SIZE,
-          rpnet_network: str = "quick", progress: bool = True) -> SweepResult:
+          rpnet_network: str = "quick", progress: bool = True, pixels: bool = False,
+          sensor: SensorConfig | None = None, centroid: CentroidConfig | None = None) -> SweepResult:
     """Every algorithm × every noise level on one shared, seeded set of simulated scenes.
 
     Args:
@@ -77,6 +84,11 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
         chunk_size: most scenes per ``identify`` call (bounds memory).
         rpnet_network: RpNet's network when RpNet is named (``"quick"`` or ``"table3"``).
         progress: print what is built and each algorithm's progress (stderr).
+        pixels: run from rendered frames (:mod:`~jstarid.engine.pixels`: render → extract → label →
+            identify) instead of the simulator's centroids; the axes may then vary
+            :class:`~jstarid.SensorConfig` fields (``"exposure_s"``, ``"defocus_px"``, …).
+        sensor: the sensor of a sweep from pixels (default: :func:`jstarid.sensor_for_camera`).
+        centroid: the extractor's settings of a sweep from pixels (default: ``CentroidConfig()``).
 
     Returns:
         A :class:`~jstarid.engine.result.SweepResult` (rows, per-scene outcomes, settings).
@@ -94,7 +106,7 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
     check_camera(entries, camera, catalog)
     drawn = simulate_levels(camera, axes=axes, fixed=fixed, scenes=scenes, seed=seed,
                             catalog=catalog, capacity=capacity, boresight=boresight,
-                            progress=progress)
+                            progress=progress, pixels=pixels, sensor=sensor, centroid=centroid)
     settings = {**drawn.settings, "criterion": criterion, "chunk_size": chunk_size}
     return compare(drawn.scenes, entries, drawn.catalog, drawn.camera, level_of=drawn.level_of,
                    levels=drawn.levels, criterion=criterion, chunk_size=chunk_size,
@@ -121,8 +133,12 @@ class Levels(NamedTuple):
 def simulate_levels(camera: str | Camera = "sgm2022", *,
                     axes: Mapping[str, Sequence[float]] | None = None,
                     fixed: Mapping | None = None, scenes: int = 200, seed: int = 0, catalog=None,
-                    capacity: int = 64, boresight: str = "random", progress: bool = False) -> Levels:
-    """The scenes :func:`sweep` runs on, in one ``simulate`` call (arguments as in :func:`sweep`).
+                    capacity: int = 64, boresight: str = "random", progress: bool = False,
+                    pixels: bool = False, sensor: SensorConfig | None = None,
+                    centroid: CentroidConfig | None = None) -> Levels:
+    """The scenes :func:`sweep` runs on, in one ``simulate`` call (arguments as in :func:`sweep`);
+    from pixels, the sky's scenes in that call and each level's frames rendered and extracted in
+    batched calls (:func:`~jstarid.engine.pixels.detect_scenes`).
 
     A script that measures more than the engine does (a network's top-1 accuracy, a naming
     ceiling) draws the scenes here and passes them to :func:`compare` and to its own code.
@@ -141,6 +157,7 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
         raise ValueError(f"boresight must be one of {BORESIGHTS} or catalog rows, got {boresight!r}")
     levels = level_grid(axes)
     noise = level_noise(levels, scenes, fixed)
+    sensors = _pixel_settings(levels, camera, pixels, sensor, centroid)
     catalog = load_catalog(camera.mag_limit) if catalog is None else catalog
     candidates = np.arange(len(catalog)) if candidates is None else candidates
     total = len(levels) * scenes
@@ -148,8 +165,13 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
     rows = (candidates[np.asarray(jax.random.randint(key_rows, (total,), 0, candidates.size))]
             if boresight == "stars" else None)
     t0 = time.perf_counter()
-    batch = simulate(key_scenes, catalog, camera, noise, batch_size=total, capacity=capacity,
-                     boresight_ids=rows, shard=True)
+    if pixels:
+        batch, pixel_settings = _from_pixels(key_scenes, catalog, camera, noise, rows, levels, sensors,
+                                             centroid or CentroidConfig(), scenes, capacity, progress)
+    else:
+        batch = simulate(key_scenes, catalog, camera, noise, batch_size=total, capacity=capacity,
+                         boresight_ids=rows, shard=True)
+        pixel_settings = {}
     jax.block_until_ready(batch)
     _say(progress, f"simulated {total:,} scenes ({len(levels)} levels × {scenes}) in "
                    f"{time.perf_counter() - t0:.1f} s")
@@ -160,9 +182,57 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
                          for k in levels[0]}, "levels": levels,
                 "fixed": dict(fixed or {}), "scenes_per_level": scenes, "seed": seed,
                 "capacity": capacity, "boresight": boresight,
-                "simulate_seconds": time.perf_counter() - t0}
+                "simulate_seconds": time.perf_counter() - t0, "pixels": bool(pixels), **pixel_settings}
     return Levels(batch, np.repeat(np.arange(len(levels)), scenes).astype(np.int32), levels,
                   catalog, camera, settings)
+
+
+def _pixel_settings(levels, camera, pixels, sensor, centroid):
+    """Each level's sensor for a sweep from pixels (checked before anything is simulated)."""
+    sensor_fields = sorted({k for lv in levels for k in lv if k in SENSOR_AXES})
+    if not pixels:
+        if sensor_fields:
+            raise ValueError(f"{', '.join(sensor_fields)}: a sensor axis needs a sweep from pixels "
+                             f"(pixels=True; the command line's --pixels)")
+        if sensor is not None or centroid is not None:
+            raise ValueError("sensor and centroid settings are for sweeps from pixels (pixels=True)")
+        return None
+    return sensor_levels(levels, default_sensor(camera, sensor))
+
+
+def _from_pixels(key, catalog, camera, noise, rows, levels, sensors, centroid, per_level, capacity,
+                 progress):
+    """The sweep's scenes from rendered frames: the sky to the camera's limit + RENDER_DEPTH_MAG
+    in one ``simulate`` call, then each level rendered, extracted and labelled (engine.pixels)."""
+    kept = ("double_sep_deg", "double_mode", "sim_margin", "epoch")
+    sky_catalog = load_catalog(camera.mag_limit + RENDER_DEPTH_MAG,
+                               **{k: v for k, v in catalog.settings.items() if k in kept})
+    sky_camera = dataclasses.replace(camera, mag_limit=camera.mag_limit + RENDER_DEPTH_MAG)
+    total = len(levels) * per_level
+    key_sky, key_frames = jax.random.split(key)
+    sky = simulate(key_sky, sky_catalog, sky_camera, noise,
+                   batch_size=None if rows is not None else total, capacity=SKY_CAPACITY,
+                   boresight_ids=rows, shard=True)
+    sky = jax.device_get(sky)
+    # truth in the identification catalog's rows (−1: a star it lacks, e.g. fainter than its limit)
+    deep = np.asarray(sky.truth)
+    truth = np.where(deep >= 0, catalog.row_of_hip(sky_catalog.hip[np.maximum(deep, 0)]), -1)
+    sky = dataclasses.replace(sky, truth=truth.astype(np.int32))
+    keys = jax.random.split(key_frames, total)
+    parts, seconds = [], 0.0
+    for level, sensor in enumerate(sensors):
+        at = slice(level * per_level, (level + 1) * per_level)
+        part, dt = detect_scenes(keys[at], jax.tree.map(lambda a, at=at: a[at], sky), camera, sensor,
+                                 centroid, capacity=capacity)
+        parts.append(part)
+        seconds += dt
+        _say(progress, f"rendered and extracted level {level + 1}/{len(levels)} "
+                       f"({per_level} frames, {dt:.1f} s)")
+    scenes = jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+    return scenes, {"sensors": [dataclasses.asdict(s) for s in sensors],
+                    "centroid": dataclasses.asdict(centroid), "render_depth_mag": RENDER_DEPTH_MAG,
+                    "sky_capacity": SKY_CAPACITY, "render_extract_seconds": seconds,
+                    "sky_overflow": int(np.asarray(sky.overflow).sum())}
 
 
 def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, *,
