@@ -263,7 +263,7 @@ def draw_crb(results, path):
         ax.loglog(*zip(*pts, strict=True), "o-", ms=4, label=f"extract_centroids ({name})")
     ax.set_xlabel("star SNR")
     ax.set_ylabel("x centroid error, RMS (px)")
-    ax.set_title("Centroid error against the bound (σ_PSF 0.8 px, 10 e⁻ read noise)")
+    ax.set_title("Centroid error vs the bound (PSF σ 0.8 px, read noise 10 e⁻)", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
