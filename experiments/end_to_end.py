@@ -32,6 +32,7 @@ def parse_args(argv=None):
     p.add_argument("--camera", default="tetra3_test", help="camera preset (its default sensor)")
     p.add_argument("--scenes", type=int, default=100, help="scenes per level")
     p.add_argument("--axes", nargs="+", default=list(AXES), choices=list(AXES))
+    p.add_argument("--capacity", type=int, default=64, help="brightest detections kept per frame")
     return p.parse_args(argv)
 
 
@@ -55,7 +56,7 @@ def run_axis(axis, args, algorithms, camera) -> list[dict]:
     """One axis: the pixel sweep and the matching centroid sweep, one row per level and algorithm."""
     levels = AXES[axis]
     drawn = js.engine.simulate_levels(camera, axes={axis: levels}, scenes=args.scenes, seed=args.seed,
-                                      pixels=True, progress=True)
+                                      capacity=args.capacity, pixels=True, progress=True)
     pix = js.compare(drawn.scenes, algorithms, drawn.catalog, drawn.camera, level_of=drawn.level_of,
                      levels=drawn.levels, progress=True)
     rms, n, labelled = centroid_errors(drawn.scenes, drawn.catalog, camera)
@@ -64,7 +65,7 @@ def run_axis(axis, args, algorithms, camera) -> list[dict]:
              if np.isfinite(rms[drawn.level_of == i]).any() else float("nan") for i in range(len(levels))]
     measured = sorted({s for s in sigma if np.isfinite(s)})
     cen = js.sweep(algorithms, camera, axes={"position_sigma_px": measured}, scenes=args.scenes,
-                   seed=args.seed, catalog=drawn.catalog, progress=True)
+                   seed=args.seed, catalog=drawn.catalog, capacity=args.capacity, progress=True)
     by_sigma = {(r["label"], r["position_sigma_px"]): r for r in cen.rows()}
     rows = []
     for r_pix in pix.rows():
@@ -94,7 +95,7 @@ def draw(results, path):
             sel = [r for r in rows if r["axis"] == axis and r["algorithm"] == name]
             x = [r["level"] for r in sel]
             y = np.array([r["pixels_identified"] for r in sel])
-            err = [y - [r["pixels_low"] for r in sel], [r["pixels_high"] for r in sel] - y]
+            err = np.clip([y - [r["pixels_low"] for r in sel], [r["pixels_high"] for r in sel] - y], 0, None)
             ax.errorbar(x, y, yerr=err, fmt="o-", color=f"C{k}", capsize=3, label=f"{name}: pixels")
             ax.plot(x, [np.nan if r["centroids_identified"] is None else r["centroids_identified"]
                         for r in sel], "s--", color=f"C{k}", alpha=0.7,

@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.camera import Camera
+from jstarid.geometry import precise
 from jstarid.random_streams import normals, scene_seed
 from jstarid.runtime import map_batch
 from jstarid.scene import Scene
@@ -329,7 +330,7 @@ def _mean_electrons(xy, mag, valid, hot_rows, hot_cols, *, sensor: SensorConfig,
     at = centre[:, None, :] + offsets[None, :, :]  # (N, K, 2)
     fx = _pixel_fractions(at[..., 0], lo[:, None, 0], side, sensor.psf_sigma_px)  # (N, K, side)
     fy = _pixel_fractions(at[..., 1], lo[:, None, 1], side, sensor.psf_sigma_px)
-    stamp = jnp.einsum("nky,nkx->nyx", fy, fx) * (electrons / offsets.shape[0])[:, None, None]
+    stamp = precise.einsum("nky,nkx->nyx", fy, fx) * (electrons / offsets.shape[0])[:, None, None]
     rows = (lo[:, 1, None] + jnp.arange(side)[None, :]).astype(jnp.int32)  # (N, side)
     cols = (lo[:, 0, None] + jnp.arange(side)[None, :]).astype(jnp.int32)
     # 3. background: sky × vignetting + dark current, hot pixels

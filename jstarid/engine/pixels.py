@@ -40,7 +40,7 @@ SENSOR_AXES = {
     "hot_pixels": "hot pixels",
 }
 RENDER_DEPTH_MAG = 1.5  # stars rendered to the camera's limit + this (the generic sensor: 125 e⁻)
-MATCH_PX = 1.5  # a detection within this of a rendered star's position is that star
+MATCH_PX = 1.5  # a detection within this of a rendered star's image (its ring and smear) is that star
 FRAMES_PER_CALL = 32  # frames rendered and extracted per call (≈ 100 MB of 1024² float32 frames)
 
 
@@ -90,10 +90,14 @@ def detect_scenes(keys, sky: Scene, camera, sensor: SensorConfig, centroid: Cent
         frames_per_call: frames per render-and-extract call (the last call is padded to it).
 
     Returns:
-        ``(scenes, seconds)``: (B, capacity) detected scenes with their truth labels and the sky's
+        ``(scenes, seconds)``: (B, capacity) detected scenes with their truth labels (the nearest
+        star within :data:`MATCH_PX` + the defocus radius + half the smear) and the sky's
         attitudes; the wall time of rendering and extraction.
     """
     centroid = dataclasses.replace(centroid, zero_point=sensor.zero_point())
+    # a defocused star is a ring, a smeared one a streak: the extractor may find pieces of it, each
+    # as far as the ring's radius or half the streak from the star; they are still that star
+    reach = MATCH_PX + sensor.defocus_px + sensor.smear_px / 2
     b = sky.batch_size
     parts = []
     t0 = time.perf_counter()
@@ -103,7 +107,7 @@ def detect_scenes(keys, sky: Scene, camera, sensor: SensorConfig, centroid: Cent
         part = jax.tree.map(lambda a, padded=padded: a[padded], sky)
         frames = render(keys[padded], part, camera, sensor)
         found = extract_centroids(frames, centroid, capacity=capacity, shard=True)
-        truth = label_detections(found.xy, found.valid, part.xy, part.valid, part.truth)
+        truth = label_detections(found.xy, found.valid, part.xy, part.valid, part.truth, match_px=reach)
         scene = Scene(xy=found.xy, mag=found.mag, truth=truth, valid=found.valid,
                       attitude=part.attitude, overflow=found.overflow)
         parts.append(jax.tree.map(lambda a, n=idx.size: np.asarray(a)[:n], scene))
