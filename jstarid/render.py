@@ -185,10 +185,12 @@ LIMIT_ELECTRONS = 500.0
 # tetra3_test (FLIR BFS-U3-31S4M-C, Sony IMX265, 2×2 binned, 35 mm f/1.9, from the ground), fitted
 # to the four frames of shared/data/real (experiments/render_validation.py measures the match):
 # 12-bit counts stored ×16 in 16-bit TIFFs (every value a multiple of 16); the local noise
-# (134 counts at a 3,360 median, 201 at 6,416) against the background gives 7.3 stored counts per
-# electron (2.2 e⁻ per 12-bit count, the IMX265's unity-gain figure) and a bias near 60 counts;
-# the PSF fitted on unsaturated stars has σ 0.68 px; the extractor's zero point is V 16.7;
-# the background tiles fall to ≈ 50 % at the corners.
+# (134 stored counts at a 3,344 median, 201 at 6,416) against the background gives 7.4 stored
+# counts per electron (2.15 e⁻ per 12-bit count, near the IMX265's unity gain) and a bias of ≈ 60
+# 12-bit counts; a round Gaussian fitted to unsaturated stars has σ 0.62–0.66 px, i.e. 0.57 px
+# before pixel integration; the extractor's zero point V 16.7 sets the exposure × throughput
+# (0.33 s, 0.7 × 0.65 through the 18.4 mm pupil); the sky rate gives a 3,200-count median; the
+# background tiles fall to ≈ 50 % at the corners (bias removed).
 _TETRA3_TEST = dict(
     exposure_s=0.33, aperture_mm=35.0 / 1.9, transmission=0.7, quantum_efficiency=0.65,
     psf_sigma_px=0.57, sky_e_per_s=1070.0, dark_e_per_s=5.0, read_noise_e=2.2, vignetting=0.5,
