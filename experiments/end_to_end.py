@@ -40,15 +40,16 @@ def centroid_errors(scenes, catalog, camera) -> tuple[np.ndarray, np.ndarray, np
     """Per scene: RMS distance (px) of the labelled detections from their stars' true positions,
     the number of detections, and the fraction labelled (a catalog star)."""
     truth, valid = np.asarray(scenes.truth), np.asarray(scenes.valid)
-    xy, att = np.asarray(scenes.xy), np.asarray(scenes.attitude, np.float64)
-    rms = np.full(len(truth), np.nan)
-    for b in range(len(truth)):
-        hit = valid[b] & (truth[b] >= 0)
-        if hit.any():
-            proj, _ = camera.project(catalog.unit_vectors[truth[b][hit]] @ att[b].T)
-            rms[b] = np.sqrt(np.mean(np.sum((xy[b][hit] - np.asarray(proj)) ** 2, axis=1)))
+    hit = valid & (truth >= 0)
+    # each detection's star in the camera frame (B, N, 3), projected (px)
+    body = np.einsum("bij,bnj->bni", np.asarray(scenes.attitude, np.float64),
+                     catalog.unit_vectors[np.maximum(truth, 0)])
+    proj, _ = camera.project(body)
+    err2 = np.where(hit, np.sum((np.asarray(scenes.xy) - np.asarray(proj)) ** 2, axis=-1), np.nan)
+    with np.errstate(invalid="ignore"):
+        rms = np.sqrt(np.nanmean(err2, axis=1))
     n = valid.sum(1)
-    labelled = np.where(n > 0, (valid & (truth >= 0)).sum(1) / np.maximum(n, 1), np.nan)
+    labelled = np.where(n > 0, hit.sum(1) / np.maximum(n, 1), np.nan)
     return rms, n, labelled
 
 

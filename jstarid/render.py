@@ -241,13 +241,16 @@ def render(key, scenes: Scene, camera: Camera, sensor: SensorConfig | None = Non
         (B, H, W) float32 frames in stored counts (integers).
 
     Raises:
-        ValueError: scenes of the wrong shape, or keys that do not match the batch.
+        ValueError: scenes of the wrong shape, keys that do not match the batch, or more hot pixels
+            than the frame has.
     """
     sensor = sensor_for_camera(camera) if sensor is None else sensor
     xy, mag, valid = (jnp.asarray(a) for a in (scenes.xy, scenes.mag, scenes.valid))
     if xy.ndim != 3 or xy.shape[-1] != 2 or mag.shape != xy.shape[:2] or valid.shape != mag.shape:
         raise ValueError(f"render expects a batch of scenes: xy (B, N, 2), mag and valid (B, N); got "
                          f"{xy.shape}, {mag.shape}, {valid.shape}")
+    if sensor.hot_pixels > camera.height * camera.width:
+        raise ValueError(f"{sensor.hot_pixels} hot pixels do not fit a {camera.width}×{camera.height} frame")
     b = xy.shape[0]
     seeds = _frame_seeds(key, b)
     hot_rows, hot_cols = _hot_pixels(sensor, camera)

@@ -247,3 +247,25 @@ def test_sensor_settings_need_a_sweep_from_pixels():
         js.sweep(["oracle"], PIXEL_CAMERA, scenes=2, sensor=js.SensorConfig(), progress=False)
     with pytest.raises(ValueError, match="exposure_s must be a positive"):
         js.sweep(["oracle"], PIXEL_CAMERA, axes={"exposure": [-1.0]}, scenes=2, pixels=True, progress=False)
+
+
+def test_sweep_from_pixels_centres_boresight_stars():
+    catalog = js.load_catalog(6.0)
+    drawn = js.engine.simulate_levels(PIXEL_CAMERA, axes={"exposure_s": [0.1]}, scenes=3, seed=1,
+                                      boresight="stars", catalog=catalog, pixels=True)
+    rng_rows = np.asarray(jax.random.randint(jax.random.split(jax.random.key(1))[1], (3,), 0, len(catalog)))
+    boresight = np.asarray(drawn.scenes.attitude)[:, 2, :]  # the camera's +z in ICRS
+    np.testing.assert_allclose(boresight, catalog.unit_vectors[rng_rows], atol=1e-5)
+
+
+def test_boresight_rows_found_in_a_catalog_that_differs():
+    from jstarid.engine.run import _rows_in
+
+    catalog = js.load_catalog(6.0)
+    other = js.load_catalog(6.0, double_sep_deg=0.5)  # drops the fainter of many more pairs
+    rows = np.arange(len(catalog))
+    got = _rows_in(other, catalog, rows)
+    same = np.isin(catalog.hip, other.hip)
+    assert not same.all() and np.all(other.hip[got[same]] == catalog.hip[same])
+    cos = np.sum(catalog.unit_vectors[~same] * other.unit_vectors[got[~same]], axis=1)
+    assert np.all(np.degrees(np.arccos(np.clip(cos, -1, 1))) <= 0.5 + 1e-6)  # its kept neighbour

@@ -49,7 +49,7 @@ def test_mean_frame_equals_the_scipy_pixel_integrals(shape):
     got = np.asarray(js.mean_electrons(_scenes(xy[None], mag[None]), CAM, sensor)[0])
     want = _reference_mean(xy, mag, sensor, CAM)
     # the window holds all but < 1e-6 of each star; the corner star loses what falls off the frame
-    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3 * sensor.star_electrons(3.0) * 1e-3)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6 * sensor.star_electrons(3.0))
     # the two stars inside the frame deliver all their electrons
     background = (sensor.sky_e_per_s + sensor.dark_e_per_s) * sensor.exposure_s
     inner = got[:, :80] - background
@@ -68,6 +68,18 @@ def test_smear_spreads_the_star_along_its_direction():
     assert var_y == pytest.approx(0.8 ** 2 + 1 / 12, rel=1e-3)
     assert var_x == pytest.approx(0.8 ** 2 + 1 / 12 + 8.0 ** 2 / 12 * (1 - 1 / n ** 2), rel=1e-3)
     assert np.sum(w * xs) == pytest.approx(40.0, abs=1e-3)  # centred on the mid-exposure position
+
+
+def test_defocus_spreads_the_star_into_a_ring():
+    sensor = js.SensorConfig(defocus_px=5.0, sky_e_per_s=0.0, dark_e_per_s=0.0)
+    img = np.asarray(js.mean_electrons(_scenes([[[40.0, 30.0]]], [[3.0]]), CAM, sensor)[0])
+    ys, xs = np.mgrid[:CAM.height, :CAM.width]
+    w = img / img.sum()
+    r2 = (xs - 40.0) ** 2 + (ys - 30.0) ** 2
+    # a ring of radius R blurred by σ and the pixel: E r² = R² + 2 (σ² + 1/12)
+    assert np.sum(w * r2) == pytest.approx(5.0 ** 2 + 2 * (0.8 ** 2 + 1 / 12), rel=1e-3)
+    assert img[30, 40] < 0.05 * img.max()  # a dark centre
+    assert np.sum(w * xs) == pytest.approx(40.0, abs=1e-3) and np.sum(w * ys) == pytest.approx(30.0, abs=1e-3)
 
 
 def test_extractor_recovers_rendered_positions_and_magnitudes():
@@ -173,3 +185,5 @@ def test_bad_batches_are_refused():
         js.render(jax.random.split(jax.random.key(0), 3), sc, CAM)
     with pytest.raises(ValueError, match="batch of scenes"):
         js.render(jax.random.key(0), jax.tree.map(lambda x: x[0], sc), CAM)
+    with pytest.raises(ValueError, match="hot pixels do not fit"):
+        js.render(jax.random.key(0), sc, js.Camera(4, 4, 10.0), js.SensorConfig(hot_pixels=17))

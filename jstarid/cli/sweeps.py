@@ -174,7 +174,6 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
 def _pixel_options(args, camera):
     """``(sensor, centroid)`` of ``--pixels`` from ``--sensor`` / ``--centroid`` (``None``, ``None``
     without ``--pixels``); bad fields or values fail here, before anything is built."""
-
     import jstarid as js
     from jstarid.experiment import with_overrides
 
@@ -182,10 +181,8 @@ def _pixel_options(args, camera):
         if args.sensor or args.centroid:
             raise ValueError("--sensor and --centroid need --pixels")
         return None, None
-    sensor = js.sensor_for_camera(camera)
-    if args.sensor:
-        sensor = with_overrides(sensor, args.sensor)
-    return sensor, with_overrides(js.CentroidConfig(), args.centroid)
+    return (with_overrides(js.sensor_for_camera(camera), args.sensor),
+            with_overrides(js.CentroidConfig(), args.centroid))
 
 
 def _axes_of(args) -> dict:

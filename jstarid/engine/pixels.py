@@ -14,7 +14,6 @@ frames (a level's sensor is a static setting: one compilation per level).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 
 import jax
@@ -22,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.centroid import CentroidConfig, extract_centroids
-from jstarid.render import SensorConfig, render, sensor_for_camera
+from jstarid.render import SensorConfig, render
 from jstarid.scene import Scene
 
 __all__ = ["MATCH_PX", "RENDER_DEPTH_MAG", "SENSOR_AXES", "detect_scenes", "label_detections",
@@ -58,14 +57,15 @@ def sensor_levels(levels, sensor: SensorConfig) -> list[SensorConfig]:
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("match_px",))
-def label_detections(det_xy, det_valid, star_xy, star_valid, star_truth, *, match_px: float = MATCH_PX):
+@jax.jit
+def label_detections(det_xy, det_valid, star_xy, star_valid, star_truth, match_px=MATCH_PX):
     """Truth of each detection: the row of the nearest rendered star within ``match_px``, else −1.
 
     Args:
         det_xy: (B, N, 2) detections (px). det_valid: (B, N) bool.
         star_xy: (B, M, 2) rendered stars (px). star_valid: (B, M) bool. star_truth: (B, M) int32
             catalog row of each (−1: a false star, or a star the identification catalog lacks).
+        match_px: reach (px; traced: a sweep over defocus reuses the compiled labeller).
 
     Returns:
         (B, N) int32 catalog rows (−1: no star, a false star, or padding).
@@ -107,14 +107,9 @@ def detect_scenes(keys, sky: Scene, camera, sensor: SensorConfig, centroid: Cent
         part = jax.tree.map(lambda a, padded=padded: a[padded], sky)
         frames = render(keys[padded], part, camera, sensor)
         found = extract_centroids(frames, centroid, capacity=capacity, shard=True)
-        truth = label_detections(found.xy, found.valid, part.xy, part.valid, part.truth, match_px=reach)
+        truth = label_detections(found.xy, found.valid, part.xy, part.valid, part.truth, reach)
         scene = Scene(xy=found.xy, mag=found.mag, truth=truth, valid=found.valid,
                       attitude=part.attitude, overflow=found.overflow)
         parts.append(jax.tree.map(lambda a, n=idx.size: np.asarray(a)[:n], scene))
     out = jax.tree.map(lambda *a: np.concatenate(a), *parts)
     return jax.tree.map(jnp.asarray, out), time.perf_counter() - t0
-
-
-def default_sensor(camera, sensor: SensorConfig | None) -> SensorConfig:
-    """``sensor``, or the camera's default (:func:`jstarid.sensor_for_camera`)."""
-    return sensor_for_camera(camera) if sensor is None else sensor

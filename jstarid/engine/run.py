@@ -33,11 +33,11 @@ from jstarid.engine import processes
 from jstarid.engine.entries import Entry, check_camera
 from jstarid.engine.entries import entries as make_entries
 from jstarid.engine.levels import level_grid, level_noise
-from jstarid.engine.pixels import RENDER_DEPTH_MAG, SENSOR_AXES, default_sensor, detect_scenes, sensor_levels
+from jstarid.engine.pixels import RENDER_DEPTH_MAG, SENSOR_AXES, detect_scenes, sensor_levels
 from jstarid.engine.result import SweepResult
 from jstarid.experiment import peak_rss_mb
 from jstarid.metrics import CRITERIA, scene_outcomes
-from jstarid.render import SensorConfig
+from jstarid.render import SensorConfig, sensor_for_camera
 from jstarid.runtime.memory_maps import relieve
 from jstarid.scene import Identification, Scene
 from jstarid.simulator import simulate
@@ -197,7 +197,7 @@ def _pixel_settings(levels, camera, pixels, sensor, centroid):
         if sensor is not None or centroid is not None:
             raise ValueError("sensor and centroid settings are for sweeps from pixels (pixels=True)")
         return None
-    return sensor_levels(levels, default_sensor(camera, sensor))
+    return sensor_levels(levels, sensor_for_camera(camera) if sensor is None else sensor)
 
 
 def _from_pixels(key, catalog, camera, noise, rows, levels, sensors, centroid, per_level, capacity,
@@ -210,6 +210,8 @@ def _from_pixels(key, catalog, camera, noise, rows, levels, sensors, centroid, p
     sky_camera = dataclasses.replace(camera, mag_limit=camera.mag_limit + RENDER_DEPTH_MAG)
     total = len(levels) * per_level
     key_sky, key_frames = jax.random.split(key)
+    if rows is not None:  # the boresight stars, as rows of the deeper catalog
+        rows = _rows_in(sky_catalog, catalog, rows)
     sky = simulate(key_sky, sky_catalog, sky_camera, noise,
                    batch_size=None if rows is not None else total, capacity=SKY_CAPACITY,
                    boresight_ids=rows, shard=True)
@@ -233,6 +235,16 @@ def _from_pixels(key, catalog, camera, noise, rows, levels, sensors, centroid, p
                     "centroid": dataclasses.asdict(centroid), "render_depth_mag": RENDER_DEPTH_MAG,
                     "sky_capacity": SKY_CAPACITY, "render_extract_seconds": seconds,
                     "sky_overflow": int(np.asarray(sky.overflow).sum())}
+
+
+def _rows_in(other, catalog, rows) -> np.ndarray:
+    """The rows of ``other`` holding the stars ``catalog`` has at ``rows``: by HIP number, or, for a
+    star ``other`` dropped as the fainter of a close pair, the nearest star it kept."""
+    out = other.row_of_hip(catalog.hip[rows])
+    lost = np.nonzero(out < 0)[0]
+    if lost.size:
+        out[lost] = np.argmax(catalog.unit_vectors[rows[lost]] @ other.unit_vectors.T, axis=1)
+    return out
 
 
 def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, *,
