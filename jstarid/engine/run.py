@@ -243,7 +243,7 @@ def _rows_in(other, catalog, rows) -> np.ndarray:
     out = other.row_of_hip(catalog.hip[rows])
     lost = np.nonzero(out < 0)[0]
     if lost.size:
-        out[lost] = np.argmax(catalog.unit_vectors[rows[lost]] @ other.unit_vectors.T, axis=1)
+        out[lost] = np.argmax(np.matmul(catalog.unit_vectors[rows[lost]], other.unit_vectors.T), axis=1)
     return out
 
 
