@@ -23,10 +23,12 @@ import tempfile
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import jstarid as js
 from jstarid import experiment as ex
+from jstarid.random_streams import normals
 
 HERE = Path(__file__).resolve().parent
 SCRIPTS = ("sgm", "mlv", "rpnet")  # experiments/bench_<name>.py
@@ -99,6 +101,28 @@ def bench_render(args) -> list[dict]:
                          "scenes_per_s": round(args.images / steady, 1),
                          "peak_rss_mb": round(ex.peak_rss_mb())})
             print(rows[-1], flush=True)
+        rows += _render_floor(args, cam)
+    return rows
+
+
+def _render_floor(args, cam) -> list[dict]:
+    """What bounds the renderer on this machine, for the same frames: writing a float32 frame of the
+    camera's size from one fused elementwise pass (the memory floor: no renderer that returns float32
+    frames can beat it) and drawing one standard normal per pixel (the renderer's noise stream)."""
+    shape = (args.images, cam.height, cam.width)
+    parts = {
+        "write float32 frames": jax.jit(lambda i: jax.lax.broadcasted_iota(jnp.float32, shape, 2)
+                                        + i.astype(jnp.float32)),
+        "one normal per pixel": jax.jit(lambda i: jax.vmap(lambda s: normals(s, 101, shape[1:]))(
+            jnp.stack([jnp.arange(shape[0], dtype=jnp.uint32) + i] * 2, axis=1))),
+    }
+    rows = []
+    for part, fn in parts.items():
+        first, steady = ex.time_call(lambda i, fn=fn: fn(jnp.uint32(i)), args.repeats)
+        rows.append({"benchmark": "render floor", "part": part, "size": f"{cam.width}x{cam.height}",
+                     "batch": args.images, "devices": 1, "compile_s": round(first - steady, 2),
+                     "scenes_per_s": round(args.images / steady, 1), "peak_rss_mb": round(ex.peak_rss_mb())})
+        print(rows[-1], flush=True)
     return rows
 
 
