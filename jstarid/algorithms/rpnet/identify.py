@@ -39,6 +39,7 @@ values: a sweep compiles once.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import math
@@ -506,6 +507,17 @@ def _identify_pool_chunk(xy, valid, overflow, mag, weights, guide_rows, star_vec
                        batch_size=config.name_chunk)
 
 
+def _triple_kernel_config(config: Config) -> Config:
+    """The static config of :func:`_identify_chunk`: ``n_pool_pairs`` (which it does not read) at its
+    default, and its guide ranks (``top_k`` over 3 · ``n_guide_triples``) at least the default's, so
+    configs that differ only in the pool pass or in fewer triples share its compilations (≈ 5 s each
+    per pass, chunk size and width on 2 cores). Triple t's guides, ranks 3t … 3t + 2, are the same
+    under any larger ``top_k``."""
+    default = Config()
+    return dataclasses.replace(config, n_pool_pairs=default.n_pool_pairs,
+                               n_guide_triples=max(config.n_guide_triples, default.n_guide_triples))
+
+
 def _local_index(database, config: Config):
     """Sky index of the catalog stars a pair attitude can name (memoised per catalog and reach).
 
@@ -626,7 +638,8 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
         # scenes sorted by their last valid detection, so each chunk's width fits its scenes
         calls = chunk_calls(subset[np.argsort(last[subset], kind="stable")], chunk)
         kernel, extra, static = ((_identify_pool_chunk, (), common) if pool else
-                                 (_identify_chunk, (jnp.int32(triple),), dict(common, trials=trials)))
+                                 (_identify_chunk, (jnp.int32(triple),),
+                                  dict(common, config=_triple_kernel_config(kernel_config), trials=trials)))
         run_calls(kernel, calls, args, (*replicated, *extra), static=static, n_rows=b,
                   tails=[(n,), (), (3, 3)], fills=[-1, False, np.nan], out=out)
 
