@@ -21,6 +21,15 @@ def test_demo_runs_the_engine_and_writes_results(tmp_path, capsys):
     assert "| oracle | 2 | 6 |" in text and "wrote" in text
 
 
+def test_demo_adds_the_baselines_on_request(tmp_path):
+    out = tmp_path / "baselines"
+    assert cli.main(["demo", "--algorithms", "oracle", "--baselines", "--scenes", "4", "--levels", "0",
+                     "--out", str(out), "--quiet"]) == 0
+    rows = json.loads((out / "results.json").read_text())["rows"]
+    assert [r["label"] for r in rows] == ["oracle", *js.algorithms.BASELINES]
+    assert all(r["identification_rate"] == 1.0 for r in rows)  # noise-free scenes
+
+
 def test_sweep_with_a_grid_and_overrides(tmp_path):
     out = tmp_path / "grid"
     assert cli.main(["sweep", "--algorithms", "mlv", "--camera", "mlv2021", "--mag-limit", "5.5",
@@ -100,7 +109,8 @@ def test_bad_arguments_give_one_line_and_status_2(argv, message, capsys):
 
 def test_list_and_catalog(capsys):
     assert cli.main(["list"]) == 0
-    assert "oracle" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "oracle" in out and "baselines:  voting" in out
     assert cli.main(["catalog", "--mag-limit", "4.0"]) == 0
     out = capsys.readouterr().out
     counts = [int(line.rsplit(":", 1)[1]) for line in out.splitlines() if line.startswith("  V")]

@@ -10,7 +10,7 @@ import importlib
 import importlib.util
 from types import ModuleType
 
-__all__ = ["get", "names", "register"]
+__all__ = ["BASELINES", "get", "names", "register", "seed_names"]
 
 # name → module path; imported lazily so that `import jstarid` stays light.
 _REGISTRY: dict[str, str] = {
@@ -18,7 +18,11 @@ _REGISTRY: dict[str, str] = {
     "sgm": "jstarid.algorithms.sgm",
     "mlv": "jstarid.algorithms.mlv",
     "rpnet": "jstarid.algorithms.rpnet",
+    "voting": "jstarid.algorithms.voting",
 }
+
+#: Classic methods the seed algorithms are measured against (run on request: ``--baselines``).
+BASELINES = ("voting",)
 
 
 def register(name: str, module_path: str) -> None:
@@ -33,6 +37,12 @@ def _available(name: str) -> bool:
 def names() -> tuple[str, ...]:
     """Names of the registered algorithms whose modules are present."""
     return tuple(n for n in _REGISTRY if _available(n))
+
+
+def seed_names() -> tuple[str, ...]:
+    """The algorithms ``jstarid demo`` runs by default: every registered one but the oracle (a test
+    reference) and the :data:`BASELINES`."""
+    return tuple(n for n in names() if n != "oracle" and n not in BASELINES)
 
 
 def get(name: str) -> ModuleType:

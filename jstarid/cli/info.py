@@ -20,7 +20,11 @@ def add_commands(sub) -> None:
 def run_list(args) -> int:
     import jstarid as js
 
-    print("algorithms:", ", ".join(js.algorithms.names()))
+    print("algorithms:", ", ".join(js.algorithms.seed_names()))
+    print("baselines: ", ", ".join(js.algorithms.BASELINES), "(demo and sweep: --baselines)")
+    listed = js.algorithms.seed_names() + js.algorithms.BASELINES
+    others = [n for n in js.algorithms.names() if n not in listed]
+    print("others:    ", ", ".join(others), "(the oracle returns the truth: a test reference)")
     print("cameras:   ", ", ".join(js.preset_names()))
     return 0
 

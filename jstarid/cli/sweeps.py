@@ -7,6 +7,7 @@ import json
 import time
 from pathlib import Path
 
+from jstarid.algorithms import BASELINES
 from jstarid.cli.cameras import add_camera_options, camera_from_args
 from jstarid.cli.first_use import about
 
@@ -16,7 +17,8 @@ DEMO_LEVELS = "0,1,2,3"
 def add_commands(sub) -> None:
     d = sub.add_parser(
         "demo", help="every algorithm on a position-noise sweep of the same scenes: table, figure",
-        description="Run every registered algorithm (the oracle aside) on the same simulated scenes "
+        description="Run every registered algorithm (the oracle and the baselines aside) on the same "
+                    "simulated scenes "
                     "at 0–3 px of centroid noise; print the table and write results/demo/ "
                     "(config.json, results.json, table.md, rates.png, scenes.npz). The first run "
                     "builds databases, trains RpNet's quick network and compiles (5–13 min on 2 "
@@ -39,7 +41,9 @@ def add_commands(sub) -> None:
 def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
     p.add_argument("--algorithms", default=None,
                    help="comma-separated registry names (default: every registered algorithm "
-                        "but the oracle; `jstarid list` shows them)")
+                        "but the oracle and the baselines; `jstarid list` shows them)")
+    p.add_argument("--baselines", action="store_true",
+                   help="also run the classic baselines (" + ", ".join(BASELINES) + ") on the same scenes")
     add_camera_options(p, default="sgm2022")
     p.add_argument("--mag-limit", type=float, default=None,
                    help="catalog depth V (default: the camera's detection limit)")
@@ -121,8 +125,10 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
         args.quiet = True
 
     camera = camera_from_args(args)
-    names = (args.algorithms or ",".join(n for n in js.algorithms.names() if n != "oracle"))
+    names = args.algorithms or ",".join(js.algorithms.seed_names())
     algorithms = [n.strip() for n in names.split(",") if n.strip()]
+    if args.baselines:
+        algorithms += [n for n in js.algorithms.BASELINES if n not in algorithms]
     for name in algorithms:
         js.algorithms.get(name)  # unknown names fail before anything is built
     axes = _axes_of(args)

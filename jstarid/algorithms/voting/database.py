@@ -1,0 +1,182 @@
+"""The geometric-voting database: every catalog star pair that fits in one frame, sorted by angle.
+
+Kolomenkin et al. (2008) §III: the catalog's pair distances, sorted, with their two stars; a range of
+distances is found by search. Here the range search is Mortari's k-vector
+(:mod:`jstarid.geometry.kvector`). Pairs farther apart than the frame's diagonal can never be seen
+together and are left out. Built on the host in float64 (the angle of a pair is exact to float32
+before it is stored) and cached on disk.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jstarid.algorithms.base import cache_key
+from jstarid.algorithms.voting.config import Config
+from jstarid.camera import Camera
+from jstarid.catalog import cache_dir, temporary_path
+from jstarid.geometry.kvector import KVector, build_kvector
+
+__all__ = ["Database", "MAX_PAIRS", "build_database", "camera_problem", "first_use", "window_size"]
+
+_DB_VERSION = 1
+_ROWS_PER_STEP = 1024  # catalog rows per vectorized step of the pair search
+#: Largest pair table (pairs): 12 bytes a pair on disk and on the device.
+MAX_PAIRS = 40_000_000
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["kvector", "pairs", "star_vectors"],
+                   meta_fields=["camera", "max_angle_rad", "key"])
+@dataclasses.dataclass(frozen=True)
+class Database:
+    """Pair table (a pytree: arrays are leaves, the camera and key are static).
+
+    Attributes:
+        kvector: :class:`~jstarid.geometry.kvector.KVector` over the P pair angles (rad, ascending).
+        pairs: (P, 2) int32 catalog rows of each pair's stars, in the angle order.
+        star_vectors: (S, 3) float32 ICRS unit vectors of the catalog stars (row = catalog row).
+        camera: the :class:`~jstarid.camera.Camera` the table was built for.
+        max_angle_rad: the largest pair angle kept (the frame's diagonal).
+        key: cache key (:func:`jstarid.algorithms.base.cache_key`).
+    """
+
+    kvector: KVector
+    pairs: jax.Array
+    star_vectors: jax.Array
+    camera: Camera
+    max_angle_rad: float
+    key: str = ""
+
+    def cache_key(self) -> str:
+        return self.key
+
+    @property
+    def n_pairs(self) -> int:
+        return int(self.pairs.shape[0])
+
+
+def _max_angle(camera: Camera) -> float:
+    """Largest angle (rad) between two detections of one frame: its diagonal, plus 1 % for a lens
+    whose focal length differs slightly from the nominal one."""
+    return 2.0 * camera.half_diagonal_rad * 1.01
+
+
+def expected_pairs(n_stars: int, camera: Camera) -> float:
+    """Pairs of ``n_stars`` stars spread evenly over the sky within the frame's diagonal."""
+    return 0.5 * n_stars * (n_stars - 1) * (1.0 - math.cos(_max_angle(camera))) / 2.0
+
+
+def camera_problem(camera: Camera, config: Config | None = None, catalog=None) -> str | None:
+    """Why geometric voting cannot work on this camera and catalog (a pair table past
+    :data:`MAX_PAIRS`), or ``None``."""
+    if catalog is None:
+        return None
+    pairs = expected_pairs(len(catalog), camera)
+    if pairs > MAX_PAIRS:
+        return (f"voting: {len(catalog):,} catalog stars within a {math.degrees(_max_angle(camera)):.1f}° "
+                f"diagonal make ≈ {pairs:,.0f} pairs (more than {MAX_PAIRS:,}); use a brighter catalog")
+    return None
+
+
+def _pair_table(vectors: np.ndarray, max_angle: float, progress: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(P,) float64 angles and (P, 2) int32 rows of every pair i < j within ``max_angle``."""
+    from tqdm.auto import tqdm
+
+    cos_max = math.cos(max_angle)
+    angles, rows = [], []
+    n = vectors.shape[0]
+    for lo in tqdm(range(0, n, _ROWS_PER_STEP), desc="voting pair table", unit="step", disable=not progress):
+        block = vectors[lo:lo + _ROWS_PER_STEP]
+        dots = np.matmul(block, vectors.T)
+        i, j = np.nonzero(dots >= cos_max)
+        i = i + lo
+        keep = j > i
+        i, j = i[keep], j[keep]
+        u, v = vectors[i], vectors[j]
+        # atan2(|u × v|, u · v): full precision at small separations (jstarid.geometry.angles)
+        angles.append(np.arctan2(np.linalg.norm(np.cross(u, v), axis=1), np.sum(u * v, axis=1)))
+        rows.append(np.stack([i, j], axis=1).astype(np.int32))
+    return np.concatenate(angles), np.concatenate(rows)
+
+
+def _cache_key(catalog, camera: Camera, config: Config) -> str:
+    return cache_key("voting", _DB_VERSION, catalog, camera, config.database_fields())
+
+
+def build_database(catalog, camera: Camera, config: Config | None = None, *, use_cache: bool = True,
+                   progress: bool = True) -> Database:
+    """Build (or load from the disk cache) the pair table of a catalog and camera.
+
+    Args:
+        catalog: :class:`~jstarid.catalog.Catalog` (the identification catalog).
+        camera: :class:`~jstarid.camera.Camera`.
+        config: :class:`~jstarid.algorithms.voting.Config` (nothing in it shapes the table).
+        use_cache: read/write ``voting-<key>.npz`` under :func:`jstarid.catalog.cache_dir`.
+        progress: a progress bar while building.
+
+    Returns:
+        The :class:`Database`.
+
+    Raises:
+        ValueError: the table would exceed :data:`MAX_PAIRS` (:func:`camera_problem`), or the catalog
+            has fewer than two stars.
+    """
+    config = Config() if config is None else config
+    problem = camera_problem(camera, config, catalog)
+    if problem:
+        raise ValueError(problem)
+    if len(catalog) < 2:
+        raise ValueError("voting needs a catalog of at least two stars")
+    key = _cache_key(catalog, camera, config)
+    path = cache_dir() / f"voting-{key}.npz"
+    max_angle = _max_angle(camera)
+    vectors = np.asarray(catalog.unit_vectors, np.float64)
+    if use_cache and path.exists():
+        with np.load(path) as data:
+            angles, pairs = data["angles"], data["pairs"]
+    else:
+        t0 = time.perf_counter()
+        angles, pairs = _pair_table(vectors, max_angle, progress)
+        order = np.argsort(angles, kind="stable")
+        angles, pairs = angles[order].astype(np.float32), pairs[order]
+        if use_cache:
+            tmp = temporary_path(path)
+            np.savez(tmp, angles=angles, pairs=pairs, build_seconds=time.perf_counter() - t0)
+            tmp.replace(path)
+    if angles.size == 0:
+        raise ValueError("voting: no two catalog stars fit in one frame of this camera")
+    kvector, _ = build_kvector(angles)  # already sorted: the order is the identity
+    return Database(kvector=kvector, pairs=jnp.asarray(pairs), star_vectors=jnp.asarray(vectors, jnp.float32),
+                    camera=camera, max_angle_rad=max_angle, key=key)
+
+
+def first_use(catalog, camera: Camera, config: Config | None = None) -> tuple[str, float] | None:
+    """What :func:`build_database` builds for these settings and about how long it takes on a 2-core
+    CPU (s); ``None`` when it is cached."""
+    config = Config() if config is None else config
+    if (cache_dir() / f"voting-{_cache_key(catalog, camera, config)}.npz").exists():
+        return None
+    pairs = expected_pairs(len(catalog), camera)
+    return f"voting pair table for {camera.name} (≈ {pairs / 1e6:.1f} M pairs)", max(2.0, pairs / 1e6)
+
+
+_WINDOWS: dict[tuple[str, float], int] = {}
+
+
+def window_size(database: Database, eps_rad: float) -> int:
+    """The most catalog pairs any query window ``[θ − ε, θ + ε]`` can hold (host, memoised): the
+    static width of the voting buffer, so no window is ever cut."""
+    cache = (database.key, float(eps_rad))
+    if cache not in _WINDOWS:
+        s = np.asarray(database.kvector.values, np.float64)
+        # float32 rounding of the query bounds: a hair of slack on the width
+        stop = np.searchsorted(s, s + 2.0 * eps_rad * (1 + 1e-5) + 1e-7, side="right")
+        _WINDOWS[cache] = int(max(1, np.max(stop - np.arange(s.size))))
+    return _WINDOWS[cache]
