@@ -19,10 +19,11 @@ _REGISTRY: dict[str, str] = {
     "mlv": "jstarid.algorithms.mlv",
     "rpnet": "jstarid.algorithms.rpnet",
     "voting": "jstarid.algorithms.voting",
+    "pyramid": "jstarid.algorithms.pyramid",
 }
 
 #: Classic methods the seed algorithms are measured against (run on request: ``--baselines``).
-BASELINES = ("voting",)
+BASELINES = ("pyramid", "voting")
 
 
 def register(name: str, module_path: str) -> None:

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
-import time
 
 import jax
 import jax.numpy as jnp
@@ -21,15 +19,19 @@ import numpy as np
 from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.voting.config import Config
 from jstarid.camera import Camera
-from jstarid.catalog import cache_dir, temporary_path
+from jstarid.catalog import cache_dir
 from jstarid.geometry.kvector import KVector, build_kvector
+from jstarid.geometry.star_pairs import (
+    cached_pair_table,
+    expected_pairs,
+    frame_pair_angle,
+    table_problem,
+    widest_window,
+)
 
-__all__ = ["Database", "MAX_PAIRS", "build_database", "camera_problem", "first_use", "window_size"]
+__all__ = ["Database", "build_database", "camera_problem", "first_use", "window_size"]
 
 _DB_VERSION = 1
-_ROWS_PER_STEP = 1024  # catalog rows per vectorized step of the pair search
-#: Largest pair table (pairs): 12 bytes a pair on disk and on the device.
-MAX_PAIRS = 40_000_000
 
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["kvector", "pairs", "star_vectors"],
@@ -62,48 +64,10 @@ class Database:
         return int(self.pairs.shape[0])
 
 
-def _max_angle(camera: Camera) -> float:
-    """Largest angle (rad) between two detections of one frame: its diagonal, plus 1 % for a lens
-    whose focal length differs slightly from the nominal one."""
-    return 2.0 * camera.half_diagonal_rad * 1.01
-
-
-def expected_pairs(n_stars: int, camera: Camera) -> float:
-    """Pairs of ``n_stars`` stars spread evenly over the sky within the frame's diagonal."""
-    return 0.5 * n_stars * (n_stars - 1) * (1.0 - math.cos(_max_angle(camera))) / 2.0
-
-
 def camera_problem(camera: Camera, config: Config | None = None, catalog=None) -> str | None:
     """Why geometric voting cannot work on this camera and catalog (a pair table past
-    :data:`MAX_PAIRS`), or ``None``."""
-    if catalog is None:
-        return None
-    pairs = expected_pairs(len(catalog), camera)
-    if pairs > MAX_PAIRS:
-        return (f"voting: {len(catalog):,} catalog stars within a {math.degrees(_max_angle(camera)):.1f}° "
-                f"diagonal make ≈ {pairs:,.0f} pairs (more than {MAX_PAIRS:,}); use a brighter catalog")
-    return None
-
-
-def _pair_table(vectors: np.ndarray, max_angle: float, progress: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(P,) float64 angles and (P, 2) int32 rows of every pair i < j within ``max_angle``."""
-    from tqdm.auto import tqdm
-
-    cos_max = math.cos(max_angle)
-    angles, rows = [], []
-    n = vectors.shape[0]
-    for lo in tqdm(range(0, n, _ROWS_PER_STEP), desc="voting pair table", unit="step", disable=not progress):
-        block = vectors[lo:lo + _ROWS_PER_STEP]
-        dots = np.matmul(block, vectors.T)
-        i, j = np.nonzero(dots >= cos_max)
-        i = i + lo
-        keep = j > i
-        i, j = i[keep], j[keep]
-        u, v = vectors[i], vectors[j]
-        # atan2(|u × v|, u · v): full precision at small separations (jstarid.geometry.angles)
-        angles.append(np.arctan2(np.linalg.norm(np.cross(u, v), axis=1), np.sum(u * v, axis=1)))
-        rows.append(np.stack([i, j], axis=1).astype(np.int32))
-    return np.concatenate(angles), np.concatenate(rows)
+    :data:`~jstarid.geometry.star_pairs.MAX_PAIRS`), or ``None``."""
+    return table_problem("voting", catalog, camera)
 
 
 def _cache_key(catalog, camera: Camera, config: Config) -> str:
@@ -125,8 +89,8 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *, use
         The :class:`Database`.
 
     Raises:
-        ValueError: the table would exceed :data:`MAX_PAIRS` (:func:`camera_problem`), or the catalog
-            has fewer than two stars.
+        ValueError: the table would exceed :data:`~jstarid.geometry.star_pairs.MAX_PAIRS`
+            (:func:`camera_problem`), or the catalog has fewer than two stars.
     """
     config = Config() if config is None else config
     problem = camera_problem(camera, config, catalog)
@@ -136,20 +100,10 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *, use
         raise ValueError("voting needs a catalog of at least two stars")
     key = _cache_key(catalog, camera, config)
     path = cache_dir() / f"voting-{key}.npz"
-    max_angle = _max_angle(camera)
+    max_angle = frame_pair_angle(camera)
     vectors = np.asarray(catalog.unit_vectors, np.float64)
-    if use_cache and path.exists():
-        with np.load(path) as data:
-            angles, pairs = data["angles"], data["pairs"]
-    else:
-        t0 = time.perf_counter()
-        angles, pairs = _pair_table(vectors, max_angle, progress)
-        order = np.argsort(angles, kind="stable")
-        angles, pairs = angles[order].astype(np.float32), pairs[order]
-        if use_cache:
-            tmp = temporary_path(path)
-            np.savez(tmp, angles=angles, pairs=pairs, build_seconds=time.perf_counter() - t0)
-            tmp.replace(path)
+    angles, pairs = cached_pair_table(path if use_cache else None, vectors, max_angle, progress=progress,
+                                      desc="voting pair table")
     if angles.size == 0:
         raise ValueError("voting: no two catalog stars fit in one frame of this camera")
     kvector, _ = build_kvector(angles)  # already sorted: the order is the identity
@@ -163,7 +117,7 @@ def first_use(catalog, camera: Camera, config: Config | None = None) -> tuple[st
     config = Config() if config is None else config
     if (cache_dir() / f"voting-{_cache_key(catalog, camera, config)}.npz").exists():
         return None
-    pairs = expected_pairs(len(catalog), camera)
+    pairs = expected_pairs(len(catalog), frame_pair_angle(camera))
     return f"voting pair table for {camera.name} (≈ {pairs / 1e6:.1f} M pairs)", max(2.0, pairs / 1e6)
 
 
@@ -175,8 +129,5 @@ def window_size(database: Database, eps_rad: float) -> int:
     static width of the voting buffer, so no window is ever cut."""
     cache = (database.key, float(eps_rad))
     if cache not in _WINDOWS:
-        s = np.asarray(database.kvector.values, np.float64)
-        # float32 rounding of the query bounds: a hair of slack on the width
-        stop = np.searchsorted(s, s + 2.0 * eps_rad * (1 + 1e-5) + 1e-7, side="right")
-        _WINDOWS[cache] = int(max(1, np.max(stop - np.arange(s.size))))
+        _WINDOWS[cache] = widest_window(np.asarray(database.kvector.values), eps_rad)
     return _WINDOWS[cache]
