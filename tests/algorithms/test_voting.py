@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import jax
@@ -13,7 +12,7 @@ import pytest
 import jstarid as js
 from jstarid.algorithms import voting
 from jstarid.algorithms.voting.database import window_size
-from jstarid.algorithms.voting.identify import cast_votes, most_consistent
+from jstarid.algorithms.voting.identify import cast_votes
 
 CAM = js.camera_preset("sgm2022")
 
@@ -85,35 +84,6 @@ def test_window_size_bounds_every_window(bright):
     w = window_size(db, eps)
     counts = np.searchsorted(s, s + 2 * eps, side="right") - np.arange(s.size)
     assert w >= counts.max() and w <= counts.max() + 2
-
-
-def _max_clique_size(agree):
-    n = agree.shape[0]
-    for size in range(n, 0, -1):
-        for subset in itertools.combinations(range(n), size):
-            if all(agree[a, b] for a, b in itertools.combinations(subset, 2)):
-                return size
-    return 0
-
-
-@pytest.mark.parametrize("seed", range(6))
-def test_most_consistent_keeps_a_planted_clique(seed):
-    """The true names agree pairwise; wrong names agree with a few at random. The greedy set is a
-    clique, holds every planted member, and is the maximum clique."""
-    rng = np.random.default_rng(seed)
-    n, k = 10, 6
-    agree = rng.random((n, n)) < 0.2
-    agree = np.triu(agree, 1)
-    agree = agree | agree.T
-    planted = rng.choice(n, k, replace=False)
-    agree[np.ix_(planted, planted)] = True
-    np.fill_diagonal(agree, False)
-    votes = jnp.asarray(rng.integers(1, 20, n), jnp.int32)
-    members = np.asarray(most_consistent(jnp.asarray(agree), votes, jnp.ones(n, bool)))
-    idx = np.flatnonzero(members)
-    assert all(agree[a, b] for a, b in itertools.combinations(idx, 2))
-    assert set(planted) <= set(idx)
-    assert idx.size == _max_clique_size(agree)
 
 
 def test_noise_free_scenes_are_named_and_noisy_ones_never_wrongly(catalog6, key):

@@ -38,11 +38,12 @@ from jstarid.attitude import solve_wahba
 from jstarid.completion import first_argmax
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between, pairwise_angles
+from jstarid.geometry.consistency import most_consistent
 from jstarid.geometry.kvector import range_search
 from jstarid.runtime import chunk_calls, on_every_device, run_calls, take_rows
 from jstarid.scene import Identification, Scene
 
-__all__ = ["Diagnostics", "SceneResult", "cast_votes", "identify", "identify_scene", "most_consistent"]
+__all__ = ["Diagnostics", "SceneResult", "cast_votes", "identify", "identify_scene"]
 
 
 class SceneResult(NamedTuple):
@@ -108,31 +109,6 @@ def cast_votes(theta, asked, first, second, kvector, pairs, eps_rad, *, n: int, 
     flat = jnp.where(live[:, :, None, None], flat, n * n_cat)  # out of range: dropped
     votes = jnp.zeros((n * n_cat,), jnp.int32).at[flat.reshape(-1)].add(1, mode="drop")
     return votes.reshape(n, n_cat), count
-
-
-def most_consistent(agree, votes, members):
-    """Drop the least-agreeing member until every remaining pair agrees (module docstring, step 4).
-
-    Args:
-        agree: (n, n) bool symmetric, False on the diagonal.
-        votes: (n,) int32 first-round votes (the tie-break: fewer votes go first).
-        members: (n,) bool starting set.
-
-    Returns:
-        (n,) bool the consistent set.
-    """
-    n = agree.shape[0]
-    big = jnp.iinfo(jnp.int32).max
-
-    def step(_, members):
-        support = jnp.sum(agree & members[None, :], axis=1)
-        size = jnp.sum(members)
-        consistent = jnp.all(~members | (support == size - 1))
-        least = jnp.min(jnp.where(members, support, big))
-        worst = jnp.argmin(jnp.where(members & (support == least), votes, big))
-        return jnp.where(consistent, members, members & (jnp.arange(n) != worst))
-
-    return jax.lax.fori_loop(0, n, step, members)
 
 
 def identify_scene(xy, valid, mag, overflow, eps_rad, *, kvector, pairs, star_vectors, camera,
