@@ -110,7 +110,7 @@ def test_bad_arguments_give_one_line_and_status_2(argv, message, capsys):
 def test_list_and_catalog(capsys):
     assert cli.main(["list"]) == 0
     out = capsys.readouterr().out
-    assert "oracle" in out and "baselines:  pyramid, voting" in out
+    assert "oracle" in out and "baselines:  pyramid, voting, grid" in out
     assert cli.main(["catalog", "--mag-limit", "4.0"]) == 0
     out = capsys.readouterr().out
     counts = [int(line.rsplit(":", 1)[1]) for line in out.splitlines() if line.startswith("  V")]

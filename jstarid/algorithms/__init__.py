@@ -20,10 +20,11 @@ _REGISTRY: dict[str, str] = {
     "rpnet": "jstarid.algorithms.rpnet",
     "voting": "jstarid.algorithms.voting",
     "pyramid": "jstarid.algorithms.pyramid",
+    "grid": "jstarid.algorithms.grid",
 }
 
 #: Classic methods the seed algorithms are measured against (run on request: ``--baselines``).
-BASELINES = ("pyramid", "voting")
+BASELINES = ("pyramid", "voting", "grid")
 
 
 def register(name: str, module_path: str) -> None:
