@@ -60,7 +60,7 @@ from jstarid.experiment import to_json
 from jstarid.scene import Identification, Scene
 
 __all__ = ["Algorithm", "DiagnosticsFields", "REQUIRED", "cache_key", "check_algorithm",
-           "check_scenes"]
+           "check_scenes", "tolerance_rad"]
 
 REQUIRED = ("Config", "Tuning", "Database", "Diagnostics", "build_database", "identify")
 
@@ -174,3 +174,16 @@ def check_scenes(scenes: Scene) -> None:
     if not np.all(np.isfinite(xy[valid])):
         raise ValueError("scenes hold NaN or inf centroids among valid detections")
 
+
+
+def tolerance_rad(eps_px, batch_size: int, camera) -> np.ndarray:
+    """A tolerance given in pixels at the focal length (a scalar or one per scene) as (B,) float32
+    radians, for algorithms whose ``Tuning`` holds ``eps_px``.
+
+    Raises:
+        ValueError: a tolerance that is not positive and finite.
+    """
+    eps_px = np.broadcast_to(np.asarray(eps_px, np.float32), (batch_size,))
+    if not np.all(np.isfinite(eps_px) & (eps_px > 0)):
+        raise ValueError("eps_px must be positive and finite")
+    return eps_px / np.float32(camera.f_px)

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.algorithms.base import check_scenes
+from jstarid.algorithms.base import check_scenes, tolerance_rad
 from jstarid.algorithms.grid.config import Config, Tuning
 from jstarid.algorithms.grid.database import Database, radii_px
 from jstarid.algorithms.grid.pattern import grid_pattern, overlap
@@ -135,10 +135,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
         raise ValueError("the database was built with another grid or other radii than this config's")
     tuning = config.tuning() if tuning is None else tuning
     b, cap = scenes.batch_size, scenes.capacity
-    eps_px = np.broadcast_to(np.asarray(tuning.eps_px, np.float32), (b,))
-    if not np.all(np.isfinite(eps_px) & (eps_px > 0)):
-        raise ValueError("eps_px must be positive and finite")
-    eps_rad = eps_px / np.float32(database.camera.f_px)
+    eps_rad = tolerance_rad(tuning.eps_px, b, database.camera)
     out = [np.full((b, cap), -1, np.int32), np.zeros((b,), bool), np.full((b, 3, 3), np.nan, np.float32),
            np.zeros((b,), np.int32), np.zeros((b,), bool), np.zeros((b, config.n_refs), np.int32)]
     if b:

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.algorithms.base import check_scenes
+from jstarid.algorithms.base import check_scenes, tolerance_rad
 from jstarid.algorithms.pyramid.config import Config, Tuning
 from jstarid.algorithms.pyramid.database import Database, window_size
 from jstarid.attitude import solve_wahba
@@ -311,11 +311,8 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     check_scenes(scenes)
     tuning = config.tuning() if tuning is None else tuning
     b, cap = scenes.batch_size, scenes.capacity
-    eps_px = np.broadcast_to(np.asarray(tuning.eps_px, np.float32), (b,))
-    if not np.all(np.isfinite(eps_px) & (eps_px > 0)):
-        raise ValueError("eps_px must be positive and finite")
     camera = database.camera
-    eps_rad = eps_px / np.float32(camera.f_px)
+    eps_rad = tolerance_rad(tuning.eps_px, b, camera)
     # first every scene with buffers for the usual triple (shortest side up to the frame's half
     # diagonal, ``triangle_capacity``), then the scenes that skipped a triple for a full buffer
     # again with the largest: the widest window of the table and 4 × the triangles

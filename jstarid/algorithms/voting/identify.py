@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.algorithms.base import check_scenes
+from jstarid.algorithms.base import check_scenes, tolerance_rad
 from jstarid.algorithms.voting.config import Config, Tuning
 from jstarid.algorithms.voting.database import Database, window_size
 from jstarid.attitude import solve_wahba
@@ -200,11 +200,8 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     check_scenes(scenes)
     tuning = config.tuning() if tuning is None else tuning
     b, cap = scenes.batch_size, scenes.capacity
-    eps_px = np.broadcast_to(np.asarray(tuning.eps_px, np.float32), (b,))
-    if not np.all(np.isfinite(eps_px) & (eps_px > 0)):
-        raise ValueError("eps_px must be positive and finite")
     camera = database.camera
-    eps_rad = eps_px / np.float32(camera.f_px)
+    eps_rad = tolerance_rad(tuning.eps_px, b, camera)
     if b == 0:
         ids, ok, att, n_cand, over, n_ver = (np.zeros((0, cap), np.int32), np.zeros((0,), bool),
                                              np.zeros((0, 3, 3), np.float32), np.zeros((0,), np.int32),
