@@ -26,7 +26,6 @@ not depend on it). Usage::
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import subprocess
@@ -37,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 import jstarid as js
+from jstarid import experiment as ex
 
 CEDAR = "cedar-solve==0.5.1"
 
@@ -134,16 +134,21 @@ def identification(scenes, catalog, solved: dict) -> tuple[js.Identification, np
     return js.Identification(ids=ids, ok=ok, attitude=None), np.asarray(solved["seconds"])
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def parse_args(argv=None):
+    p = ex.parser(__doc__.splitlines()[0], out="results/peer_cedar")
     p.add_argument("--camera", default="sgm2022", help="camera preset or file (default sgm2022)")
     p.add_argument("--levels", default="0,1,2,3", help="position noise σ levels, px (default 0,1,2,3)")
     p.add_argument("--scenes", type=int, default=200, help="scenes per level (default 200)")
-    p.add_argument("--seed", type=int, default=0, help="the engine's seed (default 0: the demo's scenes)")
     p.add_argument("--max-error", default="0.002,0.005",
                    help="cedar's match_max_error values (default 0.002 = its default, and 0.005)")
-    p.add_argument("--out", type=Path, default=Path("results/peer_cedar"), help="results directory")
     args = p.parse_args(argv)
+    if args.set:
+        p.error("--set changes jstarid algorithms' configs; the peer takes --max-error")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
     cache = js.catalog.cache_dir()
     python = peer_python(cache)
     if python is None:
