@@ -73,10 +73,13 @@ def test_report_collects_saved_sweeps(tmp_path):
 
 def test_reproduce_quick_experiment(tmp_path, capsys):
     assert cli.main(["reproduce", "mlv", "--experiments", "fig8", "--scenes", "3", "--out",
-                     str(tmp_path), "--quiet"]) == 0
+                     str(tmp_path), "--quiet", "--baselines"]) == 0
     rows = json.loads((tmp_path / "mlv" / "fig8" / "results.json").read_text())["rows"]
-    assert [r["n_false"] for r in rows] == [0, 1, 2, 3, 4, 5, 6]
-    assert "93.25" in capsys.readouterr().out  # the paper's quoted value beside ours
+    assert [r["n_false"] for r in rows if r["label"] == "mlv"] == [0, 1, 2, 3, 4, 5, 6]
+    assert {r["label"] for r in rows} == {"mlv", *js.algorithms.BASELINES}
+    out = capsys.readouterr().out
+    assert "93.25" in out  # the paper's quoted value beside ours
+    assert "Baselines on the same scenes" in out and "| pyramid | voting | grid |" in out
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -22,6 +22,8 @@ def add_commands(sub) -> None:
     r.add_argument("--experiments", default=None,
                    help="comma-separated experiment names (e.g. fig6,fig8; default: all of them)")
     r.add_argument("--seed", type=int, default=0, help="PRNG seed (default 0)")
+    r.add_argument("--baselines", action="store_true",
+                   help="also run the classic baselines (pyramid, voting, grid) on the same scenes")
     r.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet's network (default quick)")
     r.add_argument("--out", type=Path, default=Path("results/reproduce"),
@@ -59,7 +61,8 @@ def run_reproduce(args: argparse.Namespace) -> int:
     for exp in todo:
         print(f"{exp.paper} {exp.name}: {exp.label}, {len(exp.levels)} levels", flush=True)
         result = rp.run(exp, args.out, quick=args.quick, scenes=args.scenes, seed=args.seed,
-                        progress=not args.quiet, rpnet_network=args.rpnet_network)
+                        progress=not args.quiet, rpnet_network=args.rpnet_network,
+                        baselines=args.baselines)
         print(rp.comparison(exp, result.rows()), flush=True)
     print(f"saved under {args.out}/; `jstarid report` collects them into one page")
     return 0

@@ -88,12 +88,14 @@ def experiments(paper: str) -> list[Experiment]:
 
 def run(experiment: Experiment, out: str | Path, *, quick: bool = False, scenes: int | None = None,
         seed: int = 0, progress: bool = True, rpnet_network: str = "quick", config=None,
-        capacity: int | None = None):
+        capacity: int | None = None, baselines: bool = False):
     """Run one experiment through the engine and save it under ``out/<paper>/<name>``.
 
     Args:
         config: the algorithm's config (default: :func:`jstarid.engine.default_config`).
         capacity: detections per scene (default: the experiment's).
+        baselines: also run the classic baselines (:data:`jstarid.algorithms.BASELINES`) on the
+            same scenes, scored by the same criterion.
 
     Returns:
         The :class:`~jstarid.engine.SweepResult`.
@@ -103,7 +105,8 @@ def run(experiment: Experiment, out: str | Path, *, quick: bool = False, scenes:
     n = scenes or (experiment.quick_scenes if quick else experiment.scenes)
     entry = (experiment.paper if config is None
              else js.Entry(experiment.paper, experiment.paper, config))
-    result = js.sweep([entry], experiment.camera,
+    others = list(js.algorithms.BASELINES) if baselines else []
+    result = js.sweep([entry, *others], experiment.camera,
                       axes={experiment.axis: list(experiment.levels)}, fixed=experiment.fixed,
                       scenes=n, seed=seed, catalog=js.load_catalog(experiment.mag_limit),
                       capacity=capacity or experiment.capacity, boresight=experiment.boresight,
@@ -120,8 +123,16 @@ def summary(rows) -> dict[str, float]:
             "RA": float(np.nanmax(acc) - np.nanmin(acc)), "ALN": float(acc[-1])}
 
 
+def _rates(row) -> str:
+    return "" if row is None else f"{100 * row['identification_rate']:.1f} / {100 * row['misid_rate']:.1f}"
+
+
 def comparison(experiment: Experiment, rows) -> str:
-    """Markdown: our identification and mis-identification per level beside the paper's values."""
+    """Markdown: our identification and mis-identification per level beside the paper's values, then
+    (when the run had them) the baselines' on the same scenes."""
+    rows = list(rows)
+    others = [r for r in rows if r.get("label", experiment.paper) != experiment.paper]
+    rows = [r for r in rows if r.get("label", experiment.paper) == experiment.paper]
     lines = [f"### {experiment.paper.upper()} {experiment.name}: {experiment.label}", "",
              f"Paper: {experiment.note}.", ""]
     if experiment.paper == "sgm":
@@ -138,4 +149,13 @@ def comparison(experiment: Experiment, rows) -> str:
                      f"({100 * r['identification_low']:.1f}–{100 * r['identification_high']:.1f}) | "
                      f"{100 * r['misid_rate']:.2f} | {100 * r['failure_rate']:.2f} | "
                      f"{'' if quoted is None else f'{quoted:g}'} |")
+    if others:
+        labels = list(dict.fromkeys(r["label"] for r in others))
+        by = {(r["label"], r[experiment.axis]): r for r in others}
+        lines += ["", "Baselines on the same scenes, identified % / misid %:", "",
+                  "| level | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
+        for r in rows:
+            level = r[experiment.axis]
+            cells = [_rates(by.get((b, level))) for b in labels]
+            lines.append(f"| {level:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
