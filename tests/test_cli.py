@@ -84,6 +84,7 @@ def test_reproduce_quick_experiment(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, message", [
     (["demo", "--algorithms", "nope"], "unknown algorithm"),
+    (["demo", "--peer", "nope"], "invalid choice"),
     (["demo", "--camera", "nope"], "unknown camera 'nope'"),
     (["demo", "--size", "12by3"], "--size must be WIDTHxHEIGHT"),
     (["sweep", "--algorithms", "sgm,mlv", "--camera", "narrow_twin"], "sgm: SGM's database for camera"),

@@ -223,39 +223,3 @@ def test_camera_range_measures_a_build_in_its_own_process(tmp_path):
     assert "| built |" in (tmp_path / "table.md").read_text()
     assert not (tmp_path / "cache").exists()  # the build cache is the run's own, and goes
     assert mod.cameras(mod.parse_args(["--only", "40deg_4096"]))[0][1].width == 4096
-
-
-def test_peer_cedar_conversions_round_trip(tmp_path, catalog6, key):
-    """The peer's host side without cedar: hip_main.dat read back as cedar reads it ('|' fields 1, 5,
-    8, 9), centroids in cedar's (y, x) corner-origin convention brightest first, and matches mapped
-    back to detections and catalog rows."""
-    import csv
-
-    peer = _load("peer_cedar")
-    small = js.load_catalog(3.0)
-    path = tmp_path / "hip_main.dat"
-    peer.write_hip_main(small, path)
-    rows = list(csv.reader(path.open(), delimiter="|"))
-    assert len(rows) == len(small)
-    np.testing.assert_array_equal([int(r[1]) for r in rows], small.hip)
-    np.testing.assert_allclose([float(r[5]) for r in rows], small.mag, atol=0.006)
-    np.testing.assert_allclose(np.radians([float(r[9]) for r in rows]), small.dec, atol=1e-9)
-    scenes = js.simulate(key, catalog6, js.camera_preset("sgm2022"), js.noise_grid(2), batch_size=2,
-                         capacity=32)
-    peer.export_scenes(scenes, tmp_path / "c.npz")
-    data = np.load(tmp_path / "c.npz")
-    s, n = 0, int(data["counts"][0])
-    xy, mag, valid = (np.asarray(a)[s] for a in (scenes.xy, scenes.mag, scenes.valid))
-    brightest = np.argmin(np.where(valid, mag, np.inf))
-    np.testing.assert_allclose(data["centroids"][s, 0], xy[brightest, ::-1] + 0.5)
-    # cedar "matches" the three brightest detections of scene 0 with their true HIP numbers
-    order = data["order"][s, :3]
-    truth = np.asarray(scenes.truth)[s, order]
-    solved = {"solved": [True, False], "seconds": [0.01, 0.02],
-              "matched": [data["centroids"][s, :3].tolist(), []],
-              "ids": [catalog6.hip[truth].tolist(), []]}
-    result, seconds = peer.identification(scenes, catalog6, solved)
-    ids = np.asarray(result.ids)
-    np.testing.assert_array_equal(ids[s, order], truth)
-    assert np.sum(ids[s] >= 0) == 3 and np.all(ids[1] == -1) and list(np.asarray(result.ok)) == [True, False]
-    assert n == int(valid.sum()) and seconds.shape == (2,)

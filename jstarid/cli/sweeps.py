@@ -10,6 +10,7 @@ from pathlib import Path
 from jstarid.algorithms import BASELINES
 from jstarid.cli.cameras import add_camera_options, camera_from_args
 from jstarid.cli.first_use import about
+from jstarid.peers import PEERS
 
 DEMO_LEVELS = "0,1,2,3"
 
@@ -44,6 +45,10 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
                         "but the oracle and the baselines; `jstarid list` shows them)")
     p.add_argument("--baselines", action="store_true",
                    help="also run the classic baselines (" + ", ".join(BASELINES) + ") on the same scenes")
+    p.add_argument("--peer", choices=sorted(PEERS), action="append", default=[],
+                   help="also run a peer solver on the same scenes, in its own environment built on "
+                        "first use (cedar: cedar-solve/tetra3, ≈ 2 min once); if it cannot be built "
+                        "the run says so and goes on without it")
     add_camera_options(p, default="sgm2022")
     p.add_argument("--mag-limit", type=float, default=None,
                    help="catalog depth V (default: the camera's detection limit)")
@@ -129,6 +134,12 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     algorithms = [n.strip() for n in names.split(",") if n.strip()]
     if args.baselines:
         algorithms += [n for n in js.algorithms.BASELINES if n not in algorithms]
+    for peer in args.peer:
+        js.algorithms.register(peer, PEERS[peer])
+        if js.algorithms.get(peer).environment() is None:
+            print(f"{peer}: its environment is not available; going on without it", flush=True)
+        elif peer not in algorithms:
+            algorithms.append(peer)
     for name in algorithms:
         js.algorithms.get(name)  # unknown names fail before anything is built
     axes = _axes_of(args)
