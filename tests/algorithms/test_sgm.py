@@ -200,14 +200,6 @@ def _sequential_algorithm1(db, adj, mask, w_i, cfg, exclude=()):
     return -1, np.inf, -1, len(tried)
 
 
-@pytest.fixture(scope="module")
-def setup5():
-    """A V ≤ 5 catalog: small graphs (≈ 6 vertices), so Algorithm 1 can be replayed quickly."""
-    cat = js.load_catalog(5.0)
-    cam = js.camera_preset("sgm2022", mag_limit=5.0)
-    return cat, cam, sgm.build_database(cat, cam, sgm.Config(), progress=False)
-
-
 def test_bounds_of_the_search_equal_the_per_pair_bounds(setup5):
     """``search.edge_bounds`` and ``search.lower_bounds`` (tables sorted once, pairs grouped by size
     and skip count, padded, sharded) give each pair the value of
@@ -250,7 +242,7 @@ def test_bounds_of_the_search_equal_the_per_pair_bounds(setup5):
 def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     cat, cam, db = setup5
     # tight ε → several Δw levels are visited; Δw_max cut to 0.5° to bound the work of failures
-    cfg = _search_config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5)
+    cfg = _search_config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5, screen=False)
     rows = np.random.default_rng(2).choice(len(cat), 4, replace=False)
     scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)
@@ -298,7 +290,7 @@ def test_search_resumed_after_a_rejection_equals_algorithm1_without_that_candida
     some of them back."""
     from jstarid.algorithms.sgm import search
     cat, cam, db = setup5
-    cfg = _search_config(max_error_deg=eps, chunk_size=8, dw_max_deg=0.5)
+    cfg = _search_config(max_error_deg=eps, chunk_size=8, dw_max_deg=0.5, screen=False)
     rows, _, g, usable = _noisy_graphs(setup5, cfg, n=4 if eps < 0.4 else 6, seed=2 if eps < 0.4 else 3,
                                        key=6)
     state = search.advance_search(db, g, search.start_search(db, g, usable, cfg), cfg)
@@ -350,14 +342,20 @@ def test_verification_retries_recover_scenes_whose_first_match_was_wrong(setup):
     rows = np.sort(np.random.default_rng(7).choice(len(cat), 800, replace=False))
     scenes = js.simulate(jax.random.key(3), cat, cam, js.NoiseConfig(n_missing=1),
                          capacity=CAPACITY, boresight_ids=rows)[np.array([105, 760, 791])]
-    once, info0 = sgm.identify(db, scenes, dataclasses.replace(cfg, verify_retries=0), diagnostics=True)
+    plain = dataclasses.replace(cfg, screen=False)  # the screen strikes those wrong graphs out
+    once, info0 = sgm.identify(db, scenes, dataclasses.replace(plain, verify_retries=0), diagnostics=True)
     assert not np.any(np.asarray(once.ok)) and np.all(info0.match_ok)  # rejected, so failed
     assert not np.any(info0.main_contested)  # the match was wrong, not the main star contested
-    again, info = sgm.identify(db, scenes, cfg, diagnostics=True)
+    again, info = sgm.identify(db, scenes, plain, diagnostics=True)
     out = js.scene_outcomes(scenes, again, "sgm", camera=cam, radius_deg=cfg.radius_deg)
     assert np.all(np.asarray(out["outcome"]) == js.metrics.CORRECT)
     assert np.all(info.n_rejected >= 1) and np.all(info.error < 1e-3)
     assert np.max(info.n_rejected) == 3  # one scene needed every retry
+    # with the triangle screen the wrong graphs never reach the verification
+    screened, info_s = sgm.identify(db, scenes, dataclasses.replace(cfg, verify_retries=0),
+                                    diagnostics=True)
+    np.testing.assert_array_equal(np.asarray(screened.ids), np.asarray(again.ids))
+    assert np.all(info_s.n_rejected == 0)
 
 
 def test_verification_tells_a_contested_main_star_from_a_wrong_match(setup):

@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.sgm.bound import row_table, sorted_edges
 from jstarid.algorithms.sgm.config import Config
-from jstarid.algorithms.sgm.graph import adjacency_deg, catalog_neighbors, mst_weight
+from jstarid.algorithms.sgm.graph import adjacency_deg, catalog_neighbors, mst_weight, plane_coords
 from jstarid.camera import radius_that_fits
 from jstarid.catalog import cache_dir, temporary_path
 from jstarid.geometry import KVector, build_kvector
@@ -95,6 +95,12 @@ class Database:
         :func:`~.bound.row_table`, computed on first use): the row bound's input, sorted once."""
         return self._per_graph("_rows", row_table)
 
+    @property
+    def plane(self) -> np.ndarray:
+        """(D, K, 2) float32 :func:`~.graph.plane_coords` of each graph's vertices (deg; computed on
+        first use from the catalog): the triangle screen's input (:mod:`.screen`)."""
+        return device_cache.cached(self, "sgm_plane", lambda: _plane(self.catalog, self.members, self.n))
+
     def _per_graph(self, name: str, fn) -> np.ndarray:
         """``fn(adj, mask)`` of every graph, in blocks of 512, once per database
         (:data:`jstarid.runtime.device_cache`).
@@ -152,6 +158,34 @@ def _block_adjacency(vecs, mask):
     return jax.vmap(adjacency_deg)(jnp.where(mask[..., None], vecs, 0.0), mask)
 
 
+@jax.jit
+def _block_plane(vecs, mask):
+    return jax.vmap(plane_coords)(jnp.where(mask[..., None], vecs, 0.0), mask)
+
+
+def _plane(catalog, members: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(D, K, 2) :func:`~.graph.plane_coords` of every database graph, in blocks of ``_BLOCK``."""
+    return _per_block(catalog, members, n, _block_plane)
+
+
+def _per_block(catalog, members: np.ndarray, n: np.ndarray, fn) -> np.ndarray:
+    """``fn(vecs, mask)`` of every database graph's vertex vectors, ``_BLOCK`` graphs per call."""
+    vec = jnp.asarray(np.asarray(catalog.unit_vectors), jnp.float32)
+    cap = members.shape[1]
+    mask = np.arange(cap)[None, :] < n[:, None]
+    out = None  # filled in place: the adjacency is hundreds of MB, no second copy
+    for lo in range(0, members.shape[0], _BLOCK):
+        rows = members[lo:lo + _BLOCK]
+        pad = _BLOCK - rows.shape[0]
+        take = np.pad(np.maximum(rows, 0), ((0, pad), (0, 0)))
+        keep = np.pad(mask[lo:lo + _BLOCK], ((0, pad), (0, 0)))
+        block = np.asarray(fn(vec[take], jnp.asarray(keep)))[:rows.shape[0]]
+        if out is None:
+            out = np.empty((members.shape[0],) + block.shape[1:], block.dtype)
+        out[lo:lo + rows.shape[0]] = block
+    return out
+
+
 def _adjacency(catalog, members: np.ndarray, n: np.ndarray) -> np.ndarray:
     """(D, K, K) float32 adjacency A_J (deg, 0 on padding) of every database graph.
 
@@ -160,18 +194,7 @@ def _adjacency(catalog, members: np.ndarray, n: np.ndarray) -> np.ndarray:
     on load: it is 99 % of the database (327 of 332 MB for ``tetra3_test``, V ≤ 7, r = 3.8°) and takes
     about a second to rebuild from ``members``.
     """
-    vec = jnp.asarray(np.asarray(catalog.unit_vectors), jnp.float32)
-    cap = members.shape[1]
-    mask = np.arange(cap)[None, :] < n[:, None]
-    out = np.empty((members.shape[0], cap, cap), np.float32)
-    for lo in range(0, members.shape[0], _BLOCK):
-        rows = members[lo:lo + _BLOCK]
-        pad = _BLOCK - rows.shape[0]
-        take = np.pad(np.maximum(rows, 0), ((0, pad), (0, 0)))
-        keep = np.pad(mask[lo:lo + _BLOCK], ((0, pad), (0, 0)))
-        out[lo:lo + rows.shape[0]] = np.asarray(_block_adjacency(vec[take], jnp.asarray(keep)))[
-            :rows.shape[0]]
-    return out
+    return _per_block(catalog, members, n, _block_adjacency)
 
 
 def build_database(catalog, camera, config: Config | None = None, *, use_cache: bool = True,

@@ -15,7 +15,7 @@ import numpy as np
 
 from jstarid.geometry.angles import angle_between
 
-__all__ = ["separation_deg", "adjacency_deg", "mst_weight", "image_graph"]
+__all__ = ["separation_deg", "adjacency_deg", "plane_coords", "mst_weight", "image_graph"]
 
 
 def separation_deg(u, v):
@@ -30,6 +30,34 @@ def adjacency_deg(vecs, mask):
     a = separation_deg(vecs[:, None, :], vecs[None, :, :])
     keep = mask[:, None] & mask[None, :]
     return jnp.where(keep, a, 0.0)
+
+
+def plane_coords(vecs, mask):
+    """Azimuthal equidistant coordinates (deg) of the vertices about vertex 0 (the main star).
+
+    Radius = the angle to the main star (exact), azimuth measured in a basis perpendicular to it
+    that is built the same way on both sides (a right-handed frame stays right-handed), so an image
+    graph and its database graph differ by a rotation about the origin plus noise; the tangential
+    scale error is ≈ r²/6 (0.01° at r = 6°). Read by the triangle screen (:mod:`.screen`).
+
+    Args:
+        vecs: (K, 3) unit vectors, vertex 0 the main star. mask: (K,) bool vertices present.
+
+    Returns:
+        (K, 2) float32 (x, y) in deg, 0 on padding.
+    """
+    u0 = vecs[0]
+    # a reference axis far from u0 (the smallest |component|), then e1 ⟂ u0, e2 = u0 × e1
+    ref = jnp.eye(3, dtype=vecs.dtype)[jnp.argmin(jnp.abs(u0))]
+    e1 = jnp.cross(ref, u0)
+    e1 = e1 / jnp.linalg.norm(e1)
+    e2 = jnp.cross(u0, e1)
+    x = jnp.sum(vecs * e1[None, :], axis=-1)
+    y = jnp.sum(vecs * e2[None, :], axis=-1)
+    r = separation_deg(vecs, u0[None, :])
+    az = jnp.arctan2(y, x)
+    xy = jnp.stack([r * jnp.cos(az), r * jnp.sin(az)], axis=-1)
+    return jnp.where(mask[:, None], xy, 0.0).astype(jnp.float32)
 
 
 def mst_weight(adj, mask):
@@ -76,6 +104,7 @@ class ImageGraph(NamedTuple):
         main: (…,) int32 detection index of the main star; ``any``: (…,) bool, the scene has a
             detection (both set by :func:`~jstarid.algorithms.sgm.identify.scene_graphs`; −1 and
             False for a lone graph).
+        plane: (…, K, 2) float32 :func:`plane_coords` of the vertices (deg).
     """
 
     members: Any
@@ -86,6 +115,7 @@ class ImageGraph(NamedTuple):
     overflow: Any
     main: Any = -1
     any: Any = False
+    plane: Any = None
 
 
 def image_graph(vecs, valid, main, radius_deg: float, capacity: int):
@@ -116,7 +146,8 @@ def image_graph(vecs, valid, main, radius_deg: float, capacity: int):
     v = jnp.where(mask[:, None], vecs[jnp.clip(members, 0, n_det - 1)], 0.0)
     adj = adjacency_deg(v, mask)
     return ImageGraph(members=members, mask=mask, adj=adj.astype(jnp.float32), n=n.astype(jnp.int32),
-                      w=mst_weight(adj, mask).astype(jnp.float32), overflow=count > capacity)
+                      w=mst_weight(adj, mask).astype(jnp.float32), overflow=count > capacity,
+                      plane=plane_coords(v, mask))
 
 
 def catalog_neighbors(unit_vectors: np.ndarray, row: int, radius_deg: float) -> np.ndarray:

@@ -22,6 +22,11 @@ level l*, a candidate below l* is still matched (it could lower l*), one at l* w
 bound, to find δ* early. The bound prunes but does not order: best-first matching needed more
 matchings and named more wrong main stars (docs/design/sgm.md).
 
+Triangle screen (``Config.screen``, an extension that may change the outcome, off in
+``Config.paper()``): a candidate that fails :mod:`.screen` is struck out as if its δ exceeded ε_δ,
+so the search is Algorithm 1 over the candidates that pass (tested). It runs with the second-stage
+bound, only on the candidates the search needs (without ``prune``: on every examined candidate).
+
 Resumption. :class:`SearchState` keeps δ of every matched candidate and the bound of every deferred
 one. When the post-match verification rejects J* (``Config.verify_retries``), :func:`reject_best`
 sets its δ to ∞ and :func:`advance_search` goes on: Algorithm 1 on the database without the
@@ -43,6 +48,7 @@ from jstarid.algorithms.sgm.bound import edge_lower_bound, error_lower_bound, ro
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import ImageGraph
 from jstarid.algorithms.sgm.matching import spectral_match
+from jstarid.algorithms.sgm.screen import screen_pairs
 from jstarid.geometry import range_search
 from jstarid.runtime import Call, map_batch, on_every_device, run_calls
 
@@ -403,8 +409,9 @@ class SearchState:
         err: (B, W) float32 δ of each matched rank (deg; inf: pruned, deferred, struck out, unexamined).
         bound: (B, W) float32 lower bound on δ (deg; 0 where unknown): :func:`~.bound.edge_lower_bound`
             when examined, the larger of it and :func:`~.bound.error_lower_bound` once refined.
-        refined: (B, W) bool, the bound is final (second stage run, or useless: vertex counts further
-            apart than ``prune_max_skip``, or no pruning). deferred: (B, W) bool, examined, neither
+        refined: (B, W) bool, the bound is final (second stage run — with ``Config.screen`` also the
+            screen —, or useless: vertex counts further apart than ``prune_max_skip`` and no screen,
+            or no pruning). deferred: (B, W) bool, examined, neither
             pruned nor matched.
         matches: ``{(scene, rank): (K,) int32}`` correspondences of the matched pairs with δ ≤ ε_δ.
         n_matched, n_pruned, n_rejected: (B,) int32 spectral matchings run, candidates the bound removed
@@ -541,8 +548,15 @@ def _examine_block(db, graphs: ImageGraph, state: SearchState, config: Config, a
         keep = ~_exceeds(lb, config.max_error_deg)
         np.add.at(state.n_pruned, scene[~keep], 1)
         state.bound[scene, rank] = lb
+        far = beyond_row_bound(n_i[scene], db.n[rows], config)
         # the second stage only knows something where the vertex counts are close enough
-        state.refined[scene, rank] = beyond_row_bound(n_i[scene], db.n[rows], config)
+        # (with the screen on, every candidate is refined: the screen runs there)
+        state.refined[scene, rank] = far & (not config.screen)
+        scene, rank = scene[keep], rank[keep]
+    elif config.screen and scene.size:  # no second stage to run the screen in: screen them all now
+        keep = screen_pairs(db, graphs.plane, graphs.n.astype(np.int32), scene, state.cand[scene, rank],
+                            config)
+        np.add.at(state.n_pruned, scene[~keep], 1)
         scene, rank = scene[keep], rank[keep]
     state.deferred[scene, rank] = True
     state.covered[act] += np.sum(take, axis=1).astype(np.int32)
@@ -550,18 +564,26 @@ def _examine_block(db, graphs: ImageGraph, state: SearchState, config: Config, a
 
 def _refine(db, graphs: ImageGraph, state: SearchState, config: Config, scene: np.ndarray,
             rank: np.ndarray) -> None:
-    """Second-stage bound (:func:`~.bound.error_lower_bound`) of the deferred (scene, rank) pairs not
-    refined yet (in place); those whose bound now exceeds ε_δ are pruned."""
+    """Second stage of the deferred (scene, rank) pairs not refined yet (in place): the triangle
+    screen (``Config.screen``), then the row bound (:func:`~.bound.error_lower_bound`) for the pairs
+    it keeps; a pair that fails the screen, or whose bound exceeds ε_δ, is pruned. Run
+    only for ranks the search still needs, so most candidates of a scene solved early are neither
+    bounded nor screened."""
     todo = ~state.refined[scene, rank]
     scene, rank = scene[todo], rank[todo]
     if not scene.size:
         return
-    lb, _ = lower_bounds(db, state.image, graphs.n.astype(np.int32), scene,
-                         state.cand[scene, rank], config)
-    lb = np.maximum(lb, state.bound[scene, rank])
-    state.bound[scene, rank] = lb
+    n_i = graphs.n.astype(np.int32)
+    rows = state.cand[scene, rank]
     state.refined[scene, rank] = True
-    out = _exceeds(lb, config.max_error_deg)
+    out = np.zeros(scene.size, bool)
+    if config.screen:  # first: it costs a fraction of the row bound and removes far more
+        out = ~screen_pairs(db, graphs.plane, n_i, scene, rows, config)
+    live = np.nonzero(~out)[0]
+    lb, _ = lower_bounds(db, state.image, n_i, scene[live], rows[live], config)
+    lb = np.maximum(lb, state.bound[scene[live], rank[live]])
+    state.bound[scene[live], rank[live]] = lb
+    out[live] = _exceeds(lb, config.max_error_deg)
     state.deferred[scene[out], rank[out]] = False
     np.add.at(state.n_pruned, scene[out], 1)
 
