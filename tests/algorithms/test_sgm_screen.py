@@ -126,8 +126,12 @@ def test_search_with_the_screen_is_algorithm1_over_the_candidates_that_pass(setu
     cat, cam, db = setup5
     cfg = sgm.Config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5, focal_search=(), fit_focal=False)
     rows, _, g, usable = _noisy_graphs(setup5, cfg, n=5, seed=2, key=6)
-    out = search.dynamic_search(db, g, usable, cfg)
+    state = search.advance_search(db, g, search.start_search(db, g, usable, cfg), cfg)
+    out = search.search_outcome(state, cfg, g.mask.shape[1])
     n_i = g.n.astype(np.int32)
+    # nothing that fails the screen was matched
+    s_idx, rank = np.nonzero(np.isfinite(state.err))
+    assert s_idx.size and screen_pairs(db, g.plane, n_i, s_idx, state.cand[s_idx, rank], cfg).all()
     everything = np.arange(len(db))
     screened = 0
     for s in range(rows.size):
