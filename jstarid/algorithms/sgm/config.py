@@ -62,8 +62,9 @@ class Config:
             fails is struck out as if its δ exceeded ε_δ. Why: under noise 94 % of the matched
             candidates fail by far (δ ≈ 5–7.5 ε_δ) and the exact bounds cannot exclude them.
             Measured: docs/design/sgm.md.
-        screen_tol_deg: position tolerance of one star in the screen (deg; 0.25° ≈ 4 σ of an edge
-            at σ = 3 px on the papers' cameras; scales with the pixel).
+        screen_tol_deg: position tolerance of one star in the screen (deg; 0.25° ≈ 3 σ of a star's
+            offset from the main star at σ = 3 px on ``sgm2022``, two centroid errors of 0.059°;
+            scales with the pixel).
         screen_fraction: share of the smaller graph's vertices the screen's best rotation must
             explain (0.6: true graphs ≥ 0.89 at σ = 3 px, wrong ones 0.44 at their 90th percentile).
         screen_partners: database neighbors of nearest radius the screen tries per image neighbor.

@@ -2,12 +2,13 @@
 
 Most candidates that Algorithm 1 matches under noise fail by far (δ = 5–7.5 ε_δ; docs/design/sgm.md),
 and the exact bounds of :mod:`.bound` cannot exclude them, because a bound on a sum of squared edge
-residuals over an unknown correspondence is weak. The screen asks a sharper, local question: how
-many image neighbors i have a database neighbor j such that the triangles (main, i, k) and
-(main, j, l) agree in all three sides, within ``tol``, for several other neighbor pairs (k, l)? In
-the true graph every star present on both sides does (apart from noise beyond ``tol``); in a wrong
-graph a triangle agrees by chance with probability ≈ (2·tol)³ / (r² · 2r) per pair, so almost none
-do.
+residuals over an unknown correspondence is weak. The screen asks a sharper, local question: is
+there one rotation about the main star that takes most of the image neighbors onto database
+neighbors, each within ``tol``? Each agreeing neighbor k closes an oriented triangle (main, i, k)
+with the hypothesis' star i that matches (main, j, l). In the true graph every star present on both
+sides agrees (apart from noise beyond ``tol``); in a wrong graph a neighbor agrees by chance with
+probability ≈ (partners within ``tol`` in radius) × (2·tol / r_k) / 2π, a few per cent, so the
+best rotation explains far fewer (docs/design/sgm.md, Triangle screen).
 
 Work per candidate, with P, Q the padded vertex counts, m partners per vertex and H hypotheses:
 each image neighbor's m database neighbors of nearest radius (a (P, Q) difference and a top-m), then
@@ -17,7 +18,7 @@ affinity and power steps.
 The screen is a heuristic, not a bound: it can reject the true graph (when fewer than
 ``screen_fraction`` of the smaller graph's vertices survive, e.g. most stars crossed the circle;
 the spectral matching's δ would then rarely pass ε_δ either), so it is off in ``Config.paper()``
-and its effect is measured side by side (experiments/RESULTS.md, SGM).
+and its effect is measured side by side (experiments/RESULTS.md, Throughput).
 """
 
 from __future__ import annotations
