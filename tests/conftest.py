@@ -69,6 +69,20 @@ def sgm_camera():
     return js.camera_preset("sgm2022")
 
 
+@pytest.fixture(scope="module")
+def setup5():
+    """SGM on a V ≤ 5 catalog: small graphs (≈ 6 vertices), so Algorithm 1 can be replayed quickly.
+
+    Here rather than in ``tests/algorithms/conftest.py``: a second ``conftest`` module would shadow
+    this one for ``from conftest import ...`` in whichever xdist worker imported it first.
+    """
+    from jstarid.algorithms import sgm
+
+    cat = js.load_catalog(5.0)
+    cam = js.camera_preset("sgm2022", mag_limit=5.0)
+    return cat, cam, sgm.build_database(cat, cam, sgm.Config(), progress=False)
+
+
 @pytest.fixture
 def key():
     return jax.random.key(0)
