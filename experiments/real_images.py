@@ -18,8 +18,10 @@ and :func:`jstarid.estimate_attitude`. The results are checked against an indepe
 - **boresight error**: the angle between our boresight and the reference's RA/Dec (arcsec).
 
 ``--set ALGORITHM.FIELD=VALUE`` changes one algorithm's config. Each starts from its defaults for
-the camera (SGM's neighbor circle 3.8°: the paper's 6° is wider than this 8.6°-high frame allows;
-RpNet uses the ``quick`` network, trained for this camera on first use, then cached).
+the camera and for real frames (``js.engine.default_config(..., frames=True)``: SGM's neighbor
+circle 3.8°, the paper's 6° being wider than this 8.6°-high frame allows, and its magnitude-robust
+``subgraph`` search, ``--set sgm.subgraph=false`` for the paper's; RpNet uses the ``quick``
+network, trained for this camera on first use, then cached).
 
 Usage::
 
@@ -71,7 +73,7 @@ def algorithm_config(name: str, overrides, camera):
     """``name``'s config for these images (its defaults for ``camera``), with the ``--set`` items
     that start with ``name.``."""
     # RpNet: the quick network, trained for this camera on first use, then cached
-    base = js.engine.default_config(name, camera=camera)
+    base = js.engine.default_config(name, camera=camera, frames=True)
     return ex.with_overrides(base, [i.split(".", 1)[1] for i in overrides if i.startswith(name + ".")])
 
 

@@ -202,6 +202,19 @@ def test_real_images_mlv(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not (REAL / "reference.json").exists(), reason="shared/data/real not present")
+def test_real_images_sgm_subgraph(tmp_path):
+    """SGM's magnitude-robust search (on for real frames) names every frame with no wrong name and
+    the boresight within 10″ of the independent solve (issue goal)."""
+    _load("real_images").main(["--algorithms", "sgm", "--out", str(tmp_path)])
+    res = json.loads((tmp_path / "results.json").read_text())
+    for im in res["images"]:
+        e = im["algorithms"]["sgm"]
+        assert e["ok"] and e["own"]["wrong"] == 0 and e["all"]["wrong"] == 0
+        assert e["own"]["named"] >= 8 and e["own"]["boresight_error_arcsec"] < 10
+
+
+@pytest.mark.slow
 def test_tune_rpnet_training_tiny(tmp_path):
     rows = _load("tune_rpnet_training").main(["--quick", "--dae-lrs", "1e-3", "3e-3", "--scenes", "8",
                                               "--out", str(tmp_path)])

@@ -70,7 +70,7 @@ def _identify(args, scenes, labels: list[str], measured=None) -> list[dict]:
     cat = js.load_catalog(limit, epoch=args.epoch)
     algo = js.algorithms.get(args.algorithm)
     cfg = with_overrides(js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network,
-                                                  camera=cam), algorithm_settings(args))
+                                                  camera=cam, frames=True), algorithm_settings(args))
     js.engine.check_camera([js.Entry(args.algorithm, args.algorithm, cfg)], cam, cat)
     first = getattr(algo, "first_use", None)
     built = first(cat, cam, cfg) if first else None

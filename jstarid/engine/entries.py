@@ -39,7 +39,7 @@ class Entry(NamedTuple):
     setting: tuple = ()
 
 
-def default_config(name: str, *, rpnet_network: str = "quick", camera=None):
+def default_config(name: str, *, rpnet_network: str = "quick", camera=None, frames: bool = False):
     """The config a sweep uses when none is given: ``Config()`` (``Config.for_camera(camera)``
     where the algorithm has it and a camera is given: tolerances that follow the camera, the
     published values on the papers' cameras), except RpNet's network.
@@ -51,6 +51,10 @@ def default_config(name: str, *, rpnet_network: str = "quick", camera=None):
         name: registry name.
         rpnet_network: ``"quick"`` or ``"table3"``.
         camera: the :class:`~jstarid.Camera` the config is for (``None``: the published defaults).
+        frames: the config for detections extracted from real frames, which do not stop at the
+            catalog's magnitude limit: SGM's magnitude-robust ``subgraph`` search on (the others
+            need no change: MLV and RpNet vote on triangles and patterns that tolerate missing and
+            extra stars).
     """
     module = algorithms.get(name)
     if name == "rpnet":
@@ -61,7 +65,10 @@ def default_config(name: str, *, rpnet_network: str = "quick", camera=None):
             return module.Config(training=training)
         return module.Config.for_camera(camera, training=training)
     for_camera = getattr(module.Config, "for_camera", None)
-    return module.Config() if camera is None or for_camera is None else for_camera(camera)
+    config = module.Config() if camera is None or for_camera is None else for_camera(camera)
+    if frames and name == "sgm":
+        config = dataclasses.replace(config, subgraph=True)
+    return config
 
 
 def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str = "quick",

@@ -16,7 +16,7 @@ __all__ = ["Config", "Tuning"]
 # with the pixel's angle (Config.for_camera); c, in 1/deg, scales inversely.
 _PIXEL_TOLERANCES = ("dw0_deg", "dw_step_deg", "dw_max_deg", "max_error_deg", "leftover_tol_deg",
                      "verify_floor_deg", "verify_cap_deg", "verify_ambiguity_deg",
-                     "focal_search_dw_max_deg", "screen_tol_deg")
+                     "focal_search_dw_max_deg", "screen_tol_deg", "subgraph_tol_deg")
 
 
 class Tuning(NamedTuple):
@@ -70,6 +70,22 @@ class Config:
         screen_partners: database neighbors of nearest radius the screen tries per image neighbor.
         screen_hypotheses: image neighbors (the first in vertex order, i.e. the brightest) the
             screen tries as the one that fixes the rotation.
+        subgraph: extension, off (``False``: the paper's rough search and matching): the
+            magnitude-robust search of :mod:`.subgraph` — database graphs found by the image
+            neighbors' radii instead of the MST weight, screened, and matched with unmatched
+            vertices allowed on both sides; for frames whose detections do not stop at the catalog's
+            magnitude limit (real ones). Why: on the real test frames the image and database graphs
+            share 9–12 stars while each holds others (RESULTS, Real images).
+        subgraph_tol_deg: radius tolerance of the subgraph rough search (deg; scales with the
+            pixel). Tight, because a tight vote is rare by chance (0.04°: 0.03° on ``tetra3_test``,
+            where the real frames' radii agree within 0.005° and the true graph ranks 0–5th of
+            15,563; at 0.08° it ranked 200–300th); a true star whose radius misses it costs one
+            vote. The outlier removal uses ``screen_tol_deg``.
+        subgraph_candidates: database graphs of most radius votes screened per image graph.
+        subgraph_matchings: of those, the ones of most screen support matched spectrally.
+        subgraph_main_stars: with ``subgraph``, a scene left unsolved is searched again with the
+            next detection nearest the principal point as its main star, up to this many main stars
+            (a detection that is no catalog star — a fainter star, a hot pixel — cannot be matched).
         min_stars: fewest vertices (main star included) an image graph needs; fewer → fail (a 1- or
             2-vertex graph matches anything).
         min_matched: fewest matched vertex pairs for a candidate to count; fewer → infinite error
@@ -150,6 +166,11 @@ class Config:
     screen_fraction: float = 0.6
     screen_partners: int = 4
     screen_hypotheses: int = 8
+    subgraph: bool = False
+    subgraph_tol_deg: float = 0.04
+    subgraph_candidates: int = 256
+    subgraph_matchings: int = 8
+    subgraph_main_stars: int = 3
     min_stars: int = 3
     min_matched: int = 3
     memory_budget_mb: int = 1024
@@ -194,6 +215,10 @@ class Config:
                 or self.screen_hypotheses < 1):
             raise ValueError("need screen_tol_deg > 0, screen_fraction in [0, 1], screen_partners ≥ 1 "
                              "and screen_hypotheses ≥ 1")
+        if (self.subgraph_tol_deg <= 0 or min(self.subgraph_candidates, self.subgraph_matchings,
+                                               self.subgraph_main_stars) < 1):
+            raise ValueError("need subgraph_tol_deg > 0 and subgraph_candidates, subgraph_matchings, "
+                             "subgraph_main_stars ≥ 1")
         if self.min_stars < 1 or self.min_matched < 1:
             raise ValueError("min_stars and min_matched must be ≥ 1")
         object.__setattr__(self, "focal_search", tuple(float(f) for f in self.focal_search))
@@ -228,10 +253,11 @@ class Config:
     @classmethod
     def paper(cls, **overrides) -> Config:
         """The paper's algorithm alone: no ``verify``, no ``leftover_tol_deg``, no triangle
-        ``screen``, no focal-length search or fit (``prune`` stays: it changes only the work);
-        returns, id for id, what :mod:`~jstarid.algorithms.sgm.reference` returns.
+        ``screen``, no ``subgraph`` search, no focal-length search or fit (``prune`` stays: it
+        changes only the work); returns, id for id, what :mod:`~jstarid.algorithms.sgm.reference` returns.
         """
-        return cls(**{"verify": False, "leftover_tol_deg": None, "screen": False, "focal_search": (),
+        return cls(**{"verify": False, "leftover_tol_deg": None, "screen": False, "subgraph": False,
+                      "focal_search": (),
                       "fit_focal": False, **overrides})
 
     @classmethod

@@ -29,12 +29,14 @@ from jstarid.algorithms.base import check_scenes
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import image_graph
 from jstarid.algorithms.sgm.search import (
+    SearchOutcome,
     advance_search,
     next_pow2,
     reject_best,
     search_outcome,
     start_search,
 )
+from jstarid.algorithms.sgm.subgraph import subgraph_search
 from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
 from jstarid.camera_fit import check_identification, search_focal
@@ -80,30 +82,40 @@ class Diagnostics(NamedTuple):
     main_contested: np.ndarray
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "radius_deg", "capacity"))
-def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int):
+@functools.partial(jax.jit, static_argnames=("camera", "radius_deg", "capacity", "main_rank"))
+def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int, main_rank: int = 0):
     """Image neighbor graphs of a batch.
 
     Args:
         xy: (B, N, 2) centroids (px). valid: (B, N) bool.
         camera: static :class:`~jstarid.camera.Camera`. radius_deg: r (deg). capacity: static K.
+        main_rank: static; the main star is the valid detection nearest the principal point (0, the
+            paper's choice) or the ``main_rank``-th nearest after it (``Config.subgraph_main_stars``).
 
     Returns:
         :class:`~jstarid.algorithms.sgm.graph.ImageGraph` of (B, …) arrays, with ``main`` (B,)
-        int32 main-star detection and ``any`` (B,) bool (the scene has a detection).
+        int32 main-star detection and ``any`` (B,) bool (the scene has such a detection).
     """
-    main = nearest_to_principal_point(xy, valid, camera)
+    if main_rank == 0:
+        main = nearest_to_principal_point(xy, valid, camera)
+        has = jnp.any(valid, axis=-1)
+    else:
+        centre = jnp.array([camera.cx, camera.cy], xy.dtype)
+        d2 = jnp.where(valid, jnp.sum((xy - centre[None, None, :]) ** 2, axis=-1), jnp.inf)
+        main = jnp.argsort(d2, axis=-1, stable=True)[:, main_rank]
+        has = jnp.sum(valid, axis=-1) > main_rank
     vecs = camera.unproject(xy)
     g = jax.vmap(image_graph, in_axes=(0, 0, 0, None, None))(vecs, valid, main, radius_deg,
                                                              capacity)
-    return g._replace(main=main.astype(jnp.int32), any=jnp.any(valid, axis=-1))
+    return g._replace(main=main.astype(jnp.int32), any=has)
 
 
-def searchable_graphs(db, scenes: Scene, config: Config):
+def searchable_graphs(db, scenes: Scene, config: Config, main_rank: int = 0):
     """The scenes' image graphs (:func:`scene_graphs`, as NumPy arrays) and which ones Algorithm 1
     searches: (B,) bool, a detection, no overflow, at least ``config.min_stars`` vertices."""
     g = jax.tree.map(np.asarray, scene_graphs(scenes.xy, scenes.valid, camera=db.camera,
-                                              radius_deg=float(db.radius_deg), capacity=int(db.capacity)))
+                                              radius_deg=float(db.radius_deg), capacity=int(db.capacity),
+                                              main_rank=main_rank))
     return g, g.any & ~g.overflow & (g.n >= config.min_stars)
 
 
@@ -160,6 +172,9 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
 def _identify(db, scenes: Scene, config: Config, *, diagnostics: bool = False, with_attitude: bool = True):
     """:func:`identify` without the focal-length extensions (the paper's search and the
     verification), on scenes already checked."""
+    if config.subgraph:
+        return _identify_subgraph(db, scenes, config, diagnostics=diagnostics,
+                                  with_attitude=with_attitude)
     g, usable = searchable_graphs(db, scenes, config)
     state = advance_search(db, g, start_search(db, g, usable, config), config)
     res = search_outcome(state, config, g.mask.shape[1])
@@ -194,6 +209,92 @@ def _identify(db, scenes: Scene, config: Config, *, diagnostics: bool = False, w
             level=res.level, main_contested=contested_main)
         return result, diag
     return result
+
+
+def _identify_subgraph(db, scenes: Scene, config: Config, *, diagnostics: bool = False,
+                       with_attitude: bool = True):
+    """:func:`_identify` with ``Config.subgraph`` (:mod:`.subgraph`): each scene's ranked accepted
+    candidates are named and verified in order (up to ``verify_retries`` more after a rejection);
+    scenes still unsolved are searched again with the next main star, up to
+    ``subgraph_main_stars`` of them. Diagnostics are those of the first main star.
+    """
+    b = scenes.batch_size
+    ids = np.full(scenes.valid.shape, -1, np.int32)
+    ok = np.zeros(b, bool)
+    diag = None
+    for main_rank in range(config.subgraph_main_stars):
+        todo = np.nonzero(~ok)[0]
+        if not todo.size:
+            break
+        padded = np.concatenate([todo, np.full(next_pow2(todo.size) - todo.size, todo[0])])
+        sub_scenes = scenes[padded]
+        g, usable = searchable_graphs(db, sub_scenes, config, main_rank=main_rank)
+        if not np.any(usable[:todo.size]):
+            break
+        ranked = subgraph_search(db, g, usable, config)
+        sub, outcome, n_rejected = _verify_ranked(db, sub_scenes, g, ranked, config)
+        sub_ids, sub_ok = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
+        ids[todo], ok[todo] = sub_ids, sub_ok
+        if diagnostics and main_rank == 0:
+            diag = _subgraph_diagnostics(db, scenes, g, usable, ranked, outcome, n_rejected, todo.size)
+    result = Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=None)
+    if with_attitude:
+        att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
+        att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
+        result = Identification(ids=result.ids, ok=result.ok, attitude=att)
+    return (result, diag) if diagnostics else result
+
+
+def _outcome_at(ranked: dict, pick: np.ndarray, n_rejected: np.ndarray) -> SearchOutcome:
+    """The :class:`~.search.SearchOutcome` of the candidate ``pick`` (B,) of each scene's ranking."""
+    at = np.arange(pick.size)
+    ok = ranked["ok"][at, pick]
+    n_tried = np.sum(np.isfinite(ranked["error"]), axis=1).astype(np.int32)
+    return SearchOutcome(ok=ok, best=np.where(ok, ranked["rows"][at, pick], -1).astype(np.int32),
+                         rank=np.where(ok, pick, -1).astype(np.int32),
+                         match=np.where(ok[:, None], ranked["match"][at, pick], -1),
+                         error=ranked["error"][at, pick], n_matched=n_tried,
+                         n_pruned=np.zeros(pick.size, np.int32), n_rejected=n_rejected,
+                         level=np.where(ok, 0, -1).astype(np.int32))
+
+
+def _verify_ranked(db, scenes: Scene, g, ranked: dict, config: Config):
+    """Name and verify each scene's best accepted candidate; a rejected one gives way to the next
+    accepted one (at most ``verify_retries`` times). Returns ``(result, outcome, n_rejected)``."""
+    b, m = ranked["ok"].shape
+    pick = np.zeros(b, np.int64)
+    n_rejected = np.zeros(b, np.int32)
+    res = _outcome_at(ranked, pick, n_rejected)
+    result, contested = _names_from_match(db, scenes, g, res, config)
+    if not config.verify:
+        return result, res, n_rejected
+    for _ in range(config.verify_retries):
+        retry = res.ok & ~np.asarray(result.ok) & ~contested & (pick + 1 < m)
+        if not np.any(retry):
+            break
+        redo = np.nonzero(retry)[0]
+        pick[redo] += 1
+        n_rejected[redo] += 1
+        res = _outcome_at(ranked, pick, n_rejected)
+        sub, sub_contested = _names_from_match(db, scenes, g, res, config, rows=redo)
+        result = _merge(result, sub, redo)
+        contested = contested.copy()
+        contested[redo] = sub_contested
+    return result, res, n_rejected
+
+
+def _subgraph_diagnostics(db, scenes: Scene, g, usable, ranked: dict, res: SearchOutcome,
+                          n_rejected: np.ndarray, n: int) -> Diagnostics:
+    """:class:`Diagnostics` of the first ``n`` rows of a subgraph search (``level`` 0 when accepted)."""
+    best_err = np.min(ranked["error"], axis=1)
+    return Diagnostics(
+        n_candidates=np.sum(ranked["rows"] >= 0, axis=1).astype(np.int32)[:n],
+        overflow=(g.overflow | np.asarray(scenes.overflow))[:n], n_matched=res.n_matched[:n],
+        n_pruned=res.n_pruned[:n], n_rejected=n_rejected[:n], n_i=g.n[:n], w_i=g.w[:n],
+        main=g.main[:n], usable=usable[:n], match_ok=res.ok[:n], best=res.best[:n],
+        best_main=np.where(res.ok, db.main[np.clip(res.best, 0, None)], -1)[:n],
+        error=np.where(res.ok, res.error, best_err)[:n], level=res.level[:n],
+        main_contested=np.zeros(n, bool))
 
 
 def _names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
