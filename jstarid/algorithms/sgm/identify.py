@@ -236,7 +236,8 @@ def _identify_subgraph(db, scenes: Scene, config: Config, *, diagnostics: bool =
         sub_ids, sub_ok = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
         ids[todo], ok[todo] = sub_ids, sub_ok
         if diagnostics and main_rank == 0:
-            diag = _subgraph_diagnostics(db, scenes, g, usable, ranked, outcome, n_rejected, todo.size)
+            diag = _subgraph_diagnostics(db, sub_scenes, g, usable, ranked, outcome, n_rejected,
+                                         todo.size)
     result = Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=None)
     if with_attitude:
         att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)

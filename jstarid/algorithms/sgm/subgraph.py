@@ -24,11 +24,12 @@ module keeps SGM's spectral matching and replaces what assumes equal vertex sets
    pairs (more first), then δ; the verification (:mod:`.verify`) takes them in that order.
 
 Choices a reviewer should know (the paper is silent, as it assumes equal vertex sets):
-``subgraph_tol_deg`` is both the radius tolerance of step 1 and the edge-residual tolerance of
-step 3 (two centroid errors enter both); the cut graph holds at most ``2·P`` vertices (P: the
-image graph's padded size), those of nearest radius first — a graph with more radius partners is
-cut further (:func:`partner_vertices`: ``cut`` reports it), which can only lose a match, never make
-one wrong, because every name is verified.
+``subgraph_tol_deg`` is the radius tolerance of step 1 (tight: a tight vote is rare by chance),
+``screen_tol_deg`` the edge-residual tolerance of step 3 (one star's position error, as in the
+screen); the cut graph holds at most ``P + size_bucket`` vertices (P: the image graph's padded
+size), those of nearest radius first — a graph with more radius partners is cut further
+(:func:`partner_vertices`: ``cut`` reports it), which can only lose a match, never make one wrong,
+because every name is verified.
 """
 
 from __future__ import annotations
@@ -198,7 +199,7 @@ def partial_match(a_i, mask_i, a_j, mask_j, *, c, tol, n_iter: int, power_tol: f
 
 def rank_candidates(a_i, n_i, plane_i, radii_db, db_adj, db_plane, db_n, *, radius, tol, screen_tol,
                     c, max_error, fraction, n_candidates: int, n_matchings: int, partners: int,
-                    hypotheses: int, n_iter: int, power_tol: float, min_matched: int):
+                    hypotheses: int, n_iter: int, power_tol: float, min_matched: int, extra: int):
     """Steps 1–4 for one image graph: the ``n_matchings`` candidates matched, best first.
 
     Args:
@@ -206,8 +207,8 @@ def rank_candidates(a_i, n_i, plane_i, radii_db, db_adj, db_plane, db_n, *, radi
         radii_db: (D, K) :func:`radii_table`. db_adj: (D, K, K) deg. db_plane: (D, K, 2) deg.
         db_n: (D,) vertex counts. radius: the database's r (deg). tol, screen_tol, c, max_error
         (deg, 1/deg): ``Config``'s ``subgraph_tol_deg``, ``screen_tol_deg``, ``c``,
-        ``max_error_deg``. fraction: ``screen_fraction``. The rest static: ``Config``'s fields
-        of the same meaning.
+        ``max_error_deg``. fraction: ``screen_fraction``. extra: static, the cut graph holds
+        P + ``extra`` vertices. The rest static: ``Config``'s fields of the same meaning.
 
     Returns:
         ``(rows, match, error, pairs, accepted, cut)``: (M,) int32 database rows, best first; (M, P)
@@ -215,7 +216,7 @@ def rank_candidates(a_i, n_i, plane_i, radii_db, db_adj, db_plane, db_n, *, radi
         (M,) bool accepted; (M,) bool the cut graph was cut further (:func:`partner_vertices`).
     """
     p = a_i.shape[0]
-    q = min(2 * p, db_adj.shape[1])
+    q = min(p + extra, db_adj.shape[1])
     mask_i = jnp.arange(p) < n_i
     r_i = a_i[0]
     valid_i = mask_i & (jnp.arange(p) > 0)
@@ -263,11 +264,16 @@ def _rank_scenes(a_i, n_i, plane_i, radii_db, db_adj, db_plane, db_n, radius, to
 
 
 _rank_scenes_jit = jax.jit(_rank_scenes, static_argnames=(
-    "n_candidates", "n_matchings", "partners", "hypotheses", "n_iter", "power_tol", "min_matched"))
+    "n_candidates", "n_matchings", "partners", "hypotheses", "n_iter", "power_tol", "min_matched",
+    "extra"))
 
 
-def subgraph_search(db, graphs, usable: np.ndarray, config, chunk: int = 64):
-    """Steps 1–4 for a batch of image graphs (host side; chunks of ``chunk`` scenes).
+def subgraph_search(db, graphs, usable: np.ndarray, config):
+    """Steps 1–4 for a batch of image graphs (host side).
+
+    Scenes are grouped by their image graph's padded size P (``size_bucket``) and run in chunks
+    whose affinity matrices fit ``memory_budget_mb`` (``subgraph_matchings`` × (P·Q)² floats per
+    scene, Q = P + ``size_bucket`` the cut graph's size).
 
     Args:
         db: :class:`~.database.Database`. graphs: NumPy :class:`~.graph.ImageGraph` (B, K, …).
@@ -287,25 +293,31 @@ def subgraph_search(db, graphs, usable: np.ndarray, config, chunk: int = 64):
     if not todo.size:
         return out
     bucket = int(config.size_bucket)
-    p = min(k, max(bucket, -(-int(np.max(graphs.n[todo])) // bucket) * bucket))
+    sizes = np.minimum(k, np.maximum(bucket, -(-graphs.n[todo] // bucket) * bucket))
     tables = on_every_device(db, "subgraph", lambda: (
         jnp.asarray(radii_table(db)), jnp.asarray(db.adj), jnp.asarray(db.plane), jnp.asarray(db.n)))
     static = dict(n_candidates=int(min(config.subgraph_candidates, len(db))), n_matchings=m,
                   partners=int(config.screen_partners), hypotheses=int(config.screen_hypotheses),
                   n_iter=int(config.power_iterations), power_tol=float(config.power_tol),
-                  min_matched=int(config.min_matched))
+                  min_matched=int(config.min_matched), extra=bucket)
     scalars = tuple(jnp.float32(v) for v in (db.radius_deg, config.subgraph_tol_deg,
                                              config.screen_tol_deg, config.c, config.max_error_deg,
                                              config.screen_fraction))
-    for lo in range(0, todo.size, chunk):
-        rows = todo[lo:lo + chunk]
-        fill = np.concatenate([rows, np.full(chunk - rows.size, rows[0])]) if rows.size < chunk else rows
-        res = map_batch(_rank_scenes_jit, (jnp.asarray(graphs.adj[fill, :p, :p]),
-                                           jnp.asarray(graphs.n[fill]),
-                                           jnp.asarray(graphs.plane[fill, :p])),
-                        (*tables, *scalars), static=static)
-        r, mt, e, pr, okk, ct = (np.asarray(a)[:rows.size] for a in res)
-        out["rows"][rows], out["error"][rows], out["pairs"][rows] = r, e, pr
-        out["ok"][rows], out["cut"][rows] = okk, ct
-        out["match"][rows, :, :p] = mt
+    for p in np.unique(sizes):
+        p = int(p)
+        group = todo[sizes == p]
+        q = min(k, p + bucket)
+        per_scene = m * (p * q) ** 2 * 4 * 3  # the affinity and two temporaries of its size
+        chunk = 1 << int(np.clip(np.log2(config.memory_budget_mb * 2**20 / per_scene), 0, 6))
+        for lo in range(0, group.size, chunk):
+            rows = group[lo:lo + chunk]
+            fill = np.concatenate([rows, np.full(chunk - rows.size, rows[0])])
+            res = map_batch(_rank_scenes_jit, (jnp.asarray(graphs.adj[fill, :p, :p]),
+                                               jnp.asarray(graphs.n[fill]),
+                                               jnp.asarray(graphs.plane[fill, :p])),
+                            (*tables, *scalars), static=static)
+            r, mt, e, pr, okk, ct = (np.asarray(a)[:rows.size] for a in res)
+            out["rows"][rows], out["error"][rows], out["pairs"][rows] = r, e, pr
+            out["ok"][rows], out["cut"][rows] = okk, ct
+            out["match"][rows, :, :p] = mt
     return out
