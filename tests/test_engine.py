@@ -269,3 +269,13 @@ def test_boresight_rows_found_in_a_catalog_that_differs():
     assert not same.all() and np.all(other.hip[got[same]] == catalog.hip[same])
     cos = np.sum(catalog.unit_vectors[~same] * other.unit_vectors[got[~same]], axis=1)
     assert np.all(np.degrees(np.arccos(np.clip(cos, -1, 1))) <= 0.5 + 1e-6)  # its kept neighbour
+
+
+def test_frames_config_turns_on_sgm_subgraph_search_only():
+    cam = js.camera_preset("tetra3_test")
+    sgm_frames = js.engine.default_config("sgm", camera=cam, frames=True)
+    sgm_sim = js.engine.default_config("sgm", camera=cam)
+    assert sgm_frames.subgraph and not sgm_sim.subgraph
+    assert dataclasses.replace(sgm_frames, subgraph=False) == sgm_sim
+    assert js.engine.default_config("mlv", camera=cam, frames=True) == js.engine.default_config(
+        "mlv", camera=cam)
