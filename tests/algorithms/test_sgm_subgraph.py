@@ -154,3 +154,12 @@ def test_subgraph_is_off_in_the_paper_and_checked():
         sgm.Config(subgraph_tol_deg=0.0)
     with pytest.raises(ValueError, match="subgraph"):
         sgm.Config(subgraph_matchings=0)
+
+
+def test_subgraph_fails_cleanly_on_empty_and_tiny_scenes(setup5):
+    _, cam, db = setup5
+    xy = [np.zeros((0, 2)), np.array([[cam.cx, cam.cy], [cam.cx + 40.0, cam.cy]])]
+    scenes = js.scenes_from_centroids(xy, capacity=8)
+    res, diag = sgm.identify(db, scenes, sgm.Config(subgraph=True), diagnostics=True)
+    assert not np.any(np.asarray(res.ok)) and np.all(np.asarray(res.ids) == -1)
+    assert not np.any(diag.usable) and np.all(diag.best == -1)

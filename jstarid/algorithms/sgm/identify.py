@@ -229,8 +229,8 @@ def _identify_subgraph(db, scenes: Scene, config: Config, *, diagnostics: bool =
         padded = np.concatenate([todo, np.full(next_pow2(todo.size) - todo.size, todo[0])])
         sub_scenes = scenes[padded]
         g, usable = searchable_graphs(db, sub_scenes, config, main_rank=main_rank)
-        if not np.any(usable[:todo.size]):
-            break
+        if main_rank and not np.any(usable[:todo.size]):  # the next main star's graphs may be usable
+            continue
         ranked = subgraph_search(db, g, usable, config)
         sub, outcome, n_rejected = _verify_ranked(db, sub_scenes, g, ranked, config)
         sub_ids, sub_ok = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
