@@ -41,15 +41,25 @@ CORRECT, WRONG, FAIL, INCOMPLETE = 0, 1, 2, 3
 CRITERIA = ("strict", "mlv", "sgm", "rpnet")
 
 
+def _principal_point_d2(xy, valid, camera):
+    """(..., N) squared distance (px²) of each detection to (cx, cy); +inf where not valid."""
+    centre = jnp.array([camera.cx, camera.cy], xy.dtype).reshape((1,) * (xy.ndim - 1) + (2,))
+    return jnp.where(valid, jnp.sum((xy - centre) ** 2, axis=-1), jnp.inf)
+
+
 def nearest_to_principal_point(xy, valid, camera):
     """(...,) index of the valid detection nearest (cx, cy) among xy (..., N, 2) (0 if none valid).
 
     This is the "main star" of SGM and the guide star of RpNet; algorithms and metrics share it so
     both name the same detection.
     """
-    centre = jnp.array([camera.cx, camera.cy], xy.dtype).reshape((1,) * (xy.ndim - 1) + (2,))
-    d2 = jnp.sum((xy - centre) ** 2, axis=-1)
-    return jnp.argmin(jnp.where(valid, d2, jnp.inf), axis=-1)
+    return jnp.argmin(_principal_point_d2(xy, valid, camera), axis=-1)
+
+
+def by_distance_to_principal_point(xy, valid, camera):
+    """(..., N) detection indices, nearest (cx, cy) first (ties to the lower index, as
+    :func:`nearest_to_principal_point`), the invalid ones last."""
+    return jnp.argsort(_principal_point_d2(xy, valid, camera), axis=-1, stable=True)
 
 
 def main_star_index(scenes: Scene, camera):

@@ -52,9 +52,9 @@ def default_config(name: str, *, rpnet_network: str = "quick", camera=None, fram
         rpnet_network: ``"quick"`` or ``"table3"``.
         camera: the :class:`~jstarid.Camera` the config is for (``None``: the published defaults).
         frames: the config for detections extracted from real frames, which do not stop at the
-            catalog's magnitude limit: SGM's magnitude-robust ``subgraph`` search on (the others
-            need no change: MLV and RpNet vote on triangles and patterns that tolerate missing and
-            extra stars).
+            catalog's magnitude limit: the algorithm's ``Config.FRAME_SETTINGS`` applied (SGM: its
+            magnitude-robust ``subgraph`` search; MLV and RpNet have none: they vote on triangles
+            and patterns that tolerate missing and extra stars).
     """
     module = algorithms.get(name)
     if name == "rpnet":
@@ -66,8 +66,8 @@ def default_config(name: str, *, rpnet_network: str = "quick", camera=None, fram
         return module.Config.for_camera(camera, training=training)
     for_camera = getattr(module.Config, "for_camera", None)
     config = module.Config() if camera is None or for_camera is None else for_camera(camera)
-    if frames and name == "sgm":
-        config = dataclasses.replace(config, subgraph=True)
+    if frames and getattr(module.Config, "FRAME_SETTINGS", None):
+        config = dataclasses.replace(config, **module.Config.FRAME_SETTINGS)
     return config
 
 

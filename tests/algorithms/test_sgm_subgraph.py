@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 import jstarid as js
 from jstarid.algorithms import sgm
 from jstarid.algorithms.sgm.graph import adjacency_deg
+from jstarid.algorithms.sgm.identify import searchable_graphs
 from jstarid.algorithms.sgm.subgraph import drop_outliers, partial_match, radial_votes, radii_table
 
 TOL = 0.05  # edge residual tolerance of these tests (deg); star noise 0.004° ≪ TOL
@@ -145,6 +146,21 @@ def test_subgraph_identifies_scenes_deeper_than_the_database_and_never_wrongly(s
     assert ok.sum() >= 26
     assert np.all(named.sum(axis=1)[ok] >= config.min_matched)
     assert np.all(diag.level[diag.match_ok] == 0) and np.all(diag.n_matched[diag.usable] >= 1)
+    assert diag.cut.dtype == bool and diag.cut.shape == ok.shape and not np.any(diag.cut & ~diag.match_ok)
+
+
+def test_later_main_stars_are_the_next_nearest_to_the_principal_point(setup5):
+    _, cam, db = setup5
+    rng = np.random.default_rng(2)
+    xy = [cam.cx + rng.uniform(-300, 300, (n, 2)) for n in (6, 9, 2)]
+    scenes = js.scenes_from_centroids(xy, capacity=12)
+    d2 = np.where(np.asarray(scenes.valid),
+                  np.sum((np.asarray(scenes.xy) - [cam.cx, cam.cy]) ** 2, axis=-1), np.inf)
+    order = np.argsort(d2, axis=1, kind="stable")
+    for rank in range(3):
+        g, _ = searchable_graphs(db, scenes, sgm.Config(subgraph=True), main_rank=rank)
+        np.testing.assert_array_equal(g.main, order[:, rank])
+        np.testing.assert_array_equal(g.any, np.asarray(scenes.valid).sum(axis=1) > rank)
 
 
 def test_subgraph_is_off_in_the_paper_and_checked():

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import jax
 
@@ -148,6 +148,10 @@ class Config:
             fitted ``focal_scale``.
         max_focal_error: the largest relative focal-length correction of a solved scene.
     """
+
+    # what :func:`jstarid.engine.default_config` sets for detections from real frames, which do not
+    # stop at the catalog's magnitude limit (``frames=True``)
+    FRAME_SETTINGS: ClassVar[dict] = {"subgraph": True}
 
     radius_deg: float = 6.0
     dw0_deg: float = 0.1

@@ -40,7 +40,7 @@ from jstarid.algorithms.sgm.subgraph import subgraph_search
 from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
 from jstarid.camera_fit import check_identification, search_focal
-from jstarid.metrics import nearest_to_principal_point
+from jstarid.metrics import by_distance_to_principal_point, nearest_to_principal_point
 from jstarid.runtime import map_batch, on_every_device
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index
@@ -63,6 +63,9 @@ class Diagnostics(NamedTuple):
         best: (B,) database row of the accepted match (−1 none); best_main: its catalog main star.
         error: (B,) its matching error δ (deg, eq. 5). level: (B,) the Δw level it was found at.
         main_contested: (B,) failed only because a close rival contests the main star's name.
+        cut: (B,) bool, with ``Config.subgraph``: the accepted database graph had more radius
+            partners than its cut graph holds (:func:`.subgraph.partner_vertices`); ``None`` with
+            the paper's search.
     """
 
     n_candidates: np.ndarray
@@ -80,6 +83,7 @@ class Diagnostics(NamedTuple):
     error: np.ndarray
     level: np.ndarray
     main_contested: np.ndarray
+    cut: np.ndarray | None = None
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "radius_deg", "capacity", "main_rank"))
@@ -100,9 +104,7 @@ def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int, main_ra
         main = nearest_to_principal_point(xy, valid, camera)
         has = jnp.any(valid, axis=-1)
     else:
-        centre = jnp.array([camera.cx, camera.cy], xy.dtype)
-        d2 = jnp.where(valid, jnp.sum((xy - centre[None, None, :]) ** 2, axis=-1), jnp.inf)
-        main = jnp.argsort(d2, axis=-1, stable=True)[:, main_rank]
+        main = by_distance_to_principal_point(xy, valid, camera)[:, main_rank]
         has = jnp.sum(valid, axis=-1) > main_rank
     vecs = camera.unproject(xy)
     g = jax.vmap(image_graph, in_axes=(0, 0, 0, None, None))(vecs, valid, main, radius_deg,
@@ -178,21 +180,15 @@ def _identify(db, scenes: Scene, config: Config, *, diagnostics: bool = False, w
     g, usable = searchable_graphs(db, scenes, config)
     state = advance_search(db, g, start_search(db, g, usable, config), config)
     res = search_outcome(state, config, g.mask.shape[1])
-    result, contested_main = _names_from_match(db, scenes, g, res, config)
-    contested_main = contested_main.copy()  # a view of a device array is read-only
-    if config.verify:
-        for _ in range(config.verify_retries):
-            # matches the verification rejected: strike them out and let Algorithm 1 go on —
-            # unless only the main star's name was contested (another graph cannot settle that)
-            retry = res.ok & ~np.asarray(result.ok) & ~contested_main
-            if not np.any(retry):
-                break
-            redo = np.nonzero(retry)[0]
-            state = advance_search(db, g, reject_best(state, res, redo), config, retry)
-            res = search_outcome(state, config, g.mask.shape[1])
-            sub, sub_contested = _names_from_match(db, scenes, g, res, config, rows=redo)
-            result = _merge(result, sub, redo)
-            contested_main[redo] = sub_contested
+
+    def resume(res, redo):  # strike out the rejected J* and let Algorithm 1 go on
+        nonlocal state
+        retry = np.zeros(res.ok.shape, bool)
+        retry[redo] = True
+        state = advance_search(db, g, reject_best(state, res, redo), config, retry)
+        return search_outcome(state, config, g.mask.shape[1])
+
+    result, res, contested_main = _names_with_retries(db, scenes, g, res, config, resume)
     if with_attitude:
         att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
         att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
@@ -232,12 +228,11 @@ def _identify_subgraph(db, scenes: Scene, config: Config, *, diagnostics: bool =
         if main_rank and not np.any(usable[:todo.size]):  # the next main star's graphs may be usable
             continue
         ranked = subgraph_search(db, g, usable, config)
-        sub, outcome, n_rejected = _verify_ranked(db, sub_scenes, g, ranked, config)
+        sub, outcome = _verify_ranked(db, sub_scenes, g, ranked, config)
         sub_ids, sub_ok = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
         ids[todo], ok[todo] = sub_ids, sub_ok
         if diagnostics and main_rank == 0:
-            diag = _subgraph_diagnostics(db, sub_scenes, g, usable, ranked, outcome, n_rejected,
-                                         todo.size)
+            diag = _subgraph_diagnostics(db, sub_scenes, g, usable, ranked, outcome, todo.size)
     result = Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=None)
     if with_attitude:
         att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
@@ -246,10 +241,39 @@ def _identify_subgraph(db, scenes: Scene, config: Config, *, diagnostics: bool =
     return (result, diag) if diagnostics else result
 
 
+def _names_with_retries(db, scenes: Scene, g, res: SearchOutcome, config: Config, next_outcome):
+    """:func:`_names_from_match`, then, for the matches the verification rejected (``verify_retries``
+    times at most), the search's next answer: ``next_outcome(res, redo)`` → the
+    :class:`~.search.SearchOutcome` with the scenes ``redo`` (R,) moved on. Not when only the main
+    star's name was contested: another graph cannot settle that.
+
+    Returns:
+        ``(result, res, contested_main)``: the :class:`~jstarid.scene.Identification`, the last
+        outcome and (B,) bool, failed only because the main star's name is contested.
+    """
+    result, contested = _names_from_match(db, scenes, g, res, config)
+    contested = contested.copy()  # a view of a device array is read-only
+    if not config.verify:
+        return result, res, contested
+    for _ in range(config.verify_retries):
+        retry = res.ok & ~np.asarray(result.ok) & ~contested
+        if not np.any(retry):
+            break
+        redo = np.nonzero(retry)[0]
+        res = next_outcome(res, redo)
+        sub, sub_contested = _names_from_match(db, scenes, g, res, config, rows=redo)
+        result = _merge(result, sub, redo)
+        contested[redo] = sub_contested
+    return result, res, contested
+
+
 def _outcome_at(ranked: dict, pick: np.ndarray, n_rejected: np.ndarray) -> SearchOutcome:
-    """The :class:`~.search.SearchOutcome` of the candidate ``pick`` (B,) of each scene's ranking."""
+    """The :class:`~.search.SearchOutcome` of the candidate ``pick`` (B,) of each scene's ranking
+    (none where ``pick`` is past the ranking's end)."""
     at = np.arange(pick.size)
-    ok = ranked["ok"][at, pick]
+    inside = pick < ranked["ok"].shape[1]
+    pick = np.minimum(pick, ranked["ok"].shape[1] - 1)
+    ok = ranked["ok"][at, pick] & inside
     n_tried = np.sum(np.isfinite(ranked["error"]), axis=1).astype(np.int32)
     return SearchOutcome(ok=ok, best=np.where(ok, ranked["rows"][at, pick], -1).astype(np.int32),
                          rank=np.where(ok, pick, -1).astype(np.int32),
@@ -261,41 +285,35 @@ def _outcome_at(ranked: dict, pick: np.ndarray, n_rejected: np.ndarray) -> Searc
 
 def _verify_ranked(db, scenes: Scene, g, ranked: dict, config: Config):
     """Name and verify each scene's best accepted candidate; a rejected one gives way to the next
-    accepted one (at most ``verify_retries`` times). Returns ``(result, outcome, n_rejected)``."""
-    b, m = ranked["ok"].shape
+    in the ranking (:func:`_names_with_retries`). Returns ``(result, outcome)``."""
+    b = ranked["ok"].shape[0]
     pick = np.zeros(b, np.int64)
     n_rejected = np.zeros(b, np.int32)
-    res = _outcome_at(ranked, pick, n_rejected)
-    result, contested = _names_from_match(db, scenes, g, res, config)
-    if not config.verify:
-        return result, res, n_rejected
-    for _ in range(config.verify_retries):
-        retry = res.ok & ~np.asarray(result.ok) & ~contested & (pick + 1 < m)
-        if not np.any(retry):
-            break
-        redo = np.nonzero(retry)[0]
+
+    def next_in_ranking(res, redo):
         pick[redo] += 1
         n_rejected[redo] += 1
-        res = _outcome_at(ranked, pick, n_rejected)
-        sub, sub_contested = _names_from_match(db, scenes, g, res, config, rows=redo)
-        result = _merge(result, sub, redo)
-        contested = contested.copy()
-        contested[redo] = sub_contested
-    return result, res, n_rejected
+        return _outcome_at(ranked, pick, n_rejected)
+
+    result, res, _ = _names_with_retries(db, scenes, g, _outcome_at(ranked, pick, n_rejected), config,
+                                         next_in_ranking)
+    return result, res
 
 
 def _subgraph_diagnostics(db, scenes: Scene, g, usable, ranked: dict, res: SearchOutcome,
-                          n_rejected: np.ndarray, n: int) -> Diagnostics:
+                          n: int) -> Diagnostics:
     """:class:`Diagnostics` of the first ``n`` rows of a subgraph search (``level`` 0 when accepted)."""
     best_err = np.min(ranked["error"], axis=1)
+    at = np.arange(res.ok.size)
     return Diagnostics(
         n_candidates=np.sum(ranked["rows"] >= 0, axis=1).astype(np.int32)[:n],
         overflow=(g.overflow | np.asarray(scenes.overflow))[:n], n_matched=res.n_matched[:n],
-        n_pruned=res.n_pruned[:n], n_rejected=n_rejected[:n], n_i=g.n[:n], w_i=g.w[:n],
+        n_pruned=res.n_pruned[:n], n_rejected=res.n_rejected[:n], n_i=g.n[:n], w_i=g.w[:n],
         main=g.main[:n], usable=usable[:n], match_ok=res.ok[:n], best=res.best[:n],
         best_main=np.where(res.ok, db.main[np.clip(res.best, 0, None)], -1)[:n],
         error=np.where(res.ok, res.error, best_err)[:n], level=res.level[:n],
-        main_contested=np.zeros(n, bool))
+        main_contested=np.zeros(n, bool),
+        cut=(res.ok & ranked["cut"][at, np.maximum(res.rank, 0)])[:n])
 
 
 def _names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
