@@ -28,8 +28,8 @@ Choices a reviewer should know (the paper is silent, as it assumes equal vertex 
 ``screen_tol_deg`` the edge-residual tolerance of step 3 (one star's position error, as in the
 screen); the cut graph holds at most ``P + size_bucket`` vertices (P: the image graph's padded
 size), those of nearest radius first — a graph with more radius partners is cut further
-(:func:`partner_vertices`: ``cut`` reports it), which can only lose a match, never make one wrong,
-because every name is verified.
+(:func:`partner_vertices`; ``Diagnostics.cut`` reports it for the accepted graph), which can only
+lose a match, never make one wrong, because every name is verified.
 """
 
 from __future__ import annotations
