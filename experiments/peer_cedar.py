@@ -6,7 +6,7 @@ catalog as its ``hip_main.dat``; its database for the camera): draws the sweep's
 levels, scene count and seed), solves each once per ``match_max_error`` (its default 0.002, and
 0.005: a fair tuned value at 2–3 px), times every solve, and scores the matches with
 :func:`jstarid.evaluate` like every other algorithm. ``jstarid demo --peer cedar`` puts it in the
-engine's table instead (one setting, the engine's timing).
+engine's table instead (a row per setting, the engine's timing).
 
 If the environment cannot be built the script says so and exits with status 0. Usage::
 

@@ -2,6 +2,7 @@
 builds the peer's environment."""
 
 import csv
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -45,3 +46,20 @@ def test_the_peer_keeps_the_contract_and_stays_out_of_the_registry():
     assert PEERS["cedar"] == cedar.__name__
     with pytest.raises(ValueError):
         cedar.Config(match_max_error=0.0)
+
+
+def test_a_peer_is_a_row_per_reported_setting_and_set_replaces_the_grid(monkeypatch, capsys):
+    from jstarid.cli import sweeps
+
+    monkeypatch.setattr(js.algorithms, "_REGISTRY", dict(js.algorithms._REGISTRY))  # no leak
+    monkeypatch.setattr(cedar, "environment", lambda **_: None)
+    assert sweeps._available_peers(["cedar"]) == []
+    assert "not available; going on without it" in capsys.readouterr().out
+    monkeypatch.setattr(cedar, "environment", lambda **_: Path("python"))
+    assert sweeps._available_peers(["cedar", "cedar"]) == ["cedar"]
+    entry = js.engine.entries(["cedar"])[0]
+    rows = sweeps._reported(entry, {})
+    assert [e.config.match_max_error for e in rows] == list(cedar.REPORTED["match_max_error"])
+    assert [e.label for e in rows] == ["cedar match_max_error=0.002", "cedar match_max_error=0.005"]
+    assert len(sweeps._reported(entry, {"mlv.match_max_error": "0.1"})) == 2  # another algorithm's
+    assert sweeps._reported(entry, {"cedar.match_max_error": "0.003"}) == [entry]

@@ -47,7 +47,8 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
                    help="also run the classic baselines (" + ", ".join(BASELINES) + ") on the same scenes")
     p.add_argument("--peer", choices=sorted(PEERS), action="append", default=[],
                    help="also run a peer solver on the same scenes, in its own environment built on "
-                        "first use (cedar: cedar-solve/tetra3, ≈ 2 min once); if it cannot be built "
+                        "first use (cedar: cedar-solve/tetra3, ≈ 2 min once; a row at its default and "
+                        "one at a tuned match_max_error); if it cannot be built "
                         "the run says so and goes on without it")
     add_camera_options(p, default="sgm2022")
     p.add_argument("--mag-limit", type=float, default=None,
@@ -134,23 +135,20 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     algorithms = [n.strip() for n in names.split(",") if n.strip()]
     if args.baselines:
         algorithms += [n for n in js.algorithms.BASELINES if n not in algorithms]
-    for peer in args.peer:
-        js.algorithms.register(peer, PEERS[peer])
-        if js.algorithms.get(peer).environment() is None:
-            print(f"{peer}: its environment is not available; going on without it", flush=True)
-        elif peer not in algorithms:
-            algorithms.append(peer)
+    peers = [p for p in _available_peers(args.peer) if p not in algorithms]
     for name in algorithms:
         js.algorithms.get(name)  # unknown names fail before anything is built
     axes = _axes_of(args)
     fixed = {k: float(v) for k, v in _settings(args.fixed, "--fixed").items()}
-    algorithms = _with_overrides(js.engine.entries(algorithms, rpnet_network=args.rpnet_network,
-                                                   camera=camera),
-                                 _settings(args.set, "--set"))
+    overrides = _settings(args.set, "--set")
+    chosen = _with_overrides(js.engine.entries(algorithms + peers, rpnet_network=args.rpnet_network,
+                                               camera=camera), overrides)
+    algorithms, peers = chosen[:len(algorithms)], chosen[len(algorithms):]
     if grid:
         if len(algorithms) != 1:
             raise ValueError("--grid needs exactly one algorithm in --algorithms")
         algorithms = js.grid(algorithms[0].algorithm, algorithms[0].config, **grid)
+    algorithms += [e for peer in peers for e in _reported(peer, overrides)]
     js.engine.level_noise(js.engine.level_grid(axes), 1, fixed)  # bad levels fail here, not later
     sensor, centroid = _pixel_options(args, camera)
     if args.scenes < 1 or args.chunk_size < 1 or args.capacity < 1:
@@ -209,6 +207,34 @@ def _axes_of(args) -> dict:
     if args.axis2:
         axes[js.engine.axis_field(args.axis2)] = _floats(args.levels2 or "", "--levels2")
     return axes
+
+
+def _available_peers(peers) -> list[str]:
+    """The peers of ``--peer`` registered, less those whose environment cannot be built (the run
+    says so and goes on without them)."""
+    import jstarid as js
+
+    out = []
+    for peer in dict.fromkeys(peers):
+        js.algorithms.register(peer, PEERS[peer])
+        if js.algorithms.get(peer).environment() is None:
+            print(f"{peer}: its environment is not available; going on without it", flush=True)
+        else:
+            out.append(peer)
+    return out
+
+
+def _reported(entry, overrides: dict) -> list:
+    """A peer's entry as one row per setting it is reported at: the grid of its module's
+    ``REPORTED`` fields (cedar: its default and a tuned ``match_max_error``) that ``--set`` leaves
+    alone."""
+    import jstarid as js
+
+    set_fields = {field for target, _, field in (key.rpartition(".") for key in overrides)
+                  if target in ("", entry.algorithm)}
+    reported = {k: v for k, v in getattr(js.algorithms.get(entry.algorithm), "REPORTED", {}).items()
+                if k not in set_fields}
+    return js.grid(entry.algorithm, entry.config, label=entry.label, **reported) if reported else [entry]
 
 
 def _with_overrides(entries, overrides: dict):
