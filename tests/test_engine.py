@@ -279,3 +279,19 @@ def test_frames_config_turns_on_sgm_subgraph_search_only():
     assert dataclasses.replace(sgm_frames, subgraph=False) == sgm_sim
     assert js.engine.default_config("mlv", camera=cam, frames=True) == js.engine.default_config(
         "mlv", camera=cam)
+
+
+def test_a_grid_run_config_by_config_is_timed_config_by_config():
+    """Successive ``identify`` calls of a grid (no ``identify_grid``) each get their own wall time."""
+    import time
+    import types
+
+    from jstarid.engine.run import _runner
+
+    def identify(db, scenes, config):
+        time.sleep(config)
+        return js.Identification(ids=np.zeros((1, 2), np.int32), ok=np.ones(1, bool), attitude=None)
+
+    db = types.SimpleNamespace(cache_key=lambda: "k")
+    results, shares = _runner(types.SimpleNamespace(identify=identify), [db, db], [0.0, 0.2])(None)
+    assert len(results) == 2 and shares[0] < 0.1 < 0.2 <= shares[1]

@@ -296,13 +296,10 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
         outs = [[] for _ in members]
         first_call = None
         for c, (part, level) in enumerate(chunks):
-            t0 = time.perf_counter()
-            results = run(local[part])
-            jax.block_until_ready([r.ids for r in results])
-            dt = time.perf_counter() - t0
-            first_call = dt if first_call is None else first_call
+            results, shares = run(local[part])
+            first_call = sum(shares) if first_call is None else first_call
             for k, i in enumerate(members):
-                seconds[i, level] += dt / len(members)
+                seconds[i, level] += shares[k]
                 outs[k].append(_score(local[part], results[k], catalog, camera, criterion,
                                       getattr(entries[i].config, "radius_deg", 6.0)))
             if progress and (c + 1 == len(chunks) or c % 4 == 3):
@@ -349,19 +346,30 @@ def plan(algorithms: Sequence | str, catalog, camera: Camera, *, rpnet_network: 
 
 
 def _runner(module, dbs, configs):
-    """``run(scenes) -> [Identification per config]``: the algorithm's ``identify_grid`` (one batch)
-    where it can take the grid, else one ``identify`` call per config with its own database."""
+    """``run(scenes) -> ([Identification per config], [seconds per config])``: the algorithm's
+    ``identify_grid`` (one batch, its wall time shared equally) where it can take the grid, else one
+    timed ``identify`` call per config with its own database."""
     grid = getattr(module, "identify_grid", None)
     state = {"batched": (len(configs) > 1 and grid is not None
                          and len({d.cache_key() for d in dbs}) == 1)}
 
+    def timed(call):
+        t0 = time.perf_counter()
+        out = call()
+        out = out if isinstance(out, list) else [out]
+        jax.block_until_ready([r.ids for r in out])
+        return out, time.perf_counter() - t0
+
     def run(scenes):
         if state["batched"]:
             try:
-                return grid(dbs[0], scenes, configs)
+                results, dt = timed(lambda: grid(dbs[0], scenes, configs))
+                return results, [dt / len(configs)] * len(configs)
             except ValueError:  # the grid varies settings it cannot batch (e.g. MLV's Δv)
                 state["batched"] = False
-        return [module.identify(db, scenes, c) for db, c in zip(dbs, configs, strict=True)]
+        each = [timed(lambda db=db, c=c: module.identify(db, scenes, c))
+                for db, c in zip(dbs, configs, strict=True)]
+        return [r[0] for r, _ in each], [dt for _, dt in each]
 
     return run
 
