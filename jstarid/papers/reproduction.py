@@ -123,6 +123,17 @@ def summary(rows) -> dict[str, float]:
             "RA": float(np.nanmax(acc) - np.nanmin(acc)), "ALN": float(acc[-1])}
 
 
+# What each criterion asks of a scene (docs/conventions.md §5), beside the baselines' rates.
+_CRITERION_NOTES = {
+    "strict": "`strict`: ≥ 3 stars named correctly, none wrong",
+    "mlv": "`mlv`: ≥ 3 stars named correctly, none wrong",
+    "sgm": "`sgm`: every star detected in the main star's 6° circle named correctly; the baselines "
+           "name only the stars of their match, so they seldom meet it — the strict-criterion table "
+           "above compares them",
+    "rpnet": "`rpnet`: the main star named correctly, nothing wrong",
+}
+
+
 def _rates(row) -> str:
     return "" if row is None else f"{100 * row['identification_rate']:.1f} / {100 * row['misid_rate']:.1f}"
 
@@ -152,7 +163,8 @@ def comparison(experiment: Experiment, rows) -> str:
     if others:
         labels = list(dict.fromkeys(r["label"] for r in others))
         by = {(r["label"], r[experiment.axis]): r for r in others}
-        lines += ["", "Baselines on the same scenes, identified % / misid %:", "",
+        lines += ["", f"Baselines on the same scenes, scored by the same criterion "
+                      f"({_CRITERION_NOTES[experiment.criterion]}), identified % / misid %:", "",
                   "| level | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
         for r in rows:
             level = r[experiment.axis]
