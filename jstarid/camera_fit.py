@@ -353,8 +353,9 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
     # — one 9 px name among twenty right ones at 0.5 px inflates the plain RMS to 1.5 px, a 9 px
     # radius — and it pulls the fitted scale by a few tenths of a percent while it stays.
     p = 4.0 if fit_scale is not False else 3.0
-    for _ in range(REFITS):
-        c, scale, r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)
+
+    def refit(_, inlier):
+        r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)[2]
         dof = 2.0 * jnp.sum(inlier).astype(jnp.float32) - p
         ss = jnp.sum(jnp.where(inlier, r**2, 0.0))
         ss_others = jnp.where(inlier, ss - r**2, ss)
@@ -362,7 +363,11 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
         sigma_others = jnp.sqrt(jnp.maximum(ss_others, 0.0) / jnp.maximum(dof_others, 1.0))
         # … and by a trimmed σ̂ (two wrong names side by side would each widen the other's radius)
         sigma_i = jnp.minimum(sigma_others, _trimmed_sigma(r, inlier))
-        inlier = named & (r <= jnp.clip(k_sigma * sigma_i, min_tol_px, max_tol_px))
+        return named & (r <= jnp.clip(k_sigma * sigma_i, min_tol_px, max_tol_px))
+
+    # loops, not unrolled (here and below): each fit traced once keeps a fresh process's tracing of
+    # the check's kernels to a fraction of a second
+    inlier = jax.lax.fori_loop(0, REFITS, refit, inlier)
     c, scale, r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)
     dof = jnp.maximum(2.0 * jnp.sum(inlier).astype(jnp.float32) - p, 1.0)
     sigma = jnp.sqrt(jnp.sum(jnp.where(inlier, r**2, 0.0)) / dof)
@@ -372,18 +377,21 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
         return CameraFit(c, scale, r, inlier, sigma, tol, jnp.float32(0.0))
     # a lens's radial distortion moves the edge stars by pixels, which the 4-parameter fit can only
     # reject: a fit with k1 on the inliers, the inliers chosen again under it, and refitted
-    start, k1_out = (c, scale), jnp.float32(0.0)
-    for _ in range(2):
+    def distorted(_, state):
+        start, c, scale, r, sigma, tol, inlier, k1_out = state
         c_d, s_d, k1, r_d, fitted = fit_distorted(xy, ref, inlier.astype(jnp.float32), camera, start=start)
         dof_d = jnp.maximum(2.0 * jnp.sum(inlier).astype(jnp.float32) - p - 1.0, 1.0)
         sigma_d = jnp.sqrt(jnp.sum(jnp.where(inlier, r_d**2, 0.0)) / dof_d)
         tol_d = jnp.clip(k_sigma * sigma_d, min_tol_px, max_tol_px)
         inlier_d = named & (r_d <= tol_d)
-        start = (c_d, s_d, k1)
         keep = fitted & (jnp.sum(inlier_d) >= DISTORTION_MIN_STARS)
-        c, scale, r = jnp.where(keep, c_d, c), jnp.where(keep, s_d, scale), jnp.where(keep, r_d, r)
-        sigma, tol = jnp.where(keep, sigma_d, sigma), jnp.where(keep, tol_d, tol)
-        inlier, k1_out = jnp.where(keep, inlier_d, inlier), jnp.where(keep, k1, k1_out)
+        return ((c_d, s_d, k1), jnp.where(keep, c_d, c), jnp.where(keep, s_d, scale),
+                jnp.where(keep, r_d, r), jnp.where(keep, sigma_d, sigma), jnp.where(keep, tol_d, tol),
+                jnp.where(keep, inlier_d, inlier), jnp.where(keep, k1, k1_out))
+
+    zero = jnp.zeros((), scale.dtype)
+    state = ((c, scale, zero), c, scale, r, sigma, tol, inlier, zero)
+    _, c, scale, r, sigma, tol, inlier, k1_out = jax.lax.fori_loop(0, 2, distorted, state)
     return CameraFit(c, scale, r, inlier, sigma, tol, k1_out)
 
 
@@ -415,7 +423,7 @@ def _few_names_fit(xy, ref, named, camera, fit_scale, *, k_sigma, min_tol_px):
         dof = jnp.maximum(2.0 * jnp.sum(mask).astype(jnp.float32) - p, 1.0)
         return jnp.sqrt(jnp.sum(jnp.where(mask, r**2, 0.0)) / dof)
 
-    for _ in range(DROP_STEPS):
+    def deletion(_, use):
         r_all = fit_scaled(sxy, sref, use.astype(jnp.float32), camera, fit_scale)[2]
         without = use[None, :] & ~jnp.eye(k, dtype=bool)  # (k, k): row i leaves name i out
         r_wo = jax.vmap(lambda m: fit_scaled(sxy, sref, m.astype(jnp.float32), camera, fit_scale)[2])(without)
@@ -423,7 +431,9 @@ def _few_names_fit(xy, ref, named, camera, fit_scale, *, k_sigma, min_tol_px):
         i = jnp.argmin(jnp.where(use, rms_wo, jnp.inf))
         drop = ((jnp.sum(use) > MIN_SCALE_STARS) & (rms_wo[i] * DELETION_RATIO < rms(r_all, use))
                 & (r_wo[i, i] > jnp.maximum(k_sigma * rms_wo[i], min_tol_px)))
-        use = use & ~(drop & (jnp.arange(k) == i))
+        return use & ~(drop & (jnp.arange(k) == i))
+
+    use = jax.lax.fori_loop(0, DROP_STEPS, deletion, use)
     mask = jnp.zeros_like(named).at[slots].set(use)
     return fit_scaled(xy, ref, mask.astype(jnp.float32), camera, fit_scale)[2]
 
