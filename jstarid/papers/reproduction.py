@@ -128,8 +128,8 @@ _CRITERION_NOTES = {
     "strict": "`strict`: ≥ 3 stars named correctly, none wrong",
     "mlv": "`mlv`: ≥ 3 stars named correctly, none wrong",
     "sgm": "`sgm`: every star detected in the main star's 6° circle named correctly; the baselines "
-           "name only the stars of their match, so they seldom meet it — the strict-criterion table "
-           "above compares them",
+           "name only the stars of their match, so they seldom meet it (the cross-algorithm "
+           "table compares them under the strict criterion)",
     "rpnet": "`rpnet`: the main star named correctly, nothing wrong",
 }
 
