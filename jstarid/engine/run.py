@@ -353,23 +353,22 @@ def _runner(module, dbs, configs):
     state = {"batched": (len(configs) > 1 and grid is not None
                          and len({d.cache_key() for d in dbs}) == 1)}
 
-    def timed(call):
+    def timed(call):  # call() -> [Identification]; returns it and its wall time (s)
         t0 = time.perf_counter()
         out = call()
-        out = out if isinstance(out, list) else [out]
         jax.block_until_ready([r.ids for r in out])
         return out, time.perf_counter() - t0
 
     def run(scenes):
         if state["batched"]:
             try:
-                results, dt = timed(lambda: grid(dbs[0], scenes, configs))
+                results, dt = timed(lambda: list(grid(dbs[0], scenes, configs)))
                 return results, [dt / len(configs)] * len(configs)
             except ValueError:  # the grid varies settings it cannot batch (e.g. MLV's Δv)
                 state["batched"] = False
-        each = [timed(lambda db=db, c=c: module.identify(db, scenes, c))
+        each = [timed(lambda db=db, c=c: [module.identify(db, scenes, c)])
                 for db, c in zip(dbs, configs, strict=True)]
-        return [r[0] for r, _ in each], [dt for _, dt in each]
+        return [out[0] for out, _ in each], [dt for _, dt in each]
 
     return run
 
