@@ -145,6 +145,39 @@ def test_relieve_drops_compiled_kernels_only_past_the_limit(monkeypatch):
     assert memory_maps.map_limit() > 0 and memory_maps.map_count() > 0  # Linux: /proc is there
 
 
+def test_release_staging_keeps_the_executables_and_drops_the_traced_programs(several_devices):
+    """After a release, a kernel called again on the shapes it met runs its executable (not traced
+    again, same answer); a new shape is traced as a first call is. Nothing is released before
+    ``min_new`` programs were staged since the last release."""
+    from jstarid.runtime import staging_memory
+
+    traces = []
+
+    def body(x):
+        traces.append(x.shape)  # runs once per trace, never when the executable is reused
+        return jnp.cumsum(x * x)
+
+    kernel = jax.jit(body)
+    x5, x6, x8 = jnp.arange(5.0), jnp.arange(6.0), jnp.arange(8.0)
+    js.runtime.release_staging(min_new=0)  # start from a release: count from here
+    before = staging_memory.programs_staged()
+    first = np.asarray(kernel(x5))
+    assert staging_memory.programs_staged() == before + 1
+    assert not js.runtime.release_staging(min_new=2)  # one program since the last release
+    np.asarray(js.runtime.map_batch(_double_rows, (x8,)))  # a second program
+    assert staging_memory.programs_staged() >= before + 2
+    assert js.runtime.release_staging(min_new=2)
+    np.testing.assert_array_equal(np.asarray(kernel(x5)), first)
+    assert traces == [(5,)] and kernel._cache_size() == 1
+    kernel(x6)
+    assert traces == [(5,), (6,)]
+    assert isinstance(staging_memory.trim_heap(), bool)
+
+
+def _double_rows(x):
+    return 2 * x
+
+
 def test_prefetch_yields_the_sequential_items_in_order():
     from jstarid.runtime.prefetch import prefetch
 

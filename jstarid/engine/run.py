@@ -39,6 +39,7 @@ from jstarid.experiment import peak_rss_mb
 from jstarid.metrics import CRITERIA, scene_outcomes
 from jstarid.render import SensorConfig, sensor_for_camera
 from jstarid.runtime.memory_maps import relieve
+from jstarid.runtime.staging_memory import release_staging
 from jstarid.scene import Identification, Scene
 from jstarid.simulator import simulate
 
@@ -302,6 +303,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
                 seconds[i, level] += shares[k]
                 outs[k].append(_score(local[part], results[k], catalog, camera, criterion,
                                       getattr(entries[i].config, "radius_deg", 6.0)))
+            release_staging()  # outside the timed call (runtime.staging_memory)
             if progress and (c + 1 == len(chunks) or c % 4 == 3):
                 _say(True, f"{names}: {part.stop:,} / {local.batch_size:,} scenes")
         for k, i in enumerate(members):

@@ -9,7 +9,9 @@
 - :mod:`.padding`: the padding rule (``pad_rows``);
 - :mod:`.cache`: device copies and derived tables of long-lived objects (``DeviceCache``);
 - :mod:`.memory_maps`: drop JAX's compiled caches before a process reaches Linux's limit on memory
-  mappings (``relieve``).
+  mappings (``relieve``);
+- :mod:`.staging_memory`: drop what JAX keeps of staging programs already compiled, and trim the
+  heap (``release_staging``).
 """
 
 from jstarid.runtime.batching import Call, chunk_calls, grow_until, map_by_width, run_calls, take_rows
@@ -17,7 +19,8 @@ from jstarid.runtime.cache import DeviceCache, device_cache, on_every_device
 from jstarid.runtime.devices import batch_mesh, map_batch, replicate, shard_batch, use_cpu_cores
 from jstarid.runtime.memory_maps import relieve
 from jstarid.runtime.padding import pad_rows
+from jstarid.runtime.staging_memory import release_staging
 
 __all__ = ["Call", "DeviceCache", "batch_mesh", "chunk_calls", "device_cache", "grow_until",
-           "map_batch", "map_by_width", "on_every_device", "pad_rows", "relieve", "replicate", "run_calls",
-           "shard_batch", "take_rows", "use_cpu_cores"]
+           "map_batch", "map_by_width", "on_every_device", "pad_rows", "release_staging", "relieve",
+           "replicate", "run_calls", "shard_batch", "take_rows", "use_cpu_cores"]

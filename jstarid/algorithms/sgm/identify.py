@@ -41,7 +41,7 @@ from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
 from jstarid.camera_fit import check_identification, search_focal
 from jstarid.metrics import by_distance_to_principal_point, nearest_to_principal_point
-from jstarid.runtime import map_batch, on_every_device
+from jstarid.runtime import map_batch, on_every_device, release_staging
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index
 
@@ -168,6 +168,7 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
                                        scenes, result, max_scale_error=config.max_focal_error,
                                        star_mags=db.catalog.mag)
         result = checked if with_attitude else dataclasses.replace(checked, attitude=None)
+    release_staging()
     return (result, diag) if diagnostics else result
 
 

@@ -50,7 +50,8 @@ from jstarid.algorithms.sgm.graph import ImageGraph
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.algorithms.sgm.screen import screen_pairs
 from jstarid.geometry import range_search
-from jstarid.runtime import Call, map_batch, on_every_device, run_calls
+from jstarid.runtime import Call, map_batch, on_every_device, release_staging, run_calls
+from jstarid.runtime.staging_memory import trim_heap
 
 __all__ = ["ImageTables", "SearchOutcome", "SearchState", "advance_search", "beyond_row_bound",
            "bucket_up", "candidate_windows", "database_tables", "dynamic_search", "edge_bounds",
@@ -643,6 +644,10 @@ def advance_search(db, graphs: ImageGraph, state: SearchState, config: Config,
         s_idx, rank = np.nonzero(_needed(state, config, act))
         _match_ranks(db, graphs, state, config, act[s_idx], rank)
         todo[act] = ~_finished(state, config, act)
+        # a round can compile a kernel for each new size bucket and pair count: what JAX keeps of
+        # staging them is most of the search's memory (runtime.staging_memory)
+        if not release_staging():
+            trim_heap()
     return state
 
 
