@@ -2,10 +2,12 @@
 
 JAX keeps, besides each compiled executable, the Python-side artefacts of staging it: the traced
 jaxpr and the lowered StableHLO module. Measured on XLA CPU (jax 0.10, 2 devices, SGM's screen
-kernel): ≈ 5 MB of those per program against ≈ 2 MB for the executable, and the heap they leave
-behind stays resident until glibc is asked to trim it. SGM compiles ≈ 150 programs for a batch of
-1,000 noisy scenes (one per kernel, graph-size bucket and pair count), so ≈ 0.75 GB of a 2.5 GB
-peak was staging caches and freed heap.
+kernel at 15 shapes): ≈ 5 MB of those per program against ≈ 2 MB for the executable, and the heap
+they leave behind stays resident until glibc is asked to trim it. SGM compiles over a hundred
+programs for a batch of 1,000 noisy scenes (kernel × graph-size bucket × pair count): after such a
+call (σ = 3 px) dropping every JAX cache and trimming the heap took the process from 2.15 to
+0.98 GB, and releasing the staging caches alone during the search lowered its peak from 2.6 to
+1.7 GB (experiments/RESULTS.md, "Memory: staging caches released").
 
 :func:`release_staging` drops those caches once enough programs were compiled since the last
 release and trims the heap. The executables stay in jit's own dispatch caches, so nothing is
@@ -59,8 +61,11 @@ def _malloc_trim():
 
 
 def trim_heap() -> bool:
-    """Return the free memory at the top and inside the C heap to the OS (glibc ``malloc_trim(0)``);
-    False where the C library has no such call."""
+    """Return the C heap's free memory to the OS (glibc ``malloc_trim(0)``, a few ms).
+
+    Returns:
+        Whether memory was returned (False also where the C library has no such call).
+    """
     trim = _malloc_trim()
     return bool(trim is not None and trim(0))
 
