@@ -166,7 +166,13 @@ def test_release_staging_keeps_the_executables_and_drops_the_traced_programs(sev
     assert not js.runtime.release_staging(min_new=2)  # one program since the last release
     np.asarray(js.runtime.map_batch(_double_rows, (x8,)))  # a second program
     assert staging_memory.programs_staged() >= before + 2
+    from jax._src import dispatch, pjit  # the caches the release empties and keeps
+
+    primitives = dispatch.xla_primitive_callable.cache_info().currsize
+    assert pjit._infer_params_cached.cache_info().currsize > 0
     assert js.runtime.release_staging(min_new=2)
+    assert pjit._infer_params_cached.cache_info().currsize == 0  # the traced programs are gone
+    assert dispatch.xla_primitive_callable.cache_info().currsize == primitives  # eager ops kept
     np.testing.assert_array_equal(np.asarray(kernel(x5)), first)
     assert traces == [(5,)] and kernel._cache_size() == 1
     kernel(x6)

@@ -1,13 +1,13 @@
 """Give back the memory JAX keeps for staging programs it has already compiled.
 
 JAX keeps, besides each compiled executable, the Python-side artefacts of staging it: the traced
-jaxpr and the lowered StableHLO module. Measured on XLA CPU (jax 0.10, 2 devices, SGM's screen
-kernel at 15 shapes): ≈ 5 MB of those per program against ≈ 2 MB for the executable, and the heap
-they leave behind stays resident until glibc is asked to trim it. SGM compiles over a hundred
-programs for a batch of 1,000 noisy scenes (kernel × graph-size bucket × pair count): after such a
-call (σ = 3 px) dropping every JAX cache and trimming the heap took the process from 2.15 to
-0.98 GB, and releasing the staging caches alone during the search lowered its peak from 2.6 to
-1.7 GB (experiments/RESULTS.md, "Memory: staging caches released").
+jaxpr and the lowered StableHLO module, and the heap they leave behind stays resident until glibc
+is asked to trim it. ``python experiments/staging_memory.py`` (SGM's screen kernel at 15 shapes on
+2 CPU devices) measures 6.6 MB resident per compiled program, of which the release below frees
+2.9 MB and dropping the executable 2.1 MB. SGM compiles over a hundred programs for a batch of
+1,000 noisy scenes (kernel × graph-size bucket × pair count); with the release in its search its
+benchmark's peak fell from 2,986 to 1,730 MB at σ = 3 px (experiments/RESULTS.md, "Memory:
+staging caches released").
 
 :func:`release_staging` drops those caches once enough programs were compiled since the last
 release and trims the heap. The executables stay in jit's own dispatch caches, so nothing is
