@@ -129,9 +129,9 @@ def test_diagnose_sgm_tiny(tmp_path):
     assert len(out["mis_identified"]) == out["outcomes"].get("wrong", 0)
 
 
-def test_staging_memory_tiny(tmp_path):
+def test_program_memory_tiny(tmp_path):
     """Calling every shape again after the release stages nothing: the executables are reused."""
-    row = _load("staging_memory").main(["--sizes", "16", "--pairs", "64", "128", "--out", str(tmp_path)])
+    row = _load("program_memory").main(["--sizes", "16", "--pairs", "64", "128", "--out", str(tmp_path)])
     assert row["programs"] == 2 and row["staged_on_rerun"] == 0
     assert (tmp_path / "table.md").exists()
 

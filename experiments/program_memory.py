@@ -8,8 +8,8 @@ every shape again (must not stage anything: the executables are reused), and aft
 ``jax.clear_caches()`` (executables dropped too). Per program: staging MB = what the release
 freed, executable MB = what ``clear_caches`` freed after it.
 
-    python experiments/staging_memory.py
-    python experiments/staging_memory.py --sizes 16 --pairs 64 128
+    python experiments/program_memory.py
+    python experiments/program_memory.py --sizes 16 --pairs 64 128
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ COLUMNS = [("programs", "programs", "{}"), ("compiled_mb", "compiled MB", "{:.1f
 
 
 def parse_args(argv=None):
-    p = ex.parser(__doc__.splitlines()[0], out="results/staging_memory")
+    p = ex.parser(__doc__.splitlines()[0], out="results/program_memory")
     p.add_argument("--sizes", type=int, nargs="+", default=[16, 24, 32], help="padded graph sizes")
     p.add_argument("--pairs", type=int, nargs="+", default=[64, 128, 256, 512, 1024],
                    help="pairs per call")
