@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from jstarid.geometry import precise
+from jstarid.runtime.program_store import stored_jit
 
 __all__ = [
     "random_rotation", "rotation_from_boresight", "rotation_to_radec_roll",
@@ -182,7 +183,7 @@ def estimate_attitude(catalog, camera, scenes, result, *, min_stars: int = 2):
     return _estimate(ref_table, scenes.xy, scenes.valid, result.ids, camera, min_stars)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "min_stars"))
+@functools.partial(stored_jit, static_argnames=("camera", "min_stars"))
 def _estimate(ref_table, xy, valid, ids, camera, min_stars):
     use = valid & (ids >= 0)
     body = camera.unproject(xy)

@@ -61,6 +61,7 @@ from jstarid.robust import brighter_than_named, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
+from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["CameraFit", "check_claims", "check_identification", "distort_scenes", "field_seen",
            "fit_distorted", "fit_named", "fit_scaled", "project_scaled", "rescale_scenes", "search_focal",
@@ -548,7 +549,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     return jnp.asarray(kept), jnp.asarray(solved), fit
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "fit_scale", "few", "fit_distortion"))
+@functools.partial(stored_jit, static_argnames=("camera", "fit_scale", "few", "fit_distortion"))
 def _fit_kernel(xy, named, ids, star_vectors, k_sigma, min_tol_px, max_tol_px, *, camera, fit_scale, few,
                 fit_distortion):
     """:func:`fit_named` of each scene (B, N) of :func:`verify_names` (``few``: its static branch)."""
@@ -561,7 +562,7 @@ def _fit_kernel(xy, named, ids, star_vectors, k_sigma, min_tol_px, max_tol_px, *
     return jax.vmap(one)(xy, named, ids)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "n_scales"))
+@functools.partial(stored_jit, static_argnames=("camera", "n_scales"))
 def _field_kernel(xy, valid, ids, attitude, scale, tol, star_vectors, span, *, camera, n_scales):
     """(B,) bool: :func:`field_seen` of each scene, in :data:`FIELD_GROUP`-scene groups (each
     projects the whole catalog)."""
@@ -695,7 +696,7 @@ def check_claims(star_vectors, camera, scenes, result, *, min_named: int = 3, st
     return jnp.where(checked[:, None], ids, result.ids), jnp.where(checked, ok, result.ok), fit, checked
 
 
-@jax.jit
+@stored_jit
 def _drop_brighter(mag, ids, star_mags, ok):
     """(B, N) ids without the names of claimed scenes far brighter than their star (check_claims)."""
     named = (ids >= 0) & ok[:, None]

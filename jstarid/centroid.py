@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.runtime import map_batch
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene, undistort_scenes
 
 __all__ = ["CentroidConfig", "extract_centroids", "read_image"]
@@ -162,7 +163,7 @@ def extract_centroids(images, config: CentroidConfig = CentroidConfig(), *,
     return scenes if camera is None else undistort_scenes(scenes, camera)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "capacity"))
+@functools.partial(stored_jit, static_argnames=("config", "capacity"))
 def _extract_batch(images, *, config, capacity):
     fn = functools.partial(_extract_one, config=config, capacity=capacity)
     xy, mag, valid, overflow = jax.vmap(fn)(images)

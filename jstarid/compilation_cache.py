@@ -6,6 +6,11 @@ process spends most of its time compiling (on a 2-core CPU, a short noisy ``benc
 executables on disk (``jax_compilation_cache_dir``); :func:`enable_compilation_cache` turns that on
 under the project's cache directory. The library itself never calls it: importing jstarid does not
 change global JAX settings. Benchmarks leave it off so that their compile times stay honest.
+
+It also turns on jstarid's program store (:mod:`jstarid.runtime.program_store`) beside it: JAX finds
+a cached executable only after tracing and lowering the function again, which for SGM's hundreds of
+small programs costs more than compiling them; the store keys programs by their call signature and
+loads them without either.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ __all__ = ["enable_compilation_cache"]
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None, *,
-                             min_compile_time_s: float = 0.5) -> Path:
+                             min_compile_time_s: float = 0.5, programs: bool = True) -> Path:
     """Keep compiled XLA executables on disk so later processes skip recompilation.
 
     A cache directory already chosen through ``JAX_COMPILATION_CACHE_DIR`` (or
@@ -32,11 +37,14 @@ def enable_compilation_cache(path: str | os.PathLike | None = None, *,
             ``~/.cache/jstarid``).
         min_compile_time_s: only executables that took at least this long (s) to compile are
             stored (small ones are cheaper to rebuild than to read back).
+        programs: also turn on the program store in ``<jstarid cache>/programs`` (the programs of
+            jstarid's kernels, loaded without tracing; :mod:`jstarid.runtime.program_store`).
 
     Returns:
         The cache directory in use.
 
-    The environment variable ``JSTARID_COMPILATION_CACHE=off`` turns this function into a no-op.
+    The environment variable ``JSTARID_COMPILATION_CACHE=off`` turns this function into a no-op
+    (both caches stay off).
 
     Raises:
         ValueError: ``min_compile_time_s`` is negative.
@@ -58,4 +66,7 @@ def enable_compilation_cache(path: str | os.PathLike | None = None, *,
         compilation_cache.reset_cache()
     jax.config.update("jax_compilation_cache_dir", str(chosen))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
+    if programs:
+        from jstarid.runtime.program_store import enable_program_store
+        enable_program_store(cache_dir() / "programs")
     return chosen

@@ -36,6 +36,7 @@ from jstarid.camera_fit import check_claims, unproject_scaled, verify_names
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import magnitude_offsets
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
 
@@ -183,7 +184,7 @@ def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
     return candidate & ((count < 4) | (jnp.abs(offset) <= jnp.maximum(mag_tol, 3.0 * spread)))
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "grid", "scan"))
+@functools.partial(stored_jit, static_argnames=("camera", "grid", "scan"))
 def _extend(star_vec, star_mag, cells, att, scale, k1, use, xy, valid, mag, ids, tol_px, isolation, mag_tol,
             span, *, camera, grid, scan):
     """(B, N) ids with the new names (vmapped over scenes); the tolerances are traced (no recompile).

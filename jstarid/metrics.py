@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.attitude import attitude_errors_arcsec
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 
 __all__ = ["CORRECT", "WRONG", "FAIL", "INCOMPLETE", "CRITERIA", "scene_outcomes", "evaluate",
@@ -110,7 +111,7 @@ def scene_outcomes(scenes: Scene, result: Identification, criterion: str = "stri
     return _outcomes(scenes, result.ids, result.ok, criterion, camera, float(radius_deg))
 
 
-@functools.partial(jax.jit, static_argnames=("criterion", "camera", "radius_deg"))
+@functools.partial(stored_jit, static_argnames=("criterion", "camera", "radius_deg"))
 def _outcomes(scenes, ids, ok, criterion, camera, radius_deg):
     ided = scenes.valid & (ids >= 0)
     correct = ided & (ids == scenes.truth) & (scenes.truth >= 0)

@@ -50,6 +50,7 @@ from jstarid.camera import Camera
 from jstarid.geometry import precise
 from jstarid.random_streams import normals, scene_seed
 from jstarid.runtime import map_batch
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene
 
 __all__ = ["SensorConfig", "mean_electrons", "psf_offsets", "render", "sensor_for_camera"]
@@ -377,7 +378,7 @@ def _render_batch(seeds, xy, mag, valid, hot_rows, hot_cols, **static):
 
 
 _STATIC = ("sensor", "height", "width", "cx", "cy")
-_render_batch_jit = jax.jit(_render_batch, static_argnames=_STATIC)
+_render_batch_jit = stored_jit(_render_batch, static_argnames=_STATIC)
 
 
 def mean_electrons(scenes: Scene, camera: Camera, sensor: SensorConfig | None = None) -> jax.Array:
@@ -390,6 +391,6 @@ def mean_electrons(scenes: Scene, camera: Camera, sensor: SensorConfig | None = 
                        height=camera.height, width=camera.width, cx=float(camera.cx), cy=float(camera.cy))
 
 
-@functools.partial(jax.jit, static_argnames=_STATIC)
+@functools.partial(stored_jit, static_argnames=_STATIC)
 def _mean_batch(xy, mag, valid, hot_rows, hot_cols, **static):
     return jax.vmap(lambda p, m, v: _mean_electrons(p, m, v, hot_rows, hot_cols, **static))(xy, mag, valid)

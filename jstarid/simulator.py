@@ -44,6 +44,7 @@ import numpy as np
 from jstarid import random_streams as streams
 from jstarid.attitude import random_rotation, rotation_from_boresight
 from jstarid.runtime import device_cache, map_batch, map_by_width, on_every_device
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene
 from jstarid.sky_index import build_sky_index, cell_of
 
@@ -348,7 +349,7 @@ def _candidate_widths(k: int) -> tuple[int, ...]:
     return tuple(widths if widths and widths[-1] == k else [*widths, k])
 
 
-@functools.partial(jax.jit, static_argnames=(
+@functools.partial(stored_jit, static_argnames=(
     "camera", "capacity", "false_capacity", "max_missing", "false_disk", "widths"))
 def _scenes_chunked(seeds, noise, att, cell, cells, counts, star_vec, star_mag, star_row, *, camera,
                     capacity, false_capacity, max_missing, false_disk, widths):
@@ -391,7 +392,7 @@ def _attitude_one(key, row, cat_vec, mode_b):
     return random_rotation(k_att)
 
 
-@functools.partial(jax.jit, static_argnames=("grid", "mode_b"))
+@functools.partial(stored_jit, static_argnames=("grid", "mode_b"))
 def _attitudes(key, rows, cat_vec, *, grid, mode_b):
     """Step 1 for a batch from the batch key: :func:`_attitudes_of` the scene keys."""
     return _attitudes_of(jax.random.split(key, rows.shape[0]), rows, cat_vec, grid=grid, mode_b=mode_b)
@@ -411,7 +412,7 @@ def _attitudes_of(keys, rows, cat_vec, *, grid, mode_b):
     return jax.vmap(streams.scene_seed)(keys), att, cell_of(att[:, 2], grid)
 
 
-@functools.partial(jax.jit, static_argnames=(
+@functools.partial(stored_jit, static_argnames=(
     "camera", "capacity", "false_capacity", "max_missing", "false_disk", "n_candidates", "adaptive"))
 def _scenes_batch(seeds, noise, att, cell, cells, star_vec, star_mag, star_row, *, camera, capacity,
                   false_capacity, max_missing, false_disk, n_candidates, adaptive=False):

@@ -14,6 +14,7 @@ def restore_jax_cache_config(monkeypatch):
     yield
     from jax.experimental.compilation_cache import compilation_cache
     compilation_cache.reset_cache()  # later tests must not write into this test's directory
+    js.runtime.program_store.disable_program_store()  # turned on beside the cache
     jax.config.update("jax_compilation_cache_dir", saved[0])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", saved[1])
 
@@ -25,6 +26,7 @@ def test_cache_dir_from_jstarid_cache(tmp_path, monkeypatch, restore_jax_cache_c
     assert path == tmp_path / "xla" and path.is_dir()
     assert jax.config.jax_compilation_cache_dir == str(path)
     assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
+    assert js.runtime.program_store.program_store_dir() == tmp_path / "programs"
 
 
 def test_existing_choice_kept_unless_path_given(tmp_path, restore_jax_cache_config):
@@ -48,3 +50,4 @@ def test_environment_turns_it_off(tmp_path, monkeypatch, restore_jax_cache_confi
     monkeypatch.setenv("JSTARID_COMPILATION_CACHE", "off")
     js.enable_compilation_cache(tmp_path / "never")
     assert jax.config.jax_compilation_cache_dir is None and not (tmp_path / "never").exists()
+    assert js.runtime.program_store.program_store_dir() is None

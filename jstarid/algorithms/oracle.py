@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jstarid.algorithms.base import cache_key, check_scenes
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 
 __all__ = ["Config", "Database", "Diagnostics", "Tuning", "build_database", "identify"]
@@ -90,7 +91,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     return result
 
 
-@functools.partial(jax.jit, static_argnames=("n_stars", "config"))
+@functools.partial(stored_jit, static_argnames=("n_stars", "config"))
 def _identify(scenes, n_stars, config):
     b = scenes.batch_size
     k_fail, k_wrong = jax.random.split(jax.random.key(config.seed))

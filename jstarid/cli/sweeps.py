@@ -23,7 +23,7 @@ def add_commands(sub) -> None:
                     "at 0–3 px of centroid noise; print the table and write results/demo/ "
                     "(config.json, results.json, table.md, rates.png, scenes.npz). The first run "
                     "builds databases, trains RpNet's quick network and compiles (5–13 min on 2 "
-                    "cores, by host); later runs take 1–2.5 minutes.")
+                    "cores, by host); later runs load them and take about half a minute.")
     _scene_options(d, out="results/demo", scenes=200, levels=DEMO_LEVELS)
     d.set_defaults(func=run_demo)
     s = sub.add_parser(
@@ -155,8 +155,12 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
         raise ValueError("--scenes, --chunk-size and --capacity must be ≥ 1")
     catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit)
     js.engine.check_camera(algorithms, camera, catalog)  # before anything is built
-    cache = Path(jax.config.jax_compilation_cache_dir or js.catalog.cache_dir() / "xla")
-    compiled_before = cache.exists() and any(cache.iterdir())
+    store = js.runtime.program_store
+    if store.program_store_dir() is not None:  # programs of this jstarid, JAX and device setup
+        compiled_before = store.programs_stored() > 0
+    else:
+        cache = Path(jax.config.jax_compilation_cache_dir or js.catalog.cache_dir() / "xla")
+        compiled_before = cache.exists() and any(cache.iterdir())
     steps = js.engine.plan(algorithms, catalog, camera, rpnet_network=args.rpnet_network,
                            compiled_before=compiled_before)
     n_levels = len(js.engine.level_grid(axes))

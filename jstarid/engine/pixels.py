@@ -22,6 +22,7 @@ import numpy as np
 
 from jstarid.centroid import CentroidConfig, extract_centroids
 from jstarid.render import SensorConfig, render
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene
 
 __all__ = ["MATCH_PX", "RENDER_DEPTH_MAG", "SENSOR_AXES", "detect_scenes", "label_detections",
@@ -57,7 +58,7 @@ def sensor_levels(levels, sensor: SensorConfig) -> list[SensorConfig]:
     return out
 
 
-@jax.jit
+@stored_jit
 def label_detections(det_xy, det_valid, star_xy, star_valid, star_truth, match_px=MATCH_PX):
     """Truth of each detection: the row of the nearest rendered star within ``match_px``, else −1.
 

@@ -11,9 +11,12 @@
 - :mod:`.memory_maps`: drop JAX's compiled caches before a process reaches Linux's limit on memory
   mappings (``relieve``);
 - :mod:`.staging_memory`: drop what JAX keeps of staging programs already compiled, and trim the
-  heap (``release_staging``).
+  heap (``release_staging``);
+- :mod:`.program_store`: keep compiled programs on disk so that a later process loads them without
+  tracing, lowering or compiling (``stored_jit``; on in the CLI and scripts).
 """
 
+from jstarid.runtime import program_store
 from jstarid.runtime.batching import Call, chunk_calls, grow_until, map_by_width, run_calls, take_rows
 from jstarid.runtime.cache import DeviceCache, device_cache, on_every_device
 from jstarid.runtime.devices import batch_mesh, map_batch, replicate, shard_batch, use_cpu_cores
@@ -22,5 +25,5 @@ from jstarid.runtime.padding import pad_rows
 from jstarid.runtime.staging_memory import release_staging
 
 __all__ = ["Call", "DeviceCache", "batch_mesh", "chunk_calls", "device_cache", "grow_until",
-           "map_batch", "map_by_width", "on_every_device", "pad_rows", "release_staging", "relieve",
-           "replicate", "run_calls", "shard_batch", "take_rows", "use_cpu_cores"]
+           "map_batch", "map_by_width", "on_every_device", "pad_rows", "program_store", "release_staging",
+           "relieve", "replicate", "run_calls", "shard_batch", "take_rows", "use_cpu_cores"]

@@ -18,6 +18,7 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
 from jstarid.runtime.padding import pad_rows
+from jstarid.runtime.program_store import storable_name, stored
 
 __all__ = ["batch_mesh", "shard_batch", "replicate", "map_batch", "use_cpu_cores"]
 
@@ -116,4 +117,7 @@ def _compiled(fn, static_items, mesh):
         return jax.shard_map(body, mesh=mesh, in_specs=(spec_b, spec_r),
                              out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)(batched, replicated)
 
-    return jax.jit(run)
+    name = storable_name(fn)
+    if name is not None:  # the closure fixes the statics and the mesh: part of the program's name
+        name += f" on devices {tuple(d.id for d in mesh.devices.flat)} {static_items!r}"
+    return stored(jax.jit(run), name)

@@ -15,6 +15,8 @@ import gc
 
 import jax
 
+from jstarid.runtime.program_store import forget_programs
+
 __all__ = ["map_count", "map_limit", "relieve"]
 
 SHARE = 0.7  # drop the caches past this share of the limit
@@ -52,5 +54,6 @@ def relieve(limit: int | None = None) -> bool:
     if map_count() <= limit:
         return False
     jax.clear_caches()
+    forget_programs()
     gc.collect()
     return True

@@ -18,6 +18,7 @@ from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.grid.config import Config
 from jstarid.algorithms.grid.pattern import grid_pattern
 from jstarid.camera import Camera
+from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["Database", "build_database", "radii_px"]
 
@@ -57,7 +58,7 @@ def radii_px(camera: Camera, config: Config) -> tuple[float, float]:
     return config.pattern_radius * side, config.buffer_radius * side
 
 
-@functools.partial(jax.jit, static_argnames=("f_px", "pattern_px", "buffer_px", "grid"))
+@functools.partial(stored_jit, static_argnames=("f_px", "pattern_px", "buffer_px", "grid"))
 def _patterns(centres, neighbours, real, *, f_px, pattern_px, buffer_px, grid):
     fn = functools.partial(grid_pattern, f_px=f_px, pattern_px=pattern_px, buffer_px=buffer_px, grid=grid)
     return jax.vmap(fn)(centres, neighbours, real)[0]

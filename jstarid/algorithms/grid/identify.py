@@ -32,6 +32,7 @@ from jstarid.completion import first_argmax
 from jstarid.geometry.angles import pairwise_angles
 from jstarid.geometry.consistency import most_consistent
 from jstarid.runtime import chunk_calls, on_every_device, run_calls, take_rows
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 
 __all__ = ["Diagnostics", "SceneResult", "identify", "identify_scene"]
@@ -107,7 +108,7 @@ def identify_scene(xy, valid, overflow, eps_rad, *, database: Database, config: 
                        best_overlap=jnp.zeros((config.n_refs,), jnp.int32).at[:n].set(best))
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
+@functools.partial(stored_jit, static_argnames=("config",))
 def _identify_chunk(xy, valid, overflow, eps_rad, database, *, config):
     fn = functools.partial(identify_scene, database=database, config=config)
     return tuple(jax.vmap(fn)(xy, valid, overflow, eps_rad))

@@ -31,6 +31,7 @@ from jstarid.attitude import rotation_from_boresight
 from jstarid.camera import Camera
 from jstarid.catalog import cache_dir, temporary_path
 from jstarid.geometry import precise
+from jstarid.runtime.program_store import stored_jit
 from jstarid.sky_index import build_sky_index, cell_of
 
 __all__ = ["Database", "build_database", "fibonacci_sphere", "database_from_triangles", "window_counts"]
@@ -164,7 +165,7 @@ def _brightest_in_field(bore, roll, rows, vec, real, *, camera: Camera, n: int):
     return jnp.where(ok, picked, -1)
 
 
-_brightest_in_field_jit = jax.jit(_brightest_in_field, static_argnames=("camera", "n"))
+_brightest_in_field_jit = stored_jit(_brightest_in_field, static_argnames=("camera", "n"))
 
 
 def _triangle_table(catalog, camera: Camera, config: Config, progress: bool) -> np.ndarray:

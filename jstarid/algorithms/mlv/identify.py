@@ -55,6 +55,7 @@ from jstarid.algorithms.mlv.voting import (
 )
 from jstarid.camera_fit import check_identification, search_focal
 from jstarid.runtime import chunk_calls, device_cache, grow_until, on_every_device, run_calls, take_rows
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import local_stars
 
@@ -322,7 +323,7 @@ def identify_scene(xy, valid, db: Database, config: Config, capacity: int, all_x
         field_predicted=n_pred, field_seen=n_seen, pool_total=pool_total, pool_overflow=pool_overflow)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "capacity", "pool", "th1_max"))
+@functools.partial(stored_jit, static_argnames=("config", "capacity", "pool", "th1_max"))
 def _identify_batch(xy, valid, all_xy, all_valid, tuning, db, config, capacity, pool, th1_max):
     def one(args):
         xy, valid, all_xy, all_valid, tuning = args

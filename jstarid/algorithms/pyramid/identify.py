@@ -41,6 +41,7 @@ from jstarid.geometry import precise
 from jstarid.geometry.angles import pairwise_angles
 from jstarid.geometry.kvector import range_search
 from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, take_rows
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import local_stars
 
@@ -277,7 +278,7 @@ def identify_scene(xy, valid, mag, overflow, eps_rad, *, database: Database, con
                        buffer_over=over)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "window"))
+@functools.partial(stored_jit, static_argnames=("config", "window"))
 def _identify_chunk(xy, valid, mag, overflow, eps_rad, database, *, config, window):
     fn = functools.partial(identify_scene, database=database, config=config, window=window)
     return tuple(jax.lax.map(lambda a: fn(*a), (xy, valid, mag, overflow, eps_rad),

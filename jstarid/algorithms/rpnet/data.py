@@ -43,6 +43,7 @@ import jstarid as js
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.runtime import device_cache
+from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["Batch", "Tables", "build_tables", "family_noise", "make_batch", "scene_training_inputs"]
 
@@ -120,7 +121,7 @@ def family_noise(batch_size: int, camera, config: Config) -> tuple[js.NoiseConfi
     return noise, fam.astype(np.int32)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "rho_rad", "e_rad", "m", "n_bins"))
+@functools.partial(stored_jit, static_argnames=("camera", "rho_rad", "e_rad", "m", "n_bins"))
 def scene_training_inputs(xy, valid, truth, guide_row, shift=None, *, camera, rho_rad, e_rad, m, n_bins):
     """Inputs of mode-(b) scenes: guide at the principal point, its own detection left out.
 

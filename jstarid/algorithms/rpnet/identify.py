@@ -68,6 +68,7 @@ from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
 from jstarid.runtime import chunk_calls, on_every_device, run_calls, take_rows
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
 
@@ -481,10 +482,10 @@ def network_candidates(xy, valid, weights, triple=0, *, camera, config: Config, 
                                config=config.compiled(), n_classes=n_classes, mag=mag)
 
 
-_network_candidates = jax.jit(_candidates, static_argnames=("camera", "config", "n_classes", "count"))
+_network_candidates = stored_jit(_candidates, static_argnames=("camera", "config", "n_classes", "count"))
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid", "trials"))
+@functools.partial(stored_jit, static_argnames=("camera", "config", "n_classes", "grid", "trials"))
 def _identify_chunk(xy, valid, overflow, mag, weights, guide_rows, star_vectors, cells, th, triple, *,
                     camera, config, n_classes, grid, trials):
     near, p, cls = _candidates(xy, valid, weights, camera=camera, config=config, n_classes=n_classes,
@@ -496,7 +497,7 @@ def _identify_chunk(xy, valid, overflow, mag, weights, guide_rows, star_vectors,
                        batch_size=config.name_chunk)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "config", "n_classes", "grid"))
+@functools.partial(stored_jit, static_argnames=("camera", "config", "n_classes", "grid"))
 def _identify_pool_chunk(xy, valid, overflow, mag, weights, guide_rows, star_vectors, cells, th, *, camera,
                          config, n_classes, grid):
     near, p, cls = _candidates(xy, valid, weights, camera=camera, config=config, n_classes=n_classes,

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.geometry.angles import angle_between
+from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["config_kwargs", "initial_input", "scene_inputs"]
 
@@ -66,7 +67,7 @@ def config_kwargs(config: Config) -> dict:
                 n_bins=config.n_bins)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "rho_rad", "e_rad", "m", "n_bins"))
+@functools.partial(stored_jit, static_argnames=("camera", "rho_rad", "e_rad", "m", "n_bins"))
 def scene_inputs(xy, valid, guide_index, *, camera, rho_rad, e_rad, m, n_bins):
     """Initial inputs of chosen detections of a batch of scenes (inference side).
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.identify import PAIRS, network_candidates, pair_checks, weight_search
+from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["mixed_noise", "pair_tables", "simplex_grid", "weight_grid_search"]
 
@@ -96,7 +97,7 @@ def pair_tables(database, scenes, config: Config | None = None) -> dict[str, np.
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
-@functools.partial(jax.jit, static_argnames=("camera",))
+@functools.partial(stored_jit, static_argnames=("camera",))
 def _tables_chunk(xy, valid, truth, near, cls, guide_rows, star_vectors, pair_tol_px, *, camera):
     def one(xy_s, valid_s, truth_s, near_s, cls_s):
         body = camera.unproject(xy_s)
@@ -109,7 +110,7 @@ def _tables_chunk(xy, valid, truth, near, cls, guide_rows, star_vectors, pair_to
     return jax.vmap(one)(xy, valid, truth, near, cls)
 
 
-@jax.jit
+@stored_jit
 def _grid(probs, pair_ok, pair_correct, po, pr):
     def one_setting(po_w, pr_w):
         best, _, found = jax.vmap(lambda p, ok: weight_search(p, ok, po_w, pr_w))(probs, pair_ok)

@@ -27,6 +27,7 @@ from jstarid.camera import radius_that_fits
 from jstarid.catalog import cache_dir, temporary_path
 from jstarid.geometry import KVector, build_kvector
 from jstarid.runtime import device_cache
+from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["Database", "build_database"]
 
@@ -153,12 +154,12 @@ def _build_arrays(catalog, config: Config, progress: bool):
 _BLOCK = 512  # graphs per adjacency call (one compiled shape per capacity)
 
 
-@jax.jit
+@stored_jit
 def _block_adjacency(vecs, mask):
     return jax.vmap(adjacency_deg)(jnp.where(mask[..., None], vecs, 0.0), mask)
 
 
-@jax.jit
+@stored_jit
 def _block_plane(vecs, mask):
     return jax.vmap(plane_coords)(jnp.where(mask[..., None], vecs, 0.0), mask)
 

@@ -42,6 +42,7 @@ from jstarid.attitude import estimate_attitude
 from jstarid.camera_fit import check_identification, search_focal
 from jstarid.metrics import by_distance_to_principal_point, nearest_to_principal_point
 from jstarid.runtime import map_batch, on_every_device, release_staging
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index
 
@@ -86,7 +87,7 @@ class Diagnostics(NamedTuple):
     cut: np.ndarray | None = None
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "radius_deg", "capacity", "main_rank"))
+@functools.partial(stored_jit, static_argnames=("camera", "radius_deg", "capacity", "main_rank"))
 def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int, main_rank: int = 0):
     """Image neighbor graphs of a batch.
 

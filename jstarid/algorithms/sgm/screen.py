@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.runtime import map_batch
+from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["triangle_support", "screen_pass", "screen_pairs"]
 
@@ -98,7 +99,7 @@ def screen_pass(support, n_i, n_j, *, fraction: float, min_matched: int):
     return support >= need
 
 
-@functools.partial(jax.jit, static_argnames=("partners", "hypotheses", "fraction", "min_matched"))
+@functools.partial(stored_jit, static_argnames=("partners", "hypotheses", "fraction", "min_matched"))
 def _screen_kernel(plane_i, n_i, plane_j, n_j, tol, *, partners, hypotheses, fraction, min_matched):
     """:func:`triangle_support` and :func:`screen_pass` of N pairs (``vmap``) → (N,) bool."""
     support = jax.vmap(functools.partial(triangle_support, tol=tol, partners=partners,

@@ -51,6 +51,7 @@ from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.algorithms.sgm.screen import screen_pairs
 from jstarid.geometry import range_search
 from jstarid.runtime import Call, map_batch, on_every_device, release_staging, run_calls
+from jstarid.runtime.program_store import stored_jit
 from jstarid.runtime.staging_memory import trim_heap
 
 __all__ = ["ImageTables", "SearchOutcome", "SearchState", "advance_search", "beyond_row_bound",
@@ -67,14 +68,14 @@ def next_pow2(x: int) -> int:
     return 1 << max(0, int(math.ceil(math.log2(max(x, 1)))))
 
 
-@jax.jit
+@stored_jit
 def candidate_windows(kvector, w_i, dw_last_deg):
     """Rough search (eq. 1) at the widest Δw: ``(start, stop)`` (B,) int32 rows of the database."""
     return jax.vmap(range_search, in_axes=(None, 0, 0))(kvector, w_i - dw_last_deg,
                                                          w_i + dw_last_deg)
 
 
-@functools.partial(jax.jit, static_argnames=("width", "dw0", "step", "n_levels"))
+@functools.partial(stored_jit, static_argnames=("width", "dw0", "step", "n_levels"))
 def order_candidates(w_db, start, stop, w_i, *, width: int, dw0: float, step: float, n_levels: int):
     """Candidates of each scene ordered by |w_J − w_I|, with the Δw level where each enters.
 
@@ -101,7 +102,7 @@ def order_candidates(w_db, start, stop, w_i, *, width: int, dw0: float, step: fl
     return cand.astype(jnp.int32), level.astype(jnp.int32)
 
 
-@functools.partial(jax.jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
+@functools.partial(stored_jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
 def _match_pairs(a_i, n_i, cand, db_adj, db_n, c, *, p, q, n_iter, tol, min_matched):
     """Spectral matching of N (image graph, database graph) pairs → (N, p) match, (N,) δ (deg).
 
@@ -135,7 +136,7 @@ def skip_padding(fn, live, args, dead):
     return jax.lax.map(one, (live, *args))
 
 
-@functools.partial(jax.jit, static_argnames=("r", "max_skip"))
+@functools.partial(stored_jit, static_argnames=("r", "max_skip"))
 def _bound_pairs(rows_i, n_i, cand, db_rows, db_n, *, r, max_skip):
     """:func:`~.bound.error_lower_bound` of N (image graph, database graph) pairs → (N,) (deg).
 
@@ -160,7 +161,7 @@ def _bound_pairs(rows_i, n_i, cand, db_rows, db_n, *, r, max_skip):
     return out.reshape(n)
 
 
-@jax.jit
+@stored_jit
 def _edge_bound_pairs(e_i, n_i, e_j, n_j):
     """:func:`~.bound.edge_lower_bound` of N pairs of sorted edge lists (N, E) → (N,) (deg); ``vmap``."""
     return jax.vmap(edge_lower_bound)(e_i, n_i, e_j, n_j)

@@ -43,6 +43,7 @@ import numpy as np
 from jstarid.algorithms.sgm.matching import affinity_eigenvector, greedy_binarize, matching_error
 from jstarid.algorithms.sgm.screen import triangle_support
 from jstarid.runtime import device_cache, map_batch, on_every_device
+from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["radii_table", "radial_votes", "partner_vertices", "drop_outliers", "grow_match",
            "partial_match",
@@ -263,7 +264,7 @@ def _rank_scenes(a_i, n_i, plane_i, radii_db, db_adj, db_plane, db_n, radius, to
         a_i, n_i, plane_i, radii_db, db_adj, db_plane, db_n)
 
 
-_rank_scenes_jit = jax.jit(_rank_scenes, static_argnames=(
+_rank_scenes_jit = stored_jit(_rank_scenes, static_argnames=(
     "n_candidates", "n_matchings", "partners", "hypotheses", "n_iter", "power_tol", "min_matched",
     "extra"))
 

@@ -38,6 +38,7 @@ from jstarid.algorithms.sgm.search import (
 )
 from jstarid.attitude import estimate_attitude
 from jstarid.runtime import replicate
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification
 
 __all__ = ["CandidateErrors", "candidate_errors", "grid_identifications", "identify_grid",
@@ -61,7 +62,7 @@ class CandidateErrors(NamedTuple):
     match: dict
 
 
-@functools.partial(jax.jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
+@functools.partial(stored_jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
 def _match_pairs_grid(a_i, n_i, cand, db_adj, db_n, cs, *, p, q, n_iter, tol, min_matched):
     """Spectral matching of N pairs for every c of ``cs`` (C,) → (N, C, p) match, (N, C) δ (deg)."""
     live = cand >= 0

@@ -43,6 +43,7 @@ from jstarid.attitude import solve_wahba
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
+from jstarid.runtime.program_store import stored_jit
 from jstarid.sky_index import local_stars
 
 __all__ = ["verify_ids"]
@@ -233,7 +234,7 @@ def _verify_one(cat, cat_mag, cells, body, mag, valid, ids, ok, main, *, camera,
     return jnp.where(keep & ok_new, ids, -1), ok_new, main_ambiguous
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "grid", "k", "floor_deg", "cap_deg", "amb_k",
+@functools.partial(stored_jit, static_argnames=("camera", "grid", "k", "floor_deg", "cap_deg", "amb_k",
                                              "amb_deg", "partner_joint", "partner_k", "mag_sigma",
                                              "rms_z", "min_matched", "min_coverage", "n_near",
                                              "max_named"))

@@ -41,6 +41,7 @@ from jstarid.geometry.angles import angle_between, pairwise_angles
 from jstarid.geometry.consistency import most_consistent
 from jstarid.geometry.kvector import range_search
 from jstarid.runtime import chunk_calls, on_every_device, run_calls, take_rows
+from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 
 __all__ = ["Diagnostics", "SceneResult", "cast_votes", "identify", "identify_scene"]
@@ -163,7 +164,7 @@ def identify_scene(xy, valid, mag, overflow, eps_rad, *, kvector, pairs, star_ve
                        overflow=jnp.any(count > window) | overflow, n_verified=n_verified)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "config", "window"))
+@functools.partial(stored_jit, static_argnames=("camera", "config", "window"))
 def _identify_chunk(xy, valid, mag, overflow, eps_rad, database, *, camera, config, window):
     fn = functools.partial(identify_scene, kvector=database.kvector, pairs=database.pairs,
                            star_vectors=database.star_vectors, camera=camera, config=config, window=window)
