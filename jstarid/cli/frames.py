@@ -198,8 +198,9 @@ def run_solve(args) -> int:
         print(_summary({**entry, "scene": entry["image"]}))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    settings = {k: v for k, v in vars(args).items() if k != "func"}  # not the handler's address
     (out / "solutions.json").write_text(json.dumps(
-        {"args": vars(args), "camera": js.camera_files.camera_to_dict(cam), **_epoch_fields(args),
+        {"args": settings, "camera": js.camera_files.camera_to_dict(cam), **_epoch_fields(args),
          "solutions": solutions}, indent=1, default=str))
     print(f"wrote {out / 'solutions.json'}")
     return 0 if all(s["solved"] for s in solutions) else 1
