@@ -223,3 +223,19 @@ def test_prefetch_raises_the_makers_error_at_its_item_and_stops_when_closed():
     assert len(made) <= 3
     with pytest.raises(ValueError, match="depth"):
         next(prefetch(make, range(3), depth=0))
+
+
+@pytest.mark.parametrize("n", [0, 1, 63, 64, 65, 100, 686, 4096, 4097, 5000, 12_345])
+def test_power_of_two_chunks_cover_the_rows_with_little_padding(n):
+    from jstarid.runtime.padding import power_of_two_chunks
+    chunks = power_of_two_chunks(n, 64)
+    if n == 0:
+        assert chunks == []
+        return
+    assert [lo for lo, _, _ in chunks] == [0] + [hi for _, hi, _ in chunks[:-1]] and chunks[-1][1] == n
+    for lo, hi, padded in chunks:
+        assert padded >= max(hi - lo, 64) and padded & (padded - 1) == 0
+    # every call but the last is full; the last pads by at most a quarter of its rows (or to 64)
+    assert all(hi - lo == padded for lo, hi, padded in chunks[:-1])
+    lo, hi, padded = chunks[-1]
+    assert padded == 64 or padded - (hi - lo) <= 0.25 * (hi - lo)

@@ -143,3 +143,22 @@ def test_search_with_the_screen_is_algorithm1_over_the_candidates_that_pass(setu
         if best >= 0:
             np.testing.assert_allclose(out.error[s], err, rtol=1e-4, atol=1e-6)
     assert screened > 0
+
+
+def test_screen_answers_do_not_depend_on_how_the_pairs_are_cut_into_calls(setup5):
+    """Calls are cut by size (power-of-two chunks of each graph-size group): the pairs screened all
+    at once, or in slices that cut differently, get the same answers."""
+    from jstarid.algorithms.sgm.identify import searchable_graphs
+    cat, cam, db = setup5
+    cfg = sgm.Config()
+    scenes = js.simulate(jax.random.key(9), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
+                         capacity=64, boresight_ids=np.random.default_rng(6).choice(len(cat), 12))
+    g, usable = searchable_graphs(db, scenes, cfg)
+    rng = np.random.default_rng(7)
+    scene = rng.choice(np.nonzero(usable)[0], 900)
+    rows = rng.integers(0, len(db), scene.size)
+    n_i = g.n.astype(np.int32)
+    whole = screen_pairs(db, g.plane, n_i, scene, rows, cfg)
+    sliced = np.concatenate([screen_pairs(db, g.plane, n_i, scene[k:k + 137], rows[k:k + 137], cfg)
+                             for k in range(0, scene.size, 137)])
+    np.testing.assert_array_equal(whole, sliced)

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.runtime import map_batch
+from jstarid.runtime.padding import power_of_two_chunks
 from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["triangle_support", "screen_pass", "screen_pairs"]
@@ -131,13 +132,17 @@ def screen_pairs(db, plane_i, n_i, scene, rows, config) -> np.ndarray:
     static = {"partners": int(config.screen_partners), "hypotheses": int(config.screen_hypotheses),
               "fraction": float(config.screen_fraction),
               "min_matched": int(config.min_matched)}
+    pending = []
     for r in np.unique(size):
-        at = np.nonzero(size == r)[0]
-        padded = max(MIN_CALL_PAIRS, 1 << int(np.ceil(np.log2(at.size))))
-        fill = np.concatenate([at, np.full(padded - at.size, at[0])])
-        out = map_batch(_screen_kernel,
-                        (jnp.asarray(plane_i[scene[fill], :r]), jnp.asarray(n_i[scene[fill]]),
-                         jnp.asarray(plane_db[rows[fill], :r]), jnp.asarray(n_j[fill])),
-                        (jnp.float32(config.screen_tol_deg),), static=static)
+        group = np.nonzero(size == r)[0]
+        # calls of power-of-two sizes with little padding; every call dispatched before any is read
+        for lo, hi, padded in power_of_two_chunks(group.size, MIN_CALL_PAIRS):
+            at = group[lo:hi]
+            fill = np.concatenate([at, np.full(padded - at.size, at[0])])
+            pending.append((at, map_batch(
+                _screen_kernel, (jnp.asarray(plane_i[scene[fill], :r]), jnp.asarray(n_i[scene[fill]]),
+                                 jnp.asarray(plane_db[rows[fill], :r]), jnp.asarray(n_j[fill])),
+                (jnp.float32(config.screen_tol_deg),), static=static)))
+    for at, out in pending:
         keep[at] = np.asarray(out)[:at.size]
     return keep
