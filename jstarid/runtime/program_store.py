@@ -17,7 +17,9 @@ scripts do, through :func:`jstarid.enable_compilation_cache`; the library alone 
 then, and only then, :func:`stored_jit` functions look programs up there. A call inside a trace,
 with several processes (``jax.distributed``) or with a static argument whose ``repr`` is not stable
 across processes runs the plain ``jax.jit`` path. A file that cannot be read is compiled again and
-rewritten; a program that cannot be serialized (host callbacks) stays in memory only.
+rewritten; a program that cannot be serialized (host callbacks) stays in memory only. The files
+are pickled executables, run when loaded: like JAX's own cache, the directory must be writable by
+its user alone (the default is under ``~/.cache/jstarid``).
 """
 
 from __future__ import annotations
