@@ -23,7 +23,7 @@ from jstarid.engine import load as load_sweep
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.render import SensorConfig, mean_electrons, render, sensor_for_camera
 from jstarid.runtime import use_cpu_cores
-from jstarid.scene import Identification, Scene, scenes_from_centroids, undistort_scenes
+from jstarid.scene import Identification, Scene, pad_with_empty, scenes_from_centroids, undistort_scenes
 from jstarid.simulator import NoiseConfig, SceneSampler, noise_grid, scene_sampler, simulate
 
 __version__ = "0.1.0"
@@ -34,7 +34,8 @@ __all__ = [
     "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",
     "plotting", "runtime", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
     "estimate_attitude", "evaluate", "extract_centroids", "load_camera", "load_catalog", "name_from_attitude",
-    "noise_grid", "preset_names", "quaternion_from_rotation", "random_rotation", "read_image",
+    "noise_grid", "pad_with_empty", "preset_names", "quaternion_from_rotation", "random_rotation",
+    "read_image",
     "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",
     "rotation_to_radec_roll", "save_camera", "scene_outcomes", "scene_sampler", "scenes_from_centroids",
     "SceneSampler", "simulate",

@@ -62,6 +62,7 @@ from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
 from jstarid.runtime.program_store import stored_jit
+from jstarid.scene import pad_with_empty
 
 __all__ = ["CameraFit", "check_claims", "check_identification", "distort_scenes", "field_seen",
            "fit_distorted", "fit_named", "fit_scaled", "project_scaled", "rescale_scenes", "search_focal",
@@ -780,9 +781,12 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
         # each scene keeps the first factor, in order, that solved it: the sequential outcome
         factor = np.repeat(np.asarray(scales, np.float32), todo.size)
         rows = np.tile(todo, len(scales))
-        padded = np.concatenate([rows, np.full(_bucket(rows.size) - rows.size, rows[-1])])
-        factor = np.concatenate([factor, np.full(padded.size - rows.size, factor[-1])])
-        moved = _move_about_centre(scenes[padded], camera, lambda offset: offset / factor[:, None, None])
+        size = _bucket(rows.size)
+        padded = np.concatenate([rows, np.full(size - rows.size, rows[-1])])
+        factor = np.concatenate([factor, np.full(size - rows.size, factor[-1])])
+        # empty padding scenes: they fail at once, where copies of a scene would repeat its search
+        moved = _move_about_centre(pad_with_empty(scenes[rows], size), camera,
+                                   lambda offset: offset / factor[:, None, None])
         retry = run(moved, padded)
         retry_ids = np.asarray(retry.ids)[: rows.size].reshape(len(scales), todo.size, -1)
         solved = (np.asarray(retry.ok)[: rows.size].reshape(len(scales), todo.size)
@@ -800,11 +804,12 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
         todo = np.flatnonzero(~ok)
         if not todo.size:
             break
-        # the retried batch padded to a power of two (copies of its last scene): every new
-        # batch size compiles the algorithm's kernels again, and a long run of retries on batches
-        # of many sizes would otherwise fill memory with executables
-        padded = np.concatenate([todo, np.full(_bucket(todo.size) - todo.size, todo[-1])])
-        retry = run(rescale_scenes(scenes[padded], camera, float(scale)), padded)
+        # the retried batch padded to a power of two with empty scenes (they fail at once): every
+        # new batch size compiles the algorithm's kernels again, and a long run of retries on
+        # batches of many sizes would otherwise fill memory with executables
+        size = _bucket(todo.size)
+        padded = np.concatenate([todo, np.full(size - todo.size, todo[-1])])
+        retry = run(rescale_scenes(pad_with_empty(scenes[todo], size), camera, float(scale)), padded)
         retry_ids = np.asarray(retry.ids)[: todo.size]
         solved = np.asarray(retry.ok)[: todo.size] & (np.sum(retry_ids >= 0, axis=1) >= min_named)
         rows = todo[solved]

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Scene", "Identification", "scenes_from_centroids", "undistort_scenes"]
+__all__ = ["Scene", "Identification", "pad_with_empty", "scenes_from_centroids", "undistort_scenes"]
 
 
 @jax.tree_util.register_dataclass
@@ -97,6 +97,33 @@ def undistort_scenes(scenes: Scene, camera) -> Scene:
     xy, valid = np.asarray(scenes.xy), np.asarray(scenes.valid)
     ideal = np.where(valid[..., None], np.asarray(camera.undistort(xy.astype(np.float64))), 0.0)
     return dataclasses.replace(scenes, xy=jnp.asarray(ideal, scenes.xy.dtype))
+
+
+def pad_with_empty(scenes: Scene, size: int) -> Scene:
+    """The batch followed by empty scenes (no valid detection) up to ``size`` scenes.
+
+    Padding for a batch of a fixed (e.g. power-of-two) size: an empty scene fails at once in every
+    algorithm, where a copy of a real scene would cost a whole search (a failing one, the dearest).
+
+    Args:
+        scenes: (B, N) scenes, B ≤ ``size``.
+        size: the padded batch size.
+
+    Returns:
+        (size, N) scenes; rows B… have ``valid`` False, zero centroids, ``mag`` +inf, ``truth`` −1,
+        NaN attitude and no overflow.
+    """
+    extra = size - scenes.batch_size
+    if extra < 0:
+        raise ValueError(f"cannot pad {scenes.batch_size} scenes to {size}")
+    if extra == 0:
+        return scenes
+    n = scenes.capacity
+    empty = Scene(xy=np.zeros((extra, n, 2), np.float32), mag=np.full((extra, n), np.inf, np.float32),
+                  truth=np.full((extra, n), -1, np.int32), valid=np.zeros((extra, n), bool),
+                  attitude=np.full((extra, 3, 3), np.nan, np.float32), overflow=np.zeros(extra, bool))
+    return jax.tree.map(lambda a, e: jnp.concatenate([jnp.asarray(a), jnp.asarray(e, a.dtype)]),
+                        scenes, empty)
 
 
 def scenes_from_centroids(xy_list: Sequence, mag_list: Sequence | None = None, *,

@@ -51,3 +51,18 @@ def test_scene_indexing_keeps_batch_axis():
     one = s[1]
     assert one.xy.shape == (1, 4, 2)
     assert int(one.n_stars[0]) == 1
+
+
+def test_pad_with_empty_adds_scenes_without_detections():
+    scenes = js.scenes_from_centroids([np.array([[1.0, 2.0], [3.0, 4.0]]), np.array([[5.0, 6.0]])],
+                                      capacity=3)
+    padded = js.pad_with_empty(scenes, 5)
+    assert padded.batch_size == 5 and padded.capacity == 3
+    np.testing.assert_array_equal(np.asarray(padded.xy[:2]), np.asarray(scenes.xy))
+    np.testing.assert_array_equal(np.asarray(padded.valid[:2]), np.asarray(scenes.valid))
+    assert not np.asarray(padded.valid[2:]).any()
+    assert np.all(np.asarray(padded.mag[2:]) == np.inf) and np.all(np.asarray(padded.truth[2:]) == -1)
+    assert np.all(np.isnan(np.asarray(padded.attitude[2:])))
+    assert js.pad_with_empty(scenes, 2) is scenes
+    with pytest.raises(ValueError, match="cannot pad"):
+        js.pad_with_empty(scenes, 1)

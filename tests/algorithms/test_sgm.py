@@ -239,6 +239,35 @@ def test_bounds_of_the_search_equal_the_per_pair_bounds(setup5):
     assert np.all(got[~bounded] == 0)
 
 
+def test_candidate_order_is_a_stable_sort_by_weight_difference():
+    """order_candidates against a plain sort of each window by (|w_J − w_I|, J), ties included."""
+    from jstarid.algorithms.sgm.search import order_candidates
+
+    rng = np.random.default_rng(3)
+    w_db = np.sort(rng.uniform(0.0, 10.0, 300)).astype(np.float32)
+    w_db[100:104] = w_db[100]  # equal weights: the database order decides
+    w_i = np.concatenate([rng.uniform(1.0, 9.0, 6), [w_db[100], w_db[50]]]).astype(np.float32)
+    start = np.searchsorted(w_db, w_i - 1.5)
+    stop = np.searchsorted(w_db, w_i + 1.5)
+    stop[0] = start[0]  # an empty window
+    width = 128
+    assert np.max(stop - start) <= width
+    dw0, step, n_levels = 0.2, 0.1, 12
+    cand, level = order_candidates(w_db, start, stop, w_i, width=width, dw0=dw0, step=step,
+                                   n_levels=n_levels)
+    assert cand.shape == level.shape == (w_i.size, width)
+    for b in range(w_i.size):
+        d = np.abs(w_db - w_i[b])
+        want = sorted(range(start[b], stop[b]), key=lambda j: (d[j], j))
+        n = len(want)
+        np.testing.assert_array_equal(cand[b, :n], want)
+        assert np.all(cand[b, n:] == -1) and np.all(level[b, n:] == n_levels)
+        lev = np.clip(np.ceil((d[want] - np.float32(dw0)) / np.float32(step) - np.float32(1e-4)),
+                      0, n_levels - 1)
+        np.testing.assert_array_equal(level[b, :n], lev)
+        assert np.all(np.diff(level[b, :n]) >= 0)  # every Δw level searches a prefix of the ranks
+
+
 def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     cat, cam, db = setup5
     # tight ε → several Δw levels are visited; Δw_max cut to 0.5° to bound the work of failures

@@ -75,31 +75,39 @@ def candidate_windows(kvector, w_i, dw_last_deg):
                                                          w_i + dw_last_deg)
 
 
-@functools.partial(stored_jit, static_argnames=("width", "dw0", "step", "n_levels"))
 def order_candidates(w_db, start, stop, w_i, *, width: int, dw0: float, step: float, n_levels: int):
-    """Candidates of each scene ordered by |w_J − w_I|, with the Δw level where each enters.
+    """Candidates of each scene ordered by |w_J − w_I|, with the Δw level where each enters (host side).
+
+    A window of the w-sorted database holds two runs of distances (falling below w_I, rising above
+    it): NumPy's stable sort (timsort) merges them in linear time per scene, where XLA's CPU sort
+    compares element by element (≈ 6× slower at a batch of 1,000, width 8,192). Ties keep the
+    database order (stable), as the sequential Algorithm 1 visits them.
 
     Args:
         w_db: (D,) ascending database w (deg).
-        start, stop: (B,) int32 window of each scene (from :func:`candidate_windows`).
+        start, stop: (B,) int window of each scene (from :func:`candidate_windows`).
         w_i: (B,) image MST weights (deg).
-        width: static window capacity W ≥ max(stop − start).
+        width: window capacity W ≥ max(stop − start).
         dw0, step, n_levels: Δw₀, h_Δw (deg) and the number of levels (Config).
 
     Returns:
         ``(cand, level)``: (B, W) int32 database rows by rank (−1 past the window), (B, W) int32
-        level l(J) of each (n_levels past the window).
+        level l(J) of each (n_levels past the window); NumPy arrays.
     """
-    idx = start[:, None] + jnp.arange(width)[None, :]
+    w_db = np.asarray(w_db, np.float32)
+    start, stop = np.asarray(start, np.int64), np.asarray(stop, np.int64)
+    idx = start[:, None] + np.arange(width)[None, :]
     inwin = idx < stop[:, None]
-    d = jnp.abs(w_db[jnp.clip(idx, 0, w_db.shape[0] - 1)] - w_i[:, None])
-    key = jnp.where(inwin, d, jnp.inf)
-    perm = jnp.argsort(key, axis=1, stable=True)
-    d_sorted = jnp.take_along_axis(key, perm, axis=1)
-    cand = jnp.where(jnp.isfinite(d_sorted), jnp.take_along_axis(idx, perm, axis=1), -1)
-    level = jnp.ceil((d_sorted - dw0) / step - 1e-4)
-    level = jnp.where(jnp.isfinite(d_sorted), jnp.clip(level, 0, n_levels - 1), n_levels)
-    return cand.astype(jnp.int32), level.astype(jnp.int32)
+    d = np.abs(w_db[np.clip(idx, 0, w_db.shape[0] - 1)] - np.asarray(w_i, np.float32)[:, None])
+    key = np.where(inwin, d, np.float32(np.inf))
+    perm = np.argsort(key, axis=1, kind="stable")
+    d_sorted = np.take_along_axis(key, perm, axis=1)
+    finite = np.isfinite(d_sorted)
+    cand = np.where(finite, np.take_along_axis(idx, perm, axis=1), -1)
+    # float32 throughout, as the kernels compute it (Δw levels at their edges are exact ties)
+    level = np.ceil((d_sorted - np.float32(dw0)) / np.float32(step) - np.float32(1e-4))
+    level = np.where(finite, np.clip(level, 0, n_levels - 1), n_levels)
+    return cand.astype(np.int32), level.astype(np.int32)
 
 
 @functools.partial(stored_jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
@@ -452,11 +460,10 @@ def start_search(db, graphs: ImageGraph, usable: np.ndarray, config: Config) -> 
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
     width = next_pow2(max(int(count.max(initial=0)), int(config.chunk_size)))
     cand, level = order_candidates(
-        jnp.asarray(db.w), start, stop, w_i, width=width, dw0=float(config.dw0_deg),
+        db.w, start, stop, w_i, width=width, dw0=float(config.dw0_deg),
         step=float(config.dw_step_deg), n_levels=config.n_levels)
     zeros = np.zeros(b, np.int32)
-    cand = np.asarray(cand)
-    return SearchState(cand=cand, level=np.asarray(level), count=count,
+    return SearchState(cand=cand, level=level, count=count,
                        usable=np.asarray(usable, bool), err=np.full(cand.shape, np.inf, np.float32),
                        bound=np.zeros(cand.shape, np.float32), refined=np.zeros(cand.shape, bool),
                        deferred=np.zeros(cand.shape, bool), covered=zeros.copy(), matches={},
@@ -464,9 +471,17 @@ def start_search(db, graphs: ImageGraph, usable: np.ndarray, config: Config) -> 
                        image=image_tables(graphs.adj, graphs.n) if config.prune else None)
 
 
+def _examined(state: SearchState, rows: np.ndarray) -> int:
+    """Ranks examined by the most advanced scene of ``rows`` (≥ 1): past it, every rank of these
+    scenes is unexamined (δ = inf, not deferred), so per-rank bookkeeping reads only this prefix of
+    the (B, W) tables (W is set by the widest window of the batch, often 10× a typical scene's)."""
+    return max(1, int(state.covered[rows].max(initial=0)))
+
+
 def _first_success_level(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarray:
     """(R,) l* of each scene: the level of its first matched rank with δ ≤ ε_δ (``n_levels``: none)."""
-    succ = state.err[rows] <= config.max_error_deg
+    upto = _examined(state, rows)
+    succ = state.err[rows, :upto] <= config.max_error_deg
     t = np.argmax(succ, axis=1)
     return np.where(succ.any(axis=1), state.level[rows, t], config.n_levels)
 
@@ -481,7 +496,8 @@ def _prefix_done(state: SearchState, config: Config, rows: np.ndarray) -> np.nda
 
 
 def _needed(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarray:
-    """(R, W) bool: deferred ranks whose δ can still change Algorithm 1's answer.
+    """(R, U) bool: deferred ranks whose δ can still change Algorithm 1's answer (U ≤ W: the
+    examined prefix, :func:`_examined`).
 
     With l* the level of the first matched success and δ* the least δ matched in the l* prefix, a
     deferred rank matters when its level is below l* (δ ≤ ε_δ would make an earlier level succeed), or
@@ -489,11 +505,12 @@ def _needed(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarray:
     (l* = ``n_levels``) every deferred rank matters.
     """
     lstar = _first_success_level(state, config, rows)
-    level = state.level[rows]
+    upto = _examined(state, rows)  # nothing past the examined prefix is deferred
+    level = state.level[rows, :upto]
     in_prefix = level <= lstar[:, None]
-    best = np.min(np.where(in_prefix, state.err[rows], np.inf), axis=1)
-    could_be_best = ~_exceeds(state.bound[rows], best[:, None])
-    return state.deferred[rows] & in_prefix & ((level < lstar[:, None]) | could_be_best)
+    best = np.min(np.where(in_prefix, state.err[rows, :upto], np.inf), axis=1)
+    could_be_best = ~_exceeds(state.bound[rows, :upto], best[:, None])
+    return state.deferred[rows, :upto] & in_prefix & ((level < lstar[:, None]) | could_be_best)
 
 
 def _finished(state: SearchState, config: Config, rows: np.ndarray) -> np.ndarray:
@@ -591,8 +608,10 @@ def _probe(db, graphs: ImageGraph, state: SearchState, config: Config, act: np.n
     only the loose first stage bounds them, they are seldom J*, and a failed probe leaves no δ*.
     """
     need = _needed(state, config, act)
-    far = beyond_row_bound(graphs.n[act, None], db.n[np.maximum(state.cand[act], 0)], config)
-    first = np.argmin(np.where(need, state.bound[act] + np.where(far, 1e6, 0.0), np.inf), axis=1)
+    upto = need.shape[1]
+    far = beyond_row_bound(graphs.n[act, None], db.n[np.maximum(state.cand[act, :upto], 0)], config)
+    first = np.argmin(np.where(need, state.bound[act, :upto] + np.where(far, 1e6, 0.0), np.inf),
+                      axis=1)
     probe = np.nonzero(need[np.arange(act.size), first])[0]
     scene, rank = act[probe], first[probe]
     _refine(db, graphs, state, config, scene, rank)
@@ -666,7 +685,8 @@ def search_outcome(state: SearchState, config: Config, k: int) -> SearchOutcome:
     b = state.cand.shape[0]
     everyone = np.arange(b)
     lstar = _first_success_level(state, config, everyone)
-    err = np.where(state.level <= lstar[:, None], state.err, np.inf)
+    upto = _examined(state, everyone)  # δ = inf past it
+    err = np.where(state.level[:, :upto] <= lstar[:, None], state.err[:, :upto], np.inf)
     j = np.argmin(err, axis=1)
     best_err = err[everyone, j]
     ok = state.usable & (lstar < config.n_levels)

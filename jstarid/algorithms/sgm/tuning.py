@@ -105,9 +105,8 @@ def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_err
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
     width = next_pow2(max(int(count.max(initial=0)), 1))
     cand_all, level_all = order_candidates(
-        jnp.asarray(db.w), start, stop, w_i, width=width, dw0=float(config.dw0_deg),
+        db.w, start, stop, w_i, width=width, dw0=float(config.dw0_deg),
         step=float(config.dw_step_deg), n_levels=config.n_levels)
-    cand_all, level_all = np.asarray(cand_all), np.asarray(level_all)
     cand_all = np.where(np.arange(width)[None, :] < count[:, None], cand_all, -1)
     error = np.full((b, width, cs.size), np.inf, np.float32)
     matches = {}
