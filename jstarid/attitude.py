@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from jstarid.geometry import precise
+from jstarid.geometry.small_linalg import nearest_rotation
 from jstarid.runtime.program_store import stored_jit
 
 __all__ = [
@@ -129,7 +130,15 @@ def rotation_to_radec_roll(c):
 
 
 def solve_wahba(body, ref, weights):
-    """Weighted Wahba problem by SVD (Markley 1988): the C minimising Σ w ‖b − C r‖².
+    """Weighted Wahba problem: the proper rotation C minimising Σ w ‖b − C r‖² (Markley 1988).
+
+    C is the nearest rotation to B = Σ w b rᵀ (:func:`~jstarid.geometry.small_linalg.nearest_rotation`,
+    a 3 × 3 Jacobi SVD in plain array operations: LAPACK's batched SVD can hang XLA:CPU with several
+    host devices, see that module). Both vector sets are first turned so that their weighted mean
+    directions lie on +z: in a narrow field B is then ≈ diag(·, ·, Σw) plus terms of the stars'
+    offsets from the mean, each summed from small numbers, where the plain B = Σ w b rᵀ rounds those
+    small singular values (≈ Σw·θ², θ the field radius) against its ≈ Σw entries in float32. C is
+    that solution turned back.
 
     Args:
         body: (..., n, 3) unit vectors in the camera frame.
@@ -140,11 +149,22 @@ def solve_wahba(body, ref, weights):
         (..., 3, 3) proper rotation ``C`` (det +1). With fewer than two independent pairs the answer
         is not unique; callers check the count.
     """
-    b_mat = precise.einsum("...n,...ni,...nj->...ij", weights, body, ref)
-    u, _, vt = jnp.linalg.svd(b_mat)
-    d = jnp.linalg.det(u) * jnp.linalg.det(vt)
-    fix = jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d], -1)
-    return precise.einsum("...ij,...j,...jk->...ik", u, fix, vt)
+    turn_b = _mean_direction_frame(body, weights)
+    turn_r = _mean_direction_frame(ref, weights)
+    b_mat = precise.einsum("...n,...ni,...nj->...ij", weights,
+                           precise.einsum("...ij,...nj->...ni", turn_b, body),
+                           precise.einsum("...ij,...nj->...ni", turn_r, ref))
+    return precise.einsum("...ji,...jk,...kl->...il", turn_b, nearest_rotation(b_mat), turn_r)
+
+
+def _mean_direction_frame(vectors, weights):
+    """(..., 3, 3) rotation taking the weighted mean direction of ``vectors`` (..., n, 3) to +z
+    (+z itself where the weights are all 0)."""
+    mean = jnp.sum(weights[..., None] * vectors, axis=-2)
+    norm = jnp.linalg.norm(mean, axis=-1, keepdims=True)
+    z = jnp.zeros_like(mean).at[..., 2].set(1.0)
+    mean = jnp.where(norm > 0, mean / jnp.where(norm > 0, norm, 1.0), z)
+    return rotation_from_boresight(mean, jnp.zeros(mean.shape[:-1], mean.dtype))
 
 
 def attitude_errors_arcsec(c_est, c_true):

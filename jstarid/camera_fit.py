@@ -57,6 +57,7 @@ import numpy as np
 from jstarid.attitude import solve_wahba
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
+from jstarid.geometry.small_linalg import cholesky_solve
 from jstarid.robust import brighter_than_named, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
@@ -218,7 +219,7 @@ def fit_scaled(xy, ref, weights, camera, fit_scale=True, *, start=None, iteratio
         stiff = jnp.where(use_scale, 0.0, 1e6 * (jnp.trace(normal) + 1.0))
         normal = normal + jnp.diag(jnp.array([0.0, 0.0, 0.0, 1.0], normal.dtype)) * stiff
         normal = normal + jnp.eye(4, dtype=normal.dtype) * (1e-9 * jnp.trace(normal) + 1e-12)
-        delta = jnp.linalg.solve(normal, rhs)
+        delta = cholesky_solve(normal, rhs)
         delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
         c = precise.small_matmul(_rotation_from_vector(delta[:3]), c)
         return c, jnp.clip(scale + delta[3], SCALE_RANGE[0], SCALE_RANGE[1]).astype(jnp.float32)
@@ -289,7 +290,7 @@ def fit_distorted(xy, ref, weights, camera, *, start, iterations: int = DISTORTI
     def step(_, state):
         c, scale, k1 = state
         normal, rhs, _, _, _ = linearize(c, scale, k1)
-        delta = jnp.linalg.solve(normal, rhs)
+        delta = cholesky_solve(normal, rhs)
         delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
         c = precise.small_matmul(_rotation_from_vector(delta[:3]), c)
         scale = jnp.clip(scale + delta[3], SCALE_RANGE[0], SCALE_RANGE[1]).astype(jnp.float32)
@@ -303,7 +304,8 @@ def fit_distorted(xy, ref, weights, camera, *, start, iterations: int = DISTORTI
     # free k1 trades off against the scale where the names lie to one side, and would cost the
     # scale its precision on a lens without distortion
     sigma2 = jnp.sum(w * r**2) / jnp.maximum(2.0 * n.astype(jnp.float32) - 5.0, 1.0)
-    k1_se = jnp.sqrt(jnp.maximum(jnp.linalg.inv(normal)[4, 4] * sigma2, 0.0))
+    n_inv_44 = cholesky_solve(normal, jnp.eye(5, dtype=normal.dtype)[4])[4]  # (N⁻¹)₄₄
+    k1_se = jnp.sqrt(jnp.maximum(n_inv_44 * sigma2, 0.0))
     significant = use_k1 & (jnp.abs(k1) >= K1_SIGNIFICANCE * k1_se)
     return c, scale, k1, jnp.where(front, r, jnp.inf), significant
 
