@@ -20,18 +20,27 @@ Errors are those of a backward-stable SVD (≈ ε‖A‖), as LAPACK's.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 __all__ = ["svd3", "nearest_rotation", "cholesky_solve"]
 
-_PAIRS = ((0, 1), (0, 2), (1, 2))
-
-
-def _rotate(x, p, q, c, s):
-    """Columns p, q of x (..., 3, 3) replaced by c·x_p − s·x_q and s·x_p + c·x_q."""
-    xp, xq = x[..., :, p], x[..., :, q]
-    x = x.at[..., :, p].set(c[..., None] * xp - s[..., None] * xq)
-    return x.at[..., :, q].set(s[..., None] * xp + c[..., None] * xq)
+def _jacobi_pair(cols, vecs, p, q):
+    """One Jacobi rotation making columns p, q of ``cols`` (a list of (..., 3) arrays) orthogonal, in
+    place; the same rotation applied to the right vectors ``vecs``."""
+    alpha = jnp.sum(cols[p] ** 2, axis=-1)
+    beta = jnp.sum(cols[q] ** 2, axis=-1)
+    gamma = jnp.sum(cols[p] * cols[q], axis=-1)
+    # t = tan θ, the smaller root of t² + 2ζt − 1 = 0 (ζ = (β − α) / 2γ): columns p, q become
+    # orthogonal; no rotation where they already are (γ = 0)
+    rotate = gamma != 0
+    zeta = (beta - alpha) / (2.0 * jnp.where(rotate, gamma, 1.0))
+    t = jnp.where(zeta >= 0, 1.0, -1.0) / (jnp.abs(zeta) + jnp.sqrt(1.0 + zeta * zeta))
+    t = jnp.where(rotate, t, 0.0)
+    c = (1.0 / jnp.sqrt(1.0 + t * t))[..., None]
+    s = c * t[..., None]
+    for x in (cols, vecs):
+        x[p], x[q] = c * x[p] - s * x[q], s * x[p] + c * x[q]
 
 
 def svd3(a, sweeps: int = 6):
@@ -39,7 +48,8 @@ def svd3(a, sweeps: int = 6):
 
     Args:
         a: (..., 3, 3) float matrices.
-        sweeps: Jacobi sweeps over the three column pairs (static).
+        sweeps: Jacobi sweeps over the three column pairs (a loop, not unrolled: a kernel that fits
+            many attitudes would otherwise compile slowly).
 
     Returns:
         ``(u, s, v)``: (..., 3, 3) left singular vectors as columns (a column whose singular value is
@@ -47,25 +57,19 @@ def svd3(a, sweeps: int = 6):
         orthogonal right singular vectors as columns. Note ``v``, not ``vᵀ``.
     """
     a = jnp.asarray(a)
-    v = jnp.broadcast_to(jnp.eye(3, dtype=a.dtype), a.shape)
-    for _ in range(sweeps):
-        for p, q in _PAIRS:
-            alpha = jnp.sum(a[..., :, p] ** 2, axis=-1)
-            beta = jnp.sum(a[..., :, q] ** 2, axis=-1)
-            gamma = jnp.sum(a[..., :, p] * a[..., :, q], axis=-1)
-            # t = tan θ, the smaller root of t² + 2ζt − 1 = 0 (ζ = (β − α) / 2γ): columns p, q
-            # become orthogonal; no rotation where they already are (γ = 0)
-            rotate = gamma != 0
-            zeta = (beta - alpha) / (2.0 * jnp.where(rotate, gamma, 1.0))
-            t = jnp.where(zeta >= 0, 1.0, -1.0) / (jnp.abs(zeta) + jnp.sqrt(1.0 + zeta * zeta))
-            t = jnp.where(rotate, t, 0.0)
-            c = 1.0 / jnp.sqrt(1.0 + t * t)
-            s = c * t
-            a = _rotate(a, p, q, c, s)
-            v = _rotate(v, p, q, c, s)
-    sigma = jnp.linalg.norm(a, axis=-2)
-    u = a / jnp.where(sigma > 0, sigma, 1.0)[..., None, :]
-    return u, sigma, v
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=a.dtype), a.shape)
+
+    def sweep(_, state):
+        cols, vecs = list(state[:3]), list(state[3:])
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            _jacobi_pair(cols, vecs, p, q)
+        return (*cols, *vecs)
+
+    state = jax.lax.fori_loop(0, sweeps, sweep, (*(a[..., :, j] for j in range(3)),
+                                                 *(eye[..., :, j] for j in range(3))))
+    cols, v = jnp.stack(state[:3], axis=-1), jnp.stack(state[3:], axis=-1)
+    sigma = jnp.linalg.norm(cols, axis=-2)
+    return cols / jnp.where(sigma > 0, sigma, 1.0)[..., None, :], sigma, v
 
 
 def _unit(x, fallback):
@@ -75,14 +79,22 @@ def _unit(x, fallback):
 
 
 def _perpendicular(x):
-    """A unit vector perpendicular to the unit vector x (..., 3): x × the axis least aligned with it."""
-    axis = jnp.eye(3, dtype=x.dtype)[jnp.argmin(jnp.abs(x), axis=-1)]
-    return _unit(jnp.cross(x, axis), axis)
+    """A unit vector perpendicular to the unit vector x (..., 3): x × e_x, or x × e_y where x is
+    near e_x."""
+    x0, x1, x2 = x[..., 0], x[..., 1], x[..., 2]
+    zero = jnp.zeros_like(x0)
+    near_x = jnp.abs(x0) >= 0.9
+    cross = jnp.stack([jnp.where(near_x, -x2, zero), jnp.where(near_x, zero, x2),
+                       jnp.where(near_x, x0, -x1)], axis=-1)
+    return cross / jnp.linalg.norm(cross, axis=-1, keepdims=True)
 
 
-def _column(m, order, k):
-    """Column ``order[..., k]`` of m (..., 3, 3) → (..., 3)."""
-    return jnp.take_along_axis(m, order[..., None, k:k + 1], axis=-1)[..., 0]
+def _larger_first(first, second):
+    """Two (σ (...,), u (..., 3), v (..., 3)) triples, the one with the larger σ first."""
+    swap = first[0] < second[0]
+    masks = (swap, swap[..., None], swap[..., None])
+    return (tuple(jnp.where(m, b, a) for m, a, b in zip(masks, first, second, strict=True)),
+            tuple(jnp.where(m, a, b) for m, a, b in zip(masks, first, second, strict=True)))
 
 
 def _outer(x, y):
@@ -106,13 +118,13 @@ def nearest_rotation(a, sweeps: int = 6):
         one of the rotations is returned (the identity for ``a`` = 0).
     """
     u, s, v = svd3(a, sweeps)
-    order = jnp.argsort(-s, axis=-1)
-    v1 = _column(v, order, 0)
-    v2 = _column(v, order, 1)  # v is orthogonal: v₁, v₂ are unit and perpendicular
+    pairs = [(s[..., j], u[..., :, j], v[..., :, j]) for j in range(3)]
+    for i, j in ((0, 1), (1, 2), (0, 1)):  # the two largest first: a sorting network of where-swaps
+        pairs[i], pairs[j] = _larger_first(pairs[i], pairs[j])
+    (_, u1, v1), (_, u2, v2) = pairs[0], pairs[1]  # v is orthogonal: v₁, v₂ unit, perpendicular
     # where a singular value is 0 its left vector is 0: take the right one instead (a = 0 → R = I),
     # made orthogonal to u₁ (u₂ also to absorb rounding), or any perpendicular
-    u1 = _unit(_column(u, order, 0), v1)
-    u2 = _column(u, order, 1)
+    u1 = _unit(u1, v1)
     u2 = jnp.where(jnp.linalg.norm(u2, axis=-1, keepdims=True) > 0, u2, v2)
     u2 = _unit(u2 - jnp.sum(u2 * u1, -1, keepdims=True) * u1, _perpendicular(u1))
     u3, v3 = jnp.cross(u1, u2), jnp.cross(v1, v2)

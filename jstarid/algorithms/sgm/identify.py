@@ -366,16 +366,31 @@ def _merge(result: Identification, sub: Identification, rows: np.ndarray) -> Ide
 def _verify(db, scenes: Scene, result: Identification, main, config: Config):
     """:func:`.verify.verify_ids` with the settings of ``config`` → ``(Identification,
     main_ambiguous)``, the latter (B,) NumPy bool.
+
+    Only the scenes ``result`` claims are verified (padded to a power of two, so that a few compiled
+    shapes serve every call): the verification fails every other scene, with no names, anyway.
     """
-    tables, settings = _verify_inputs(db, config)
-    # identify names only the neighbor graph's members (at most its capacity K): the ambiguity tests
-    # then run on K rows, not on every detection slot; more names (a caller's own) → all slots
-    n_named = int(np.max(np.sum(np.asarray(result.ids) >= 0, axis=1), initial=0))
-    max_named = int(db.capacity) if n_named <= db.capacity else None
-    ids, ok, main_ambiguous = map_batch(
-        _verify_scenes, (scenes.xy, scenes.mag, scenes.valid, result.ids, result.ok,
-                         jnp.asarray(main)), tables, static={**settings, "max_named": max_named})
-    return Identification(ids=ids, ok=ok, attitude=None), np.asarray(main_ambiguous)
+    ok = np.asarray(result.ok)
+    b, n_det = scenes.valid.shape
+    ids = np.full((b, n_det), -1, np.int32)
+    verified, main_ambiguous = np.zeros(b, bool), np.zeros(b, bool)
+    rows = np.flatnonzero(ok)
+    if rows.size:
+        padded = np.concatenate([rows, np.full(next_pow2(rows.size) - rows.size, rows[0])])
+        tables, settings = _verify_inputs(db, config)
+        named = np.asarray(result.ids)[padded]
+        # identify names only the neighbor graph's members (at most its capacity K): the ambiguity
+        # tests then run on K rows, not on every detection slot; more names (a caller's own) → all
+        n_named = int(np.max(np.sum(named >= 0, axis=1), initial=0))
+        max_named = int(db.capacity) if n_named <= db.capacity else None
+        sub = scenes[padded]
+        out = map_batch(
+            _verify_scenes, (sub.xy, sub.mag, sub.valid, jnp.asarray(named), jnp.asarray(ok[padded]),
+                             jnp.asarray(np.asarray(main)[padded])),
+            tables, static={**settings, "max_named": max_named})
+        sub_ids, sub_ok, sub_amb = (np.asarray(x)[:rows.size] for x in out)
+        ids[rows], verified[rows], main_ambiguous[rows] = sub_ids, sub_ok, sub_amb
+    return Identification(ids=jnp.asarray(ids), ok=jnp.asarray(verified), attitude=None), main_ambiguous
 
 
 def _verify_inputs(db, config: Config):
@@ -419,7 +434,9 @@ def _rename_and_reverify(db, scenes: Scene, verified: Identification, g, config:
     changed = np.any(ids != before, axis=1)
     if not np.any(changed):
         return verified
-    proposal = Identification(ids=jnp.asarray(ids), ok=verified.ok, attitude=None)
+    # verified again: only the scenes the renaming changed (the others keep their names)
+    proposal = Identification(ids=jnp.asarray(ids), ok=jnp.asarray(np.asarray(verified.ok) & changed),
+                              attitude=None)
     again, _ = _verify(db, scenes, proposal, g.main, config)
     take = changed & np.asarray(again.ok)
     ids = np.where(take[:, None], np.asarray(again.ids), before)
