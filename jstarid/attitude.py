@@ -133,9 +133,9 @@ def solve_wahba(body, ref, weights):
     """Weighted Wahba problem: the proper rotation C minimising Σ w ‖b − C r‖² (Markley 1988).
 
     C is the nearest rotation to B = Σ w b rᵀ (:func:`~jstarid.geometry.small_linalg.nearest_rotation`,
-    a 3 × 3 Jacobi SVD in plain array operations: LAPACK's batched SVD can hang XLA:CPU with several
-    host devices, see that module). Both vector sets are first turned so that their weighted mean
-    directions lie on +z: in a narrow field B is then ≈ diag(·, ·, Σw) plus terms of the stars'
+    Newton's polar iteration in plain array operations: LAPACK's batched SVD can hang XLA:CPU with
+    several host devices, see that module). Both vector sets are first turned so that their weighted
+    mean directions lie on +z: in a narrow field B is then ≈ diag(·, ·, Σw) plus terms of the stars'
     offsets from the mean, each summed from small numbers, where the plain B = Σ w b rᵀ rounds those
     small singular values (≈ Σw·θ², θ the field radius) against its ≈ Σw entries in float32. C is
     that solution turned back.

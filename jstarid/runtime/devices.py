@@ -35,6 +35,10 @@ def use_cpu_cores(n: int | None = None) -> int:
     ``jstarid`` does not start the backend). An explicit count already in ``XLA_FLAGS`` (e.g. the
     test suite's) is left alone.
 
+    Caution for kernels of your own: with several host devices, a large batched LAPACK call
+    (``jnp.linalg.svd``, ``solve``, ``eigh``, …) can hang XLA:CPU for good, every pool thread waiting
+    on chunks none is free to run; jstarid's kernels use :mod:`jstarid.geometry.small_linalg`.
+
     Returns:
         The device count requested (or the one already set).
 
