@@ -160,8 +160,10 @@ def solve_wahba(body, ref, weights):
 def _mean_direction_frame(vectors, weights):
     """(..., 3, 3) rotation taking the weighted mean direction of ``vectors`` (..., n, 3) to +z
     (+z itself where the weights are all 0)."""
-    mean = jnp.sum(weights[..., None] * vectors, axis=-2)
-    norm = jnp.linalg.norm(mean, axis=-1, keepdims=True)
+    # a dot_general and written-out sums: XLA's reduce sums in an order that depends on the batch
+    # shape, and an attitude must not depend on its batch
+    mean = precise.einsum("...n,...ni->...i", weights, vectors)
+    norm = jnp.sqrt(mean[..., :1] ** 2 + mean[..., 1:2] ** 2 + mean[..., 2:] ** 2)
     z = jnp.zeros_like(mean).at[..., 2].set(1.0)
     mean = jnp.where(norm > 0, mean / jnp.where(norm > 0, norm, 1.0), z)
     return rotation_from_boresight(mean, jnp.zeros(mean.shape[:-1], mean.dtype))

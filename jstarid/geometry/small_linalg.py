@@ -19,7 +19,22 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jstarid.geometry import precise
+
 __all__ = ["largest_singular_value", "nearest_rotation", "cholesky_solve"]
+
+
+def _first_row_dot(x, y):
+    """Σ_k x[..., 0, k] y[..., 0, k], written out: XLA's reduce over a length-3 axis sums in an
+    order that depends on the batch shape, and a result must not depend on its batch."""
+    return x[..., 0, 0] * y[..., 0, 0] + x[..., 0, 1] * y[..., 0, 1] + x[..., 0, 2] * y[..., 0, 2]
+
+
+def _combine(c1, x, c2, y):
+    """c1·x + c2·y for (...,) weights and (..., 3, 3) matrices, as a dot_general: an elementwise
+    multiply-add may be fused (FMA) in some batch shapes and not others, and a result must not
+    depend on its batch."""
+    return precise.einsum("...k,...kij->...ij", jnp.stack([c1, c2], axis=-1), jnp.stack([x, y], axis=-3))
 
 
 def _cofactor(x):
@@ -35,7 +50,7 @@ def largest_singular_value(a):
     Returns:
         (...,) σ₁ ≥ 0 (to a few float32 ulps of ‖a‖²: an estimate, not for small singular values).
     """
-    m = jnp.sum(a[..., :, :, None] * a[..., :, None, :], axis=-3)  # aᵀa, elementwise: exact float32
+    m = precise.einsum("...ki,...kj->...ij", a, a)  # aᵀa
     q = (m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]) / 3.0
     off = m[..., 0, 1] ** 2 + m[..., 0, 2] ** 2 + m[..., 1, 2] ** 2
     p = jnp.sqrt(((m[..., 0, 0] - q) ** 2 + (m[..., 1, 1] - q) ** 2 + (m[..., 2, 2] - q) ** 2 + 2.0 * off)
@@ -43,7 +58,7 @@ def largest_singular_value(a):
     # the eigenvalues are q + 2p cos(φ + 2πk/3), cos 3φ = det((m − qI) / p) / 2
     eye = jnp.broadcast_to(jnp.eye(3, dtype=m.dtype), m.shape)
     c = (m - q[..., None, None] * eye) / jnp.where(p > 0, p, 1.0)[..., None, None]
-    half_det = 0.5 * jnp.sum(c[..., 0, :] * _cofactor(c)[..., 0, :], axis=-1)
+    half_det = 0.5 * _first_row_dot(c, _cofactor(c))
     phi = jnp.arccos(jnp.clip(half_det, -1.0, 1.0)) / 3.0
     return jnp.sqrt(jnp.maximum(q + 2.0 * p * jnp.cos(phi), 0.0))
 
@@ -71,13 +86,13 @@ def nearest_rotation(a, iterations: int = 8):
     """
     s1 = largest_singular_value(a)
     t = 1.0 / jnp.where(s1 > 0, s1, 1.0)
-    x = a * t[..., None, None] + _cofactor(a) * (t * t)[..., None, None]
+    x = _combine(t, a, t * t, _cofactor(a))
 
     def step(_, x):
         cof = _cofactor(x)
-        det = jnp.sum(x[..., 0, :] * cof[..., 0, :], axis=-1)
+        det = _first_row_dot(x, cof)
         gamma = jnp.abs(det) ** (-1.0 / 3.0)
-        return 0.5 * (gamma[..., None, None] * x + cof / (gamma * det)[..., None, None])
+        return _combine(0.5 * gamma, x, 0.5 / (gamma * det), cof)
 
     r = jax.lax.fori_loop(0, iterations, step, x)
     fine = jnp.all(jnp.isfinite(r), axis=(-2, -1))  # not where rank < 2 (det ã = 0)

@@ -123,3 +123,23 @@ def test_library_kernels_call_no_lapack():
     b = jnp.ones((64, 8, 3), jnp.float32)
     hlo = jax.jit(js.solve_wahba).lower(b, b, jnp.ones((64, 8))).as_text()
     assert "custom_call" not in hlo
+
+
+def test_results_do_not_depend_on_the_batch():
+    # a grid point run in one batch must equal the same point run alone (tests/test_engine.py): bit
+    # for bit, whatever the batch shape, as LAPACK's per-matrix kernels were
+    rng = np.random.default_rng(6)
+    b = 1000
+    a = jnp.asarray(rng.normal(size=(b, 3, 3)), jnp.float32)
+    body, ref = (jnp.asarray(rng.normal(size=(b, 12, 3)), jnp.float32) for _ in range(2))
+    jac = rng.normal(size=(b, 12, 5))
+    normal = jnp.asarray(np.einsum("bki,bkj->bij", jac, jac) + 1e-3 * np.eye(5), jnp.float32)
+    rhs = jnp.asarray(rng.normal(size=(b, 5)), jnp.float32)
+    for fn, args in ((nearest_rotation, (a,)), (js.solve_wahba, (body, ref, jnp.ones((b, 12)))),
+                     (cholesky_solve, (normal, rhs))):
+        whole = np.asarray(jax.jit(fn)(*args))
+        for size in (1, 3, 16, 33):
+            parts = [np.asarray(jax.jit(fn)(*(x[s:s + size] for x in args))) for s in range(0, 198, size)]
+            np.testing.assert_array_equal(np.concatenate(parts)[:198], whole[:198])
+        nested = jax.jit(jax.vmap(jax.vmap(fn)))(*(x.reshape(10, b // 10, *x.shape[1:]) for x in args))
+        np.testing.assert_array_equal(np.asarray(nested).reshape(whole.shape), whole)
