@@ -47,10 +47,15 @@ def resident_mb() -> float:
 
 def run(args) -> dict:
     """Measure; returns the row of :data:`COLUMNS` (MB are MiB)."""
-    static = dict(partners=4, hypotheses=8, fraction=0.6, min_matched=3)
+    static = dict(partners=4, fraction=0.6, min_matched=3)
     tol = jnp.float32(0.25)
-    shapes = [(jnp.zeros((n, r, 2)), jnp.zeros(n, jnp.int32), jnp.zeros((n, r, 2)), jnp.zeros(n, jnp.int32))
-              for r in args.sizes for n in args.pairs]
+
+    def pairs(n, r):  # the screen kernel's inputs: neighbor radii, azimuths, hypotheses, counts
+        side = (jnp.zeros((n, r - 1)), jnp.zeros((n, r - 1)))
+        return (*side, jnp.zeros((n, 8), jnp.int32), jnp.zeros((n, 8), bool), jnp.zeros(n, jnp.int32),
+                *side, jnp.zeros(n, jnp.int32))
+
+    shapes = [pairs(n, r) for r in args.sizes for n in args.pairs]
 
     def call_all():
         for batched in shapes:

@@ -77,7 +77,8 @@ K_SIGMA = 6.0  # a name is taken back beyond this many σ̂ from its star (a rig
 MIN_TOL_PX = 2.5  # … and never within this radius (px): σ̂ of ten names can come out at half σ
 MAX_TOL_PX = 10.0  # largest verification radius (px): 5 σ at 2 px per axis, beyond any real tracker
 LADDER_MIN_NAMES = 6  # fewest names of a solution found under a rescaled focal length
-FEW_RETRIES = 64  # search_focal: up to this many retries (scenes × factors) run in one call
+FEW_RETRIES = 64  # search_focal: up to this many retries (scenes × factors) always run in one call
+BATCH_RETRIES = 1  # … and up to this many times the batch size
 FEW_NAMES = 10  # up to this many names the robust fit tests each name by leaving it out
 DROP_STEPS = 2  # … and drops at most this many
 DELETION_RATIO = 3.0  # … each time the others' RMS residual shrinks at least this many times
@@ -753,8 +754,10 @@ def _bucket(n: int) -> int:
 def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER_MIN_NAMES):
     """Retry the scenes ``result`` leaves unsolved as if the focal length were each of ``scales`` ×
     the nominal one in turn (:func:`rescale_scenes`), keeping the first solution of each scene.
-    Where at most :data:`FEW_RETRIES` retries are left (scenes × factors), they run in one call
-    with the same outcome.
+    Where the retries (scenes × factors) are no more than :data:`BATCH_RETRIES` × the batch or
+    :data:`FEW_RETRIES`, they run in one call with the same outcome: a call's fixed cost (SGM's
+    search rounds, the kernels' dispatch) outweighs the retries of scenes an earlier factor would
+    have solved, and memory stays that of the batch.
 
     For methods whose features are angles (triangle singular values, pair distances, network
     patterns), a focal length off by more than their tolerance (≈ 1 % for MLV's) loses the scene;
@@ -778,7 +781,7 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
     ids, ok = np.array(result.ids), np.array(result.ok)
     att = None if result.attitude is None else np.array(result.attitude)
     todo = np.flatnonzero(~ok)
-    if 0 < todo.size * len(scales) <= FEW_RETRIES:
+    if 0 < todo.size * len(scales) <= max(FEW_RETRIES, BATCH_RETRIES * scenes.batch_size):
         # few scenes left: every factor in one call (a call's fixed cost dominates there), then
         # each scene keeps the first factor, in order, that solved it: the sequential outcome
         factor = np.repeat(np.asarray(scales, np.float32), todo.size)

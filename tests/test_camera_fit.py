@@ -135,6 +135,7 @@ def test_rescaled_scenes_read_as_the_scaled_camera(world):
 
 def test_search_focal_retries_only_unsolved_scenes(world, monkeypatch):
     monkeypatch.setattr(cf, "FEW_RETRIES", 0)  # one call per factor
+    monkeypatch.setattr(cf, "BATCH_RETRIES", 0)
     cat, nominal = world
     scenes, truth = _scenes(cat, nominal, 1.0, n=4)
     calls = []
@@ -184,6 +185,7 @@ def test_search_focal_in_one_call_keeps_the_first_factor_that_solves(world, monk
     results = []
     for few in (64, 0):  # one call, then one call per factor
         monkeypatch.setattr(cf, "FEW_RETRIES", few)
+        monkeypatch.setattr(cf, "BATCH_RETRIES", 1 if few else 0)
         calls = []
         results.append(cf.search_focal(run, first, scenes, nominal, scales, min_named=1))
         assert len(calls) == (1 if few else 3)

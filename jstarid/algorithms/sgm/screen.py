@@ -29,13 +29,100 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.runtime import map_batch
+from jstarid.runtime import device_cache, map_batch
 from jstarid.runtime.padding import power_of_two_chunks
 from jstarid.runtime.program_store import stored_jit
 
-__all__ = ["triangle_support", "screen_pass", "screen_pairs"]
+__all__ = ["hypothesis_neighbors", "nearest_radii", "neighbor_polar", "polar_support", "screen_pairs",
+           "screen_pass", "triangle_support"]
 
 MIN_CALL_PAIRS = 64  # smallest compiled pair count (as the search's other pair kernels)
+
+
+def neighbor_polar(plane):
+    """Polar coordinates of a graph's neighbors about its main star, read by :func:`polar_support`.
+
+    Args:
+        plane: (..., P, 2) :func:`~.graph.plane_coords` (deg; vertex 0 the main star at the origin).
+
+    Returns:
+        ``(r, phi)``: (..., P − 1) radius (deg) and azimuth (rad) of vertices 1 … P − 1.
+    """
+    x = plane[..., 1:, :]
+    return jnp.hypot(x[..., 0], x[..., 1]), jnp.arctan2(x[..., 1], x[..., 0])
+
+
+def hypothesis_neighbors(r_i, n_i, tol, hypotheses: int):
+    """The image neighbors the screen tries as the hypothesis' i: the first ``hypotheses`` (vertex
+    order, i.e. the brightest) that lie at least 4·tol from the main star.
+
+    Args:
+        r_i: (P − 1,) neighbor radii (deg, :func:`neighbor_polar`). n_i: () vertex count.
+        tol: () position tolerance (deg). hypotheses: static H ≤ P − 1.
+
+    Returns:
+        ``(hyp, eligible)``: (H,) int32 neighbor indices (into ``r_i``) and (H,) bool, False where
+        fewer than H neighbors qualify (those entries are padding).
+    """
+    valid = jnp.arange(1, r_i.shape[-1] + 1) < n_i
+    eligible = valid & (r_i >= 4.0 * tol)
+    hyp = jnp.argsort(~eligible, stable=True)[:hypotheses]
+    return hyp.astype(jnp.int32), eligible[hyp]
+
+
+def nearest_radii(gap, m: int):
+    """The ``m`` smallest entries of each row and their columns, smallest first (ties: lower column).
+
+    ``m`` masked argmins: on XLA:CPU faster than ``lax.top_k`` for the screen's m = 4 (≈ 1.3× the
+    whole kernel at 24 vertices).
+
+    Args:
+        gap: (R, C) float (+inf where absent). m: static, ≤ C.
+
+    Returns:
+        ``(values, columns)``: (R, m) float and (R, m) int32.
+    """
+    cols = jnp.arange(gap.shape[1])[None, :]
+    values, columns = [], []
+    for _ in range(m):
+        at = jnp.argmin(gap, axis=1)
+        values.append(jnp.min(gap, axis=1))
+        columns.append(at.astype(jnp.int32))
+        gap = jnp.where(cols == at[:, None], jnp.inf, gap)
+    return jnp.stack(values, axis=1), jnp.stack(columns, axis=1)
+
+
+def polar_support(r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, n_j, *, tol, partners: int):
+    """:func:`triangle_support` from precomputed neighbor coordinates and hypotheses (the search
+    computes them once per graph, not once per candidate pair).
+
+    Args:
+        r_i, phi_i: (P − 1,) image neighbors' :func:`neighbor_polar` (deg, rad). hyp, hyp_ok: (H,)
+            :func:`hypothesis_neighbors` (indices may run past P − 1 only where ``hyp_ok`` is False).
+        n_i: () image vertex count. r_j, phi_j: (Q − 1,) database neighbors' coordinates. n_j: ().
+        tol: () position tolerance (deg). partners: static m.
+
+    Returns:
+        () int32, as :func:`triangle_support`.
+    """
+    p1, q1 = r_i.shape[0], r_j.shape[0]
+    m = min(partners, q1)
+    vi = jnp.arange(1, p1 + 1) < n_i
+    vj = jnp.arange(1, q1 + 1) < n_j
+    gap = jnp.where(vi[:, None] & vj[None, :], jnp.abs(r_i[:, None] - r_j[None, :]), jnp.inf)
+    near, part = nearest_radii(gap, m)  # (P − 1, m) database neighbors of nearest radius
+    ok = near <= tol
+    rot = phi_j[part] - phi_i[:, None]  # (P − 1, m) rotation implied by each pair (rad)
+    slack = tol / jnp.maximum(r_i, 1e-6)  # (P − 1,) its uncertainty (rad)
+    d = rot[hyp][:, :, None, None] - rot[None, None, :, :]  # (H, m, P − 1, m)
+    d = d - (2 * jnp.pi) * jnp.round(d / (2 * jnp.pi))
+    agree = jnp.abs(d) <= slack[hyp][:, None, None, None] + slack[None, None, :, None]
+    agree = agree & ok[None, None, :, :] & (part[None, None, :, :] != part[hyp][:, :, None, None])
+    agree = agree & (jnp.arange(p1)[None, None, :, None] != hyp[:, None, None, None])  # k ≠ i
+    support = jnp.sum(jnp.any(agree, axis=3), axis=2)  # (H, m)
+    usable = ok[hyp] & hyp_ok[:, None]
+    best = jnp.max(jnp.where(usable, support, -2))
+    return jnp.maximum(best + 2, 0).astype(jnp.int32)
 
 
 def triangle_support(plane_i, n_i, plane_j, n_j, *, tol, partners: int, hypotheses: int):
@@ -60,32 +147,10 @@ def triangle_support(plane_i, n_i, plane_j, n_j, *, tol, partners: int, hypothes
         () int32: 2 + the most neighbors k that support one hypothesis (the main star, i and the
         k's: vertices of a consistent correspondence); 0 when no hypothesis can be formed.
     """
-    p, q = plane_i.shape[0], plane_j.shape[0]
-    m = min(partners, q - 1)
-    h = min(hypotheses, p - 1)
-    xi, xj = plane_i[1:], plane_j[1:]  # neighbors, (P − 1, 2) and (Q − 1, 2)
-    vi = jnp.arange(1, p) < n_i
-    vj = jnp.arange(1, q) < n_j
-    r_i = jnp.hypot(xi[:, 0], xi[:, 1])
-    r_j = jnp.hypot(xj[:, 0], xj[:, 1])
-    gap = jnp.where(vi[:, None] & vj[None, :], jnp.abs(r_i[:, None] - r_j[None, :]), jnp.inf)
-    neg_gap, part = jax.lax.top_k(-gap, m)  # (P − 1, m) database neighbors of nearest radius
-    ok = -neg_gap <= tol
-    phi_i = jnp.arctan2(xi[:, 1], xi[:, 0])
-    phi_j = jnp.arctan2(xj[:, 1], xj[:, 0])
-    rot = phi_j[part] - phi_i[:, None]  # (P − 1, m) rotation implied by each pair (rad)
-    slack = tol / jnp.maximum(r_i, 1e-6)  # (P − 1,) its uncertainty (rad)
-    eligible = vi & (r_i >= 4.0 * tol)
-    hyp = jnp.argsort(~eligible, stable=True)[:h]  # the first H eligible neighbors
-    d = rot[hyp][:, :, None, None] - rot[None, None, :, :]  # (H, m, P − 1, m)
-    d = d - (2 * jnp.pi) * jnp.round(d / (2 * jnp.pi))
-    agree = jnp.abs(d) <= slack[hyp][:, None, None, None] + slack[None, None, :, None]
-    agree = agree & ok[None, None, :, :] & (part[None, None, :, :] != part[hyp][:, :, None, None])
-    agree = agree & (jnp.arange(p - 1)[None, None, :, None] != hyp[:, None, None, None])  # k ≠ i
-    support = jnp.sum(jnp.any(agree, axis=3), axis=2)  # (H, m)
-    usable = ok[hyp] & eligible[hyp][:, None]
-    best = jnp.max(jnp.where(usable, support, -2))
-    return jnp.maximum(best + 2, 0).astype(jnp.int32)
+    r_i, phi_i = neighbor_polar(plane_i)
+    r_j, phi_j = neighbor_polar(plane_j)
+    hyp, hyp_ok = hypothesis_neighbors(r_i, n_i, tol, min(hypotheses, plane_i.shape[0] - 1))
+    return polar_support(r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, n_j, tol=tol, partners=partners)
 
 
 def screen_pass(support, n_i, n_j, *, fraction: float, min_matched: int):
@@ -100,17 +165,50 @@ def screen_pass(support, n_i, n_j, *, fraction: float, min_matched: int):
     return support >= need
 
 
-@functools.partial(stored_jit, static_argnames=("partners", "hypotheses", "fraction", "min_matched"))
-def _screen_kernel(plane_i, n_i, plane_j, n_j, tol, *, partners, hypotheses, fraction, min_matched):
-    """:func:`triangle_support` and :func:`screen_pass` of N pairs (``vmap``) → (N,) bool."""
-    support = jax.vmap(functools.partial(triangle_support, tol=tol, partners=partners,
-                                         hypotheses=hypotheses))(
-        plane_i, n_i, plane_j, n_j)
+@functools.partial(stored_jit, static_argnames=("hypotheses",))
+def graph_polar(plane, n, tol, *, hypotheses: int):
+    """:func:`neighbor_polar` and :func:`hypothesis_neighbors` of a batch of graphs, computed once
+    per graph rather than once per candidate pair.
+
+    Args:
+        plane: (B, K, 2) :func:`~.graph.plane_coords` (deg). n: (B,) vertex counts. tol: () deg.
+        hypotheses: static H (at most K − 1 are used).
+
+    Returns:
+        ``(r, phi, hyp, hyp_ok)``: (B, K − 1) float32 deg and rad, (B, H') int32 and bool,
+        H' = min(H, K − 1).
+    """
+    r, phi = neighbor_polar(plane)
+    h = min(hypotheses, plane.shape[1] - 1)
+    hyp, hyp_ok = jax.vmap(hypothesis_neighbors, in_axes=(0, 0, None, None))(r, n, tol, h)
+    return r, phi, hyp, hyp_ok
+
+
+def database_polar(db) -> tuple[np.ndarray, np.ndarray]:
+    """``(r, phi)``: (D, K − 1) float32 :func:`neighbor_polar` of every database graph (deg, rad),
+    computed once per database (:data:`jstarid.runtime.device_cache`)."""
+    def make():
+        out = [jax.device_get(neighbor_polar(jnp.asarray(db.plane[lo:lo + 4096])))
+               for lo in range(0, len(db.n), 4096)]
+        return tuple(np.concatenate([o[k] for o in out]) for k in range(2))
+
+    return device_cache.cached(db, "sgm_screen_polar", make)
+
+
+@functools.partial(stored_jit, static_argnames=("partners", "fraction", "min_matched"))
+def _screen_kernel(r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, n_j, tol, *, partners, fraction,
+                   min_matched):
+    """:func:`polar_support` and :func:`screen_pass` of N pairs (``vmap``) → (N,) bool."""
+    support = jax.vmap(functools.partial(polar_support, tol=tol, partners=partners))(
+        r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, n_j)
     return screen_pass(support, n_i, n_j, fraction=fraction, min_matched=min_matched)
 
 
 def screen_pairs(db, plane_i, n_i, scene, rows, config) -> np.ndarray:
     """Which (scene, candidate) pairs pass the triangle screen (host side, grouped by padded size).
+
+    Each graph's neighbor coordinates and hypotheses are computed once (:func:`graph_polar`,
+    :func:`database_polar`); a pair of padded size r reads the first r − 1 neighbors of both.
 
     Args:
         db: the SGM database (``plane``, ``n``). plane_i: (B, K, 2) image graphs'
@@ -125,12 +223,14 @@ def screen_pairs(db, plane_i, n_i, scene, rows, config) -> np.ndarray:
     keep = np.ones(rows.size, bool)
     if not rows.size:
         return keep
-    n_j = db.n[rows]
+    n_j = db.n[rows].astype(np.int32)
     bucket = int(config.size_bucket)
     size = np.maximum(-(-np.maximum(n_i[scene], n_j) // bucket) * bucket, bucket)
-    plane_db = db.plane
-    static = {"partners": int(config.screen_partners), "hypotheses": int(config.screen_hypotheses),
-              "fraction": float(config.screen_fraction),
+    tol = jnp.float32(config.screen_tol_deg)
+    r_i, phi_i, hyp, hyp_ok = jax.device_get(graph_polar(
+        jnp.asarray(plane_i), jnp.asarray(n_i), tol, hypotheses=int(config.screen_hypotheses)))
+    r_j, phi_j = database_polar(db)
+    static = {"partners": int(config.screen_partners), "fraction": float(config.screen_fraction),
               "min_matched": int(config.min_matched)}
     pending = []
     for r in np.unique(size):
@@ -139,10 +239,11 @@ def screen_pairs(db, plane_i, n_i, scene, rows, config) -> np.ndarray:
         for lo, hi, padded in power_of_two_chunks(group.size, MIN_CALL_PAIRS):
             at = group[lo:hi]
             fill = np.concatenate([at, np.full(padded - at.size, at[0])])
+            s, j = scene[fill], rows[fill]
             pending.append((at, map_batch(
-                _screen_kernel, (jnp.asarray(plane_i[scene[fill], :r]), jnp.asarray(n_i[scene[fill]]),
-                                 jnp.asarray(plane_db[rows[fill], :r]), jnp.asarray(n_j[fill])),
-                (jnp.float32(config.screen_tol_deg),), static=static)))
+                _screen_kernel, (r_i[s, :r - 1], phi_i[s, :r - 1], hyp[s], hyp_ok[s], n_i[s].astype(np.int32),
+                                 r_j[j, :r - 1], phi_j[j, :r - 1], n_j[fill]),
+                (tol,), static=static)))
     for at, out in pending:
         keep[at] = np.asarray(out)[:at.size]
     return keep

@@ -118,7 +118,7 @@ def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_err
         r_idx = r_idx + r0
         rows = cand_all[s_idx, r_idx]
         n_j = db.n[rows]
-        if config.prune and rows.size:
+        if config.pruning and rows.size:
             keep = prune_mask(db, adj_i, n_i, s_idx, rows, config, max_error_deg)
             s_idx, r_idx, rows, n_j = s_idx[keep], r_idx[keep], rows[keep], n_j[keep]
         if not rows.size:
