@@ -816,3 +816,24 @@ def test_focal_ladder_and_camera_check_under_a_two_percent_focal_error(setup):
     assert np.mean(np.isfinite(scale)) > 0.9 and abs(np.nanmedian(scale) - 0.98) < 1e-3
     print(f"\nf × 0.98: {ok_off.sum()} → {ok_on.sum()} of 160 solved with the ladder; fitted scale "
           f"{np.nanmedian(scale):.4f} (median), 90 % within {np.nanpercentile(np.abs(scale - 0.98), 90):.4f}")
+
+
+def test_pruning_is_on_exactly_without_the_screen_unless_set():
+    """``Config.prune = None`` bounds only without the screen (the screen leaves too little)."""
+    assert not sgm.Config().pruning and sgm.Config.paper().pruning
+    assert sgm.Config(screen=False).pruning and sgm.Config(prune=True).pruning
+    assert not sgm.Config(screen=False, prune=False).pruning
+
+
+def test_sorted_rows_and_edges_are_the_same_from_numpy_and_jax():
+    """The image tables are sorted by NumPy, the kernels' by XLA: the same float32 values."""
+    from jstarid.algorithms.sgm.bound import row_table, sorted_edges
+
+    rng = np.random.default_rng(12)
+    adj = np.round(rng.uniform(0, 6, (20, 12, 12)), 2).astype(np.float32)  # ties included
+    adj = (adj + np.swapaxes(adj, 1, 2)) / 2
+    mask = np.arange(12)[None, :] < rng.integers(0, 13, 20)[:, None]
+    for fn in (row_table, sorted_edges):
+        host = fn(adj, mask)
+        assert isinstance(host, np.ndarray) and host.dtype == np.float32
+        np.testing.assert_array_equal(host, np.asarray(fn(jnp.asarray(adj), jnp.asarray(mask))))

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 import jstarid as js
 from jstarid.algorithms import sgm
 from jstarid.algorithms.sgm.graph import plane_coords, separation_deg
-from jstarid.algorithms.sgm.screen import screen_pairs, triangle_support
+from jstarid.algorithms.sgm.screen import nearest_radii, screen_pairs, screen_pass, triangle_support
 
 _support = jax.jit(triangle_support, static_argnames=("partners", "hypotheses"))
 
@@ -162,3 +162,49 @@ def test_screen_answers_do_not_depend_on_how_the_pairs_are_cut_into_calls(setup5
     sliced = np.concatenate([screen_pairs(db, g.plane, n_i, scene[k:k + 137], rows[k:k + 137], cfg)
                              for k in range(0, scene.size, 137)])
     np.testing.assert_array_equal(whole, sliced)
+
+
+def test_screen_pairs_equal_the_screen_of_each_pair_at_full_size(setup5):
+    """The search's screen (neighbor coordinates and hypotheses computed once per graph, pairs cut
+    to their padded size) answers as :func:`triangle_support` + :func:`screen_pass` on each pair's
+    two whole graphs."""
+    from jstarid.algorithms.sgm.identify import searchable_graphs
+    cat, cam, db = setup5
+    cfg = sgm.Config()
+    scenes = js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(position_sigma_px=3.0),
+                         capacity=64, boresight_ids=np.random.default_rng(8).choice(len(cat), 16))
+    g, usable = searchable_graphs(db, scenes, cfg)
+    rng = np.random.default_rng(9)
+    scene = rng.choice(np.nonzero(usable)[0], 400)
+    row_of = np.argsort(db.main)
+    truth = np.asarray(scenes.truth)[scene, g.main[scene]]
+    # a third of the pairs are the true graphs (they pass), the rest random (most fail)
+    rows = np.where(np.arange(scene.size) % 3 == 0, row_of[np.maximum(truth, 0)],
+                    rng.integers(0, len(db), scene.size))
+    n_i = g.n.astype(np.int32)
+    got = screen_pairs(db, g.plane, n_i, scene, rows, cfg)
+    k = max(g.plane.shape[1], db.plane.shape[1])
+    pad = lambda x: np.pad(x, ((0, 0), (0, k - x.shape[1]), (0, 0)))  # noqa: E731
+    support = jax.vmap(lambda a, na, b, nb: _support(a, na, b, nb, tol=jnp.float32(cfg.screen_tol_deg),
+                                                     partners=cfg.screen_partners,
+                                                     hypotheses=cfg.screen_hypotheses))(
+        jnp.asarray(pad(g.plane[scene])), jnp.asarray(n_i[scene]), jnp.asarray(pad(db.plane[rows])),
+        jnp.asarray(db.n[rows]))
+    want = screen_pass(support, n_i[scene], db.n[rows], fraction=cfg.screen_fraction,
+                       min_matched=cfg.min_matched)
+    np.testing.assert_array_equal(got, np.asarray(want))
+    assert 0.2 < got.mean() < 0.6
+
+
+def test_nearest_radii_are_lax_top_k_of_the_negated_gaps():
+    """The m smallest entries per row, ties to the lower column, as ``lax.top_k(−gap, m)`` gives;
+    rows with fewer than m finite entries agree on the finite ones."""
+    rng = np.random.default_rng(10)
+    gap = np.round(rng.uniform(0, 1, (200, 23)), 1).astype(np.float32)  # many ties
+    gap[rng.uniform(size=gap.shape) < 0.3] = np.inf
+    gap[:5, 2:] = np.inf  # two finite entries only
+    values, columns = jax.jit(nearest_radii, static_argnums=1)(jnp.asarray(gap), 4)
+    neg, want = jax.lax.top_k(-jnp.asarray(gap), 4)
+    finite = np.isfinite(np.asarray(neg))
+    np.testing.assert_array_equal(np.asarray(values), -np.asarray(neg))
+    np.testing.assert_array_equal(np.asarray(columns)[finite], np.asarray(want)[finite])

@@ -23,8 +23,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.runtime.program_store import stored_jit
-
 __all__ = ["sorted_rows", "row_table", "error_lower_bound", "sorted_edges", "edge_lower_bound"]
 
 
@@ -52,7 +50,6 @@ def sorted_rows(adj, mask):
     return rows[..., : k - 1].astype(xp.float32)
 
 
-@stored_jit
 def row_table(adj, mask):
     """:func:`sorted_rows` padded with one more +inf column to a square (..., K, K) table.
 
@@ -177,7 +174,6 @@ def error_lower_bound(rows_i, n_i, rows_j, n_j, *, max_skip: int, n_dual: int = 
     return jnp.where((s <= max_skip) & (m >= 2) & jnp.isfinite(bound), bound, 0.0)
 
 
-@stored_jit
 def sorted_edges(adj, mask):
     """Edge lengths of a padded complete graph, each graph's list sorted ascending, +inf padded.
 
