@@ -145,15 +145,20 @@ def test_search_with_the_screen_is_algorithm1_over_the_candidates_that_pass(setu
     assert screened > 0
 
 
-def test_screen_answers_do_not_depend_on_how_the_pairs_are_cut_into_calls(setup5):
-    """Calls are cut by size (power-of-two chunks of each graph-size group): the pairs screened all
-    at once, or in slices that cut differently, get the same answers."""
+def _image_graphs(setup5, *, sigma, key, seed, n):
+    """``(db, config, scenes, graphs, usable)`` of n random main stars at position noise σ (px)."""
     from jstarid.algorithms.sgm.identify import searchable_graphs
     cat, cam, db = setup5
     cfg = sgm.Config()
-    scenes = js.simulate(jax.random.key(9), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
-                         capacity=64, boresight_ids=np.random.default_rng(6).choice(len(cat), 12))
-    g, usable = searchable_graphs(db, scenes, cfg)
+    scenes = js.simulate(jax.random.key(key), cat, cam, js.NoiseConfig(position_sigma_px=sigma),
+                         capacity=64, boresight_ids=np.random.default_rng(seed).choice(len(cat), n))
+    return db, cfg, scenes, *searchable_graphs(db, scenes, cfg)
+
+
+def test_screen_answers_do_not_depend_on_how_the_pairs_are_cut_into_calls(setup5):
+    """Calls are cut by size (power-of-two chunks of each graph-size group): the pairs screened all
+    at once, or in slices that cut differently, get the same answers."""
+    db, cfg, _, g, usable = _image_graphs(setup5, sigma=2.0, key=9, seed=6, n=12)
     rng = np.random.default_rng(7)
     scene = rng.choice(np.nonzero(usable)[0], 900)
     rows = rng.integers(0, len(db), scene.size)
@@ -168,12 +173,7 @@ def test_screen_pairs_equal_the_screen_of_each_pair_at_full_size(setup5):
     """The search's screen (neighbor coordinates and hypotheses computed once per graph, pairs cut
     to their padded size) answers as :func:`triangle_support` + :func:`screen_pass` on each pair's
     two whole graphs."""
-    from jstarid.algorithms.sgm.identify import searchable_graphs
-    cat, cam, db = setup5
-    cfg = sgm.Config()
-    scenes = js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(position_sigma_px=3.0),
-                         capacity=64, boresight_ids=np.random.default_rng(8).choice(len(cat), 16))
-    g, usable = searchable_graphs(db, scenes, cfg)
+    db, cfg, scenes, g, usable = _image_graphs(setup5, sigma=3.0, key=11, seed=8, n=16)
     rng = np.random.default_rng(9)
     scene = rng.choice(np.nonzero(usable)[0], 400)
     row_of = np.argsort(db.main)
