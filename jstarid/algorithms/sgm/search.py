@@ -27,7 +27,7 @@ Triangle screen (``Config.screen``, an extension that may change the outcome, of
 ``Config.paper()``): a candidate that fails :mod:`.screen` is struck out as if its δ exceeded ε_δ,
 so the search is Algorithm 1 over the candidates that pass (tested). It runs first on every
 examined candidate, before the bounds: at σ = 3 px it strikes out ≈ 99.5 % of them (1,000 scenes:
-369k of 371k), which leaves the bounds too little to save (``Config.pruning`` is off with it).
+367k of 369k), which leaves the bounds too little to save (``Config.pruning`` is off with it).
 
 Resumption. :class:`SearchState` keeps δ of every matched candidate and the bound of every deferred
 one. When the post-match verification rejects J* (``Config.verify_retries``), :func:`reject_best`
