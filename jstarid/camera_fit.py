@@ -646,7 +646,8 @@ def project_scaled(camera, v_cam, scale, k1=0.0):
 
 
 def check_identification(star_vectors, camera, scenes, result, *, max_scale_error: float = 0.1,
-                         min_named: int = 3, k_sigma: float = K_SIGMA, star_mags=None):
+                         min_named: int = 3, k_sigma: float = K_SIGMA, max_tol_px: float = MAX_TOL_PX,
+                         star_mags=None):
     """An algorithm's last step: :func:`verify_names` on the scenes it claims with at least
     ``min_named`` names (fewer cannot be checked: those are returned as they are).
 
@@ -654,7 +655,10 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
         star_vectors: (M, 3) ICRS unit vectors of the rows ``result.ids`` names.
         camera: the nominal camera. scenes: (B, N) scenes. result: the algorithm's
             :class:`~jstarid.scene.Identification`.
-        max_scale_error, min_named, k_sigma: as in :func:`verify_names`.
+        max_scale_error, min_named, k_sigma, max_tol_px: as in :func:`verify_names`. An algorithm
+            whose own verification accepts residuals beyond :data:`MAX_TOL_PX` passes its cap
+            here (SGM: ``verify_cap_deg``, 15 px on ``sgm2022``), so that the check does not take
+            back names at a noise the algorithm was tuned for.
         star_mags: (M,) catalog V of those rows (mag); given, names far brighter than their star
             are taken back first (:func:`check_claims`).
 
@@ -666,8 +670,8 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
     from jstarid.scene import Identification
 
     ids, ok, fit, enough = check_claims(star_vectors, camera, scenes, result, k_sigma=k_sigma,
-                                        max_scale_error=max_scale_error, min_named=min_named,
-                                        star_mags=star_mags)
+                                        max_tol_px=max_tol_px, max_scale_error=max_scale_error,
+                                        min_named=min_named, star_mags=star_mags)
     attitude = fit.attitude
     if result.attitude is not None:
         attitude = jnp.where(enough[:, None, None], attitude, result.attitude)

@@ -356,3 +356,41 @@ def test_a_distorted_lens_keeps_its_edge_names_and_reports_k1(world):
     assert (ids >= 0).sum() >= 0.97 * (truth >= 0).sum()
     k1 = np.asarray(out.distortion_k1)
     assert np.all(np.isfinite(k1)) and abs(np.median(k1) - 0.5) < 0.02
+
+
+def test_sgm_camera_check_keeps_right_names_at_its_own_verification_cap(world):
+    """At σ = 3 px (the SGM paper's largest noise) a right name 12 px off its star is within SGM's
+    own verification cap (0.3°, 15.2 px on sgm2022): the camera check with SGM's cap keeps it,
+    the default 10 px clip takes it back; a name from elsewhere in the sky goes either way."""
+    from jstarid.algorithms import sgm
+    from jstarid.algorithms.sgm.identify import camera_check_cap_px
+
+    cat, nominal = world
+    cap = camera_check_cap_px(sgm.Config(), nominal)
+    assert abs(cap - np.tan(np.radians(0.3)) * nominal.f_px) < 1e-3 and cap > cf.MAX_TOL_PX
+    narrow = dataclasses.replace(sgm.Config(), verify_cap_deg=0.1)  # 5 px: never below the default
+    assert camera_check_cap_px(narrow, nominal) == cf.MAX_TOL_PX
+    scenes, truth = _scenes(cat, nominal, 1.0, n=16, seed=3, sigma=3.0)
+    named = truth >= 0
+    assert np.all(named.sum(axis=1) >= 14)
+    rows = np.arange(len(truth))
+    slots = np.argsort(~named, axis=1, kind="stable")
+    far, wrong = slots[:, 0], slots[:, 1]
+    # the first name's detection moved 12 px along x from its star's noise-free spot
+    ideal = js.simulate(jax.random.key(3), cat, nominal, js.NoiseConfig(position_sigma_px=0.0), batch_size=16)
+    np.testing.assert_array_equal(np.asarray(ideal.truth), np.asarray(scenes.truth))
+    xy = np.asarray(scenes.xy).copy()
+    xy[rows, far] = np.asarray(ideal.xy)[rows, far] + np.array([12.0, 0.0], np.float32)
+    moved = dataclasses.replace(scenes, xy=jnp.asarray(xy))
+    ids = truth.copy()
+    ids[rows, wrong] = (ids[rows, wrong] + 7) % len(cat)
+    result = js.Identification(ids=jnp.asarray(ids), ok=jnp.ones(len(ids), bool))
+    default = cf.check_identification(cat.unit_vectors, nominal, moved, result)
+    wide = cf.check_identification(cat.unit_vectors, nominal, moved, result, max_tol_px=cap)
+    for checked in (default, wide):
+        kept = np.asarray(checked.ids)
+        assert np.all(np.asarray(checked.ok))
+        assert np.all(kept[rows, wrong] < 0)
+        assert np.all((kept < 0) | (kept == truth))
+    assert np.all(np.asarray(default.ids)[rows, far] < 0)
+    assert np.all(np.asarray(wide.ids)[rows, far] == truth[rows, far])
