@@ -366,8 +366,14 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
         ss_others = jnp.where(inlier, ss - r**2, ss)
         dof_others = jnp.where(inlier, dof - 2.0, dof)
         sigma_others = jnp.sqrt(jnp.maximum(ss_others, 0.0) / jnp.maximum(dof_others, 1.0))
-        # … and by a trimmed σ̂ (two wrong names side by side would each widen the other's radius)
-        sigma_i = jnp.minimum(sigma_others, _trimmed_sigma(r, inlier))
+        # … and by a trimmed σ̂ (two wrong names side by side would each widen the other's radius).
+        # Both come from the inliers, which grow from the better half: names chosen for their small
+        # residuals, whose RMS under a fit to themselves understates σ — at σ = 1.5 px the radius
+        # sat at min_tol_px with σ̂ = 0.4–0.5 px, a fixed point that took back right names 3–5 px
+        # out. The trimmed σ̂ over every name does not depend on the inliers (robust while fewer
+        # than 1 − TRIM_SHARE of the names are wrong) and bounds σ̂ from below.
+        sigma_i = jnp.maximum(jnp.minimum(sigma_others, _trimmed_sigma(r, inlier)),
+                              _trimmed_sigma(r, named))
         return named & (r <= jnp.clip(k_sigma * sigma_i, min_tol_px, max_tol_px))
 
     # loops, not unrolled (here and below): each fit traced once keeps a fresh process's tracing of

@@ -394,3 +394,24 @@ def test_sgm_camera_check_keeps_right_names_at_its_own_verification_cap(world):
         assert np.all((kept < 0) | (kept == truth))
     assert np.all(np.asarray(default.ids)[rows, far] < 0)
     assert np.all(np.asarray(wide.ids)[rows, far] == truth[rows, far])
+
+
+def test_noise_estimate_of_a_dozen_names_keeps_every_right_name(world):
+    """σ = 1.5 px, each scene named in a 6° circle about the centre (≈ 12 names, as SGM names its
+    neighbor circle): the refits' σ̂ must not shrink onto the better half of the names. It did, to
+    0.56 px in one of these scenes (a fixed point at the 2.5 px floor), and took right names 3–5 px
+    out back; its lower bound, the trimmed σ̂ over every name, keeps them all."""
+    cat, nominal = world
+    sigma = 1.5
+    scenes, truth = _scenes(cat, nominal, 1.0, n=256, seed=5, sigma=sigma)
+    body = np.asarray(nominal.unproject(scenes.xy))
+    inside = np.degrees(np.arccos(np.clip(body[..., 2], -1.0, 1.0))) < 6.0
+    ids = np.where(inside, truth, -1)
+    dozen = (ids >= 0).sum(axis=1) >= 11
+    assert dozen.sum() >= 100
+    kept, ok, fit = cf.verify_names(cat.unit_vectors, nominal, scenes.xy, scenes.valid, ids,
+                                    np.ones(len(ids), bool))
+    kept = np.asarray(kept)[dozen]
+    assert np.all(np.asarray(ok)[dozen])
+    np.testing.assert_array_equal(kept, ids[dozen])  # every right name kept
+    assert np.min(np.asarray(fit.sigma_px)[dozen]) > 0.6 * sigma
