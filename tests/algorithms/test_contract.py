@@ -25,7 +25,7 @@ def _rpnet_config():
     training = rpnet.Training(dae_lr=3e-3, clf_lr=3e-3, dae_steps=200, clf_steps=200, batch_size=128,
                               eval_every=100, eval_size=128, pool_batches=3, sim_capacity=64, seed=1)
     return rpnet.Config(rho_deg=20.0, e_deg=0.1, gen_widths=(64, 128), clf_width=64,
-                        training=training, pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=64)
+                        training=training, pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=16)
 
 
 # name → (catalog V limit, camera, config factory); small but realistic settings per algorithm

@@ -233,7 +233,7 @@ def tiny():
     training = rpnet.Training(dae_lr=3e-3, clf_lr=3e-3, dae_steps=200, clf_steps=200, batch_size=128,
                               eval_every=100, eval_size=128, pool_batches=3, sim_capacity=64, seed=1)
     cfg = rpnet.Config(rho_deg=20.0, e_deg=0.1, gen_widths=(64, 128), clf_width=64, training=training,
-                       pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=64,
+                       pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=16,
                        focal_search=())  # the passes under test; the ladder: test_camera_errors
     db = rpnet.build_database(cat, cam, cfg, cache=False, progress=False)
     tables = data.build_tables(cat, cam, cfg, db.guide_rows)
@@ -571,8 +571,8 @@ def test_identify_false_stars_only(tiny):
 
 def test_identify_chunking_consistent(tiny, clean_scenes):
     _, _, cfg, db, _ = tiny
-    a = rpnet.identify(db, clean_scenes)  # 176 scenes: chunks of 64, the last one padded
-    b = rpnet.identify(db, clean_scenes[64:128])  # one chunk on its own
+    a = rpnet.identify(db, clean_scenes[:170])  # chunks of 16, the last one padded
+    b = rpnet.identify(db, clean_scenes[64:128])  # the same scenes in other chunks
     np.testing.assert_array_equal(np.asarray(a.ids)[64:128], np.asarray(b.ids))
     np.testing.assert_array_equal(np.asarray(a.ok)[64:128], np.asarray(b.ok))
     with pytest.raises(ValueError, match="network"):
@@ -729,7 +729,7 @@ def test_identify_invariant_to_detection_order_and_chunks(tiny, clean_scenes):
     perm = np.random.default_rng(2).permutation(s.xy.shape[1])
     shuffled = dataclasses.replace(s, xy=s.xy[:, perm], mag=s.mag[:, perm], truth=s.truth[:, perm],
                                    valid=s.valid[:, perm])
-    got = rpnet.identify(db, shuffled, dataclasses.replace(cfg, batch_chunk=16, name_chunk=8))
+    got = rpnet.identify(db, shuffled, dataclasses.replace(cfg, batch_chunk=32, name_chunk=8))
     np.testing.assert_array_equal(np.asarray(got.ids), np.asarray(ref.ids)[:, perm])
     np.testing.assert_array_equal(np.asarray(got.ok), np.asarray(ref.ok))
 

@@ -20,7 +20,7 @@ def setup():
     training = rpnet.Training(dae_lr=3e-3, clf_lr=3e-3, dae_steps=40, clf_steps=40, batch_size=128,
                               eval_every=20, eval_size=128, sim_capacity=64, seed=1)
     cfg = rpnet.Config(rho_deg=20.0, e_deg=0.1, gen_widths=(64, 128), clf_width=64, training=training,
-                       pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=64)
+                       pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=16)
     rows = rpnet.guide_rows(cat, cfg)
     grid = rpnet.train_grid(cat, cam, cfg, rows, seeds=SEEDS, dae_lrs=DAE_LRS, clf_lrs=CLF_LRS,
                             progress=False)
