@@ -90,6 +90,16 @@ class Config:
         subgraph_main_stars: with ``subgraph``, a scene left unsolved is searched again with the
             next detection nearest the principal point as its main star, up to this many main stars
             (a detection that is no catalog star — a fainter star, a hot pixel — cannot be matched).
+        main_stars: extension, off (1, the paper's one main star): a scene the search leaves
+            unsolved is searched again with the next detection nearest the principal point as its
+            main star, up to this many main stars (not with ``subgraph``, which has
+            ``subgraph_main_stars``). For a main star that is no catalog star (a false star, a
+            planet near the centre), and for what the ``screen`` strikes out: without it, Algorithm
+            1 also succeeds where only a neighbor's database graph, holding nearly the same stars,
+            passes ε_δ (the spectral correspondence need not pair the two main stars), which the
+            screen's rotation about the two main stars rejects. Off by default because it is dear:
+            an unsolved scene is searched over the whole Δw window again (experiments/RESULTS.md,
+            "Table 2, full size, current default, on the same scenes").
         min_stars: fewest vertices (main star included) an image graph needs; fewer → fail (a 1- or
             2-vertex graph matches anything).
         min_matched: fewest matched vertex pairs for a candidate to count; fewer → infinite error
@@ -179,6 +189,7 @@ class Config:
     subgraph_candidates: int = 256
     subgraph_matchings: int = 8
     subgraph_main_stars: int = 3
+    main_stars: int = 1
     min_stars: int = 3
     min_matched: int = 3
     memory_budget_mb: int = 1024
@@ -227,8 +238,8 @@ class Config:
                                                self.subgraph_main_stars) < 1):
             raise ValueError("need subgraph_tol_deg > 0 and subgraph_candidates, subgraph_matchings, "
                              "subgraph_main_stars ≥ 1")
-        if self.min_stars < 1 or self.min_matched < 1:
-            raise ValueError("min_stars and min_matched must be ≥ 1")
+        if self.min_stars < 1 or self.min_matched < 1 or self.main_stars < 1:
+            raise ValueError("min_stars, min_matched and main_stars must be ≥ 1")
         object.__setattr__(self, "focal_search", tuple(float(f) for f in self.focal_search))
         if any(not (math.isfinite(f) and 0.5 < f < 2.0) for f in self.focal_search):
             raise ValueError(f"focal_search factors must lie in (0.5, 2), got {self.focal_search}")
@@ -271,7 +282,7 @@ class Config:
         changes only the work); returns, id for id, what :mod:`~jstarid.algorithms.sgm.reference` returns.
         """
         return cls(**{"verify": False, "leftover_tol_deg": None, "screen": False, "subgraph": False,
-                      "focal_search": (),
+                      "focal_search": (), "main_stars": 1,
                       "fit_focal": False, **overrides})
 
     @classmethod

@@ -142,12 +142,13 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
         pass). With ``config.fit_focal`` also ``focal_scale`` (B,), the fitted focal length /
         the camera's (NaN where not fitted).
 
-    Extensions (``Config.focal_search``, ``Config.fit_focal``; off in ``Config.paper()``): the scenes
-    left unsolved are searched again (up to Δw = ``focal_search_dw_max_deg``) as if the focal length
-    were each factor of ``focal_search`` × the camera's (:func:`jstarid.camera_fit.search_focal`:
-    the graph's edges are angles, and a scale error of 2 % moves the circle's edge stars by 0.1°,
-    past the verification's tolerance), and
-    every solved scene's names are checked against a joint fit of attitude and focal length
+    Extensions (``Config.main_stars``, ``Config.focal_search``, ``Config.fit_focal``; off in
+    ``Config.paper()``; ``main_stars`` is 1, off, by default): the scenes left unsolved are searched
+    again with the next main stars, then (up to Δw = ``focal_search_dw_max_deg``) as if the focal
+    length were each factor of ``focal_search`` × the camera's
+    (:func:`jstarid.camera_fit.search_focal`: the graph's edges are angles, and a scale error of 2 %
+    moves the circle's edge stars by 0.1°, past the verification's tolerance), and every solved
+    scene's names are checked against a joint fit of attitude and focal length
     (:func:`jstarid.camera_fit.check_identification`).
 
     Raises:
@@ -160,6 +161,8 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
                          f"r={db.radius_deg}")
     out = _identify(db, scenes, config, diagnostics=diagnostics, with_attitude=with_attitude)
     result, diag = out if diagnostics else (out, None)
+    if scenes.batch_size and not config.subgraph:
+        result = _next_main_stars(db, scenes, result, config, with_attitude=with_attitude)
     if scenes.batch_size and config.focal_search:
         cap = config.focal_search_dw_max_deg
         retry = config if cap is None else dataclasses.replace(config, dw_max_deg=min(cap, config.dw_max_deg))
@@ -173,6 +176,28 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
         result = checked if with_attitude else dataclasses.replace(checked, attitude=None)
     release_staging()
     return (result, diag) if diagnostics else result
+
+
+def _next_main_stars(db, scenes: Scene, result: Identification, config: Config, *,
+                     with_attitude: bool) -> Identification:
+    """``result`` with its unsolved scenes searched again, main star by main star
+    (``Config.main_stars``): the scenes still unsolved after main star k − 1 are searched with the
+    k-th detection nearest the principal point as the main star. A batch padded to a power of two, so
+    that the calls share their compilations."""
+    ids, ok = np.array(result.ids), np.array(result.ok)
+    att = None if result.attitude is None else np.array(result.attitude)
+    n_valid = np.asarray(scenes.valid).sum(1)
+    for main_rank in range(1, config.main_stars):
+        todo = np.nonzero(~ok & (n_valid > main_rank))[0]
+        if not todo.size:
+            break
+        padded = np.concatenate([todo, np.full(next_pow2(todo.size) - todo.size, todo[0])])
+        sub = _identify(db, scenes[padded], config, with_attitude=with_attitude, main_rank=main_rank)
+        ids[todo], ok[todo] = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
+        if att is not None:
+            att[todo] = np.asarray(sub.attitude)[:todo.size]
+    return Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok),
+                          attitude=None if att is None else jnp.asarray(att))
 
 
 def camera_check_cap_px(config: Config, camera) -> float:
@@ -191,13 +216,15 @@ def camera_check_cap_px(config: Config, camera) -> float:
     return max(MAX_TOL_PX, float(cap))
 
 
-def _identify(db, scenes: Scene, config: Config, *, diagnostics: bool = False, with_attitude: bool = True):
-    """:func:`identify` without the focal-length extensions (the paper's search and the
-    verification), on scenes already checked."""
+def _identify(db, scenes: Scene, config: Config, *, diagnostics: bool = False, with_attitude: bool = True,
+              main_rank: int = 0):
+    """:func:`identify` without the focal-length extensions and the next main stars (the paper's
+    search and the verification), on scenes already checked, with the ``main_rank``-th detection
+    nearest the principal point as the main star (not with ``Config.subgraph``)."""
     if config.subgraph:
         return _identify_subgraph(db, scenes, config, diagnostics=diagnostics,
                                   with_attitude=with_attitude)
-    g, usable = searchable_graphs(db, scenes, config)
+    g, usable = searchable_graphs(db, scenes, config, main_rank=main_rank)
     state = advance_search(db, g, start_search(db, g, usable, config), config)
     res = search_outcome(state, config, g.mask.shape[1])
 
