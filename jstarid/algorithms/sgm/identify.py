@@ -183,7 +183,9 @@ def _next_main_stars(db, scenes: Scene, result: Identification, config: Config, 
     """``result`` with its unsolved scenes searched again, main star by main star
     (``Config.main_stars``): the scenes still unsolved after main star k − 1 are searched with the
     k-th detection nearest the principal point as the main star. A batch padded to a power of two, so
-    that the calls share their compilations."""
+    that the calls share their compilations (neither the first search nor these fit a camera)."""
+    if config.main_stars == 1:
+        return result
     ids, ok = np.array(result.ids), np.array(result.ok)
     att = None if result.attitude is None else np.array(result.attitude)
     n_valid = np.asarray(scenes.valid).sum(1)
@@ -196,8 +198,8 @@ def _next_main_stars(db, scenes: Scene, result: Identification, config: Config, 
         ids[todo], ok[todo] = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
         if att is not None:
             att[todo] = np.asarray(sub.attitude)[:todo.size]
-    return Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok),
-                          attitude=None if att is None else jnp.asarray(att))
+    return dataclasses.replace(result, ids=jnp.asarray(ids), ok=jnp.asarray(ok),
+                               attitude=None if att is None else jnp.asarray(att))
 
 
 def camera_check_cap_px(config: Config, camera) -> float:
