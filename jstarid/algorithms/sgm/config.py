@@ -97,9 +97,11 @@ class Config:
             planet near the centre), and for what the ``screen`` strikes out: without it, Algorithm
             1 also succeeds where only a neighbor's database graph, holding nearly the same stars,
             passes ε_δ (the spectral correspondence need not pair the two main stars), which the
-            screen's rotation about the two main stars rejects. Off by default because it is dear:
-            an unsolved scene is searched over the whole Δw window again (experiments/RESULTS.md,
-            "Table 2, full size, current default, on the same scenes").
+            screen's rotation about the two main stars rejects. Off by default: an unsolved scene
+            is searched over the whole Δw window again (3.2× the identify time at σ = 3 px), and its
+            answer around another main star can leave part of the circle unnamed where the
+            focal-length ladder would have named it all (experiments/RESULTS.md, "Table 2, full
+            size, current default, on the same scenes").
         min_stars: fewest vertices (main star included) an image graph needs; fewer → fail (a 1- or
             2-vertex graph matches anything).
         min_matched: fewest matched vertex pairs for a candidate to count; fewer → infinite error
