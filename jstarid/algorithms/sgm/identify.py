@@ -161,7 +161,7 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
                          f"r={db.radius_deg}")
     out = _identify(db, scenes, config, diagnostics=diagnostics, with_attitude=with_attitude)
     result, diag = out if diagnostics else (out, None)
-    if scenes.batch_size and not config.subgraph:
+    if scenes.batch_size:
         result = _next_main_stars(db, scenes, result, config, with_attitude=with_attitude)
     if scenes.batch_size and config.focal_search:
         cap = config.focal_search_dw_max_deg
@@ -181,25 +181,32 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
 def _next_main_stars(db, scenes: Scene, result: Identification, config: Config, *,
                      with_attitude: bool) -> Identification:
     """``result`` with its unsolved scenes searched again, main star by main star
-    (``Config.main_stars``): the scenes still unsolved after main star k − 1 are searched with the
-    k-th detection nearest the principal point as the main star. A batch padded to a power of two, so
-    that the calls share their compilations (neither the first search nor these fit a camera)."""
-    if config.main_stars == 1:
+    (``Config.main_stars``, or ``Config.subgraph_main_stars`` with the subgraph search): the scenes
+    still unsolved after main star k − 1 are searched with the k-th detection nearest the principal
+    point as the main star, in a batch padded to a power of two, so that the calls share their
+    compilations (neither the first search nor these fit a camera)."""
+    n_main = config.subgraph_main_stars if config.subgraph else config.main_stars
+    if n_main == 1:
         return result
     ids, ok = np.array(result.ids), np.array(result.ok)
     att = None if result.attitude is None else np.array(result.attitude)
     n_valid = np.asarray(scenes.valid).sum(1)
-    for main_rank in range(1, config.main_stars):
+    for main_rank in range(1, n_main):
         todo = np.nonzero(~ok & (n_valid > main_rank))[0]
         if not todo.size:
             break
-        padded = np.concatenate([todo, np.full(next_pow2(todo.size) - todo.size, todo[0])])
-        sub = _identify(db, scenes[padded], config, with_attitude=with_attitude, main_rank=main_rank)
+        sub = _identify(db, scenes[_padded(todo)], config, with_attitude=with_attitude,
+                        main_rank=main_rank)
         ids[todo], ok[todo] = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
         if att is not None:
             att[todo] = np.asarray(sub.attitude)[:todo.size]
     return dataclasses.replace(result, ids=jnp.asarray(ids), ok=jnp.asarray(ok),
                                attitude=None if att is None else jnp.asarray(att))
+
+
+def _padded(rows: np.ndarray) -> np.ndarray:
+    """``rows`` (R,) padded to a power of two with copies of its first row (R ≥ 1)."""
+    return np.concatenate([rows, np.full(next_pow2(rows.size) - rows.size, rows[0])])
 
 
 def camera_check_cap_px(config: Config, camera) -> float:
@@ -222,10 +229,10 @@ def _identify(db, scenes: Scene, config: Config, *, diagnostics: bool = False, w
               main_rank: int = 0):
     """:func:`identify` without the focal-length extensions and the next main stars (the paper's
     search and the verification), on scenes already checked, with the ``main_rank``-th detection
-    nearest the principal point as the main star (not with ``Config.subgraph``)."""
+    nearest the principal point as the main star."""
     if config.subgraph:
         return _identify_subgraph(db, scenes, config, diagnostics=diagnostics,
-                                  with_attitude=with_attitude)
+                                  with_attitude=with_attitude, main_rank=main_rank)
     g, usable = searchable_graphs(db, scenes, config, main_rank=main_rank)
     state = advance_search(db, g, start_search(db, g, usable, config), config)
     res = search_outcome(state, config, g.mask.shape[1])
@@ -257,37 +264,30 @@ def _identify(db, scenes: Scene, config: Config, *, diagnostics: bool = False, w
 
 
 def _identify_subgraph(db, scenes: Scene, config: Config, *, diagnostics: bool = False,
-                       with_attitude: bool = True):
+                       with_attitude: bool = True, main_rank: int = 0):
     """:func:`_identify` with ``Config.subgraph`` (:mod:`.subgraph`): each scene's ranked accepted
-    candidates are named and verified in order (up to ``verify_retries`` more after a rejection);
-    scenes still unsolved are searched again with the next main star, up to
-    ``subgraph_main_stars`` of them. Diagnostics are those of the first main star.
+    candidates are named and verified in order (up to ``verify_retries`` more after a rejection), with
+    the ``main_rank``-th detection nearest the principal point as the main star (the batch padded
+    to a power of two, so that the calls share their compilations).
     """
     b = scenes.batch_size
-    ids = np.full(scenes.valid.shape, -1, np.int32)
-    ok = np.zeros(b, bool)
-    diag = None
-    for main_rank in range(config.subgraph_main_stars):
-        todo = np.nonzero(~ok)[0]
-        if not todo.size:
-            break
-        padded = np.concatenate([todo, np.full(next_pow2(todo.size) - todo.size, todo[0])])
-        sub_scenes = scenes[padded]
-        g, usable = searchable_graphs(db, sub_scenes, config, main_rank=main_rank)
-        if main_rank and not np.any(usable[:todo.size]):  # the next main star's graphs may be usable
-            continue
-        ranked = subgraph_search(db, g, usable, config)
-        sub, outcome = _verify_ranked(db, sub_scenes, g, ranked, config)
-        sub_ids, sub_ok = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
-        ids[todo], ok[todo] = sub_ids, sub_ok
-        if diagnostics and main_rank == 0:
-            diag = _subgraph_diagnostics(db, sub_scenes, g, usable, ranked, outcome, todo.size)
-    result = Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=None)
+    if not b:
+        empty = Identification(ids=jnp.asarray(np.asarray(scenes.valid, np.int32) * 0 - 1),
+                               ok=jnp.zeros((0,), bool), attitude=None)
+        return (empty, None) if diagnostics else empty
+    sub_scenes = scenes[_padded(np.arange(b))]
+    g, usable = searchable_graphs(db, sub_scenes, config, main_rank=main_rank)
+    ranked = subgraph_search(db, g, usable, config)
+    sub, outcome = _verify_ranked(db, sub_scenes, g, ranked, config)
+    result = Identification(ids=jnp.asarray(np.asarray(sub.ids)[:b]), ok=jnp.asarray(np.asarray(sub.ok)[:b]),
+                            attitude=None)
     if with_attitude:
         att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
         att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
         result = Identification(ids=result.ids, ok=result.ok, attitude=att)
-    return (result, diag) if diagnostics else result
+    if diagnostics:
+        return result, _subgraph_diagnostics(db, sub_scenes, g, usable, ranked, outcome, b)
+    return result
 
 
 def _names_with_retries(db, scenes: Scene, g, res: SearchOutcome, config: Config, next_outcome):
@@ -379,7 +379,7 @@ def _names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
         failed only because their main star's name is contested (:func:`.verify.verify_ids`).
     """
     if rows is not None:
-        padded = np.concatenate([rows, np.full(next_pow2(rows.size) - rows.size, rows[0])])
+        padded = _padded(rows)
         sub, amb = _names_from_match(db, scenes[padded], jax.tree.map(lambda v: v[padded], g),
                                      jax.tree.map(lambda v: v[padded], res), config)
         return sub[:rows.size], amb[:rows.size]
@@ -423,7 +423,7 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config):
     verified, main_ambiguous = np.zeros(b, bool), np.zeros(b, bool)
     rows = np.flatnonzero(ok)
     if rows.size:
-        padded = np.concatenate([rows, np.full(next_pow2(rows.size) - rows.size, rows[0])])
+        padded = _padded(rows)
         tables, settings = _verify_inputs(db, config)
         named = np.asarray(result.ids)[padded]
         # identify names only the neighbor graph's members (at most its capacity K): the ambiguity
