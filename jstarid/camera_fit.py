@@ -720,14 +720,19 @@ def _drop_brighter(mag, ids, star_mags, ok):
     return jnp.where(far, -1, ids)
 
 
-def rescale_scenes(scenes, camera, scale: float):
+def rescale_scenes(scenes, camera, scale):
     """The scenes as the nominal camera would see them if its focal length were ``scale · f_px``:
     centroids moved to ``c + (xy − c) / scale`` about the principal point ``c``.
 
     Unprojecting the moved centroids with the nominal camera gives the directions the original
     centroids have under the camera of focal length ``scale · f_px``.
+
+    Args:
+        scale: one factor for every scene, or (B,) one per scene.
     """
-    return _move_about_centre(scenes, camera, lambda offset: offset / np.float32(scale))
+    factor = np.asarray(scale, np.float32)
+    factor = factor.reshape(-1, 1, 1) if factor.ndim == 1 else factor
+    return _move_about_centre(scenes, camera, lambda offset: offset / factor)
 
 
 def distort_scenes(scenes, camera, k1: float):
@@ -801,8 +806,7 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
         padded = np.concatenate([rows, np.full(size - rows.size, rows[-1])])
         factor = np.concatenate([factor, np.full(size - rows.size, factor[-1])])
         # empty padding scenes: they fail at once, where copies of a scene would repeat its search
-        moved = _move_about_centre(pad_with_empty(scenes[rows], size), camera,
-                                   lambda offset: offset / factor[:, None, None])
+        moved = rescale_scenes(pad_with_empty(scenes[rows], size), camera, factor)
         retry = run(moved, padded)
         retry_ids = np.asarray(retry.ids)[: rows.size].reshape(len(scales), todo.size, -1)
         solved = (np.asarray(retry.ok)[: rows.size].reshape(len(scales), todo.size)

@@ -881,3 +881,45 @@ def test_next_main_star_solves_scenes_whose_main_star_is_a_false_star(setup5):
     assert np.all(np.isfinite(np.asarray(two.attitude)[np.asarray(two.ok)]))
     with pytest.raises(ValueError, match="main_stars"):
         sgm.Config(main_stars=0)
+
+
+def test_ladder_answers_are_named_again_under_the_fitted_focal_length(setup):
+    """A scene the focal-length ladder solved keeps the names it had under the ladder's factor;
+    named again under the focal length the camera check fitted, the stars of the circle it lacked
+    get their names (here: scenes taken with f × 0.98, the two named stars farthest from the main
+    star taken away, the fitted scale given), every one right, and the camera check keeps them."""
+    cat, cam, _, db = setup
+    cfg = sgm.Config(power_iterations=30)
+    true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
+    scenes = js.simulate(jax.random.key(7), cat, true, js.NoiseConfig(position_sigma_px=0.5),
+                         batch_size=8, capacity=CAPACITY)
+    import importlib
+
+    sgm_identify = importlib.import_module("jstarid.algorithms.sgm.identify")
+    from jstarid.camera_fit import rescale_scenes
+
+    full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config(power_iterations=30))
+    ok = np.asarray(full.ok)
+    assert ok.sum() >= 6
+    ids = np.array(full.ids)
+    truth = np.asarray(scenes.truth)
+    assert np.all((ids == truth) | (ids < 0))
+    xy = np.asarray(scenes.xy)
+    dropped = np.zeros_like(ids, bool)
+    for s in np.flatnonzero(ok):
+        named = np.flatnonzero(ids[s] >= 0)
+        main = named[np.argmin(np.linalg.norm(xy[s, named] - [cam.cx, cam.cy], axis=1))]
+        far = named[np.argsort(-np.linalg.norm(xy[s, named] - xy[s, main], axis=1))[:2]]
+        dropped[s, far] = True
+    partial = js.Identification(ids=jnp.asarray(np.where(dropped, -1, ids)), ok=jnp.asarray(ok),
+                                attitude=full.attitude,
+                                focal_scale=jnp.where(jnp.asarray(ok), 0.98, jnp.nan),
+                                distortion_k1=jnp.zeros(ok.shape))
+    renamed = sgm_identify._name_at_fitted_focal(db, scenes, partial, ok, cfg)
+    got = np.asarray(renamed.ids)
+    assert np.all((got == truth) | (got < 0))  # nothing wrong
+    back = dropped & (got == truth)
+    assert back.sum() >= dropped.sum() - 1, f"{back.sum()} of {dropped.sum()} names back"
+    np.testing.assert_array_equal(np.asarray(renamed.ok), ok)
+    scale = np.asarray(renamed.focal_scale)[np.any(back, axis=1)]
+    assert np.all(np.abs(scale - 0.98) < 2e-3)  # the camera check's fit of the renamed scenes
