@@ -893,9 +893,7 @@ def test_ladder_answers_are_named_again_under_the_fitted_focal_length(setup):
     true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
     scenes = js.simulate(jax.random.key(7), cat, true, js.NoiseConfig(position_sigma_px=0.5),
                          batch_size=8, capacity=CAPACITY)
-    import importlib
-
-    sgm_identify = importlib.import_module("jstarid.algorithms.sgm.identify")
+    from jstarid.algorithms.sgm.identify import _name_at_fitted_focal
     from jstarid.camera_fit import rescale_scenes
 
     full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config(power_iterations=30))
@@ -904,18 +902,19 @@ def test_ladder_answers_are_named_again_under_the_fitted_focal_length(setup):
     ids = np.array(full.ids)
     truth = np.asarray(scenes.truth)
     assert np.all((ids == truth) | (ids < 0))
+    # the two named stars farthest from the main star (the SGM main star: nearest the principal point)
     xy = np.asarray(scenes.xy)
+    main = np.asarray(js.metrics.nearest_to_principal_point(scenes.xy, scenes.valid, cam))
+    reach = np.linalg.norm(xy - xy[np.arange(len(main)), main][:, None], axis=-1)
+    far = np.argsort(np.where(ids >= 0, -reach, np.inf), axis=1)[:, :2]
     dropped = np.zeros_like(ids, bool)
-    for s in np.flatnonzero(ok):
-        named = np.flatnonzero(ids[s] >= 0)
-        main = named[np.argmin(np.linalg.norm(xy[s, named] - [cam.cx, cam.cy], axis=1))]
-        far = named[np.argsort(-np.linalg.norm(xy[s, named] - xy[s, main], axis=1))[:2]]
-        dropped[s, far] = True
+    np.put_along_axis(dropped, far, True, axis=1)
+    dropped &= ok[:, None] & (ids >= 0)
     partial = js.Identification(ids=jnp.asarray(np.where(dropped, -1, ids)), ok=jnp.asarray(ok),
                                 attitude=full.attitude,
                                 focal_scale=jnp.where(jnp.asarray(ok), 0.98, jnp.nan),
                                 distortion_k1=jnp.zeros(ok.shape))
-    renamed = sgm_identify._name_at_fitted_focal(db, scenes, partial, ok, cfg)
+    renamed = _name_at_fitted_focal(db, scenes, partial, ok, cfg)
     got = np.asarray(renamed.ids)
     assert np.all((got == truth) | (got < 0))  # nothing wrong
     back = dropped & (got == truth)

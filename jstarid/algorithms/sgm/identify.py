@@ -240,13 +240,13 @@ def _name_at_fitted_focal(db, scenes: Scene, result: Identification, take: np.nd
     given = Identification(ids=jnp.asarray(np.asarray(result.ids)[padded]),
                            ok=jnp.asarray(np.asarray(result.ok)[padded]), attitude=None)
     renamed = _rename_and_reverify(db, moved, given, g, config)
-    more = np.sum(np.asarray(renamed.ids) >= 0, 1) > np.sum(np.asarray(given.ids) >= 0, 1)
+    n_given = np.sum(np.asarray(given.ids) >= 0, 1)
+    more = np.sum(np.asarray(renamed.ids) >= 0, 1) > n_given
     if not np.any(more[:rows.size]):
         return result
     again = _camera_check(db, scenes[padded], dataclasses.replace(renamed, ok=renamed.ok & more), config)
     # kept only where the camera check keeps more names than the first answer had
-    better = (np.asarray(again.ok) & more
-              & (np.sum(np.asarray(again.ids) >= 0, 1) > np.sum(np.asarray(given.ids) >= 0, 1)))[:rows.size]
+    better = (np.asarray(again.ok) & (np.sum(np.asarray(again.ids) >= 0, 1) > n_given))[:rows.size]
     if not np.any(better):
         return result
     at, src = rows[better], np.flatnonzero(better)
