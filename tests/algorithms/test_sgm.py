@@ -922,3 +922,45 @@ def test_ladder_answers_are_named_again_under_the_fitted_focal_length(setup):
     np.testing.assert_array_equal(np.asarray(renamed.ok), ok)
     scale = np.asarray(renamed.focal_scale)[np.any(back, axis=1)]
     assert np.all(np.abs(scale - 0.98) < 2e-3)  # the camera check's fit of the renamed scenes
+
+
+def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
+    """``Config.focal_search_whole_circle``: a scene the ladder solved stays solved only where every
+    detection within r of the main star (angles under the fitted focal length, here from the true
+    camera in NumPy) is named; the others become failures (ids −1, NaN attitude), and scenes outside
+    ``take`` are left as they are. Here f × 0.98 scenes, one named star taken away in every other
+    solved scene."""
+    cat, cam, _, db = setup
+    true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
+    scenes = js.simulate(jax.random.key(7), cat, true, js.NoiseConfig(position_sigma_px=0.5),
+                         batch_size=8, capacity=CAPACITY)
+    from jstarid.algorithms.sgm.identify import _whole_circles_only
+    from jstarid.camera_fit import rescale_scenes
+
+    full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config(power_iterations=30))
+    ok, ids = np.asarray(full.ok), np.array(full.ids)
+    assert ok.sum() >= 6
+    named = np.flatnonzero(ok)
+    for s in named[::2]:  # one named star taken away (not the main star's)
+        ids[s, np.flatnonzero(ids[s] >= 0)[-1]] = -1
+    given = js.Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=full.attitude,
+                              focal_scale=jnp.where(jnp.asarray(ok), 0.98, jnp.nan),
+                              distortion_k1=jnp.zeros(ok.shape))
+    vec = np.asarray(true.unproject(scenes.xy), np.float64)
+    valid = np.asarray(scenes.valid)
+    main = np.asarray(js.metrics.nearest_to_principal_point(scenes.xy, scenes.valid, cam))
+    cos_to_main = np.einsum("bnk,bk->bn", vec, vec[np.arange(len(main)), main])
+    circle = valid & (cos_to_main >= np.cos(np.radians(db.radius_deg)))
+    whole = np.all((ids >= 0) | ~circle, axis=1)
+    assert not np.all(whole[ok]) and np.any(whole[ok])
+    take = ok.copy()
+    spared = named[0]  # a partly named scene outside ``take`` keeps its answer
+    take[spared] = False
+    out = _whole_circles_only(db, scenes, given, take, sgm.Config(power_iterations=30))
+    expect_ok = ok & (whole | ~take)
+    np.testing.assert_array_equal(np.asarray(out.ok), expect_ok)
+    np.testing.assert_array_equal(np.asarray(out.ids)[expect_ok], ids[expect_ok])
+    assert np.all(np.asarray(out.ids)[~expect_ok] == -1)
+    assert np.all(np.isnan(np.asarray(out.attitude)[~expect_ok]))
+    assert np.all(np.isnan(np.asarray(out.focal_scale)[~expect_ok]))
+    assert bool(np.asarray(out.ok)[spared])
