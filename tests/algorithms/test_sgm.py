@@ -926,20 +926,21 @@ def test_ladder_answers_are_named_again_under_the_fitted_focal_length(setup):
 
 def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
     """``Config.focal_search_whole_circle``: a scene the ladder solved stays solved only where every
-    detection within r of the main star (angles under the fitted focal length, here from the true
-    camera in NumPy) is named; the others become failures (ids −1, NaN attitude), and scenes outside
-    ``take`` are left as they are. Here f × 0.98 scenes, one named star taken away in every other
-    solved scene."""
+    true star within r of the main star (angles from the true camera, in NumPy) is named; the
+    others become failures (ids −1, NaN attitude), a false star left unnamed fails nothing, and
+    scenes outside ``take`` are left as they are. Here f × 0.98 scenes with two false stars each,
+    one named star taken away in every other solved scene."""
     cat, cam, _, db = setup
     true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
-    scenes = js.simulate(jax.random.key(7), cat, true, js.NoiseConfig(position_sigma_px=0.5),
-                         batch_size=8, capacity=CAPACITY)
+    scenes = js.simulate(jax.random.key(7), cat, true, js.NoiseConfig(position_sigma_px=0.5, n_false=2),
+                         batch_size=16, capacity=CAPACITY)
     from jstarid.algorithms.sgm.identify import _whole_circles_only
     from jstarid.camera_fit import rescale_scenes
 
     full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config(power_iterations=30))
     ok, ids = np.asarray(full.ok), np.array(full.ids)
-    assert ok.sum() >= 6
+    truth = np.asarray(scenes.truth)
+    assert ok.sum() >= 12 and np.all((ids == truth) | (ids < 0))
     named = np.flatnonzero(ok)
     for s in named[::2]:  # one named star taken away (not the main star's)
         ids[s, np.flatnonzero(ids[s] >= 0)[-1]] = -1
@@ -951,8 +952,9 @@ def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
     main = np.asarray(js.metrics.nearest_to_principal_point(scenes.xy, scenes.valid, cam))
     cos_to_main = np.einsum("bnk,bk->bn", vec, vec[np.arange(len(main)), main])
     circle = valid & (cos_to_main >= np.cos(np.radians(db.radius_deg)))
-    whole = np.all((ids >= 0) | ~circle, axis=1)
-    assert not np.all(whole[ok]) and np.any(whole[ok])
+    whole = np.all((ids >= 0) | ~circle | (truth < 0), axis=1)
+    false_inside = np.any(circle & (truth < 0), axis=1)
+    assert not np.all(whole[ok]) and np.any(whole[ok] & false_inside[ok])
     take = ok.copy()
     spared = named[0]  # a partly named scene outside ``take`` keeps its answer
     take[spared] = False
@@ -964,3 +966,30 @@ def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
     assert np.all(np.isnan(np.asarray(out.attitude)[~expect_ok]))
     assert np.all(np.isnan(np.asarray(out.focal_scale)[~expect_ok]))
     assert bool(np.asarray(out.ok)[spared])
+
+
+def test_renaming_circle_is_the_union_of_both_circles():
+    """``_with_members_of``: the leftover naming under the fitted focal length reads the members of
+    both circles (fitted and nominal), each detection once; checked against Python sets."""
+    from jstarid.algorithms.sgm.graph import ImageGraph
+    from jstarid.algorithms.sgm.identify import _with_members_of
+
+    rng = np.random.default_rng(3)
+    members = np.full((2, 6, 5), -1, np.int32)
+    mask = np.zeros((2, 6, 5), bool)
+    for which in range(2):
+        for s in range(6):
+            n = rng.integers(1, 6)
+            members[which, s, :n] = np.concatenate([[0], rng.choice(np.arange(1, 9), n - 1, replace=False)])
+            mask[which, s, :n] = True
+
+    def graph(w):
+        return ImageGraph(members=members[w], mask=mask[w], adj=None, n=mask[w].sum(1), w=None,
+                          overflow=None)
+
+    out = _with_members_of(graph(0), graph(1))
+    for s in range(6):
+        got = out.members[s][out.mask[s]].tolist()
+        assert len(got) == len(set(got))
+        assert set(got) == set(members[0, s][mask[0, s]]) | set(members[1, s][mask[1, s]])
+        assert got[:mask[0, s].sum()] == members[0, s][mask[0, s]].tolist()  # main star first

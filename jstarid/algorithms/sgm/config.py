@@ -160,10 +160,12 @@ class Config:
             (300 scenes at f × 0.98, σ = 0.5 px: 260 → 271 solved for 1.3 × the time at 1°,
             288 for 2.5 × at 6°; at the true focal length and σ = 3 px, 266 → 269 at 1.3 ×).
         focal_search_whole_circle: extension, on (not with ``subgraph``): a scene the focal-length
-            ladder solved is kept only where every member of its image circle is named; the others
-            fail. Why: a fallback that finds the attitude but not the whole circle answers a scene
-            the paper's criterion counts as not identified, and answered it lowers eq. 9's accuracy
-            (lost stars, σ = 3 px: 152 of the ladder's 169 answers, 71.30 → 69.09 %).
+            ladder solved is kept only where every star of its image circle is named (a member with
+            no unnamed catalog star within ``leftover_tol_deg`` of its direction is not asked for:
+            a false star); the others fail. Why: a fallback that finds the attitude but not the
+            whole circle answers a scene the paper's criterion counts as not identified, and
+            answered it lowers eq. 9's accuracy (lost stars, σ = 3 px: 152 of the ladder's 169
+            answers, 71.30 → 69.09 %).
         fit_focal: extension: check every solved scene's names against a joint fit of the attitude
             and the focal length (:func:`jstarid.camera_fit.check_identification`) and report the
             fitted ``focal_scale``.
