@@ -312,29 +312,14 @@ def _whole_circles_only(db, scenes: Scene, result: Identification, take: np.ndar
     if not rows.size:
         return result
     padded, moved, g = _graphs_at_fitted_focal(db, scenes, result, rows, config)
-    ids = np.asarray(result.ids)[padded]
-    given = Identification(ids=jnp.asarray(ids), ok=jnp.asarray(np.asarray(result.ok)[padded]),
-                           attitude=None)
-    att, _, have = estimate_attitude(db.catalog, db.camera, moved, given, min_stars=3)
-    att, have = np.asarray(att, np.float64), np.asarray(have)
-    vec = np.asarray(db.camera.unproject(moved.xy), np.float64)
-    cat = np.asarray(db.catalog.unit_vectors, np.float64)
+    given = Identification(ids=jnp.asarray(np.asarray(result.ids)[padded]),
+                           ok=jnp.asarray(np.asarray(result.ok)[padded]), attitude=None)
     tol = config.leftover_tol_deg if config.leftover_tol_deg is not None else config.verify_cap_deg
-    cos_tol = np.cos(np.radians(tol))
-    partial = []
-    for i, row in enumerate(rows):
-        mem = g.members[i][g.mask[i]]
-        todo = mem[ids[i, mem] < 0]
-        if not todo.size:
-            continue
-        if not have[i]:
-            partial.append(row)
-            continue
-        dots = np.matmul(np.matmul(vec[i, todo], att[i]), cat.T)  # (unnamed, catalog), Cᵀ v · s
-        dots[:, ids[i][ids[i] >= 0]] = -1.0  # stars named elsewhere in the scene
-        if np.any(dots >= cos_tol):
-            partial.append(row)
-    return _failed(result, np.asarray(partial, int)) if partial else result
+    # a star left unnamed is one the leftover naming would name: an unnamed member with an unnamed
+    # catalog star within tol of its direction
+    nameable = _name_leftovers(db, moved, given, g, dataclasses.replace(config, leftover_tol_deg=tol))
+    partial = rows[np.any(nameable != np.asarray(given.ids), axis=1)[:rows.size]]
+    return _failed(result, partial) if partial.size else result
 
 
 def _failed(result: Identification, rows: np.ndarray) -> Identification:
