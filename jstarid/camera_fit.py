@@ -68,7 +68,7 @@ from jstarid.scene import pad_with_empty
 
 __all__ = ["CameraFit", "check_claims", "check_identification", "distort_scenes", "field_seen",
            "fit_distorted", "fit_named", "fit_scaled", "project_scaled", "rescale_scenes", "search_focal",
-           "unproject_scaled", "verify_names"]
+           "studentized_k", "unproject_scaled", "verify_names"]
 
 ITERATIONS = 4  # Gauss–Newton steps of the joint attitude and scale fit
 MIN_SCALE_STARS = 4  # fewest names from which the focal length is fitted (3 rotation + 1 scale)
@@ -313,17 +313,22 @@ def fit_distorted(xy, ref, weights, camera, *, start, iterations: int = DISTORTI
 
 
 def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_scale=True,
-              few: bool | None = None, fit_distortion: bool = False) -> CameraFit:
+              few: bool | None = None, fit_distortion: bool = False, studentized: bool = False) -> CameraFit:
     """The robust fit of one scene (module doc): all names, the better half, then the inliers.
 
     Args:
         xy: (N, 2) px. ref: (N, 3) ICRS vectors of the names. named: (N,) bool.
         camera: nominal camera (static). k_sigma: inlier radius in σ̂. min_tol_px, max_tol_px: its
             clip (px). fit_scale: fit the focal length.
+        studentized: the radius is :func:`studentized_k` ``(k_sigma, dof)`` σ̂, where σ̂ has ``dof``
+            degrees of freedom, rather than ``k_sigma`` σ̂ (which holds for a known σ only).
 
     Returns:
         :class:`CameraFit`.
     """
+    def radius(sigma, dof):  # px, before the clip
+        return (studentized_k(k_sigma, dof) if studentized else k_sigma) * sigma
+
     # the first fit is the attitude alone: with a gross outlier among the names a free scale
     # could run away, and even a rotation is pulled by degrees by one name from elsewhere in the
     # sky, so the better half of the names is chosen twice (the second time from a fit without
@@ -344,7 +349,8 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
         r = jnp.where(is_few, r_few, r)
     # σ̂ from the median over every name: robust while fewer than half of the names are wrong
     sigma = masked_median(r, named) / RAYLEIGH_MEDIAN
-    tol = jnp.clip(k_sigma * sigma, min_tol_px, max_tol_px)
+    p = 4.0 if fit_scale is not False else 3.0
+    tol = jnp.clip(radius(sigma, 2.0 * jnp.sum(named).astype(jnp.float32) - p), min_tol_px, max_tol_px)
     # with many names the refits grow from the better half under the current fit (a clean core):
     # wrong names that lie together on one side pull a fit of every name towards themselves, and
     # inflate the median with the right names' residuals
@@ -358,7 +364,6 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
     # (an externally studentized residual): a wrong name's own residual would widen its own radius
     # — one 9 px name among twenty right ones at 0.5 px inflates the plain RMS to 1.5 px, a 9 px
     # radius — and it pulls the fitted scale by a few tenths of a percent while it stays.
-    p = 4.0 if fit_scale is not False else 3.0
 
     def refit(_, inlier):
         r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)[2]
@@ -375,7 +380,7 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
         # than 1 − TRIM_SHARE of the names are wrong) and bounds σ̂ from below.
         sigma_i = jnp.maximum(jnp.minimum(sigma_others, _trimmed_sigma(r, inlier)),
                               _trimmed_sigma(r, named))
-        return named & (r <= jnp.clip(k_sigma * sigma_i, min_tol_px, max_tol_px))
+        return named & (r <= jnp.clip(radius(sigma_i, dof_others), min_tol_px, max_tol_px))
 
     # loops, not unrolled (here and below): each fit traced once keeps a fresh process's tracing of
     # the check's kernels to a fraction of a second
@@ -383,7 +388,7 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
     c, scale, r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)
     dof = jnp.maximum(2.0 * jnp.sum(inlier).astype(jnp.float32) - p, 1.0)
     sigma = jnp.sqrt(jnp.sum(jnp.where(inlier, r**2, 0.0)) / dof)
-    tol = jnp.clip(k_sigma * sigma, min_tol_px, max_tol_px)
+    tol = jnp.clip(radius(sigma, dof), min_tol_px, max_tol_px)
     inlier = named & (r <= tol)
     if not fit_distortion:
         return CameraFit(c, scale, r, inlier, sigma, tol, jnp.float32(0.0))
@@ -394,7 +399,7 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
         c_d, s_d, k1, r_d, fitted = fit_distorted(xy, ref, inlier.astype(jnp.float32), camera, start=start)
         dof_d = jnp.maximum(2.0 * jnp.sum(inlier).astype(jnp.float32) - p - 1.0, 1.0)
         sigma_d = jnp.sqrt(jnp.sum(jnp.where(inlier, r_d**2, 0.0)) / dof_d)
-        tol_d = jnp.clip(k_sigma * sigma_d, min_tol_px, max_tol_px)
+        tol_d = jnp.clip(radius(sigma_d, dof_d), min_tol_px, max_tol_px)
         inlier_d = named & (r_d <= tol_d)
         keep = fitted & (jnp.sum(inlier_d) >= DISTORTION_MIN_STARS)
         return ((c_d, s_d, k1), jnp.where(keep, c_d, c), jnp.where(keep, s_d, scale),
@@ -405,6 +410,27 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
     state = ((c, scale, zero), c, scale, r, sigma, tol, inlier, zero)
     _, c, scale, r, sigma, tol, inlier, k1_out = jax.lax.fori_loop(0, 2, distorted, state)
     return CameraFit(c, scale, r, inlier, sigma, tol, k1_out)
+
+
+def studentized_k(k_sigma, dof):
+    """The radius, in σ̂, that a right name exceeds as rarely as it exceeds ``k_sigma`` σ when σ̂ is
+    estimated from ``dof`` degrees of freedom.
+
+    For a 2-D Gaussian error of σ per axis, ``P(r > k σ) = exp(−k²/2)``; with σ̂² an independent
+    χ²_dof / dof estimate, ``r² / (2 σ̂²)`` is F(2, dof) distributed, whose tail is
+    ``(1 + r² / (dof σ̂²))^(−dof/2)``. Equal tails give ``k' = √(dof (exp(k²/dof) − 1))``, which
+    tends to ``k`` as dof grows (k = 6: 11.6 at dof 16, 8.8 at 26, 6.6 at 100). With a dozen names
+    σ̂ scatters by ±20 %, and ``k σ̂`` alone took back right names 3–4 px out at σ = 1 px (SGM's
+    paper scenes, position σ = 1 px: σ̂ 0.50 px over 11 names, a right name 3.09 px out).
+
+    Args:
+        k_sigma: the radius for a known σ. dof: σ̂'s degrees of freedom (≥ 1 is used).
+
+    Returns:
+        The radius in σ̂ (same shape as ``dof``).
+    """
+    d = jnp.maximum(jnp.asarray(dof, jnp.float32), 1.0)
+    return jnp.sqrt(d * jnp.expm1(jnp.minimum(k_sigma**2 / d, 80.0)))
 
 
 def _trimmed_sigma(r, mask):
@@ -452,7 +478,8 @@ def _few_names_fit(xy, ref, named, camera, fit_scale, *, k_sigma, min_tol_px):
 
 def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K_SIGMA,
                  min_tol_px: float = MIN_TOL_PX, max_tol_px: float = MAX_TOL_PX, max_scale_error: float = 0.1,
-                 min_named: int = 3, fit_scale: bool = True, fit_distortion: bool = True):
+                 min_named: int = 3, fit_scale: bool = True, fit_distortion: bool = True,
+                 studentized: bool = False):
     """Fit attitude and focal length to each scene's names and take back the names the fit cannot
     explain (module doc). Batched over scenes.
 
@@ -479,6 +506,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
         fit_scale: fit the focal length (False: the nominal camera, attitude only).
         fit_distortion: with ``fit_scale``, also fit one radial distortion term where a scene's
             inliers allow it (:func:`fit_distorted`); ``fit.k1`` is 0 elsewhere.
+        studentized: the radius allows for the scatter of σ̂ (:func:`studentized_k`).
 
     Returns:
         ``(ids, ok, fit)``: (B, N) the kept names (all −1 in a scene that is not solved), (B,) bool,
@@ -504,7 +532,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     vectors = jnp.asarray(star_vectors, jnp.float32)
     one = batch_mesh(jax.devices()[:1])
     static = dict(camera=camera, fit_scale=bool(fit_scale),
-                  fit_distortion=bool(fit_scale and fit_distortion))
+                  fit_distortion=bool(fit_scale and fit_distortion), studentized=bool(studentized))
     # each scene's names packed first, and each call cut to the columns its names need (a power
     # of two, at most FEW_NAMES for the few-names group): the fits' work follows the names, not
     # the scenes' capacity
@@ -560,15 +588,16 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     return jnp.asarray(kept), jnp.asarray(solved), fit
 
 
-@functools.partial(stored_jit, static_argnames=("camera", "fit_scale", "few", "fit_distortion"))
+@functools.partial(stored_jit,
+                   static_argnames=("camera", "fit_scale", "few", "fit_distortion", "studentized"))
 def _fit_kernel(xy, named, ids, star_vectors, k_sigma, min_tol_px, max_tol_px, *, camera, fit_scale, few,
-                fit_distortion):
+                fit_distortion, studentized):
     """:func:`fit_named` of each scene (B, N) of :func:`verify_names` (``few``: its static branch)."""
     def one(xy_i, named_i, ids_i):
         ref = star_vectors[jnp.clip(ids_i, 0, star_vectors.shape[0] - 1)]
         return fit_named(xy_i, ref, named_i, camera, k_sigma=k_sigma, min_tol_px=min_tol_px,
                          max_tol_px=max_tol_px, fit_scale=fit_scale, few=few,
-                         fit_distortion=fit_distortion and not few)
+                         fit_distortion=fit_distortion and not few, studentized=studentized)
 
     return jax.vmap(one)(xy, named, ids)
 
@@ -654,7 +683,7 @@ def project_scaled(camera, v_cam, scale, k1=0.0):
 
 def check_identification(star_vectors, camera, scenes, result, *, max_scale_error: float = 0.1,
                          min_named: int = 3, k_sigma: float = K_SIGMA, max_tol_px: float = MAX_TOL_PX,
-                         star_mags=None):
+                         star_mags=None, studentized: bool = False):
     """An algorithm's last step: :func:`verify_names` on the scenes it claims with at least
     ``min_named`` names (fewer cannot be checked: those are returned as they are).
 
@@ -668,6 +697,7 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
             back names at a noise the algorithm was tuned for.
         star_mags: (M,) catalog V of those rows (mag); given, names far brighter than their star
             are taken back first (:func:`check_claims`).
+        studentized: as in :func:`verify_names` (SGM's check; MLV and RpNet keep the plain radius).
 
     Returns:
         The :class:`~jstarid.scene.Identification` with far-off names taken back, scenes whose fit
@@ -678,7 +708,7 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
 
     ids, ok, fit, enough = check_claims(star_vectors, camera, scenes, result, k_sigma=k_sigma,
                                         max_tol_px=max_tol_px, max_scale_error=max_scale_error,
-                                        min_named=min_named, star_mags=star_mags)
+                                        min_named=min_named, star_mags=star_mags, studentized=studentized)
     attitude = fit.attitude
     if result.attitude is not None:
         attitude = jnp.where(enough[:, None, None], attitude, result.attitude)

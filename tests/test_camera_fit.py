@@ -415,3 +415,48 @@ def test_noise_estimate_of_a_dozen_names_keeps_every_right_name(world):
     assert np.all(np.asarray(ok)[dozen])
     np.testing.assert_array_equal(kept, ids[dozen])  # every right name kept
     assert np.min(np.asarray(fit.sigma_px)[dozen]) > 0.6 * sigma
+
+
+@pytest.mark.parametrize("dof", [1, 4, 16, 26, 100, 10_000])
+def test_studentized_radius_has_the_tail_of_a_known_sigma(dof):
+    """r² / (2 σ̂²) of a right name is F(2, dof): the studentized radius leaves it the tail
+    exp(−k²/2) that k σ leaves a known σ (SciPy's F distribution as the reference)."""
+    from scipy.stats import f
+
+    k = 6.0
+    radius = float(cf.studentized_k(k, dof))
+    np.testing.assert_allclose(f.sf(radius**2 / 2.0, 2, dof), np.exp(-k**2 / 2.0), rtol=1e-3)
+    assert radius >= k
+
+
+def test_studentized_check_keeps_the_right_names_the_plain_radius_takes_back(world):
+    """σ = 1 px, each scene named in a 6° circle (≈ 12 names, SGM's): 6 σ̂ of a dozen names takes
+    right names 3–4 px out back (σ̂ scatters by ±20 %), the studentized radius keeps every one,
+    and a name twice SGM's cap from its star is still taken back. (At 20 px, one of 9–10 names
+    bends the fit to σ̂ ≈ 4.4 px and stays in 2 of these scenes, with either radius.)"""
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=2048, seed=9, sigma=1.0)
+    body = np.asarray(nominal.unproject(scenes.xy))
+    inside = np.degrees(np.arccos(np.clip(body[..., 2], -1.0, 1.0))) < 6.0
+    ids = np.where(inside, truth, -1)
+    rows = np.flatnonzero((ids >= 0).sum(axis=1) >= 8)
+    ids, xy, valid = ids[rows], np.asarray(scenes.xy)[rows], np.asarray(scenes.valid)[rows]
+    claimed = np.ones(len(rows), bool)
+    cap = 15.2  # SGM's on sgm2022
+    plain, _, _ = cf.verify_names(cat.unit_vectors, nominal, xy, valid, ids, claimed, max_tol_px=cap)
+    kept, ok, _ = cf.verify_names(cat.unit_vectors, nominal, xy, valid, ids, claimed, max_tol_px=cap,
+                                  studentized=True)
+    assert np.sum((np.asarray(plain) < 0) & (ids >= 0)) > 0  # the plain radius takes right names back
+    np.testing.assert_array_equal(np.asarray(kept), ids)  # the studentized one keeps them all
+    assert np.all(np.asarray(ok))
+    # one name per scene moved twice the cap off its star: taken back, the rest kept
+    moved = xy.copy()
+    first = np.argmax(ids >= 0, axis=1)
+    moved[np.arange(len(rows)), first, 0] += 2 * cap
+    kept, ok, _ = cf.verify_names(cat.unit_vectors, nominal, moved, valid, ids, claimed, max_tol_px=cap,
+                                  studentized=True)
+    kept = np.asarray(kept)
+    assert np.all(kept[np.arange(len(rows)), first] == -1)
+    others = ids.copy()
+    others[np.arange(len(rows)), first] = -1
+    assert np.all(kept[np.asarray(ok)] == others[np.asarray(ok)])

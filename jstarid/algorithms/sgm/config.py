@@ -170,6 +170,11 @@ class Config:
             and the focal length (:func:`jstarid.camera_fit.check_identification`) and report the
             fitted ``focal_scale``.
         max_focal_error: the largest relative focal-length correction of a solved scene.
+        fit_focal_studentized: the camera check's radius allows for the scatter of its σ̂
+            (:func:`jstarid.camera_fit.studentized_k`: 6 σ̂ becomes 11.6 σ̂ over a dozen names).
+            Off, the check took back right names 3–4 px out at σ = 1 px, where σ̂ of a dozen names
+            came out at half σ (paper scenes, position σ = 1 px: 4 of 5,070 scenes, three answered
+            with part of the circle unnamed and one failed; experiments/RESULTS.md).
     """
 
     # what :func:`jstarid.engine.default_config` sets for detections from real frames, which do not
@@ -224,6 +229,7 @@ class Config:
     focal_search_whole_circle: bool = True
     fit_focal: bool = True
     max_focal_error: float = 0.1
+    fit_focal_studentized: bool = True
 
     def __post_init__(self):
         if not 0 < self.radius_deg < 90:

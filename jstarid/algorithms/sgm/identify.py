@@ -214,7 +214,8 @@ def _camera_check(db, scenes: Scene, result: Identification, config: Config) -> 
     """:func:`jstarid.camera_fit.check_identification` with SGM's settings (``Config.fit_focal``)."""
     return check_identification(jnp.asarray(db.catalog.unit_vectors, jnp.float32), db.camera, scenes,
                                 result, max_scale_error=config.max_focal_error,
-                                max_tol_px=camera_check_cap_px(config, db.camera), star_mags=db.catalog.mag)
+                                max_tol_px=camera_check_cap_px(config, db.camera), star_mags=db.catalog.mag,
+                                studentized=config.fit_focal_studentized)
 
 
 def _name_at_fitted_focal(db, scenes: Scene, result: Identification, take: np.ndarray,
