@@ -28,7 +28,9 @@ the centroid noise σ̂ is taken from the median residual (Rayleigh: median = σ
 fit is repeated on the names within ``k_sigma`` σ̂ (clipped to ``[min_tol_px, max_tol_px]``), each
 name judged by the σ̂ of the others (an externally studentized residual), so that a wrong name
 cannot widen its own radius, but never by less than the trimmed σ̂ of every name: the inliers grow
-from the better half, and a σ̂ taken from them alone can settle at a fraction of σ.
+from the better half, and a σ̂ taken from them alone can settle at a fraction of σ. With
+``studentized`` (SGM's check) the radius also allows for σ̂'s own scatter over few names
+(:func:`studentized_k`: ``k_sigma`` σ̂ becomes the F(2, dof) quantile with the same tail).
 
 **Verification** (:func:`verify_names`). Names outside that radius under the final fit are taken
 back; a scene keeps its claim only with ``min_named`` names left, a fitted focal length within
