@@ -424,8 +424,8 @@ def studentized_k(k_sigma, dof):
     χ²_dof / dof estimate, ``r² / (2 σ̂²)`` is F(2, dof) distributed, whose tail is
     ``(1 + r² / (dof σ̂²))^(−dof/2)``. Equal tails give ``k' = √(dof (exp(k²/dof) − 1))``, which
     tends to ``k`` as dof grows (k = 6: 11.6 at dof 16, 8.8 at 26, 6.6 at 100). With a dozen names
-    σ̂ scatters by ±20 %, and ``k σ̂`` alone took back right names 3–4 px out at σ = 1 px (SGM's
-    paper scenes, position σ = 1 px: σ̂ 0.50 px over 11 names, a right name 3.09 px out).
+    σ̂ scatters by about 15 % (1 / √(2 dof)), and ``k σ̂`` alone took back right names 3–4 px out
+    at σ = 1 px (SGM's paper scenes: σ̂ 0.50 px over 11 names, a right name 3.09 px out).
 
     Args:
         k_sigma: the radius for a known σ. dof: σ̂'s degrees of freedom (≥ 1 is used).

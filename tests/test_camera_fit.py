@@ -440,9 +440,10 @@ def test_studentized_radius_has_the_tail_of_a_known_sigma(dof):
 
 def test_studentized_check_keeps_the_right_names_the_plain_radius_takes_back(world):
     """σ = 1 px, each scene named in a 6° circle (≈ 12 names, SGM's): 6 σ̂ of a dozen names takes
-    right names 3–4 px out back (σ̂ scatters by ±20 %), the studentized radius keeps every one,
-    and a name twice SGM's cap from its star is still taken back. (At 20 px, one of 9–10 names
-    bends the fit to σ̂ ≈ 4.4 px and stayed in 2 of 1,824 such scenes, with either radius.)"""
+    right names 3–4 px out back (σ̂ scatters by about 15 %, 1 / √(2 dof)), the studentized radius
+    keeps every one, and a name twice SGM's cap from its star is still taken back. (At 20 px, one
+    of 9–10 names bends the fit to σ̂ ≈ 4.4 px and stayed in 2 of 1,824 such scenes, with either
+    radius.)"""
     from jstarid.algorithms import sgm
     from jstarid.algorithms.sgm.identify import camera_check_cap_px
 

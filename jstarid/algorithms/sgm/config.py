@@ -171,7 +171,7 @@ class Config:
             fitted ``focal_scale``.
         max_focal_error: the largest relative focal-length correction of a solved scene.
         fit_focal_studentized: the camera check's radius allows for the scatter of its σ̂
-            (:func:`jstarid.camera_fit.studentized_k`: 6 σ̂ becomes 11.6 σ̂ over a dozen names).
+            (:func:`jstarid.camera_fit.studentized_k`: 6 σ̂ becomes 10.0 σ̂ over 12 names).
             Off, the check took back right names 3–4 px out at σ = 1 px, where σ̂ of a dozen names
             came out at half σ (paper scenes, position σ = 1 px: 4 of 5,070 scenes, three answered
             with part of the circle unnamed and one failed; experiments/RESULTS.md).
