@@ -22,6 +22,7 @@ import argparse
 
 import jstarid as js
 from jstarid import experiment as ex
+from jstarid.algorithms import base
 from jstarid.papers import narrow_field as twin
 
 
@@ -41,7 +42,7 @@ def entries(names, camera, paper_rows: bool) -> list[js.Entry]:
     out = []
     for name in names:
         out.append(js.Entry(name, name, js.engine.default_config(name, camera=camera)))
-        if paper_rows and hasattr(js.algorithms.get(name).Config, "for_camera"):
+        if paper_rows and base.declares(js.algorithms.get(name), "for_camera"):
             out.append(js.Entry(f"{name} (paper tolerances)", name, js.engine.default_config(name)))
     return out
 

@@ -53,7 +53,7 @@ def main(argv=None) -> dict:
     cam = js.camera_preset(paper.CAMERA)
 
     with ex.Stopwatch() as clock:
-        db = rpnet.build_database(cat, cam, cfg, cache=not args.no_cache)
+        db = rpnet.build_database(cat, cam, cfg, use_cache=not args.no_cache)
     results = {"n_classes": db.n_classes, "build_seconds": clock.seconds, "checkpoint": db.path}
     if db.history is not None:
         h = db.history

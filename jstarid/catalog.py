@@ -19,6 +19,10 @@ Resolved greedily from the brightest down, so chains are handled consistently.
 that magnitude noise can make fainter stars appear: the catalog stars plus the fainter stars, minus
 fainter stars within ``double_sep_deg`` of a catalog star. ``sim_row`` maps each to its catalog row,
 −1 for the fainter stars (any id given to them is wrong).
+
+**Cache.** Derived arrays (this catalog, every algorithm's database) are kept under
+:func:`cache_dir`; :func:`load_or_build` is the one rule for them: read the file when it exists, else
+build, write atomically (:func:`temporary_path`) and return.
 """
 
 from __future__ import annotations
@@ -28,11 +32,16 @@ import hashlib
 import json
 import os
 import secrets
+from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
-__all__ = ["Catalog", "load_catalog", "v_from_hp", "cache_dir"]
+__all__ = ["Catalog", "cache_dir", "load_catalog", "load_or_build", "read_arrays", "temporary_path",
+           "v_from_hp", "write_arrays"]
+
+_T = TypeVar("_T")
 
 _CACHE_VERSION = 2
 _J1991_25 = 1991.25
@@ -75,6 +84,47 @@ def temporary_path(path: Path) -> Path:
     """
     path = Path(path)
     return path.with_name(f".{path.stem}.{os.getpid()}-{secrets.token_hex(4)}.tmp{path.suffix}")
+
+
+def read_arrays(path: Path, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` file (only ``names`` when given), read whole (the file is closed)."""
+    with np.load(path) as data:
+        return {name: data[name] for name in (data.files if names is None else names)}
+
+
+def write_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """``arrays`` as an uncompressed ``.npz`` file at ``path`` (its suffix kept as given)."""
+    np.savez(path, **arrays)
+
+
+def load_or_build(path: Path | None, build: Callable[[], _T], *,
+                  load: Callable[[Path], _T] = read_arrays,
+                  save: Callable[[Path, _T], object] = write_arrays) -> tuple[_T, bool]:
+    """A cached value: ``load(path)`` when the file exists, else ``build()`` written to ``path``.
+
+    The write goes to a :func:`temporary_path` beside ``path`` (its folder created) that is then
+    renamed over it, so a reader, or another process building the same file, never sees half of it.
+
+    Args:
+        path: the cache file (usually ``cache_dir() / f"{name}-{key}.npz"``, ``key`` from
+            :func:`jstarid.algorithms.base.cache_key`); ``None``: no cache, ``build()`` every time.
+        build: makes the value (``{name: array}`` for the default ``load``/``save``).
+        load: reads the value from ``path`` (default :func:`read_arrays`: every array of an ``.npz``).
+        save: ``save(file, value)`` writes it to ``file`` (default :func:`write_arrays`).
+
+    Returns:
+        ``(value, loaded)``: ``loaded`` is true when the value came from the file.
+    """
+    if path is not None and Path(path).exists():
+        return load(Path(path)), True
+    value = build()
+    if path is not None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = temporary_path(path)
+        save(tmp, value)
+        tmp.replace(path)
+    return value, False
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -112,3 +112,30 @@ def test_cache_files_are_written_through_private_temporary_names(tmp_path):
     a, b = temporary_path(target), temporary_path(target)
     assert a != b and a.parent == b.parent == tmp_path and a.suffix == b.suffix == ".npz"
     assert a.name.startswith(".mlv-abc.")
+
+
+def test_load_or_build_builds_once_then_loads(tmp_path):
+    """The one cache rule of derived arrays: built and written once (no temporary file left), then
+    read; ``path=None`` builds every time; ``load``/``save`` take other file formats."""
+    calls = []
+
+    def build():
+        calls.append(1)
+        return {"rows": np.arange(4, dtype=np.int32), "seconds": np.float64(0.5)}
+
+    path = tmp_path / "sub" / "thing-0123.npz"  # a folder not there yet
+    built, loaded = catalog_module.load_or_build(path, build)
+    assert not loaded and calls == [1] and path.exists()
+    again, loaded = catalog_module.load_or_build(path, build)
+    assert loaded and calls == [1]
+    assert set(again) == {"rows", "seconds"} and again["rows"].dtype == np.int32
+    np.testing.assert_array_equal(again["rows"], built["rows"])
+    assert [p.name for p in path.parent.iterdir()] == ["thing-0123.npz"]
+    assert catalog_module.read_arrays(path, ["rows"]).keys() == {"rows"}
+    _, loaded = catalog_module.load_or_build(None, build)
+    assert not loaded and calls == [1, 1]
+    text = tmp_path / "note.txt"
+    value, loaded = catalog_module.load_or_build(text, lambda: "hello", load=lambda p: p.read_text(),
+                                                 save=lambda p, v: p.write_text(v))
+    assert (value, loaded) == ("hello", False) and text.read_text() == "hello"
+    assert catalog_module.load_or_build(text, build, load=lambda p: p.read_text()) == ("hello", True)

@@ -282,7 +282,7 @@ def test_train_builds_ahead_and_says_so(tmp_path, capsys, monkeypatch):
 
     calls = []
 
-    def build_database(catalog, camera, config=None, *, progress=True):
+    def build_database(catalog, camera, config=None, *, use_cache=True, progress=True):
         calls.append((camera, catalog, config))
 
     monkeypatch.setattr(rpnet, "build_database", build_database)

@@ -1,4 +1,4 @@
-"""The algorithm contract: what every registered star identifier provides.
+"""The algorithm contract: what every registered star identifier provides, and its optional hooks.
 
 An algorithm is a module (usually a subpackage of :mod:`jstarid.algorithms`) exposing:
 
@@ -21,9 +21,10 @@ An algorithm is a module (usually a subpackage of :mod:`jstarid.algorithms`) exp
     A NamedTuple of per-scene internals (batch axis first) that starts with the fields of
     :class:`DiagnosticsFields`: ``n_candidates`` (B,) int32 and ``overflow`` (B,) bool.
 
-``build_database(catalog, camera, config=None, *, progress=True) -> Database``
+``build_database(catalog, camera, config=None, *, use_cache=True, progress=True) -> Database``
     Built once per (catalog, camera, database fields) and cached on disk under
-    :func:`jstarid.catalog.cache_dir`.
+    :func:`jstarid.catalog.cache_dir` (:func:`jstarid.catalog.load_or_build`); ``use_cache=False``
+    neither reads nor writes the cache (an algorithm that caches nothing accepts and ignores it).
 
 ``identify(database, scenes, config=None, *, diagnostics=False)``
     Returns an :class:`~jstarid.scene.Identification` for the (B, N) scene batch, or
@@ -31,38 +32,127 @@ An algorithm is a module (usually a subpackage of :mod:`jstarid.algorithms`) exp
     (or, where the database fixes settings, the database's config). A failure is reported as
     ``ok = False`` with every id −1; it is always preferred over a wrong name.
 
-Optional: ``first_use(catalog, camera, config) -> str | None`` says what ``build_database`` will
-    build and about how long it takes (``None`` when it is cached), so a command can say so up
-    front; ``camera_problem(camera, config, catalog=None) -> str | None`` says in one line why the
-    algorithm cannot work on a camera and catalog (the engine and the CLI stop before building
-    anything);
-    ``identify_grid(database, scenes, configs) -> list[Identification]`` runs a parameter
-    grid in one batch (:func:`jstarid.engine.grid` uses it; without it, one call per config).
+**The finishing stage.** An algorithm whose features are angles ends ``identify`` with
+:func:`jstarid.finishing.finish` (the focal-length ladder and the camera check, written once),
+configured by ``Config.finishing`` (a :class:`jstarid.finishing.Finishing`; ``Finishing.off()`` in
+``Config.paper()``). MLV, RpNet and SGM do; ``docs/adding_an_algorithm.md`` §4 shows how.
 
-:func:`check_algorithm` verifies that a module offers these names; the registry runs it on
-:func:`jstarid.algorithms.get`, and ``tests/algorithms/test_contract.py`` runs the behavioural
-checks over every registered name. ``docs/adding_an_algorithm.md`` walks through adding one.
+**Optional hooks.** Each is declared here with a default (:data:`HOOKS`); the engine and the CLI
+read every one through the function of this module named with it below (never from the algorithm
+module itself), so an algorithm that declares none of them still runs everywhere. Module-level:
+
+``first_use(catalog, camera, config) -> tuple[str, float] | None``
+    What ``build_database`` will build first for these settings and about how long it takes on a
+    2-core CPU (text, seconds), or ``None`` when it is cached, so a command can say so up front.
+    Default: ``None`` (nothing to build ahead). Read with :func:`first_use`.
+``camera_problem(camera, config, catalog=None) -> str | None``
+    One line saying why the algorithm cannot work on this camera and catalog (the engine and the
+    CLI stop before building anything), or ``None``. Default: ``None``. Read with
+    :func:`camera_problem`.
+``identify_grid(database, scenes, configs) -> list[Identification]``
+    ``identify`` with each config of a parameter grid, in one batch (MLV: each config's traced
+    ``Tuning`` on its own copy of the scenes); ``ValueError`` for a grid it cannot batch. Default:
+    one ``identify`` call per config. Read with :func:`identify_grid`.
+``PRESETS: Mapping[str, Mapping[str, Any]]``
+    Named settings of the default config, ``{name: {field: value}}``; the first is what a sweep
+    uses when none is named (RpNet: its ``"quick"`` and ``"table3"`` networks). Default: ``{}``.
+    Read with :func:`presets`, applied by :func:`default_config`.
+``REPORTED: Mapping[str, Sequence]``
+    ``{field: values}``: the settings a row of the algorithm is reported at (cedar: its default
+    ``match_max_error`` and a tuned one). Default: ``{}``. Read with :func:`reported`.
+
+On ``Config``:
+
+``Config.for_camera(camera, **overrides) -> Config`` (classmethod)
+    The defaults for ``camera`` (tolerances that follow its pixel scale; the published values on the
+    papers' cameras). Default: ``Config(**overrides)``. Read with :func:`config_for_camera`.
+``Config.FRAME_SETTINGS: dict``
+    ``{field: value}`` for detections extracted from real frames, which do not stop at the catalog's
+    magnitude limit (SGM: its ``subgraph`` search). Default: ``{}``. Read with :func:`frame_settings`.
+``Config.radius_deg: float``
+    The neighbor circle (deg) the ``"sgm"`` criterion scores this config's results on (SGM: its r).
+    Default: 6.0, the criterion's own. Read with :func:`scoring_radius_deg`.
+
+On ``Database``:
+
+``Database.info_dict() -> dict``
+    How the database was built: ``"cache_path"`` (str, its cache file; ``""`` when not cached) and
+    any other entries. Default: ``{}``. Read with :func:`database_info`.
+``Database.FIRST_COMPILE_SECONDS: float`` (class attribute)
+    About how long the first ``identify`` of a process compiles its kernels on 2 CPU cores (s) when
+    no program is kept on disk yet (SGM: one kernel per graph-size bucket, ≈ 100 s). Default: 20.0.
+    Read with :func:`first_compile_seconds`.
+
+:func:`default_config` puts ``Config``, ``for_camera``, ``PRESETS`` and ``FRAME_SETTINGS`` together:
+the config a sweep or a command uses when none is given. :func:`declares` says whether an algorithm
+gives a hook itself (a command that says "already built" needs to know that ``first_use`` answered).
+
+:func:`check_algorithm` verifies that a module offers the required names and that the hooks it
+declares have the declared kind; the registry runs it on :func:`jstarid.algorithms.get`, and
+``tests/algorithms/test_contract.py`` runs the behavioural checks over every registered name.
+``docs/adding_an_algorithm.md`` walks through adding one.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import inspect
 import json
-from collections.abc import Mapping
+import numbers
+from collections.abc import Mapping, Sequence
 from types import ModuleType
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import jax
 import numpy as np
 
-from jstarid.experiment import to_json
 from jstarid.scene import Identification, Scene
+from jstarid.serialization import to_json
 
-__all__ = ["Algorithm", "DiagnosticsFields", "REQUIRED", "cache_key", "check_algorithm",
-           "check_scenes", "tolerance_rad"]
+__all__ = ["Algorithm", "DiagnosticsFields", "HOOKS", "Hook", "REQUIRED", "cache_key", "camera_problem",
+           "check_algorithm", "check_scenes", "config_for_camera", "database_info", "declares",
+           "default_config", "first_compile_seconds", "first_use", "frame_settings", "identify_grid",
+           "presets", "reported", "scoring_radius_deg", "tolerance_rad"]
 
 REQUIRED = ("Config", "Tuning", "Database", "Diagnostics", "build_database", "identify")
+
+
+class Hook(NamedTuple):
+    """Where an algorithm declares an optional hook and what kind of thing it is.
+
+    Attributes:
+        owner: ``"module"``, ``"Config"`` or ``"Database"``: the algorithm module itself or one of
+            its classes.
+        kind: ``"function"`` (a function, classmethod or method), ``"mapping"`` or ``"number"``.
+    """
+
+    owner: str
+    kind: str
+
+
+#: Every optional hook (module docstring: signature, meaning, default, reader).
+HOOKS: dict[str, Hook] = {
+    "first_use": Hook("module", "function"),
+    "camera_problem": Hook("module", "function"),
+    "identify_grid": Hook("module", "function"),
+    "PRESETS": Hook("module", "mapping"),
+    "REPORTED": Hook("module", "mapping"),
+    "for_camera": Hook("Config", "function"),
+    "FRAME_SETTINGS": Hook("Config", "mapping"),
+    "radius_deg": Hook("Config", "number"),
+    "info_dict": Hook("Database", "function"),
+    "FIRST_COMPILE_SECONDS": Hook("Database", "number"),
+}
+
+#: The ``"sgm"`` criterion's neighbor circle (deg) for a config without ``radius_deg``
+#: (:func:`jstarid.metrics.scene_outcomes`' own default).
+DEFAULT_RADIUS_DEG = 6.0
+#: First compilation (s, 2 CPU cores) of an algorithm whose ``Database`` does not say: measured for
+#: MLV, RpNet and the baselines, each well under it.
+DEFAULT_FIRST_COMPILE_SECONDS = 20.0
+
+_ABSENT = object()  # an optional hook the algorithm does not declare
 
 
 class DiagnosticsFields(NamedTuple):
@@ -88,14 +178,15 @@ class Algorithm(Protocol):
     Database: type
     Diagnostics: type
 
-    def build_database(self, catalog, camera, config=None, *, progress: bool = True) -> Any: ...
+    def build_database(self, catalog, camera, config=None, *, use_cache: bool = True,
+                       progress: bool = True) -> Any: ...
 
     def identify(self, database, scenes: Scene, config=None, *,
                  diagnostics: bool = False) -> Identification | tuple[Identification, Any]: ...
 
 
 def check_algorithm(module: ModuleType, name: str | None = None) -> ModuleType:
-    """Check that ``module`` offers the contract's names and signatures.
+    """Check that ``module`` offers the contract's names and signatures, and hooks of their kind.
 
     Args:
         module: the algorithm module.
@@ -107,7 +198,8 @@ def check_algorithm(module: ModuleType, name: str | None = None) -> ModuleType:
     Raises:
         TypeError: a required name is missing, ``Config`` lacks ``paper``/``tuning``/
             ``database_fields``, ``Diagnostics`` does not start with ``n_candidates, overflow``,
-            or ``identify``/``build_database`` lack the contract's parameters.
+            ``identify``/``build_database`` lack the contract's parameters, or a declared hook is
+            not of its kind (:data:`HOOKS`).
     """
     label = name or module.__name__
     missing = [n for n in REQUIRED if not hasattr(module, n)]
@@ -122,12 +214,151 @@ def check_algorithm(module: ModuleType, name: str | None = None) -> ModuleType:
                         f"{DiagnosticsFields._fields}, got {tuple(fields[:2])}")
     if not callable(getattr(module.Database, "cache_key", None)):
         raise TypeError(f"algorithm {label!r}: Database has no cache_key()")
-    for fn, params in (("identify", ("config", "diagnostics")), ("build_database", ("config", "progress"))):
+    for fn, params in (("identify", ("config", "diagnostics")),
+                       ("build_database", ("config", "use_cache", "progress"))):
         have = inspect.signature(getattr(module, fn)).parameters
         lacking = [p for p in params if p not in have]
         if lacking:
             raise TypeError(f"algorithm {label!r}: {fn} lacks parameter(s) {', '.join(lacking)}")
+    for hook, (owner, kind) in HOOKS.items():
+        value = _own(module if owner == "module" else getattr(module, owner), hook)
+        if value is _ABSENT:
+            continue
+        fits = {"function": callable, "mapping": lambda v: isinstance(v, Mapping),
+                "number": lambda v: isinstance(v, numbers.Real)}[kind](value)
+        if not fits:
+            where = hook if owner == "module" else f"{owner}.{hook}"
+            raise TypeError(f"algorithm {label!r}: {where} must be a {kind}, got {type(value).__name__}")
+    for preset, settings in _declared_mapping(module, "PRESETS").items():
+        if not isinstance(settings, Mapping):
+            raise TypeError(f"algorithm {label!r}: PRESETS[{preset!r}] must map Config fields to values")
     return module
+
+
+def _own(owner, name: str):
+    """The hook ``name`` as ``owner`` (a module, class or instance) declares it, else ``_ABSENT``.
+
+    The one place hooks are looked up by name: everything else calls the readers below.
+    """
+    return getattr(owner, name, _ABSENT)
+
+
+def declares(module: ModuleType, hook: str) -> bool:
+    """Whether ``module`` gives the optional ``hook`` (a name of :data:`HOOKS`) itself rather than
+    leaving it to the contract's default; a config field counts for a ``Config`` hook.
+
+    Raises:
+        KeyError: ``hook`` is not an optional hook of the contract.
+    """
+    owner = HOOKS[hook].owner
+    if owner == "module":
+        return _own(module, hook) is not _ABSENT
+    cls = getattr(module, owner)
+    fields = {f.name for f in dataclasses.fields(cls)} if dataclasses.is_dataclass(cls) else set()
+    return hook in fields or _own(cls, hook) is not _ABSENT
+
+
+def first_use(module: ModuleType, catalog, camera, config) -> tuple[str, float] | None:
+    """``(text, seconds)``: what ``module.build_database`` builds first for these settings and about
+    how long it takes on 2 CPU cores (s); ``None`` when it is cached or the algorithm does not say."""
+    fn = _own(module, "first_use")
+    return None if fn is _ABSENT else fn(catalog, camera, config)
+
+
+def camera_problem(module: ModuleType, camera, config, catalog=None) -> str | None:
+    """One line saying why ``module`` cannot work on ``camera`` and ``catalog`` with ``config``, or
+    ``None`` (also when the algorithm does not say)."""
+    fn = _own(module, "camera_problem")
+    return None if fn is _ABSENT else fn(camera, config, catalog)
+
+
+def identify_grid(module: ModuleType, database, scenes: Scene, configs: Sequence) -> list[Identification]:
+    """``module.identify`` of ``scenes`` with each of ``configs`` on one ``database``: the algorithm's
+    ``identify_grid`` (one batch) where it has one, else one ``identify`` call per config.
+
+    Raises:
+        ValueError: the algorithm's ``identify_grid`` cannot batch these configs (the caller may
+            then call ``identify`` once per config).
+    """
+    fn = _own(module, "identify_grid")
+    if fn is _ABSENT:
+        return [module.identify(database, scenes, config) for config in configs]
+    return list(fn(database, scenes, configs))
+
+
+def reported(module: ModuleType) -> dict[str, Sequence]:
+    """``{field: values}``: the settings a row of ``module`` is reported at (``{}``: its config alone)."""
+    return dict(_declared_mapping(module, "REPORTED"))
+
+
+def presets(module: ModuleType) -> dict[str, dict]:
+    """``{name: {field: value}}``: the named settings of ``module``'s default config, the default first."""
+    return {name: dict(settings) for name, settings in _declared_mapping(module, "PRESETS").items()}
+
+
+def config_for_camera(module: ModuleType, camera, **overrides):
+    """``module.Config.for_camera(camera, **overrides)``, or ``Config(**overrides)`` for an algorithm
+    whose defaults do not depend on the camera."""
+    fn = _own(module.Config, "for_camera")
+    return module.Config(**overrides) if fn is _ABSENT else fn(camera, **overrides)
+
+
+def frame_settings(module: ModuleType) -> dict:
+    """``{field: value}`` that ``module``'s config takes for detections extracted from real frames."""
+    return dict(_declared_mapping(module.Config, "FRAME_SETTINGS"))
+
+
+def default_config(module: ModuleType, camera=None, *, preset: str | None = None, frames: bool = False):
+    """The config a sweep or a command uses when none is given.
+
+    ``Config()`` with the settings of a named preset (``PRESETS``; default: the first), for
+    ``camera`` where one is given (``Config.for_camera``), and with ``Config.FRAME_SETTINGS`` for
+    detections from real frames.
+
+    Args:
+        module: the algorithm module.
+        camera: the :class:`~jstarid.Camera` the config is for (``None``: the published defaults).
+        preset: a name of the algorithm's ``PRESETS``; ignored by an algorithm that has none, so
+            one name can be given for every algorithm of a sweep (``None``: the first preset).
+        frames: the config for detections extracted from real frames.
+
+    Raises:
+        ValueError: ``preset`` is not one of the algorithm's presets.
+    """
+    named = presets(module)
+    if preset is not None and named and preset not in named:
+        raise ValueError(f"{module.__name__.rpartition('.')[2]} has no preset {preset!r}; presets: "
+                         f"{', '.join(named)}")
+    overrides = named[preset] if preset in named else next(iter(named.values()), {})
+    config = module.Config(**overrides) if camera is None else config_for_camera(module, camera, **overrides)
+    settings = frame_settings(module) if frames else {}
+    return dataclasses.replace(config, **settings) if settings else config
+
+
+def scoring_radius_deg(config) -> float:
+    """The neighbor circle (deg) the ``"sgm"`` criterion scores ``config``'s results on: its own
+    ``radius_deg`` where it has one, else :data:`DEFAULT_RADIUS_DEG`."""
+    radius = _own(config, "radius_deg")
+    return DEFAULT_RADIUS_DEG if radius is _ABSENT else float(radius)
+
+
+def database_info(database) -> dict:
+    """How ``database`` was built (``"cache_path"``: its cache file, ``""`` when not cached; other
+    entries as the algorithm says); ``{}`` when its ``Database`` does not say."""
+    fn = _own(database, "info_dict")
+    return {} if fn is _ABSENT else dict(fn())
+
+
+def first_compile_seconds(module: ModuleType) -> float:
+    """About how long ``module``'s first ``identify`` compiles on 2 CPU cores (s) with no program on
+    disk yet: its ``Database.FIRST_COMPILE_SECONDS``, else :data:`DEFAULT_FIRST_COMPILE_SECONDS`."""
+    seconds = _own(module.Database, "FIRST_COMPILE_SECONDS")
+    return DEFAULT_FIRST_COMPILE_SECONDS if seconds is _ABSENT else float(seconds)
+
+
+def _declared_mapping(owner, name: str) -> Mapping:
+    value = _own(owner, name)
+    return {} if value is _ABSENT or value is None else value
 
 
 def cache_key(algorithm: str, version: int, catalog, camera, fields: Mapping) -> str:

@@ -71,8 +71,9 @@ class Diagnostics(NamedTuple):
     overflow: jax.Array
 
 
-def build_database(catalog, camera, config: Config | None = None, *, progress: bool = True) -> Database:
-    """The catalog size; nothing to build or cache."""
+def build_database(catalog, camera, config: Config | None = None, *, use_cache: bool = True,
+                   progress: bool = True) -> Database:
+    """The catalog size; nothing to build or cache (``use_cache`` and ``progress`` are unused)."""
     config = Config() if config is None else config
     return Database(n_stars=len(catalog),
                     key=cache_key("oracle", 1, catalog, camera, config.database_fields()))

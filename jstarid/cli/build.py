@@ -33,6 +33,7 @@ def add_commands(sub) -> None:
 
 def run_train(args) -> int:
     import jstarid as js
+    from jstarid.algorithms import base
     from jstarid.experiment import with_overrides
 
     module = js.algorithms.get(args.algorithm)
@@ -42,9 +43,9 @@ def run_train(args) -> int:
     catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit,
                               epoch=args.epoch)
     js.engine.check_camera([js.Entry(args.algorithm, args.algorithm, config)], camera, catalog)
-    first_use = getattr(module, "first_use", None)
-    planned = first_use(catalog, camera, config) if first_use else None
-    if first_use is not None and planned is None:
+    planned = base.first_use(module, catalog, camera, config)
+    # an algorithm that does not say what it builds (no first_use) is built: it may not be cached
+    if planned is None and base.declares(module, "first_use"):
         print(f"{args.algorithm}: already built for camera {camera.name} (catalog V ≤ "
               f"{catalog.mag_limit:g}); nothing to do.", flush=True)
         return 0
@@ -53,8 +54,7 @@ def run_train(args) -> int:
               flush=True)
     t0 = time.perf_counter()
     database = module.build_database(catalog, camera, config, progress=True)
-    info = getattr(database, "info_dict", lambda: {})()
-    where = info.get("cache_path") or getattr(database, "path", "") or ""
+    where = base.database_info(database).get("cache_path", "")
     print(f"{args.algorithm}: built for camera {camera.name} in {time.perf_counter() - t0:.0f} s"
           + (f" ({where})" if where else ""), flush=True)
     return 0

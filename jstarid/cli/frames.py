@@ -62,6 +62,7 @@ def _identify(args, scenes, labels: list[str], measured=None) -> list[dict]:
     and, with ``--name-all``, the focal length fitted with the attitude); stars are reported at
     their ``measured`` pixels (the scenes before the lens distortion was undone)."""
     import jstarid as js
+    from jstarid.algorithms import base
 
     if args.capacity < 1:
         raise ValueError("--capacity must be ≥ 1")
@@ -72,8 +73,7 @@ def _identify(args, scenes, labels: list[str], measured=None) -> list[dict]:
     cfg = with_overrides(js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network,
                                                   camera=cam, frames=True), algorithm_settings(args))
     js.engine.check_camera([js.Entry(args.algorithm, args.algorithm, cfg)], cam, cat)
-    first = getattr(algo, "first_use", None)
-    built = first(cat, cam, cfg) if first else None
+    built = base.first_use(algo, cat, cam, cfg)
     if built:
         print(f"first use builds {built[0]} (≈ {built[1] / 60:.0f} min), once", file=sys.stderr)
     result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)

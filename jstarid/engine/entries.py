@@ -6,7 +6,8 @@ An :class:`Entry` is one row group of the table: a registered algorithm, its con
 ``group``; the engine runs a group through the algorithm's ``identify_grid`` when it has one (one
 batch for every grid point: MLV's traced tolerances are per-scene arrays) and otherwise as
 successive ``identify`` calls, which share one compilation where the varied fields are the
-algorithm's traced ``Tuning``.
+algorithm's traced ``Tuning``. Every optional hook is read through :mod:`jstarid.algorithms.base`:
+nothing here knows an algorithm by name.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
 from jstarid import algorithms
+from jstarid.algorithms import base
 
 __all__ = ["Entry", "default_config", "entries", "grid"]
 
@@ -39,39 +41,34 @@ class Entry(NamedTuple):
     setting: tuple = ()
 
 
-def default_config(name: str, *, rpnet_network: str = "quick", camera=None, frames: bool = False):
-    """The config a sweep uses when none is given: ``Config()`` (``Config.for_camera(camera)``
-    where the algorithm has it and a camera is given: tolerances that follow the camera, the
-    published values on the papers' cameras), except RpNet's network.
+def default_config(name: str, *, rpnet_network: str | None = None, camera=None, frames: bool = False):
+    """The config a sweep uses when none is given (:func:`jstarid.algorithms.base.default_config`):
+    ``Config()``, for ``camera`` where the algorithm has ``Config.for_camera`` and a camera is given
+    (tolerances that follow the camera, the published values on the papers' cameras), with the
+    settings of a named preset where the algorithm has ``PRESETS``.
 
-    RpNet trains a network per camera on first use; ``Config()`` is the paper's Table 3 training
-    (about 2 hours on 2 CPU cores), so sweeps default to the ``quick`` preset (about 5 minutes).
+    RpNet's presets are its networks: it trains one per camera on first use; ``Config()`` is the
+    paper's Table 3 training (about 2 hours on 2 CPU cores), so sweeps default to the ``quick``
+    preset (about 5 minutes).
 
     Args:
         name: registry name.
-        rpnet_network: ``"quick"`` or ``"table3"``.
+        rpnet_network: the preset of an algorithm that has presets (RpNet's network: ``"quick"``
+            or ``"table3"``); one without presets ignores it (``None``: each algorithm's first
+            preset, RpNet's ``"quick"``).
         camera: the :class:`~jstarid.Camera` the config is for (``None``: the published defaults).
         frames: the config for detections extracted from real frames, which do not stop at the
             catalog's magnitude limit: the algorithm's ``Config.FRAME_SETTINGS`` applied (SGM: its
             magnitude-robust ``subgraph`` search; MLV and RpNet have none: they vote on triangles
             and patterns that tolerate missing and extra stars).
+
+    Raises:
+        ValueError: an unknown algorithm, or a preset the algorithm does not have.
     """
-    module = algorithms.get(name)
-    if name == "rpnet":
-        if rpnet_network not in ("quick", "table3"):
-            raise ValueError(f"rpnet_network must be 'quick' or 'table3', got {rpnet_network!r}")
-        training = module.Training.quick() if rpnet_network == "quick" else module.Training()
-        if camera is None:
-            return module.Config(training=training)
-        return module.Config.for_camera(camera, training=training)
-    for_camera = getattr(module.Config, "for_camera", None)
-    config = module.Config() if camera is None or for_camera is None else for_camera(camera)
-    if frames and getattr(module.Config, "FRAME_SETTINGS", None):
-        config = dataclasses.replace(config, **module.Config.FRAME_SETTINGS)
-    return config
+    return base.default_config(algorithms.get(name), camera, preset=rpnet_network, frames=frames)
 
 
-def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str = "quick",
+def entries(items: Sequence[str | Entry] | str, *, rpnet_network: str | None = None,
             camera=None) -> list[Entry]:
     """Entries from registry names (``"sgm,mlv"`` or a list, each with :func:`default_config` for
     ``camera``), entries or grids.
@@ -109,8 +106,7 @@ def check_camera(items: Sequence[Entry], camera, catalog=None) -> None:
     """
     problems = []
     for entry in items:
-        problem = getattr(algorithms.get(entry.algorithm), "camera_problem", None)
-        text = problem(camera, entry.config, catalog) if problem else None
+        text = base.camera_problem(algorithms.get(entry.algorithm), camera, entry.config, catalog)
         if text:
             problems.append(f"{entry.label}: {text}")
     if problems:
@@ -133,11 +129,11 @@ def grid(algorithm: str, config=None, *, label: str | None = None, camera=None,
     Raises:
         ValueError: an unknown field or a field without values.
     """
-    base = default_config(algorithm, camera=camera) if config is None else config
-    fields = {f.name for f in dataclasses.fields(base)}
+    start = default_config(algorithm, camera=camera) if config is None else config
+    fields = {f.name for f in dataclasses.fields(start)}
     for name, vals in values.items():
         if name not in fields:
-            raise ValueError(f"{type(base).__name__} has no field {name!r}; fields: "
+            raise ValueError(f"{type(start).__name__} has no field {name!r}; fields: "
                              f"{', '.join(sorted(fields))}")
         if len(vals) == 0:
             raise ValueError(f"grid field {name} has no values")
@@ -148,7 +144,7 @@ def grid(algorithm: str, config=None, *, label: str | None = None, camera=None,
         setting = dict(zip(values, combo, strict=True))
         text = " ".join(f"{k}={_short(v)}" for k, v in setting.items())
         out.append(Entry(f"{prefix} {text}".strip(), algorithm,
-                         dataclasses.replace(base, **setting), group, tuple(setting.items())))
+                         dataclasses.replace(start, **setting), group, tuple(setting.items())))
     return out
 
 
@@ -158,7 +154,7 @@ def _short(value) -> str:
 
 def describe(entry: Entry) -> Mapping[str, Any]:
     """An entry as JSON-ready settings (label, algorithm, group, every config field)."""
-    from jstarid.experiment import to_json
+    from jstarid.serialization import to_json
 
     return {"label": entry.label, "algorithm": entry.algorithm, "group": entry.group,
             "setting": to_json(dict(entry.setting)), "config_type": type(entry.config).__qualname__,

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.algorithms import base
 from jstarid.algorithms import get as get_algorithm
 from jstarid.attitude import attitude_errors_arcsec, estimate_attitude
 from jstarid.camera import Camera
@@ -61,7 +62,7 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
           axes: Mapping[str, Sequence[float]] | None = None, fixed: Mapping | None = None,
           scenes: int = 200, seed: int = 0, catalog=None, capacity: int = 64,
           boresight: str = "random", criterion: str = "strict", chunk_size: int = CHUNK_SIZE,
-          rpnet_network: str = "quick", progress: bool = True, pixels: bool = False,
+          rpnet_network: str | None = None, progress: bool = True, pixels: bool = False,
           sensor: SensorConfig | None = None, centroid: CentroidConfig | None = None) -> SweepResult:
     """Every algorithm × every noise level on one shared, seeded set of simulated scenes.
 
@@ -83,7 +84,9 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
             the catalog rows to draw that star from (e.g. RpNet's guide stars).
         criterion: outcome rule (:data:`jstarid.metrics.CRITERIA`).
         chunk_size: most scenes per ``identify`` call (bounds memory).
-        rpnet_network: RpNet's network when RpNet is named (``"quick"`` or ``"table3"``).
+        rpnet_network: RpNet's network when RpNet is named (``"quick"`` or ``"table3"``; ``None``:
+            ``"quick"``), the preset of every algorithm with presets
+            (:func:`~jstarid.engine.entries.default_config`).
         progress: print what is built and each algorithm's progress (stderr).
         pixels: run from rendered frames (:mod:`~jstarid.engine.pixels`: render → extract → label →
             identify) instead of the simulator's centroids; the axes may then vary
@@ -251,7 +254,7 @@ def _rows_in(other, catalog, rows) -> np.ndarray:
 def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, *,
             level_of: np.ndarray | None = None, levels: Sequence[Mapping] | None = None,
             criterion: str = "strict", chunk_size: int = CHUNK_SIZE, progress: bool = True,
-            settings: Mapping | None = None, rpnet_network: str = "quick") -> SweepResult:
+            settings: Mapping | None = None, rpnet_network: str | None = None) -> SweepResult:
     """Every entry on the given scenes, scored per scene and tabulated per level.
 
     Args:
@@ -302,7 +305,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
             for k, i in enumerate(members):
                 seconds[i, level] += shares[k]
                 outs[k].append(_score(local[part], results[k], catalog, camera, criterion,
-                                      getattr(entries[i].config, "radius_deg", 6.0)))
+                                      base.scoring_radius_deg(entries[i].config)))
             release_staging()  # outside the timed call (runtime.staging_memory)
             if progress and (c + 1 == len(chunks) or c % 4 == 3):
                 _say(True, f"{names}: {part.stop:,} / {local.batch_size:,} scenes")
@@ -321,28 +324,27 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
                                    processes=processes.process_count())
 
 
-def plan(algorithms: Sequence | str, catalog, camera: Camera, *, rpnet_network: str = "quick",
+def plan(algorithms: Sequence | str, catalog, camera: Camera, *, rpnet_network: str | None = None,
          compiled_before: bool = True) -> list[tuple[str, float]]:
     """What a run of these entries builds first, and about how long each takes on 2 CPU cores (s).
 
-    Uses each algorithm's optional ``first_use(catalog, camera, config)``; empty when everything
-    is cached.
+    Uses each algorithm's optional ``first_use(catalog, camera, config)``
+    (:func:`jstarid.algorithms.base.first_use`); empty when everything is cached.
 
     Args:
         compiled_before: ``False`` adds the one-off compilation of a first run on this machine
-            (no on-disk compilation cache yet).
+            (no on-disk compilation cache yet): the longest of the algorithms'
+            (:func:`jstarid.algorithms.base.first_compile_seconds`).
     """
     items = []
-    names = set()
+    modules = {}
     for entry in make_entries(algorithms, rpnet_network=rpnet_network, camera=camera):
-        names.add(entry.algorithm)
-        first_use = getattr(get_algorithm(entry.algorithm), "first_use", None)
-        item = first_use(catalog, camera, entry.config) if first_use else None
+        module = modules.setdefault(entry.algorithm, get_algorithm(entry.algorithm))
+        item = base.first_use(module, catalog, camera, entry.config)
         if item and item not in items:
             items.append(item)
     if not compiled_before:
-        # measured on 2 cores: SGM compiles one kernel per graph-size bucket (≈ 95 s for the demo)
-        seconds = 100.0 if "sgm" in names else 20.0
+        seconds = max(base.first_compile_seconds(m) for m in modules.values())
         items.append(("compiled kernels, kept on disk for later runs", seconds))
     return items
 
@@ -351,8 +353,9 @@ def _runner(module, dbs, configs):
     """``run(scenes) -> ([Identification per config], [seconds per config])``: the algorithm's
     ``identify_grid`` (one batch, its wall time shared equally) where it can take the grid, else one
     timed ``identify`` call per config with its own database."""
-    grid = getattr(module, "identify_grid", None)
-    state = {"batched": (len(configs) > 1 and grid is not None
+    # only an algorithm's own identify_grid batches the grid: the contract's default is the
+    # per-config calls below, which time each config on its own
+    state = {"batched": (len(configs) > 1 and base.declares(module, "identify_grid")
                          and len({d.cache_key() for d in dbs}) == 1)}
 
     def timed(call):  # call() -> [Identification]; returns it and its wall time (s)
@@ -364,7 +367,7 @@ def _runner(module, dbs, configs):
     def run(scenes):
         if state["batched"]:
             try:
-                results, dt = timed(lambda: list(grid(dbs[0], scenes, configs)))
+                results, dt = timed(lambda: base.identify_grid(module, dbs[0], scenes, configs))
                 return results, [dt / len(configs)] * len(configs)
             except ValueError:  # the grid varies settings it cannot batch (e.g. MLV's Δv)
                 state["batched"] = False

@@ -175,8 +175,15 @@ def _run(python: Path, job: dict) -> None:
         subprocess.run([str(python), str(_WORKER), str(path)], check=True)
 
 
-def build_database(catalog, camera, config: Config | None = None, *, progress: bool = True) -> Database:
+def build_database(catalog, camera, config: Config | None = None, *, use_cache: bool = True,
+                   progress: bool = True) -> Database:
     """cedar's database for ``camera`` from ``catalog`` (built once, cached).
+
+    Args:
+        catalog, camera, config: as for every algorithm (:mod:`jstarid.algorithms.base`).
+        use_cache: unused: cedar reads its database from a file, so the file under the jstarid
+            cache is always kept and reused.
+        progress: say what the environment's installation does.
 
     Raises:
         RuntimeError: cedar-solve's environment cannot be built.

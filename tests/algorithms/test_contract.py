@@ -2,12 +2,22 @@
 
 Each algorithm runs in a small "world" (catalog, camera, config) chosen so the suite stays fast; an
 algorithm registered without an entry in ``WORLDS`` runs on the default world (V ≤ 6, the
-``sgm2022`` camera, ``Config()``) and must pass there or fail loudly.
+``sgm2022`` camera, ``Config()``) and must pass there or fail loudly. The optional hooks
+(:data:`jstarid.algorithms.base.HOOKS`) are checked on every registered algorithm, and their
+defaults on a minimal algorithm that declares none of them (:func:`_hookless_module`).
 """
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import functools
+import importlib.machinery
+import re
+import sys
+import types
+from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -229,3 +239,179 @@ def test_a_batch_of_zero_scenes_gives_an_empty_result(name):
     scenes = _clean_scenes(w, 2, seed=3)[0:0]
     result = w.algo.identify(w.database, scenes, w.config)
     assert np.shape(result.ids) == (0, scenes.capacity) and np.shape(result.ok) == (0,)
+
+
+# --- optional hooks: declared in base.HOOKS with a default, read only through base ----------------
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_every_hook_answers_with_its_declared_kind(name):
+    """Each reader of :mod:`~jstarid.algorithms.base` gives what the hook declares, whether the
+    algorithm declares the hook or leaves it to the default."""
+    w = world(name)
+    algo = w.algo
+    fields = {f.name for f in dataclasses.fields(algo.Config)}
+    # the world's database is built and cached: a first_use must not ask to build it again
+    assert base.first_use(algo, w.catalog, w.camera, w.config) is None, name
+    other = dataclasses.replace(w.camera, f_px=w.camera.f_px * 1.001)  # another cache key
+    planned = base.first_use(algo, w.catalog, other, w.config)
+    assert planned is None or (isinstance(planned, tuple) and isinstance(planned[0], str)
+                               and float(planned[1]) > 0), (name, planned)
+    assert base.camera_problem(algo, w.camera, w.config, w.catalog) is None  # the world works
+    assert isinstance(base.config_for_camera(algo, w.camera), algo.Config)
+    presets = base.presets(algo)
+    for preset, settings in presets.items():
+        config = base.default_config(algo, w.camera, preset=preset)
+        assert isinstance(config, algo.Config) and set(settings) <= fields
+        assert all(getattr(config, k) == v for k, v in settings.items()), (name, preset)
+    assert base.default_config(algo) == base.default_config(algo, preset=next(iter(presets), None))
+    settings = base.frame_settings(algo)
+    framed = base.default_config(algo, w.camera, frames=True)
+    assert set(settings) <= fields and all(getattr(framed, k) == v for k, v in settings.items())
+    reported = base.reported(algo)
+    assert set(reported) <= fields and all(len(v) >= 1 for v in reported.values())
+    assert base.scoring_radius_deg(w.config) > 0
+    info = base.database_info(w.database)
+    assert isinstance(info, dict) and isinstance(info.get("cache_path", ""), str)
+    assert base.first_compile_seconds(algo) > 0
+    assert set(base.HOOKS) >= {h for h in base.HOOKS if base.declares(algo, h)}
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_identify_grid_gives_what_identify_gives(name):
+    """The grid reader (the algorithm's own ``identify_grid`` or the default, one call per config)
+    gives each config what ``identify`` gives it."""
+    w = world(name)
+    scenes = _clean_scenes(w, 2, seed=7)
+    alone = w.algo.identify(w.database, scenes, w.config)
+    results = base.identify_grid(w.algo, w.database, scenes, [w.config, w.config])
+    assert len(results) == 2
+    for result in results:
+        np.testing.assert_array_equal(np.asarray(result.ids), np.asarray(alone.ids))
+        np.testing.assert_array_equal(np.asarray(result.ok), np.asarray(alone.ok))
+
+
+class _Tuning(NamedTuple):
+    """Nothing to sweep."""
+
+
+@dataclasses.dataclass(frozen=True)
+class _Config:
+    seed: int = 0
+
+    @classmethod
+    def paper(cls, **overrides):
+        return cls(**overrides)
+
+    def tuning(self) -> _Tuning:
+        return _Tuning()
+
+    def database_fields(self) -> dict:
+        return {}
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=[], meta_fields=["key"])
+@dataclasses.dataclass(frozen=True)
+class _Database:
+    key: str = ""
+
+    def cache_key(self) -> str:
+        return self.key
+
+
+class _Diagnostics(NamedTuple):
+    n_candidates: jax.Array
+    overflow: jax.Array
+
+
+def _build_database(catalog, camera, config=None, *, use_cache=True, progress=True):
+    return _Database(key=base.cache_key("hookless", 1, catalog, camera, {}))
+
+
+def _identify(database, scenes, config=None, *, diagnostics=False):
+    """The truth of every detection (as the oracle)."""
+    base.check_scenes(scenes)
+    ids = jnp.where(scenes.valid, scenes.truth, -1).astype(jnp.int32)
+    result = js.Identification(ids=ids, ok=jnp.any(ids >= 0, axis=1), attitude=None)
+    if diagnostics:
+        return result, _Diagnostics(jnp.zeros(scenes.batch_size, jnp.int32), scenes.overflow)
+    return result
+
+
+def _hookless_module() -> types.ModuleType:
+    """A minimal algorithm: the six required names and none of the optional hooks."""
+    module = types.ModuleType("hookless_algorithm")
+    module.__spec__ = importlib.machinery.ModuleSpec("hookless_algorithm", None)  # importable
+    module.Config, module.Tuning, module.Database = _Config, _Tuning, _Database
+    module.Diagnostics = _Diagnostics
+    module.build_database, module.identify = _build_database, _identify
+    return module
+
+
+def test_an_algorithm_without_optional_hooks_runs_through_the_defaults(monkeypatch):
+    """Every hook's default, through the readers and through the engine (a grid run config by
+    config, the plan, the camera check)."""
+    fake = base.check_algorithm(_hookless_module(), "hookless")
+    assert not any(base.declares(fake, hook) for hook in base.HOOKS)
+    cat, cam = js.load_catalog(5.0), js.camera_preset("sgm2022")
+    config = fake.Config()
+    assert base.first_use(fake, cat, cam, config) is None
+    assert base.camera_problem(fake, cam, config, cat) is None
+    assert base.reported(fake) == {} and base.presets(fake) == {} and base.frame_settings(fake) == {}
+    assert base.config_for_camera(fake, cam, seed=3) == fake.Config(seed=3)
+    # a preset named for other algorithms is ignored by one without presets
+    assert base.default_config(fake, cam, preset="quick", frames=True) == config
+    assert base.scoring_radius_deg(config) == base.DEFAULT_RADIUS_DEG
+    assert base.first_compile_seconds(fake) == base.DEFAULT_FIRST_COMPILE_SECONDS
+    database = fake.build_database(cat, cam, config)
+    assert base.database_info(database) == {}
+    scenes = js.simulate(jax.random.key(8), cat, cam, js.NoiseConfig(), batch_size=3, capacity=32)
+    results = base.identify_grid(fake, database, scenes, [config, fake.Config(seed=1)])
+    assert len(results) == 2
+    for result in results:
+        np.testing.assert_array_equal(np.asarray(result.ids), np.asarray(fake.identify(database, scenes).ids))
+    # registered, it runs in the engine on the defaults alone
+    monkeypatch.setitem(sys.modules, "hookless_algorithm", fake)
+    monkeypatch.setattr(js.algorithms, "_REGISTRY", dict(js.algorithms._REGISTRY))  # undone after
+    js.algorithms.register("hookless", "hookless_algorithm")
+    assert js.engine.default_config("hookless", camera=cam, frames=True) == config
+    assert js.engine.plan("hookless", cat, cam) == []
+    assert js.engine.plan("hookless", cat, cam, compiled_before=False) == [
+        ("compiled kernels, kept on disk for later runs", base.DEFAULT_FIRST_COMPILE_SECONDS)]
+    result = js.compare(scenes, [js.grid("hookless", seed=[0, 1])], cat, cam, progress=False)
+    assert [row["identification_rate"] for row in result.rows()] == [1.0, 1.0]
+
+
+def test_check_algorithm_refuses_hooks_of_the_wrong_kind():
+    for hook, value, message in (("PRESETS", 3, "PRESETS must be a mapping"),
+                                 ("PRESETS", {"fast": 1}, r"PRESETS\['fast'\]"),
+                                 ("first_use", "soon", "first_use must be a function"),
+                                 ("REPORTED", ["seed"], "REPORTED must be a mapping")):
+        fake = _hookless_module()
+        setattr(fake, hook, value)
+        with pytest.raises(TypeError, match=message):
+            base.check_algorithm(fake, "hookless")
+    fake = _hookless_module()
+    fake.build_database = lambda catalog, camera, config=None, *, progress=True: None
+    with pytest.raises(TypeError, match="use_cache"):
+        base.check_algorithm(fake, "hookless")
+    with pytest.raises(ValueError, match="rpnet has no preset 'huge'; presets: quick, table3"):
+        base.default_config(js.algorithms.get("rpnet"), preset="huge")
+
+
+def test_hooks_are_read_only_through_the_contract():
+    """The contract imports nothing above it, and the engine and the CLI neither look hooks up by
+    name nor name an algorithm in a comparison."""
+    package = Path(base.__file__).resolve().parents[1]
+    tree = ast.parse((package / "algorithms" / "base.py").read_text())
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    imported |= {a.name for node in ast.walk(tree) if isinstance(node, ast.Import) for a in node.names}
+    above = ("jstarid.experiment", "jstarid.engine", "jstarid.cli")
+    assert not {m for m in imported if m and m.startswith(above)}
+    hooks = "|".join(base.HOOKS)
+    names = "|".join(NAMES)
+    for path in sorted((package / "engine").glob("*.py")) + sorted((package / "cli").glob("*.py")):
+        text = path.read_text()
+        assert not re.search(rf"(getattr|hasattr)\([^\n]*?[\"']({hooks})[\"']", text), path.name
+        assert not re.search(rf"(==|!=|\bin)\s*[\"']({names})[\"']|[\"']({names})[\"']\s*(==|!=|\bin\b)",
+                             text), path.name

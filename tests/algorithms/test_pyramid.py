@@ -13,6 +13,7 @@ import pytest
 
 import jstarid as js
 from jstarid.algorithms import pyramid
+from jstarid.geometry.star_pairs import frame_pair_angle
 
 steps = importlib.import_module("jstarid.algorithms.pyramid.identify")
 CAM = js.camera_preset("sgm2022")
@@ -87,7 +88,7 @@ def test_candidate_triangles_equal_a_brute_force_search(bright, seed):
         *map(jnp.float32, theta), jnp.float32(turn), db, jnp.float32(eps), window=window, star_capacity=16,
         capacity=256)
     got = {tuple(map(int, t)) for t in np.asarray(abc)[np.asarray(has)]}
-    want = _brute_triangles(vec, pyramid.database.frame_pair_angle(CAM), theta.astype(np.float64),
+    want = _brute_triangles(vec, frame_pair_angle(CAM), theta.astype(np.float64),
                             np.float64(np.float32(eps)), turn)
     assert not bool(over) and int(count) == len(got)
     assert (int(a), int(b), int(c)) in got

@@ -64,7 +64,7 @@ def _patterns(centres, neighbours, real, *, f_px, pattern_px, buffer_px, grid):
     return jax.vmap(fn)(centres, neighbours, real)[0]
 
 
-def build_database(catalog, camera: Camera, config: Config | None = None, *,
+def build_database(catalog, camera: Camera, config: Config | None = None, *, use_cache: bool = True,
                    progress: bool = True) -> Database:
     """Every catalog star's grid pattern for ``camera``.
 
@@ -72,6 +72,7 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *,
         catalog: :class:`~jstarid.catalog.Catalog` (the identification catalog).
         camera: :class:`~jstarid.camera.Camera`.
         config: :class:`~jstarid.algorithms.grid.Config` (its radii and grid shape the database).
+        use_cache: unused (nothing is cached on disk: the build takes seconds).
         progress: unused (the build takes seconds).
     """
     from scipy.spatial import cKDTree

@@ -29,7 +29,7 @@ from jstarid.algorithms.mlv.config import Config
 from jstarid.algorithms.mlv.features import discretize, singular_values, triangle_combinations
 from jstarid.attitude import rotation_from_boresight
 from jstarid.camera import Camera
-from jstarid.catalog import cache_dir, temporary_path
+from jstarid.catalog import cache_dir, load_or_build
 from jstarid.geometry import precise
 from jstarid.runtime.program_store import stored_jit
 from jstarid.sky_index import build_sky_index, cell_of
@@ -314,25 +314,19 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *,
     config = Config() if config is None else config
     key = _cache_key(catalog, camera, config)
     path = cache_dir() / f"mlv-{key}.npz"
-    if use_cache and path.exists():
-        with np.load(path) as data:
-            triangles = data["triangles"]
-            build_seconds = float(data["build_seconds"])
-        db = database_from_triangles(catalog, camera, triangles, config.dv1, config.dv2,
-                                     info={"build_seconds": 0.0, "cached": True,
-                                           "original_build_seconds": build_seconds,
-                                           "cache_path": str(path)})
-        return dataclasses.replace(db, key=key)
-    t0 = time.perf_counter()
-    triangles = _triangle_table(catalog, camera, config, progress)
-    seconds = time.perf_counter() - t0
-    if use_cache:
-        tmp = temporary_path(path)
-        np.savez(tmp, triangles=triangles.astype(np.int32), build_seconds=seconds)
-        tmp.replace(path)
-    db = database_from_triangles(catalog, camera, triangles, config.dv1, config.dv2,
-                                 info={"build_seconds": seconds, "cached": False,
-                                       "cache_path": str(path) if use_cache else ""})
+
+    def build() -> dict:
+        t0 = time.perf_counter()
+        triangles = _triangle_table(catalog, camera, config, progress)
+        return {"triangles": triangles.astype(np.int32), "build_seconds": time.perf_counter() - t0}
+
+    # only the triangle table is stored: the features follow from it and Δv1, Δv2 (see _cache_key)
+    arrays, cached = load_or_build(path if use_cache else None, build)
+    seconds = float(arrays["build_seconds"])
+    info = ({"build_seconds": 0.0, "cached": True, "original_build_seconds": seconds, "cache_path": str(path)}
+            if cached else
+            {"build_seconds": seconds, "cached": False, "cache_path": str(path) if use_cache else ""})
+    db = database_from_triangles(catalog, camera, arrays["triangles"], config.dv1, config.dv2, info=info)
     return dataclasses.replace(db, key=key)
 
 

@@ -18,15 +18,8 @@ import numpy as np
 from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.pyramid.config import Config
 from jstarid.camera import Camera
-from jstarid.catalog import cache_dir
-from jstarid.geometry.kvector import KVector, build_kvector
-from jstarid.geometry.star_pairs import (
-    cached_pair_table,
-    expected_pairs,
-    frame_pair_angle,
-    table_problem,
-    widest_window,
-)
+from jstarid.geometry.kvector import KVector
+from jstarid.geometry.star_pairs import pair_database, pair_table_first_use, table_problem, widest_window
 from jstarid.sky_index import build_sky_index
 
 __all__ = ["Database", "build_database", "camera_problem", "first_use", "window_size"]
@@ -101,16 +94,10 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *, use
             fit in one frame.
     """
     config = Config() if config is None else config
-    problem = camera_problem(camera, config, catalog)
-    if problem:
-        raise ValueError(problem)
     key = _cache_key(catalog, camera, config)
-    vectors = np.asarray(catalog.unit_vectors, np.float64)
-    angles, pairs = cached_pair_table(cache_dir() / f"pyramid-{key}.npz" if use_cache else None, vectors,
-                                      frame_pair_angle(camera), progress=progress, desc="pyramid pair table")
-    if angles.size == 0:
-        raise ValueError("pyramid: no two catalog stars fit in one frame of this camera")
-    kvector, _ = build_kvector(angles)  # already sorted
+    # the size check (camera_problem), the cached table and its k-vector, shared with voting
+    table = pair_database("pyramid", key, catalog, camera, use_cache=use_cache, progress=progress)
+    angles, pairs, vectors = table.angles, table.pairs, table.vectors
     index = build_sky_index(vectors, camera.half_diagonal_rad, margin_rad=SKY_MARGIN_RAD,
                             key=f"{catalog.fingerprint}-pyramid-{camera.half_diagonal_rad:.6e}")
     # the same pairs grouped by star (both orientations), by angle within a group: the triangle join
@@ -121,8 +108,9 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *, use
     order = np.lexsort((both, first))
     offsets = np.searchsorted(first[order], np.arange(len(catalog) + 1)).astype(np.int32)
     steps = max(1, int(np.ceil(np.log2(int(np.max(np.diff(offsets))) + 1))) + 1)
-    return Database(kvector=kvector, pairs=jnp.asarray(pairs), star_vectors=jnp.asarray(vectors, jnp.float32),
-                    cells=jnp.asarray(index.cells), offsets=jnp.asarray(offsets),
+    return Database(kvector=table.kvector, pairs=jnp.asarray(pairs),
+                    star_vectors=jnp.asarray(vectors, jnp.float32), cells=jnp.asarray(index.cells),
+                    offsets=jnp.asarray(offsets),
                     partners=jnp.asarray(partners[order].astype(np.int32)),
                     partner_angles=jnp.asarray(both[order].astype(np.float32)), camera=camera,
                     grid=index.grid, search_steps=steps, key=key)
@@ -132,10 +120,7 @@ def first_use(catalog, camera: Camera, config: Config | None = None) -> tuple[st
     """What :func:`build_database` builds and about how long it takes on a 2-core CPU (s); ``None``
     when it is cached."""
     config = Config() if config is None else config
-    if (cache_dir() / f"pyramid-{_cache_key(catalog, camera, config)}.npz").exists():
-        return None
-    pairs = expected_pairs(len(catalog), frame_pair_angle(camera))
-    return f"pyramid pair table for {camera.name} (≈ {pairs / 1e6:.1f} M pairs)", max(2.0, pairs / 1e6)
+    return pair_table_first_use("pyramid", _cache_key(catalog, camera, config), catalog, camera)
 
 
 _WINDOWS: dict[tuple, int] = {}

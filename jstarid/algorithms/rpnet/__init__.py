@@ -19,6 +19,7 @@ Usage::
 
 from jstarid.algorithms.rpnet.config import Config, Training, Tuning
 from jstarid.algorithms.rpnet.database import (
+    PRESETS,
     Database,
     build_database,
     database_from_variables,
@@ -29,6 +30,6 @@ from jstarid.algorithms.rpnet.grid import GridResult, grid_members, member_varia
 from jstarid.algorithms.rpnet.guide_catalog import guide_rows, load_guide_catalog
 from jstarid.algorithms.rpnet.identify import Diagnostics, identify
 
-__all__ = ["Config", "Database", "Diagnostics", "GridResult", "Training", "Tuning", "build_database",
-           "database_from_variables", "first_use", "grid_members", "guide_rows", "identify", "load_database",
-           "load_guide_catalog", "member_variables", "train_grid"]
+__all__ = ["PRESETS", "Config", "Database", "Diagnostics", "GridResult", "Training", "Tuning",
+           "build_database", "database_from_variables", "first_use", "grid_members", "guide_rows", "identify",
+           "load_database", "load_guide_catalog", "member_variables", "train_grid"]

@@ -18,7 +18,7 @@ import numpy as np
 
 from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.rpnet.checkpoint import load_checkpoint, save_checkpoint
-from jstarid.algorithms.rpnet.config import Config
+from jstarid.algorithms.rpnet.config import Config, Training
 from jstarid.algorithms.rpnet.guide_catalog import guide_rows
 from jstarid.algorithms.rpnet.inference import InferenceWeights, fold_networks
 from jstarid.algorithms.rpnet.train import (
@@ -26,11 +26,16 @@ from jstarid.algorithms.rpnet.train import (
     init_variables,
     train,
 )
-from jstarid.catalog import cache_dir
+from jstarid.catalog import cache_dir, load_or_build
 from jstarid.runtime import device_cache
 
-__all__ = ["Database", "build_database", "checkpoint_path", "database_from_variables", "database_key",
-           "load_database"]
+__all__ = ["PRESETS", "Database", "build_database", "checkpoint_path", "database_from_variables",
+           "database_key", "load_database"]
+
+#: The networks a sweep or a command chooses by name (``--rpnet-network``;
+#: :func:`jstarid.algorithms.base.default_config`). ``Config()`` trains the paper's Table 3 schedule
+#: (about 2 hours on 2 CPU cores), so the first, the default, is the ``quick`` one (about 5 minutes).
+PRESETS = {"quick": {"training": Training.quick()}, "table3": {"training": Training()}}
 
 
 @functools.partial(jax.tree_util.register_dataclass,
@@ -74,6 +79,10 @@ class Database:
     def n_classes(self) -> int:
         return int(len(self.guide_rows))
 
+    def info_dict(self) -> dict:
+        """``{"cache_path": the checkpoint file, "" when not cached}``."""
+        return {"cache_path": str(self.path) if self.path else ""}
+
     @property
     def inference_weights(self) -> InferenceWeights:
         """The networks folded for identification (:func:`.inference.fold_networks`), computed once
@@ -94,7 +103,7 @@ def checkpoint_path(catalog, camera, config: Config) -> Path:
     return cache_dir() / "rpnet" / f"rpnet-{database_key(catalog, camera, config)}.msgpack"
 
 
-def build_database(catalog, camera, config: Config | None = None, *, cache: bool = True,
+def build_database(catalog, camera, config: Config | None = None, *, use_cache: bool = True,
                    progress: bool = True, train_if_missing: bool = True) -> Database:
     """Guide catalog + trained networks (loaded from the cache, or trained and cached).
 
@@ -102,11 +111,11 @@ def build_database(catalog, camera, config: Config | None = None, *, cache: bool
         catalog: :class:`~jstarid.catalog.Catalog` (V 7.0 simulation list for magnitude noise).
         camera: :class:`~jstarid.camera.Camera`.
         config: :class:`Config` (default: paper); ``config.training`` sets the training run.
-        cache: read / write the checkpoint under the cache directory.
+        use_cache: read / write the checkpoint under the cache directory (:func:`checkpoint_path`).
         progress: progress bars while training.
         train_if_missing: train when no checkpoint exists (else raise ``FileNotFoundError``). With
-            ``cache``, training writes snapshots (``….partial.msgpack`` beside the checkpoint) and
-            an interrupted training resumes from the last one.
+            ``use_cache``, training writes snapshots (``….partial.msgpack`` beside the checkpoint)
+            and an interrupted training resumes from the last one.
 
     Returns:
         :class:`Database`.
@@ -115,21 +124,22 @@ def build_database(catalog, camera, config: Config | None = None, *, cache: bool
     rows = guide_rows(catalog, config)
     meta = checkpoint_meta(catalog, camera, config, rows)
     path = checkpoint_path(catalog, camera, config)
-    history = None
-    if cache and path.exists():
-        variables = load_checkpoint(path, meta, _template(config, len(rows)))
-    elif not train_if_missing:
-        raise FileNotFoundError(f"no RpNet checkpoint at {path}; train with experiments/train_rpnet.py")
-    else:
-        # with the cache, training leaves snapshots next to the checkpoint: an interrupted run
-        # resumes where it stopped when called again
-        snapshot = path.with_name(path.stem + ".partial.msgpack") if cache else None
-        variables, history = train(catalog, camera, config, rows, progress=progress,
-                                   snapshot_path=snapshot)
-        if cache:
-            save_checkpoint(path, variables, meta)
-            snapshot.unlink(missing_ok=True)
-    return _database(catalog, camera, config, rows, variables, history, path if cache else None)
+    # with the cache, training leaves snapshots next to the checkpoint: an interrupted run resumes
+    # where it stopped when called again
+    snapshot = path.with_name(path.stem + ".partial.msgpack") if use_cache else None
+
+    def trained() -> tuple[dict, dict]:
+        if not train_if_missing:
+            raise FileNotFoundError(f"no RpNet checkpoint at {path}; train with experiments/train_rpnet.py")
+        return train(catalog, camera, config, rows, progress=progress, snapshot_path=snapshot)
+
+    (variables, history), loaded = load_or_build(
+        path if use_cache else None, trained,
+        load=lambda file: (load_checkpoint(file, meta, _template(config, len(rows))), None),
+        save=lambda file, built: save_checkpoint(file, built[0], meta))
+    if use_cache and not loaded:
+        snapshot.unlink(missing_ok=True)  # the checkpoint is written: nothing left to resume
+    return _database(catalog, camera, config, rows, variables, history, path if use_cache else None)
 
 
 def load_database(path, catalog, camera, config: Config | None = None) -> Database:

@@ -13,6 +13,7 @@ import dataclasses
 import functools
 import math
 import time
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -24,7 +25,7 @@ from jstarid.algorithms.sgm.bound import row_table, sorted_edges
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import adjacency_deg, catalog_neighbors, mst_weight, plane_coords
 from jstarid.camera import radius_that_fits
-from jstarid.catalog import cache_dir, temporary_path
+from jstarid.catalog import cache_dir, load_or_build, read_arrays, write_arrays
 from jstarid.geometry import KVector, build_kvector
 from jstarid.runtime import device_cache
 from jstarid.runtime.program_store import stored_jit
@@ -59,6 +60,10 @@ class Database:
         from_cache: loaded from disk.
         key: :meth:`cache_key`, the name of its cache file.
     """
+
+    #: The first ``identify`` of a process with no program kept on disk compiles one kernel per
+    #: graph-size bucket: ≈ 95 s for the demo on 2 CPU cores (:func:`jstarid.engine.plan`).
+    FIRST_COMPILE_SECONDS: ClassVar[float] = 100.0
 
     main: np.ndarray
     members: np.ndarray
@@ -225,18 +230,13 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
     key = _cache_key(catalog, config)
     path = cache_dir() / f"sgm-{key}.npz"
     t0 = time.perf_counter()
-    arrays, from_cache = None, False
-    if use_cache and path.exists():
-        with np.load(path) as f:
-            arrays = {k: f[k] for k in _STORED}
+    # the adjacency is not stored (99 % of the database, a second to recompute: _adjacency)
+    arrays, from_cache = load_or_build(
+        path if use_cache else None, lambda: _build_arrays(catalog, config, progress),
+        load=functools.partial(read_arrays, names=_STORED),
+        save=lambda file, built: write_arrays(file, {k: built[k] for k in _STORED}))
+    if from_cache:
         arrays["adj"] = _adjacency(catalog, arrays["members"], arrays["n"])
-        from_cache = True
-    if arrays is None:
-        arrays = _build_arrays(catalog, config, progress)
-        if use_cache:
-            tmp = temporary_path(path)
-            np.savez(tmp, **{k: arrays[k] for k in _STORED})
-            tmp.replace(path)
     kv, order = build_kvector(arrays["w"])
     if not np.array_equal(order, np.arange(order.size)):  # stored sorted; stable sort keeps it
         raise RuntimeError("SGM database is not sorted by w")

@@ -19,12 +19,11 @@ import numpy as np
 from jstarid.algorithms.base import cache_key
 from jstarid.algorithms.voting.config import Config
 from jstarid.camera import Camera
-from jstarid.catalog import cache_dir
-from jstarid.geometry.kvector import KVector, build_kvector
+from jstarid.geometry.kvector import KVector
 from jstarid.geometry.star_pairs import (
-    cached_pair_table,
-    expected_pairs,
     frame_pair_angle,
+    pair_database,
+    pair_table_first_use,
     table_problem,
     widest_window,
 )
@@ -93,32 +92,21 @@ def build_database(catalog, camera: Camera, config: Config | None = None, *, use
             (:func:`camera_problem`), or the catalog has fewer than two stars.
     """
     config = Config() if config is None else config
-    problem = camera_problem(camera, config, catalog)
-    if problem:
-        raise ValueError(problem)
     if len(catalog) < 2:
         raise ValueError("voting needs a catalog of at least two stars")
     key = _cache_key(catalog, camera, config)
-    path = cache_dir() / f"voting-{key}.npz"
-    max_angle = frame_pair_angle(camera)
-    vectors = np.asarray(catalog.unit_vectors, np.float64)
-    angles, pairs = cached_pair_table(path if use_cache else None, vectors, max_angle, progress=progress,
-                                      desc="voting pair table")
-    if angles.size == 0:
-        raise ValueError("voting: no two catalog stars fit in one frame of this camera")
-    kvector, _ = build_kvector(angles)  # already sorted: the order is the identity
-    return Database(kvector=kvector, pairs=jnp.asarray(pairs), star_vectors=jnp.asarray(vectors, jnp.float32),
-                    camera=camera, max_angle_rad=max_angle, key=key)
+    # the size check (camera_problem), the cached table and its k-vector, shared with the pyramid
+    table = pair_database("voting", key, catalog, camera, use_cache=use_cache, progress=progress)
+    return Database(kvector=table.kvector, pairs=jnp.asarray(table.pairs),
+                    star_vectors=jnp.asarray(table.vectors, jnp.float32), camera=camera,
+                    max_angle_rad=frame_pair_angle(camera), key=key)
 
 
 def first_use(catalog, camera: Camera, config: Config | None = None) -> tuple[str, float] | None:
     """What :func:`build_database` builds for these settings and about how long it takes on a 2-core
     CPU (s); ``None`` when it is cached."""
     config = Config() if config is None else config
-    if (cache_dir() / f"voting-{_cache_key(catalog, camera, config)}.npz").exists():
-        return None
-    pairs = expected_pairs(len(catalog), frame_pair_angle(camera))
-    return f"voting pair table for {camera.name} (≈ {pairs / 1e6:.1f} M pairs)", max(2.0, pairs / 1e6)
+    return pair_table_first_use("voting", _cache_key(catalog, camera, config), catalog, camera)
 
 
 _WINDOWS: dict[tuple[str, float], int] = {}
