@@ -20,6 +20,7 @@ from jstarid.compilation_cache import enable_compilation_cache
 from jstarid.completion import name_from_attitude
 from jstarid.engine import Entry, SweepResult, compare, grid, sweep
 from jstarid.engine import load as load_sweep
+from jstarid.finishing import Finishing
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.render import SensorConfig, mean_electrons, render, sensor_for_camera
 from jstarid.runtime import use_cpu_cores
@@ -29,7 +30,7 @@ from jstarid.simulator import NoiseConfig, SceneSampler, noise_grid, scene_sampl
 __version__ = "0.1.0"
 
 __all__ = [
-    "Camera", "Catalog", "CentroidConfig", "Entry", "Identification", "NoiseConfig", "Scene",
+    "Camera", "Catalog", "CentroidConfig", "Entry", "Finishing", "Identification", "NoiseConfig", "Scene",
     "SensorConfig", "mean_electrons", "render", "sensor_for_camera",
     "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",
     "plotting", "runtime", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",

@@ -65,6 +65,7 @@ from jstarid.robust import brighter_than_named, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
+from jstarid.runtime.padding import next_power_of_two
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import pad_with_empty
 
@@ -804,7 +805,7 @@ def _call_size(n: int) -> int:
 
 def _bucket(n: int) -> int:
     """The padded size of a retried batch of ``n`` scenes: the next power of two, at least 8."""
-    return max(8, 1 << (int(n) - 1).bit_length())
+    return next_power_of_two(n, floor=8)
 
 
 def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER_MIN_NAMES):

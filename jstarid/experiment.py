@@ -45,6 +45,8 @@ from typing import Any
 import jax
 import numpy as np
 
+from jstarid.serialization import to_json
+
 __all__ = ["Stopwatch", "dump_json", "load", "machine", "markdown_table", "parser", "peak_rss_mb",
            "provenance", "time_call", "to_json", "with_overrides", "write"]
 
@@ -74,21 +76,37 @@ def parser(description: str, *, out: str, seed: int = 0, quick: str | None = Non
 def with_overrides(config, items: Sequence[str] | Mapping[str, Any] | None):
     """``config`` with fields replaced from ``["field=json", …]`` (or a mapping).
 
+    A dotted name sets a field of a nested config: ``finishing.focal_search=[]`` replaces
+    ``config.finishing.focal_search`` (a JSON object given for a nested config sets it whole, through
+    its own validation).
+
     Raises:
         ValueError: an item without ``=``, a value that is not JSON, or an unknown field (the
             message lists the config's fields).
     """
     if not items:
         return config
-    fields = {f.name for f in dataclasses.fields(config)}
-    changes = {}
     for name, value in (items.items() if isinstance(items, Mapping) else map(_split, items)):
-        if name not in fields:
-            raise ValueError(f"{type(config).__name__} has no field {name!r}; "
-                             f"fields: {', '.join(sorted(fields))}")
-        current = getattr(config, name)
-        changes[name] = tuple(value) if isinstance(current, tuple) and isinstance(value, list) else value
-    return dataclasses.replace(config, **changes)
+        config = _replaced(config, name.split("."), value)
+    return config
+
+
+def _replaced(config, path: list[str], value):
+    """``config`` with the field at ``path`` (a nested config's field for a longer path) set to ``value``."""
+    fields = {f.name for f in dataclasses.fields(config)}
+    name = path[0]
+    if name not in fields:
+        raise ValueError(f"{type(config).__name__} has no field {name!r}; "
+                         f"fields: {', '.join(sorted(fields))}")
+    current = getattr(config, name)
+    if len(path) > 1:
+        if not dataclasses.is_dataclass(current):
+            raise ValueError(f"{type(config).__name__}.{name} is not a nested config; cannot set "
+                             f"{'.'.join(path)}")
+        value = _replaced(current, path[1:], value)
+    elif isinstance(current, tuple) and isinstance(value, list):
+        value = tuple(value)
+    return dataclasses.replace(config, **{name: value})
 
 
 def _split(item: str) -> tuple[str, Any]:
@@ -173,26 +191,6 @@ def provenance() -> dict:
     """Commit (``+changes`` when the package has uncommitted edits), machine, command line, date."""
     return {"commit": _git_commit(), "machine": machine(), "command": _command(),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
-
-
-def to_json(value):
-    """A JSON-ready copy of ``value``: dataclasses (configs, cameras) as dicts, NumPy/JAX arrays
-    and scalars as lists and numbers, non-finite floats as ``None``, paths as strings."""
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: to_json(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, Mapping):
-        return {str(k): to_json(v) for k, v in value.items()}
-    if isinstance(value, tuple | list):
-        return [to_json(v) for v in value]
-    if isinstance(value, np.ndarray | jax.Array):
-        return to_json(np.asarray(value).tolist())
-    if isinstance(value, np.generic):
-        return to_json(value.item())
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 def write(out: str | Path, *, config: Mapping, results: Mapping, table: str | None = None,

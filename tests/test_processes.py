@@ -19,8 +19,9 @@ from jstarid import cli
 from jstarid.engine import processes
 
 SWEEP = ["sweep", "--algorithms", "oracle,mlv", "--camera", "mlv2021", "--mag-limit", "5.5",
-         "--set", "mlv.n_boresights=20000", "mlv.batch_chunk=100", "mlv.focal_search=[]",
-         "mlv.fit_focal=false", "--levels", "0,2.5", "--fixed", "magnitude_sigma=0.3", "--scenes", "9",
+         "--set", "mlv.n_boresights=20000", "mlv.batch_chunk=100",
+         "mlv.finishing.focal_search=[]", "mlv.finishing.fit_focal=false",
+         "--levels", "0,2.5", "--fixed", "magnitude_sigma=0.3", "--scenes", "9",
          "--chunk-size", "4", "--quiet"]
 
 

@@ -239,3 +239,31 @@ def test_power_of_two_chunks_cover_the_rows_with_little_padding(n):
     assert all(hi - lo == padded for lo, hi, padded in chunks[:-1])
     lo, hi, padded = chunks[-1]
     assert padded == 64 or padded - (hi - lo) <= 0.25 * (hi - lo)
+
+
+@pytest.mark.parametrize("floor", [1, 8, 16])
+def test_next_power_of_two_is_the_smallest_above_n_and_floor(floor):
+    from jstarid.runtime import next_power_of_two
+    for n in [0, 0.5, 1, 2, 3, 4.5, 7, 8, 9, 63, 64, 65, 1000, 4096, 4097]:
+        want = max(floor, 2 ** max(0, int(np.ceil(np.log2(max(n, 1))))))  # the float reference
+        assert next_power_of_two(n, floor) == want, n
+
+
+def test_padded_indices_repeat_the_first_row_up_to_a_power_of_two():
+    from jstarid.runtime import padded_indices
+    np.testing.assert_array_equal(padded_indices(np.array([5, 2, 9])), [5, 2, 9, 5])
+    np.testing.assert_array_equal(padded_indices(np.array([4, 1])), [4, 1])
+    assert padded_indices(np.arange(3), floor=8).tolist() == [0, 1, 2, 0, 0, 0, 0, 0]
+
+
+def test_static_config_resets_what_the_kernels_do_not_compile():
+    """Configs that differ only in traced or host-loop fields share one static config (one program);
+    a field the kernels read keeps its value, and an unknown name is refused."""
+    from jstarid.algorithms import mlv
+    from jstarid.runtime import static_config
+    traced = ("th1", "eps_deg", "batch_chunk", "finishing")
+    a = static_config(mlv.Config(th1=2, eps_deg=0.3, batch_chunk=64, finishing={"fit_focal": False}), traced)
+    assert a == mlv.Config() and hash(a) == hash(mlv.Config())
+    assert static_config(mlv.Config(n_stars=8), traced).n_stars == 8
+    with pytest.raises(ValueError, match="no field"):
+        static_config(mlv.Config(), ("not_a_field",))

@@ -233,10 +233,11 @@ def _reported(entry, overrides: dict) -> list:
     ``REPORTED`` fields (cedar: its default and a tuned ``match_max_error``) that ``--set`` leaves
     alone."""
     import jstarid as js
+    from jstarid.algorithms import base
 
-    set_fields = {field for target, _, field in (key.rpartition(".") for key in overrides)
+    set_fields = {path.partition(".")[0] for target, path in map(_set_target, overrides)
                   if target in ("", entry.algorithm)}
-    reported = {k: v for k, v in getattr(js.algorithms.get(entry.algorithm), "REPORTED", {}).items()
+    reported = {k: v for k, v in base.reported(js.algorithms.get(entry.algorithm)).items()
                 if k not in set_fields}
     return js.grid(entry.algorithm, entry.config, label=entry.label, **reported) if reported else [entry]
 
@@ -249,17 +250,28 @@ def _with_overrides(entries, overrides: dict):
 
     out = list(entries)
     for key, text in overrides.items():
-        target, _, field = key.rpartition(".")
+        target, path = _set_target(key)
+        field = path.partition(".")[0]
         hit = False
         for k, e in enumerate(out):
             names = {f.name for f in dataclasses.fields(e.config)}
             if (target and target != e.algorithm) or field not in names:
                 continue
-            out[k] = e._replace(config=with_overrides(e.config, [f"{field}={text}"]))
+            out[k] = e._replace(config=with_overrides(e.config, [f"{path}={text}"]))
             hit = True
         if not hit:
             raise ValueError(f"--set {key}: no algorithm in the run has a field {field!r}")
     return out
+
+
+def _set_target(key: str) -> tuple[str, str]:
+    """``(algorithm, field path)`` of a ``--set`` key: ``mlv.finishing.fit_focal`` →
+    ``("mlv", "finishing.fit_focal")``; a key whose first part names no algorithm applies to every
+    entry having that field (``finishing.fit_focal`` → ``("", "finishing.fit_focal")``)."""
+    import jstarid as js
+
+    head, _, rest = key.partition(".")
+    return (head, rest) if rest and head in js.algorithms.names() else ("", key)
 
 
 def run_demo(args: argparse.Namespace) -> int:

@@ -6,12 +6,13 @@
   ``run_calls``), retry flagged rows with a larger buffer (``grow_until``), and inside one compiled
   call run rows of different sizes in chunks of the narrowest width that holds them
   (``map_by_width``);
-- :mod:`.padding`: the padding rule (``pad_rows``);
+- :mod:`.padding`: the padding rules (``pad_rows``, ``next_power_of_two``, ``padded_indices``);
 - :mod:`.cache`: device copies and derived tables of long-lived objects (``DeviceCache``);
 - :mod:`.memory_maps`: drop JAX's compiled caches before a process reaches Linux's limit on memory
   mappings (``relieve``);
 - :mod:`.staging_memory`: drop what JAX keeps of staging programs already compiled, and trim the
   heap (``release_staging``);
+- :mod:`.static`: the static config a kernel compiles with (``static_config``);
 - :mod:`.program_store`: keep compiled programs on disk so that a later process loads them without
   tracing, lowering or compiling (``stored_jit``; on in the CLI and scripts).
 """
@@ -21,9 +22,11 @@ from jstarid.runtime.batching import Call, chunk_calls, grow_until, map_by_width
 from jstarid.runtime.cache import DeviceCache, device_cache, on_every_device
 from jstarid.runtime.devices import batch_mesh, map_batch, replicate, shard_batch, use_cpu_cores
 from jstarid.runtime.memory_maps import relieve
-from jstarid.runtime.padding import pad_rows
+from jstarid.runtime.padding import next_power_of_two, pad_rows, padded_indices
 from jstarid.runtime.staging_memory import release_staging
+from jstarid.runtime.static import static_config
 
-__all__ = ["Call", "DeviceCache", "batch_mesh", "chunk_calls", "device_cache", "grow_until",
-           "map_batch", "map_by_width", "on_every_device", "pad_rows", "program_store", "release_staging",
-           "relieve", "replicate", "run_calls", "shard_batch", "take_rows", "use_cpu_cores"]
+__all__ = ["batch_mesh", "Call", "chunk_calls", "device_cache", "DeviceCache", "grow_until",
+           "map_batch", "map_by_width", "next_power_of_two", "on_every_device", "pad_rows",
+           "padded_indices", "program_store", "release_staging", "relieve", "replicate", "run_calls",
+           "shard_batch", "static_config", "take_rows", "use_cpu_cores"]

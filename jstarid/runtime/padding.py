@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["pad_rows", "power_of_two_chunks"]
+__all__ = ["next_power_of_two", "pad_rows", "padded_indices", "power_of_two_chunks"]
 
 MAX_PADDING = 0.25  # power_of_two_chunks: most padding of a last chunk, as a share of its rows
 
@@ -39,6 +41,24 @@ def pad_rows(tree, size: int, *, mode: str = "zeros"):
         return xp.pad(a, [(0, extra)] + [(0, 0)] * (a.ndim - 1))
 
     return jax.tree.map(pad, tree)
+
+
+def next_power_of_two(n: float, floor: int = 1) -> int:
+    """The smallest power of two ≥ ``n`` and ≥ ``floor``: the padded size of every variable-size batch,
+    buffer and retry, so that a few static shapes (compilations) serve every call.
+
+    Args:
+        n: the size to hold (a float is rounded up; ≤ 1 gives 1).
+        floor: the smallest size returned (a power of two).
+    """
+    return max(int(floor), 1 << max(math.ceil(n) - 1, 0).bit_length())
+
+
+def padded_indices(rows: np.ndarray, floor: int = 1) -> np.ndarray:
+    """``rows`` (R,) (R ≥ 1) padded to :func:`next_power_of_two` (R, floor) with copies of its first
+    entry: the rows of a sub-batch gathered at a size that earlier calls have compiled."""
+    rows = np.asarray(rows)
+    return np.concatenate([rows, np.full(next_power_of_two(rows.size, floor) - rows.size, rows[0])])
 
 
 def power_of_two_chunks(n: int, floor: int, max_padding: float = MAX_PADDING) -> list[tuple[int, int, int]]:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import jstarid as js
+from jstarid import Finishing
 from jstarid.algorithms import sgm
 from jstarid.algorithms.sgm.matching import spectral_match
 
@@ -20,7 +21,12 @@ def _search_config(**fields):
     """The algorithm without its focal-length ladder and camera check (tested in
     ``test_camera_errors.py`` and the contract test): these tests are about the search, and the
     ladder would search every failing scene four more times."""
-    return sgm.Config(focal_search=(), fit_focal=False, **fields)
+    return sgm.Config(finishing=Finishing.off(), **fields)
+
+
+def _without_ladder(config):
+    """``config`` with the focal-length ladder off and the camera check as it was."""
+    return dataclasses.replace(config, finishing=dataclasses.replace(config.finishing, focal_search=()))
 
 
 @pytest.fixture(scope="module")
@@ -811,7 +817,7 @@ def test_focal_ladder_and_camera_check_under_a_two_percent_focal_error(setup):
     true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
     scenes = js.simulate(jax.random.key(31), cat, true, js.NoiseConfig(position_sigma_px=0.5),
                          batch_size=160, capacity=CAPACITY)
-    off = sgm.identify(db, scenes, dataclasses.replace(cfg, focal_search=()))
+    off = sgm.identify(db, scenes, _without_ladder(cfg))
     on = sgm.identify(db, scenes, cfg)
     ok_off, ok_on = np.asarray(off.ok), np.asarray(on.ok)
     assert np.all(ok_on[ok_off]) and ok_on.sum() > ok_off.sum()
@@ -868,7 +874,7 @@ def test_next_main_star_solves_scenes_whose_main_star_is_a_false_star(setup5):
     cat, cam, db = setup5
     scenes = _false_star_at_the_centre(js.simulate(jax.random.key(31), cat, cam, batch_size=32,
                                                    capacity=64), cam)
-    cfg = sgm.Config(focal_search=())
+    cfg = _without_ladder(sgm.Config())
     one = sgm.identify(db, scenes, cfg)
     two = sgm.identify(db, scenes, dataclasses.replace(cfg, main_stars=2))
     m1 = js.metrics.scene_outcomes(scenes, one, "strict", camera=cam)

@@ -9,6 +9,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import jstarid as js
+from jstarid import Finishing
 from jstarid.algorithms import sgm
 from jstarid.algorithms.sgm.graph import plane_coords, separation_deg
 from jstarid.algorithms.sgm.screen import nearest_radii, screen_pairs, screen_pass, triangle_support
@@ -124,7 +125,7 @@ def test_search_with_the_screen_is_algorithm1_over_the_candidates_that_pass(setu
 
     from jstarid.algorithms.sgm import search
     cat, cam, db = setup5
-    cfg = sgm.Config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5, focal_search=(), fit_focal=False)
+    cfg = sgm.Config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5, finishing=Finishing.off())
     rows, _, g, usable = _noisy_graphs(setup5, cfg, n=5, seed=2, key=6)
     state = search.advance_search(db, g, search.start_search(db, g, usable, cfg), cfg)
     out = search.search_outcome(state, cfg, g.mask.shape[1])

@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import jstarid as js
+from jstarid import Finishing
 from jstarid.algorithms import sgm
 from jstarid.algorithms.sgm.graph import adjacency_deg
 from jstarid.algorithms.sgm.identify import searchable_graphs
@@ -138,7 +139,7 @@ def test_subgraph_identifies_scenes_deeper_than_the_database_and_never_wrongly(s
     cam = js.camera_preset("sgm2022", mag_limit=5.5)
     noise = js.NoiseConfig(position_sigma_px=0.5, magnitude_sigma=0.2)
     scenes = js.simulate(jax.random.key(4), sim_cat, cam, noise, batch_size=32, capacity=20)
-    config = sgm.Config(subgraph=True, focal_search=(), fit_focal=False)
+    config = sgm.Config(subgraph=True, finishing=Finishing.off())
     res, diag = sgm.identify(db, scenes, config, diagnostics=True)
     named, right = _hip_correct(np.asarray(res.ids), np.asarray(scenes.truth), cat5, sim_cat)
     assert np.array_equal(named, right)  # no wrong name

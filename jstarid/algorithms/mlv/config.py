@@ -10,6 +10,7 @@ import jax
 import numpy as np
 
 from jstarid.camera import tolerance_scales
+from jstarid.finishing import Finishing
 
 __all__ = ["Config", "Tuning"]
 
@@ -101,14 +102,10 @@ class Config:
         field_check: under the final cluster's attitude, at least ``field_check_fraction`` of the N
             brightest catalog stars predicted in the frame need a detection within
             ``residual_max_deg``. Why: a three-member cluster can be one chance triangle match.
-        fit_focal: check every solved scene's names against a joint fit of the attitude and the
-            focal length (:mod:`jstarid.camera_fit`); names the fit cannot explain are taken back,
-            and the fitted scale is reported. Why: a focal length off by 1–2 % names edge stars
-            after other stars.
-        focal_search: focal-length factors under which the scenes still unsolved are tried again,
-            in order (:func:`jstarid.camera_fit.search_focal`); ``()`` turns it off. Why: the
-            triangle features are angles, and 1 % of focal length moves them past Th1, Th2.
-        max_focal_error: largest relative focal-length correction of a solved scene.
+        finishing: the finishing stage (:class:`jstarid.finishing.Finishing`): the focal-length
+            ladder and the camera check. Why: the triangle features are angles, and 1 % of focal
+            length moves them past Th1, Th2; a focal length off by 1–2 % names edge stars after
+            other stars.
     """
 
     n_stars: int = 10
@@ -138,9 +135,7 @@ class Config:
     ambiguity_deg: float = 0.2
     field_check: bool = True
     field_check_fraction: float = 0.5
-    fit_focal: bool = True
-    focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
-    max_focal_error: float = 0.1
+    finishing: Finishing = Finishing()
 
     def __post_init__(self):
         if not 3 <= int(self.n_stars) <= 12:
@@ -162,10 +157,7 @@ class Config:
             raise ValueError("batch_chunk and map_batch must be ≥ 1")
         if int(self.n_boresights) < 1:
             raise ValueError("n_boresights must be ≥ 1")
-        if not 0.0 <= self.max_focal_error < 0.5:
-            raise ValueError(f"max_focal_error must be in [0, 0.5), got {self.max_focal_error}")
-        if any(not (math.isfinite(f) and 0.5 < f < 2.0) for f in self.focal_search):
-            raise ValueError(f"focal_search factors must lie in (0.5, 2), got {self.focal_search}")
+        object.__setattr__(self, "finishing", Finishing.coerce(self.finishing))
 
     @property
     def side_tol_rad(self) -> float:
@@ -182,7 +174,7 @@ class Config:
         """The paper's algorithm alone (Table 1): no vertex matching, attitude, field or camera check,
         no focal search, and every triangle votes (``max_candidate_capacity=None``)."""
         return cls(**{"vertex_match": False, "attitude_check": False, "field_check": False,
-                      "fit_focal": False, "focal_search": (), "max_candidate_capacity": None,
+                      "finishing": Finishing.off(), "max_candidate_capacity": None,
                       **overrides})
 
     @classmethod

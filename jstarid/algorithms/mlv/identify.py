@@ -53,8 +53,17 @@ from jstarid.algorithms.mlv.voting import (
     gather_pool,
     observed_sides,
 )
-from jstarid.camera_fit import check_identification, search_focal
-from jstarid.runtime import chunk_calls, device_cache, grow_until, on_every_device, run_calls, take_rows
+from jstarid.finishing import finish
+from jstarid.runtime import (
+    chunk_calls,
+    device_cache,
+    grow_until,
+    next_power_of_two,
+    on_every_device,
+    run_calls,
+    static_config,
+    take_rows,
+)
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import local_stars
@@ -182,10 +191,6 @@ class Buffers(NamedTuple):
     window_mean: float | None
 
 
-def _power_of_two(n) -> int:
-    return 1 << max(int(math.ceil(n)) - 1, 0).bit_length()
-
-
 def candidate_buffers(database: Database, config: Config, th1_max: int | None = None,
                       th2_max: int | None = None) -> Buffers:
     """K, its retry bound and the expected window size, from the config or the database's density.
@@ -210,9 +215,9 @@ def candidate_buffers(database: Database, config: Config, th1_max: int | None = 
     th2 = int(config.th2 if th2_max is None else th2_max)
     counts = device_cache.cached(database, f"mlv-window-counts-{th1}-{th2}",
                                  lambda: window_counts(database, th1, th2))
-    k_max = max(MAX_CAPACITY_FLOOR, _power_of_two(counts.max()))
+    k_max = max(MAX_CAPACITY_FLOOR, next_power_of_two(counts.max()))
     if k is None:  # every triangle votes: start where the database's windows say
-        k = min(max(CAPACITY_FLOOR, _power_of_two(np.percentile(counts, 99))), k_max)
+        k = min(max(CAPACITY_FLOOR, next_power_of_two(np.percentile(counts, 99))), k_max)
     return Buffers(capacity=int(k), max_capacity=max(k_max, int(k)), window_mean=float(counts.mean()))
 
 
@@ -337,18 +342,10 @@ def _identify_batch(xy, valid, all_xy, all_valid, tuning, db, config, capacity, 
     return jax.lax.map(one, args, batch_size=config.map_batch)
 
 
-def _kernel_config(config: Config) -> Config:
-    """The config with the fields the kernel does not read as static (buffers, chunking, database
-    settings, traced :class:`Tuning` tolerances) reset to defaults, so such configs share a compilation.
-    """
-    d = Config()
-    return dataclasses.replace(config, candidate_capacity=d.candidate_capacity,
-                               max_candidate_capacity=d.max_candidate_capacity,
-                               candidate_pool=d.candidate_pool, batch_chunk=d.batch_chunk,
-                               n_boresights=d.n_boresights, database_roll_deg=d.database_roll_deg,
-                               th1=d.th1, th2=d.th2, eps_deg=d.eps_deg,
-                               side_tol_deg=d.side_tol_deg, fit_focal=d.fit_focal,
-                               focal_search=d.focal_search, max_focal_error=d.max_focal_error)
+# the fields the kernel does not read as static (buffers, chunking, database settings, the traced
+# Tuning tolerances, the finishing stage): configs that differ only there share a compilation
+_NOT_COMPILED = ("candidate_capacity", "max_candidate_capacity", "candidate_pool", "batch_chunk",
+                 "n_boresights", "database_roll_deg", "th1", "th2", "eps_deg", "side_tol_deg", "finishing")
 
 
 def _brightest(scenes: Scene, n: int):
@@ -383,13 +380,11 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     (:func:`default_pool`) are recomputed with a doubled P up to T·K, so the result never depends
     on P.
 
-    Extensions (``Config.focal_search``, ``Config.fit_focal``; off in ``Config.paper()``): the scenes
-    left unsolved are tried again as if the focal length were each factor of ``focal_search`` × the
-    camera's (:func:`jstarid.camera_fit.search_focal`; the triangle features are angles, and a
-    focal length off by 1 % moves them past the tolerances), and every solved scene's names are
-    checked against a fit of the attitude and the focal length
-    (:func:`jstarid.camera_fit.check_identification`), which sets ``focal_scale``. Diagnostics
-    describe the first pass.
+    Then the finishing stage (``Config.finishing``, :func:`jstarid.finishing.finish`; off in
+    ``Config.paper()``): the scenes left unsolved are tried again under focal lengths 1–2 % off (the
+    triangle features are angles, and a focal length off by 1 % moves them past the tolerances), and
+    every solved scene's names are checked against a fit of the attitude and the focal length,
+    which sets ``focal_scale``. Diagnostics describe the first pass.
 
     Args:
         database: from :func:`~jstarid.algorithms.mlv.build_database` (same camera as the scenes).
@@ -410,18 +405,14 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
     check_scenes(scenes)
     out = _identify(database, scenes, config, diagnostics=diagnostics, tuning=tuning)
     result, diag = out if diagnostics else (out, None)
-    if scenes.batch_size and config.focal_search:
-        tuning = config.tuning() if tuning is None else tuning
+    tuning = config.tuning() if tuning is None else tuning
 
-        def run(moved, rows):  # per-scene tolerances (a grid) follow their scenes
-            sub = jax.tree.map(lambda t: t[rows] if np.ndim(t) else t, tuning)
-            return _identify(database, moved, config, tuning=sub)
+    def rerun(moved, rows):  # per-scene tolerances (a grid) follow their scenes
+        sub = jax.tree.map(lambda t: t[rows] if np.ndim(t) else t, tuning)
+        return _identify(database, moved, config, tuning=sub)
 
-        result = search_focal(run, result, scenes, database.camera, config.focal_search)
-    if scenes.batch_size and config.fit_focal:
-        result = check_identification(database.catalog_vectors, database.camera, scenes, result,
-                                      max_scale_error=config.max_focal_error,
-                                      star_mags=database.catalog_mags)
+    result = finish(result, scenes, config.finishing, rerun=rerun, camera=database.camera,
+                    star_vectors=database.catalog_vectors, star_mags=database.catalog_mags).result
     return (result, diag) if diagnostics else result
 
 
@@ -453,7 +444,7 @@ def _identify(database: Database, scenes: Scene, config: Config, *, diagnostics:
     batched = jax.tree.map(np.asarray, (xy, valid, all_xy, all_valid, tuning))
     t = math.comb(config.n_stars, 3)
     chunk = min(config.batch_chunk, b)
-    static = dict(config=_kernel_config(config), th1_max=th1_max)
+    static = dict(config=static_config(config, _NOT_COMPILED), th1_max=th1_max)
     per_scene = dict(ids=(config.n_stars,), attitude=(3, 3), n_candidates=(t,),
                      candidates=(config.n_stars,), votes=(config.n_stars,))  # the rest are scalars
     tails = [per_scene.get(field, ()) for field in SceneResult._fields]

@@ -40,7 +40,7 @@ from jstarid.attitude import solve_wahba
 from jstarid.geometry import precise
 from jstarid.geometry.angles import pairwise_angles
 from jstarid.geometry.kvector import range_search
-from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, take_rows
+from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, static_config, take_rows
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import local_stars
@@ -285,10 +285,8 @@ def _identify_chunk(xy, valid, mag, overflow, eps_rad, database, *, config, wind
                              batch_size=config.map_chunk))
 
 
-def _kernel_config(config: Config) -> Config:
-    """The compiled code's static config: ε (traced) and the call size do not change it."""
-    default = Config()
-    return dataclasses.replace(config, eps_px=default.eps_px, batch_chunk=default.batch_chunk)
+# ε is traced and the call size is the host loop's: neither changes the compiled code
+_NOT_COMPILED = ("eps_px", "batch_chunk")
 
 
 def identify(database: Database, scenes: Scene, config: Config | None = None, *, diagnostics: bool = False,
@@ -331,7 +329,8 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
 
         def run(level, rows):
             window, capacity = levels[level]
-            kernel_config = dataclasses.replace(_kernel_config(config), triangle_capacity=capacity)
+            kernel_config = dataclasses.replace(static_config(config, _NOT_COMPILED),
+                                                triangle_capacity=capacity)
             run_calls(_identify_chunk, chunk_calls(rows, min(config.batch_chunk, rows.size)),
                       lambda c: take_rows(batched, c), (tables,),
                       static=dict(config=kernel_config, window=window), n_rows=b, tails=[], fills=[], out=out)

@@ -18,6 +18,8 @@ import jax
 import jax.numpy as jnp
 
 from jstarid.camera import radius_that_fits, tolerance_scales
+from jstarid.finishing import Finishing
+from jstarid.runtime.static import static_config
 
 __all__ = ["Config", "GUIDE_ORDERS", "Training", "Tuning"]
 
@@ -79,7 +81,7 @@ class Tuning(NamedTuple):
 
 # Config fields that compiled identification never reads as compile-time constants: the traced
 # thresholds, and the host loop's chunking and pass counts (passed to the kernels separately).
-_NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk", "max_focal_error", "focal_search")
+_NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,14 +249,12 @@ class Config:
         n_pool_pairs: extension: after the triples, on the scenes still unconfirmed, this many of the
             best pairs of candidates of any two of the 3 · ``n_guide_triples`` nearest detections (eq. 11
             without position weights) are verified in score order (0 = off).
-        fit_focal: (extension) fit the focal length with the attitude in the naming passes and
-            check every name against that fit at the end (:mod:`jstarid.camera_fit`): a camera
-            whose focal length is off by a few % names its stars, not others.
-        max_focal_error: the largest relative focal-length correction of a solved scene.
-        focal_search: (extension) focal-length factors under which the scenes still unsolved are
-            tried again, in order (:func:`jstarid.camera_fit.search_focal`): the network reads a
-            pattern of angles, and a focal length off by 2 % moves the outer stars of the pattern by
-            ≈ 1.5 bins. A retry's solution needs 6 names. ``()``: off.
+        finishing: the finishing stage (:class:`jstarid.finishing.Finishing`): the focal-length
+            ladder and the camera check. With ``finishing.fit_focal`` (extension) the naming passes
+            also fit the focal length with the attitude, so a camera whose focal length is off by a
+            few % names its stars, not others; the ladder (``finishing.focal_search``) helps because
+            the network reads a pattern of angles, and a focal length off by 2 % moves the outer
+            stars of the pattern by ≈ 1.5 bins. A retry's solution needs 6 names.
         network_bf16: run the network's matmuls on bfloat16 operands with float32 accumulation
             (parameters stay float32). ``None``: bfloat16 where the hardware has it
             (:func:`.model.native_bf16`: GPU or TPU, or AVX512-BF16 / AMX-BF16 CPU flags), else
@@ -296,9 +296,7 @@ class Config:
     n_pair_trials: int = 3
     n_guide_triples: int = 12
     n_pool_pairs: int = 8
-    fit_focal: bool = True
-    max_focal_error: float = 0.1
-    focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
+    finishing: Finishing = Finishing()
     network_bf16: bool | None = None
     batch_chunk: int = 512
     name_chunk: int = 64
@@ -316,10 +314,7 @@ class Config:
             raise ValueError("match_sigmas, pair_sigmas, trim_sigmas must be > 0 and outlier_ratio ≥ 1")
         if not 1 <= self.n_pair_trials <= 27:
             raise ValueError(f"n_pair_trials must be in [1, 27], got {self.n_pair_trials}")
-        if not 0.0 <= self.max_focal_error < 0.5:
-            raise ValueError(f"max_focal_error must be in [0, 0.5), got {self.max_focal_error}")
-        if any(not (math.isfinite(f) and 0.5 < f < 2.0) for f in self.focal_search):
-            raise ValueError(f"focal_search factors must lie in (0.5, 2), got {self.focal_search}")
+        object.__setattr__(self, "finishing", Finishing.coerce(self.finishing))
         if self.n_pool_pairs < 0:
             raise ValueError(f"n_pool_pairs must be ≥ 0, got {self.n_pool_pairs}")
         if self.n_guide_triples < 1:
@@ -349,8 +344,9 @@ class Config:
         default: the kernels' static argument, so configs differing only in :class:`Tuning` (or host-loop
         settings) share one compilation.
         """
-        defaults = {f.name: f.default for f in dataclasses.fields(self) if f.name in _NOT_COMPILED}
-        return dataclasses.replace(self, **defaults)
+        # of the finishing stage the kernels read only whether the naming passes fit the focal length
+        return dataclasses.replace(static_config(self, _NOT_COMPILED),
+                                   finishing=Finishing(fit_focal=self.finishing.fit_focal))
 
     @property
     def n_bins(self) -> int:
@@ -427,7 +423,7 @@ class Config:
         camera fit or focal-length retries).
         """
         return cls(**{"pair_tol_px": None, "n_pair_trials": 1, "n_guide_triples": 1,
-                      "n_pool_pairs": 0, "min_coverage": 0.0, "fit_focal": False, "focal_search": (),
+                      "n_pool_pairs": 0, "min_coverage": 0.0, "finishing": Finishing.off(),
                       "name_isolation": 1.0,
                       **overrides})
 

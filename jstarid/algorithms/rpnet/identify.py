@@ -56,18 +56,13 @@ from jstarid.algorithms.rpnet.model import use_bf16
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.attitude import solve_wahba
 from jstarid.camera import tolerance_scales
-from jstarid.camera_fit import (
-    check_identification,
-    fit_scaled,
-    project_scaled,
-    search_focal,
-    unproject_scaled,
-)
+from jstarid.camera_fit import fit_scaled, project_scaled, unproject_scaled
 from jstarid.completion import first_argmax, name_stars
+from jstarid.finishing import finish
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
-from jstarid.runtime import chunk_calls, on_every_device, run_calls, take_rows
+from jstarid.runtime import chunk_calls, next_power_of_two, on_every_device, run_calls, take_rows
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
@@ -297,7 +292,7 @@ def _verify_pair(a, b, row_a, row_b, xy, body, valid, star_vectors, cells, th: T
                  config: Config, grid):
     """Steps 4–5 from one pair: detection ``a`` named catalog row ``row_a``, ``b`` named ``row_b``.
 
-    With ``config.fit_focal`` (extension) every refinement pass fits the focal length with the
+    With ``config.finishing.fit_focal`` (extension) every refinement pass fits the focal length with the
     attitude (:func:`jstarid.camera_fit.fit_scaled`) and the later steps use the fitted camera:
     a focal length off by 2 % moves the edge stars of a 20° frame by 10–15 px, beyond the naming
     tolerance, where the nominal camera leaves them unnamed or names them after another star.
@@ -322,7 +317,7 @@ def _verify_pair(a, b, row_a, row_b, xy, body, valid, star_vectors, cells, th: T
     c0 = jnp.where(jnp.sum(named_a) >= 2, c_a, c0)
 
     def refine(c, s):  # name within the fixed tolerance, refit on every named star (Wahba)
-        if not config.fit_focal:
+        if not config.finishing.fit_focal:
             rows, named = name_stars(c, body, valid, loc_vec, tol)
             return jnp.where(jnp.sum(named) >= 2, solve_wahba(body, loc_vec[rows],
                                                                named.astype(jnp.float32)), c), s
@@ -339,7 +334,7 @@ def _verify_pair(a, b, row_a, row_b, xy, body, valid, star_vectors, cells, th: T
     c1, scale = c0, jnp.float32(1.0)
     for _ in range(config.n_refine):  # unrolled: a loop inside vmap runs ≈ 4× slower on CPU
         c1, scale = refine(c1, scale)
-    if config.fit_focal:  # from here on the fitted camera: directions and pixels at f · scale
+    if config.finishing.fit_focal:  # from here on the fitted camera: directions and pixels at f · scale
         body = unproject_scaled(camera, xy, scale)
         tol = tol / scale
     f_px = camera.f_px * scale
@@ -537,7 +532,7 @@ def _local_index(database, config: Config):
 
 def _pass_chunk(n_scenes: int, config: Config) -> int:
     """Chunk size of a later pass over ``n_scenes`` unconfirmed scenes: a power of two ≥ 16."""
-    return min(config.batch_chunk, max(16, 1 << int(np.ceil(np.log2(n_scenes)))))
+    return min(config.batch_chunk, next_power_of_two(n_scenes, floor=16))
 
 
 class Diagnostics(NamedTuple):
@@ -559,12 +554,10 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
              tuning: Tuning | None = None):
     """Identify a batch of scenes (host loop over fixed-size chunks of one compiled function per width).
 
-    Extensions (``Config.focal_search``, ``Config.fit_focal``; off in ``Config.paper()``): the scenes
-    left unsolved are tried again as if the focal length were each factor of ``focal_search`` × the
-    camera's (:func:`jstarid.camera_fit.search_focal`), and every solved scene's names are checked
-    against a fit of the attitude and the focal length
-    (:func:`jstarid.camera_fit.check_identification`), which sets ``focal_scale``. Diagnostics
-    describe the first call.
+    Then the finishing stage (``Config.finishing``, :func:`jstarid.finishing.finish`; off in
+    ``Config.paper()``): the scenes left unsolved are tried again under focal lengths 1–2 % off, and
+    every solved scene's names are checked against a fit of the attitude and the focal length, which
+    sets ``focal_scale``. Diagnostics describe the first call.
 
     Args:
         database: :class:`~jstarid.algorithms.rpnet.database.Database`.
@@ -587,12 +580,10 @@ def identify(database, scenes: Scene, config: Config | None = None, *, diagnosti
     if config.database_fields() != database.config.database_fields():
         raise ValueError("config's network settings differ from the database's; build a database for it")
     result, diag = _identify(database, scenes, config, tuning)
-    if scenes.batch_size and config.focal_search:
-        result = search_focal(lambda moved, rows: _identify(database, moved, config, tuning)[0],
-                              result, scenes, database.camera, config.focal_search)
-    if scenes.batch_size and config.fit_focal:  # every name checked on a fit of attitude and scale
-        result = check_identification(database.star_vectors, database.camera, scenes, result,
-                                      max_scale_error=config.max_focal_error, star_mags=database.star_mags)
+    result = finish(result, scenes, config.finishing,
+                    rerun=lambda moved, rows: _identify(database, moved, config, tuning)[0],
+                    camera=database.camera, star_vectors=database.star_vectors,
+                    star_mags=database.star_mags).result
     return (result, diag) if diagnostics else result
 
 

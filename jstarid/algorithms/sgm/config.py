@@ -9,6 +9,7 @@ from typing import ClassVar, NamedTuple
 import jax
 
 from jstarid.camera import radius_that_fits, tolerance_scales
+from jstarid.finishing import Finishing
 
 __all__ = ["Config", "Tuning"]
 
@@ -150,10 +151,13 @@ class Config:
         verify_min_coverage: fraction of the catalog stars the verified attitude projects inside the
             frame (inset by ``verify_cap_deg``) that need a detection within ``verify_cap_deg``
             (0 = off); 0.4 as in RpNet.
-        focal_search: extension: focal-length factors under which the scenes still unsolved are
-            searched again, in order (:func:`jstarid.camera_fit.search_focal`); ``()`` turns it off.
-            Why: at f × 0.98 the verification, which fits the attitude alone, loses one scene in
-            ten that the true focal length solves.
+        finishing: extension: the finishing stage (:class:`jstarid.finishing.Finishing`): the
+            focal-length ladder (at f × 0.98 the verification, which fits the attitude alone, loses
+            one scene in ten that the true focal length solves) and the camera check, whose radius
+            is studentized for SGM (``studentized=True``: 6 σ̂ becomes 10.0 σ̂ over 12 names; the
+            plain radius took back right names 3–4 px out at σ = 1 px, where σ̂ of a dozen names
+            came out at half σ) and capped at ``verify_cap_deg``
+            (:func:`~jstarid.algorithms.sgm.identify.camera_check_cap_px`).
         focal_search_dw_max_deg: Δw_max of those searches (deg; ``None``: ``dw_max_deg``). Why:
             a scene the rescaled camera explains is found at small Δw, and the scenes left are
             mostly ones no focal length solves, which would search every level four more times
@@ -166,15 +170,6 @@ class Config:
             whole circle answers a scene the paper's criterion counts as not identified, and
             answered it lowers eq. 9's accuracy (lost stars, σ = 3 px: 152 of the ladder's 169
             answers, 71.30 → 69.09 %).
-        fit_focal: extension: check every solved scene's names against a joint fit of the attitude
-            and the focal length (:func:`jstarid.camera_fit.check_identification`) and report the
-            fitted ``focal_scale``.
-        max_focal_error: the largest relative focal-length correction of a solved scene.
-        fit_focal_studentized: the camera check's radius allows for the scatter of its σ̂
-            (:func:`jstarid.camera_fit.studentized_k`: 6 σ̂ becomes 10.0 σ̂ over 12 names).
-            Off, the check took back right names 3–4 px out at σ = 1 px, where σ̂ of a dozen names
-            came out at half σ (paper scenes, position σ = 1 px: 4 of 5,070 scenes, three answered
-            with part of the circle unnamed and one failed; experiments/RESULTS.md).
     """
 
     # what :func:`jstarid.engine.default_config` sets for detections from real frames, which do not
@@ -224,12 +219,9 @@ class Config:
     verify_rename: bool = True
     verify_retries: int = 3
     verify_min_coverage: float = 0.4
-    focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
+    finishing: Finishing = Finishing(studentized=True)
     focal_search_dw_max_deg: float | None = 1.0
     focal_search_whole_circle: bool = True
-    fit_focal: bool = True
-    max_focal_error: float = 0.1
-    fit_focal_studentized: bool = True
 
     def __post_init__(self):
         if not 0 < self.radius_deg < 90:
@@ -256,14 +248,10 @@ class Config:
                              "subgraph_main_stars ≥ 1")
         if self.min_stars < 1 or self.min_matched < 1 or self.main_stars < 1:
             raise ValueError("min_stars, min_matched and main_stars must be ≥ 1")
-        object.__setattr__(self, "focal_search", tuple(float(f) for f in self.focal_search))
-        if any(not (math.isfinite(f) and 0.5 < f < 2.0) for f in self.focal_search):
-            raise ValueError(f"focal_search factors must lie in (0.5, 2), got {self.focal_search}")
+        object.__setattr__(self, "finishing", Finishing.coerce(self.finishing))
         if self.focal_search_dw_max_deg is not None and not self.focal_search_dw_max_deg >= self.dw0_deg:
             raise ValueError(f"focal_search_dw_max_deg must be ≥ dw0_deg or None, got "
                              f"{self.focal_search_dw_max_deg}")
-        if not 0.0 <= self.max_focal_error < 0.5:
-            raise ValueError(f"max_focal_error must be in [0, 0.5), got {self.max_focal_error}")
         if self.verify_retries < 0:
             raise ValueError(f"verify_retries must be ≥ 0, got {self.verify_retries}")
         if (self.verify_k <= 0 or not 0 < self.verify_floor_deg <= self.verify_cap_deg
@@ -298,8 +286,7 @@ class Config:
         changes only the work); returns, id for id, what :mod:`~jstarid.algorithms.sgm.reference` returns.
         """
         return cls(**{"verify": False, "leftover_tol_deg": None, "screen": False, "subgraph": False,
-                      "focal_search": (), "main_stars": 1,
-                      "fit_focal": False, **overrides})
+                      "finishing": Finishing.off(), "main_stars": 1, **overrides})
 
     @classmethod
     def for_camera(cls, camera, **overrides) -> Config:

@@ -32,7 +32,6 @@ from jstarid.algorithms.sgm.graph import image_graph
 from jstarid.algorithms.sgm.search import (
     SearchOutcome,
     advance_search,
-    next_pow2,
     reject_best,
     search_outcome,
     start_search,
@@ -40,9 +39,10 @@ from jstarid.algorithms.sgm.search import (
 from jstarid.algorithms.sgm.subgraph import subgraph_search
 from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
-from jstarid.camera_fit import MAX_TOL_PX, check_identification, rescale_scenes, search_focal
+from jstarid.camera_fit import MAX_TOL_PX, check_identification, rescale_scenes
+from jstarid.finishing import finish
 from jstarid.metrics import by_distance_to_principal_point, nearest_to_principal_point
-from jstarid.runtime import map_batch, on_every_device, release_staging
+from jstarid.runtime import map_batch, on_every_device, padded_indices, release_staging
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index
@@ -142,15 +142,15 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
         pass). With ``config.fit_focal`` also ``focal_scale`` (B,), the fitted focal length /
         the camera's (NaN where not fitted).
 
-    Extensions (``Config.main_stars``, ``Config.focal_search``, ``Config.fit_focal``; off in
-    ``Config.paper()``; ``main_stars`` is 1, off, by default): the scenes left unsolved are searched
-    again with the next main stars, then (up to Δw = ``focal_search_dw_max_deg``) as if the focal
-    length were each factor of ``focal_search`` × the camera's
-    (:func:`jstarid.camera_fit.search_focal`: the graph's edges are angles, and a scale error of 2 %
-    moves the circle's edge stars by 0.1°, past the verification's tolerance), and every solved
-    scene's names are checked against a joint fit of attitude and focal length
-    (:func:`jstarid.camera_fit.check_identification`); the scenes the ladder solved are then named
-    again under the fitted focal length (:func:`_name_at_fitted_focal`).
+    Extensions (``Config.main_stars``, ``Config.finishing``; off in ``Config.paper()``;
+    ``main_stars`` is 1, off, by default): the scenes left unsolved are searched again with the next
+    main stars; then the finishing stage (:func:`jstarid.finishing.finish`) tries the scenes still
+    unsolved under focal lengths 1–2 % off (up to Δw = ``focal_search_dw_max_deg``: the graph's
+    edges are angles, and a scale error of 2 % moves the circle's edge stars by 0.1°, past the
+    verification's tolerance) and checks every solved scene's names against a joint fit of attitude
+    and focal length; the scenes the ladder solved are then named again under the fitted focal
+    length (:func:`_name_at_fitted_focal`) and kept only where their whole circle is named
+    (:func:`_whole_circles_only`).
 
     Raises:
         ValueError: ``config.radius_deg`` differs from the database's.
@@ -164,20 +164,19 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
     result, diag = out if diagnostics else (out, None)
     if scenes.batch_size:
         result = _next_main_stars(db, scenes, result, config, with_attitude=with_attitude)
-    laddered = np.zeros(scenes.batch_size, bool)
-    if scenes.batch_size and config.focal_search:
-        cap = config.focal_search_dw_max_deg
-        retry = config if cap is None else dataclasses.replace(config, dw_max_deg=min(cap, config.dw_max_deg))
-        unsolved = ~np.asarray(result.ok)
-        result = search_focal(lambda moved, rows: _identify(db, moved, retry, with_attitude=with_attitude),
-                              result, scenes, db.camera, config.focal_search)
-        laddered = unsolved & np.asarray(result.ok)
-    if scenes.batch_size and config.fit_focal:
-        checked = _camera_check(db, scenes, result, config)
+    cap = config.focal_search_dw_max_deg
+    retry = config if cap is None else dataclasses.replace(config, dw_max_deg=min(cap, config.dw_max_deg))
+    result, laddered = finish(
+        result, scenes, config.finishing,
+        rerun=lambda moved, rows: _identify(db, moved, retry, with_attitude=with_attitude),
+        camera=db.camera, star_vectors=jnp.asarray(db.catalog.unit_vectors, jnp.float32),
+        star_mags=db.catalog.mag, max_tol_px=camera_check_cap_px(config, db.camera))
+    if scenes.batch_size and config.finishing.fit_focal:
         renames = config.verify and config.verify_rename and config.leftover_tol_deg is not None
         if renames and np.any(laddered):
-            checked = _name_at_fitted_focal(db, scenes, checked, laddered & np.asarray(checked.ok), config)
-        result = checked if with_attitude else dataclasses.replace(checked, attitude=None)
+            result = _name_at_fitted_focal(db, scenes, result, laddered & np.asarray(result.ok), config)
+        if not with_attitude:
+            result = dataclasses.replace(result, attitude=None)
     if config.focal_search_whole_circle and not config.subgraph and np.any(laddered):
         result = _whole_circles_only(db, scenes, result, laddered & np.asarray(result.ok), config)
     release_staging()
@@ -201,7 +200,7 @@ def _next_main_stars(db, scenes: Scene, result: Identification, config: Config, 
         todo = np.nonzero(~ok & (n_valid > main_rank))[0]
         if not todo.size:
             break
-        sub = _identify(db, scenes[_padded(todo)], config, with_attitude=with_attitude,
+        sub = _identify(db, scenes[padded_indices(todo)], config, with_attitude=with_attitude,
                         main_rank=main_rank)
         ids[todo], ok[todo] = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
         if att is not None:
@@ -211,11 +210,11 @@ def _next_main_stars(db, scenes: Scene, result: Identification, config: Config, 
 
 
 def _camera_check(db, scenes: Scene, result: Identification, config: Config) -> Identification:
-    """:func:`jstarid.camera_fit.check_identification` with SGM's settings (``Config.fit_focal``)."""
+    """:func:`jstarid.camera_fit.check_identification` with SGM's settings (``Config.finishing``)."""
     return check_identification(jnp.asarray(db.catalog.unit_vectors, jnp.float32), db.camera, scenes,
-                                result, max_scale_error=config.max_focal_error,
+                                result, max_scale_error=config.finishing.max_focal_error,
                                 max_tol_px=camera_check_cap_px(config, db.camera), star_mags=db.catalog.mag,
-                                studentized=config.fit_focal_studentized)
+                                studentized=config.finishing.studentized)
 
 
 def _name_at_fitted_focal(db, scenes: Scene, result: Identification, take: np.ndarray,
@@ -266,7 +265,7 @@ def _graphs_at_fitted_focal(db, scenes: Scene, result: Identification, rows: np.
     """The scenes ``rows`` (padded to a power of two, :func:`_padded`) as seen under the focal length
     ``result`` fitted them (``focal_scale``; the nominal one where it is NaN or not fitted):
     ``(padded rows, moved scenes, their image graphs)``."""
-    padded = _padded(rows)
+    padded = padded_indices(rows)
     scale = np.ones(padded.size, np.float32)
     if result.focal_scale is not None:
         scale = np.nan_to_num(np.asarray(result.focal_scale, np.float32)[padded], nan=1.0)
@@ -332,11 +331,6 @@ def _failed(result: Identification, rows: np.ndarray) -> Identification:
                           attitude=cleared(result.attitude, jnp.nan),
                           focal_scale=cleared(result.focal_scale, jnp.nan),
                           distortion_k1=cleared(result.distortion_k1, jnp.nan))
-
-
-def _padded(rows: np.ndarray) -> np.ndarray:
-    """``rows`` (R,) padded to a power of two with copies of its first row (R ≥ 1)."""
-    return np.concatenate([rows, np.full(next_pow2(rows.size) - rows.size, rows[0])])
 
 
 def camera_check_cap_px(config: Config, camera) -> float:
@@ -405,7 +399,7 @@ def _identify_subgraph(db, scenes: Scene, config: Config, *, diagnostics: bool =
         empty = Identification(ids=jnp.asarray(np.asarray(scenes.valid, np.int32) * 0 - 1),
                                ok=jnp.zeros((0,), bool), attitude=None)
         return (empty, None) if diagnostics else empty
-    sub_scenes = scenes[_padded(np.arange(b))]
+    sub_scenes = scenes[padded_indices(np.arange(b))]
     g, usable = searchable_graphs(db, sub_scenes, config, main_rank=main_rank)
     ranked = subgraph_search(db, g, usable, config)
     sub, outcome = _verify_ranked(db, sub_scenes, g, ranked, config)
@@ -509,7 +503,7 @@ def _names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
         failed only because their main star's name is contested (:func:`.verify.verify_ids`).
     """
     if rows is not None:
-        padded = _padded(rows)
+        padded = padded_indices(rows)
         sub, amb = _names_from_match(db, scenes[padded], jax.tree.map(lambda v: v[padded], g),
                                      jax.tree.map(lambda v: v[padded], res), config)
         return sub[:rows.size], amb[:rows.size]
@@ -553,7 +547,7 @@ def _verify(db, scenes: Scene, result: Identification, main, config: Config):
     verified, main_ambiguous = np.zeros(b, bool), np.zeros(b, bool)
     rows = np.flatnonzero(ok)
     if rows.size:
-        padded = _padded(rows)
+        padded = padded_indices(rows)
         tables, settings = _verify_inputs(db, config)
         named = np.asarray(result.ids)[padded]
         # identify names only the neighbor graph's members (at most its capacity K): the ambiguity

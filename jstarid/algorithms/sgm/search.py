@@ -52,22 +52,18 @@ from jstarid.algorithms.sgm.graph import ImageGraph
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.algorithms.sgm.screen import screen_pairs
 from jstarid.geometry import range_search
-from jstarid.runtime import Call, map_batch, on_every_device, release_staging, run_calls
+from jstarid.runtime import Call, map_batch, next_power_of_two, on_every_device, release_staging, run_calls
 from jstarid.runtime.program_store import stored_jit
 from jstarid.runtime.staging_memory import trim_heap
 
 __all__ = ["ImageTables", "SearchOutcome", "SearchState", "advance_search", "beyond_row_bound",
            "bucket_up", "candidate_windows", "database_tables", "dynamic_search", "edge_bounds",
-           "image_tables", "lower_bounds", "next_pow2", "order_candidates", "prune_mask",
+           "image_tables", "lower_bounds", "order_candidates", "prune_mask",
            "reject_best", "run_pairs", "search_outcome", "start_search"]
 
 
 def _bucket(x: int, m: int) -> int:
     return max(m, int(math.ceil(x / m) * m))
-
-
-def next_pow2(x: int) -> int:
-    return 1 << max(0, int(math.ceil(math.log2(max(x, 1)))))
 
 
 @stored_jit
@@ -197,7 +193,7 @@ def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
               1 << int(math.floor(math.log2(max(budget_bytes // max(per_pair_bytes, 1), 16)))))
     for lo in range(0, n_pairs, cap):
         hi = min(lo + cap, n_pairs)
-        yield lo, hi, max(MIN_CALL_PAIRS, next_pow2(hi - lo))
+        yield lo, hi, max(MIN_CALL_PAIRS, next_power_of_two(hi - lo))
 
 
 def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes, budget, size_names, out_tails,
@@ -339,7 +335,7 @@ def edge_bounds(db, image: dict, n_i, scene, rows, config: Config) -> np.ndarray
     for size in np.unique(r):
         at = np.nonzero(r == size)[0]
         width = int(size * (size - 1) // 2)
-        padded = max(MIN_CALL_PAIRS, next_pow2(at.size))
+        padded = max(MIN_CALL_PAIRS, next_power_of_two(at.size))
         fill = np.concatenate([at, np.full(padded - at.size, at[0])])
         out = map_batch(_edge_bound_pairs,
                         (jnp.asarray(image.edges[scene[fill], :width]), jnp.asarray(n_i[scene[fill]]),
@@ -467,7 +463,7 @@ def start_search(db, graphs: ImageGraph, usable: np.ndarray, config: Config) -> 
     w_i = jnp.asarray(graphs.w, jnp.float32)
     start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
-    width = next_pow2(max(int(count.max(initial=0)), int(config.chunk_size)))
+    width = next_power_of_two(max(int(count.max(initial=0)), int(config.chunk_size)))
     cand, level = order_candidates(
         db.w, start, stop, w_i, width=width, dw0=float(config.dw0_deg),
         step=float(config.dw_step_deg), n_levels=config.n_levels)

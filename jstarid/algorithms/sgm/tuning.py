@@ -30,14 +30,13 @@ from jstarid.algorithms.sgm.search import (
     bucket_up,
     candidate_windows,
     database_tables,
-    next_pow2,
     order_candidates,
     prune_mask,
     run_pairs,
     skip_padding,
 )
 from jstarid.attitude import estimate_attitude
-from jstarid.runtime import replicate
+from jstarid.runtime import next_power_of_two, replicate
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification
 
@@ -103,7 +102,7 @@ def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_err
     w_i = jnp.asarray(graphs.w, jnp.float32)
     start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
-    width = next_pow2(max(int(count.max(initial=0)), 1))
+    width = next_power_of_two(max(int(count.max(initial=0)), 1))
     cand_all, level_all = order_candidates(
         db.w, start, stop, w_i, width=width, dw0=float(config.dw0_deg),
         step=float(config.dw_step_deg), n_levels=config.n_levels)

@@ -40,7 +40,7 @@ from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between, pairwise_angles
 from jstarid.geometry.consistency import most_consistent
 from jstarid.geometry.kvector import range_search
-from jstarid.runtime import chunk_calls, on_every_device, run_calls, take_rows
+from jstarid.runtime import chunk_calls, on_every_device, run_calls, static_config, take_rows
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 
@@ -172,10 +172,8 @@ def _identify_chunk(xy, valid, mag, overflow, eps_rad, database, *, camera, conf
                              batch_size=config.map_chunk))
 
 
-def _kernel_config(config: Config) -> Config:
-    """The compiled code's static config: chunk sizes and ε (traced) do not change it."""
-    default = Config()
-    return dataclasses.replace(config, eps_px=default.eps_px, batch_chunk=default.batch_chunk)
+# ε is traced and the call size is the host loop's: neither changes the compiled code
+_NOT_COMPILED = ("eps_px", "batch_chunk")
 
 
 def identify(database: Database, scenes: Scene, config: Config | None = None, *, diagnostics: bool = False,
@@ -217,7 +215,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
         chunk = min(config.batch_chunk, b)
         ids, ok, att, n_cand, over, n_ver = run_calls(
             _identify_chunk, chunk_calls(np.arange(b), chunk), lambda c: take_rows(batched, c), (tables,),
-            static=dict(camera=camera, config=_kernel_config(config), window=window), n_rows=b,
+            static=dict(camera=camera, config=static_config(config, _NOT_COMPILED), window=window), n_rows=b,
             tails=[(cap,), (), (3, 3), (), (), ()], fills=[-1, False, np.nan, 0, False, 0])
     result = Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=jnp.asarray(att))
     if diagnostics:

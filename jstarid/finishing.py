@@ -1,0 +1,136 @@
+"""The finishing stage every algorithm ends with: the focal-length ladder and the camera check.
+
+An algorithm names stars under the nominal camera. Two steps after it make the answer hold on a
+camera whose focal length is not quite the datasheet's, and both are the same for every algorithm,
+so they are written once here and configured by one nested config, :class:`Finishing`
+(``Config.finishing`` of MLV, RpNet and SGM):
+
+1. **Focal-length ladder** (``focal_search``): the scenes the algorithm left unsolved are tried again
+   as if the focal length were each factor × the camera's, in order
+   (:func:`jstarid.camera_fit.search_focal`). Features that are angles (triangle singular values,
+   MST weights, pair distances, network patterns) move past their tolerances when the focal length
+   is off by 1–2 %; a ladder of 1 % steps brings those scenes back.
+2. **Camera check** (``fit_focal``): every solved scene's names are checked against a joint fit of
+   the attitude and the focal length (:func:`jstarid.camera_fit.check_identification`); names the
+   fit cannot explain are taken back, a scene whose fit fails is unclaimed, and the fitted
+   ``focal_scale`` (and ``distortion_k1``) is reported.
+
+An algorithm calls :func:`finish` with a ``rerun`` function (its own identification on moved
+centroids) and its catalog's rows; its own steps after the stage (SGM names the scenes the ladder
+solved again under the fitted focal length) read :attr:`Finished.laddered`.
+``Finishing.off()`` is the papers' algorithms: neither step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping
+from typing import NamedTuple
+
+import numpy as np
+
+from jstarid.camera_fit import MAX_TOL_PX, check_identification, search_focal
+from jstarid.scene import Identification, Scene
+
+__all__ = ["Finished", "Finishing", "finish"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Finishing:
+    """Settings of the finishing stage (frozen, hashable; a field of each algorithm's ``Config``).
+
+    Attributes:
+        focal_search: focal-length factors under which the scenes still unsolved are tried again, in
+            order; ``()`` turns the ladder off. Each must lie in (0.5, 2).
+        fit_focal: check every solved scene's names against a joint fit of the attitude and the
+            focal length, and report ``focal_scale``.
+        max_focal_error: the largest relative focal-length correction a solved scene may need
+            (``|s − 1|``, in [0, 0.5)); beyond it the scene fails.
+        studentized: the check's radius allows for the scatter of its own σ̂ over few names
+            (:func:`jstarid.camera_fit.studentized_k`); SGM's default, off for MLV and RpNet.
+    """
+
+    focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
+    fit_focal: bool = True
+    max_focal_error: float = 0.1
+    studentized: bool = False
+
+    def __post_init__(self):
+        object.__setattr__(self, "focal_search", tuple(float(f) for f in self.focal_search))
+        if any(not (math.isfinite(f) and 0.5 < f < 2.0) for f in self.focal_search):
+            raise ValueError(f"focal_search factors must lie in (0.5, 2), got {self.focal_search}")
+        if not 0.0 <= self.max_focal_error < 0.5:
+            raise ValueError(f"max_focal_error must be in [0, 0.5), got {self.max_focal_error}")
+
+    @classmethod
+    def coerce(cls, value: Finishing | Mapping) -> Finishing:
+        """``value`` itself, or a :class:`Finishing` from a mapping of its fields (a config read from
+        JSON or ``--set``); a list of factors becomes a tuple.
+
+        Raises:
+            TypeError: anything else, or a mapping with a field :class:`Finishing` lacks.
+        """
+        if isinstance(value, cls):
+            return value
+        if isinstance(value, Mapping):
+            known = {f.name for f in dataclasses.fields(cls)}
+            unknown = set(value) - known
+            if unknown:
+                raise TypeError(f"Finishing has no field(s) {sorted(unknown)}; fields: {sorted(known)}")
+            return cls(**value)
+        raise TypeError(f"finishing must be a jstarid.finishing.Finishing or a mapping, got {value!r}")
+
+    @classmethod
+    def off(cls, **overrides) -> Finishing:
+        """Neither the ladder nor the check: the papers' algorithms."""
+        return cls(**{"focal_search": (), "fit_focal": False, **overrides})
+
+
+class Finished(NamedTuple):
+    """What :func:`finish` returns.
+
+    Attributes:
+        result: the :class:`~jstarid.scene.Identification` after the ladder and the check
+            (``focal_scale`` and ``distortion_k1`` set where the check ran).
+        laddered: (B,) bool NumPy, the scenes the first pass left unsolved and the ladder solved
+            (before the check, which may unclaim some of them).
+    """
+
+    result: Identification
+    laddered: np.ndarray
+
+
+def finish(result: Identification, scenes: Scene, config: Finishing, *,
+           rerun: Callable[[Scene, np.ndarray], Identification], camera, star_vectors, star_mags=None,
+           max_tol_px: float = MAX_TOL_PX) -> Finished:
+    """Run the finishing stage on an algorithm's first answer.
+
+    Args:
+        result: the algorithm's :class:`~jstarid.scene.Identification` of ``scenes`` (ids (B, N)).
+        scenes: (B, N) :class:`~jstarid.scene.Scene` from ``camera``.
+        config: the :class:`Finishing` settings.
+        rerun: ``rerun(moved, rows) -> Identification``: the algorithm on centroids moved as a
+            rescaled focal length would see them; ``rows`` (R,) their indices in ``scenes`` (for
+            per-scene settings such as a grid's tolerances).
+        camera: the nominal :class:`~jstarid.camera.Camera`.
+        star_vectors: (M, 3) ICRS unit vectors of the catalog rows the ids name.
+        star_mags: (M,) their V magnitudes (mag); given, the check first takes back names far
+            brighter than their star.
+        max_tol_px: the check's largest radius (px); an algorithm whose own verification accepts
+            larger residuals passes its cap (SGM).
+
+    Returns:
+        :class:`Finished`.
+    """
+    b = scenes.batch_size
+    laddered = np.zeros(b, bool)
+    if b and config.focal_search:
+        unsolved = ~np.asarray(result.ok)
+        result = search_focal(rerun, result, scenes, camera, config.focal_search)
+        laddered = unsolved & np.asarray(result.ok)
+    if b and config.fit_focal:
+        result = check_identification(star_vectors, camera, scenes, result,
+                                      max_scale_error=config.max_focal_error, max_tol_px=max_tol_px,
+                                      star_mags=star_mags, studentized=config.studentized)
+    return Finished(result=result, laddered=laddered)
