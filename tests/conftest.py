@@ -1,6 +1,8 @@
 """Shared fixtures. Several host devices are forced so sharding code paths are exercised on CPU."""
 
 import os
+import shutil
+import uuid
 
 # The suite is compile-bound (most tests compile their kernels for a few tiny batches), so XLA's
 # backend spends less time optimising the code it generates: slower to run, much faster to build
@@ -21,6 +23,29 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # code segfaulted in the workers, reading and writing entries, three times in three runs, with one
 # shared directory and with one per worker. Each process keeps its compiled kernels in memory.
 os.environ["JSTARID_COMPILATION_CACHE"] = "off"
+
+# jstarid's own program store (serialized executables, written atomically) is shared by the xdist
+# workers of one run: a kernel one worker compiled, the other loads instead of compiling it again
+# (the suite is compile-bound, and both workers meet most kernels). One directory per run (xdist's
+# run id), under the jstarid cache; a run without xdist keeps its programs in memory only.
+# The controller names the run before it starts the workers, which inherit its environment.
+SUITE_PROGRAMS = js.catalog.cache_dir() / "suite-programs" / os.environ.setdefault(
+    "JSTARID_SUITE_RUN", uuid.uuid4().hex)
+js.runtime.program_store.enable_program_store(SUITE_PROGRAMS)
+
+
+@pytest.fixture(autouse=True)
+def _suite_program_store():
+    """Each test starts with the suite's program store on (a test of the store may switch it)."""
+    if js.runtime.program_store.program_store_dir() != SUITE_PROGRAMS:
+        js.runtime.program_store.enable_program_store(SUITE_PROGRAMS)
+    yield
+
+
+def pytest_sessionfinish(session):
+    """The controller (or a run without workers) removes the run's programs when the run ends."""
+    if not hasattr(session.config, "workerinput"):
+        shutil.rmtree(SUITE_PROGRAMS, ignore_errors=True)
 
 # Memory maps: each compiled XLA CPU executable holds ≈ 6 memory mappings, and a worker that runs
 # a third of the suite keeps thousands of executables in JAX's caches. At Linux's default

@@ -47,6 +47,7 @@ def test_executables_written(tmp_path, restore_jax_cache_config):
 
 def test_environment_turns_it_off(tmp_path, monkeypatch, restore_jax_cache_config):
     jax.config.update("jax_compilation_cache_dir", None)
+    js.runtime.program_store.disable_program_store()  # the suite's own store (tests/conftest.py)
     monkeypatch.setenv("JSTARID_COMPILATION_CACHE", "off")
     js.enable_compilation_cache(tmp_path / "never")
     assert jax.config.jax_compilation_cache_dir is None and not (tmp_path / "never").exists()

@@ -22,6 +22,13 @@ def store(tmp_path):
     ps.disable_program_store()
 
 
+@pytest.fixture
+def store_off():
+    """The store off for one test (the suite runs with its own store on, tests/conftest.py)."""
+    ps.disable_program_store()
+    yield
+
+
 def _programs(root):
     return sorted(root.rglob("*.jaxprog"))
 
@@ -34,7 +41,7 @@ def _counting_kernel(traces):
     return ps.StoredFunction(jax.jit(kernel, static_argnames=("power",)), "tests.kernel", ("power",))
 
 
-def test_off_it_is_the_jitted_function(tmp_path):
+def test_off_it_is_the_jitted_function(store_off):
     traces = []
     kernel = _counting_kernel(traces)
     out = kernel(jnp.ones((3, 4)), 1.0, power=2)
@@ -57,6 +64,21 @@ def test_a_program_is_written_once_and_read_back_without_tracing(store):
     np.testing.assert_array_equal(again, first)
     assert len(traces) == 1 and ps.program_store_stats()["loaded"] == before["loaded"] + 1
     np.testing.assert_allclose(first, np.sum(x**3, axis=-1) + 0.5, rtol=1e-6)
+
+
+def test_disable_jit_runs_op_by_op_with_the_store_on(store):
+    """Under ``jax.disable_jit()`` a stored function runs its Python op by op (no program is
+    compiled or loaded), as ``jax.jit`` does: the way to debug a kernel with the store on."""
+    traces = []
+    kernel = _counting_kernel(traces)
+    x = np.arange(6, dtype=np.float32).reshape(2, 3)
+    with jax.disable_jit():
+        eager = np.asarray(kernel(x, 1.0, power=2))
+        eager_again = np.asarray(kernel(x, 1.0, power=2))
+    assert len(traces) == 2 and not _programs(store)  # the body ran twice, nothing was stored
+    np.testing.assert_allclose(eager, np.sum(x**2, axis=-1) + 1.0)
+    np.testing.assert_array_equal(np.asarray(kernel(x, 1.0, power=2)), eager_again)
+    assert len(_programs(store)) == 1
 
 
 def test_another_static_shape_dtype_or_sharding_is_another_program(store, several_devices):

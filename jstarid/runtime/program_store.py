@@ -238,12 +238,18 @@ class StoredFunction:
             raise AttributeError(name)
         return getattr(self._jit, name)
 
+    def _cache_size(self) -> int:
+        """Programs this function holds in memory: the jitted function's and the store's (as
+        ``jax.jit``'s ``_cache_size``: a test that counts compilations counts both paths)."""
+        return self._jit._cache_size() + len(self._programs)
+
     def lower(self, *args, **kwargs):
         """``jitted.lower`` (ahead-of-time use, never stored)."""
         return self._jit.lower(*args, **kwargs)
 
     def __call__(self, *args, **kwargs):
-        if _state.dir is None or self._name is None:
+        # under jax.disable_jit() the jitted function runs op by op; a stored program cannot
+        if _state.dir is None or self._name is None or jax.config.jax_disable_jit:
             return self._jit(*args, **kwargs)
         static = {k: v for k, v in kwargs.items() if k in self._static}
         dynamic = {k: v for k, v in kwargs.items() if k not in self._static}
