@@ -190,7 +190,7 @@ def test_vertex_check_unnames_the_inconsistent_vertex():
     import dataclasses
 
     from jstarid.algorithms.sgm import Config
-    from jstarid.algorithms.sgm.identify import _check_vertices
+    from jstarid.algorithms.sgm.naming import check_vertices
     from jstarid.algorithms.sgm.search import SearchOutcome
 
     rng = np.random.default_rng(4)
@@ -208,13 +208,13 @@ def test_vertex_check_unnames_the_inconsistent_vertex():
     res = SearchOutcome(ok=np.array([True]), best=one, rank=one, match=match, error=np.zeros(1),
                         n_matched=one, n_pruned=one, n_rejected=one, level=one)
     cfg = dataclasses.replace(Config(), vertex_check_deg=0.2)
-    m, ok = _check_vertices(a_i, a_j, res, cfg)
+    m, ok = check_vertices(a_i, a_j, res, cfg)
     assert bool(ok[0])
     expect = match[0].copy()
     expect[3] = -1
     np.testing.assert_array_equal(m[0], expect)
     # too few consistent vertices left → the scene fails
-    m, ok = _check_vertices(a_i, a_j, res, dataclasses.replace(cfg, min_matched=10))
+    m, ok = check_vertices(a_i, a_j, res, dataclasses.replace(cfg, min_matched=10))
     assert not bool(ok[0]) and np.all(m == -1)
 
 

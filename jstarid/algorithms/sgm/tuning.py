@@ -24,8 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms.sgm.config import Config, Tuning
-from jstarid.algorithms.sgm.identify import searchable_graphs
+from jstarid.algorithms.sgm.graph import searchable_graphs
 from jstarid.algorithms.sgm.matching import spectral_match
+from jstarid.algorithms.sgm.naming import attitude_from_names
 from jstarid.algorithms.sgm.search import (
     bucket_up,
     candidate_windows,
@@ -35,7 +36,6 @@ from jstarid.algorithms.sgm.search import (
     run_pairs,
     skip_padding,
 )
-from jstarid.attitude import estimate_attitude
 from jstarid.runtime import next_power_of_two, replicate
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification
@@ -86,7 +86,7 @@ def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_err
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database`.
         graphs: image graphs as NumPy arrays (``adj`` (B, K, K), ``mask``, ``n``, ``w``), as from
-            :func:`~jstarid.algorithms.sgm.identify.scene_graphs`.
+            :func:`~jstarid.algorithms.sgm.graph.scene_graphs`.
         usable: (B,) bool scenes to search.
         config: :class:`Config` (window, schedule, power iteration, pruning switch).
         cs: (C,) values of c (1/deg).
@@ -244,7 +244,5 @@ def identify_grid(db, scenes, configs) -> list[Identification]:
         ci, ei = cs.index(float(config.c)), eps.index(float(config.max_error_deg))
         result = Identification(ids=jnp.asarray(ids[:, ci, ei]), ok=jnp.asarray(ok[:, ci, ei]),
                                 attitude=None)
-        att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
-        att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
-        out.append(Identification(ids=result.ids, ok=result.ok, attitude=att))
+        out.append(attitude_from_names(db, scenes, result))
     return out
