@@ -24,19 +24,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms.sgm.config import Config, Tuning
+from jstarid.algorithms.sgm.database import database_tables
 from jstarid.algorithms.sgm.graph import searchable_graphs
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.algorithms.sgm.naming import attitude_from_names
-from jstarid.algorithms.sgm.search import (
-    bucket_up,
-    candidate_windows,
-    database_tables,
-    order_candidates,
-    prune_mask,
-    run_pairs,
-    skip_padding,
-)
-from jstarid.runtime import next_power_of_two, replicate
+from jstarid.algorithms.sgm.search import bucket_up, candidate_windows, order_candidates, prune_mask
+from jstarid.runtime import next_power_of_two, replicate, run_pairs, skip_padding
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification
 
