@@ -216,6 +216,24 @@ def test_vertex_check_unnames_the_inconsistent_vertex():
     # too few consistent vertices left → the scene fails
     m, ok = check_vertices(a_i, a_j, res, dataclasses.replace(cfg, min_matched=10))
     assert not bool(ok[0]) and np.all(m == -1)
+    # … and through the naming: the unnamed vertex's detection gets no name, the others theirs
+    import types
+
+    from jstarid.algorithms.sgm.graph import ImageGraph
+    from jstarid.algorithms.sgm.naming import names_from_match
+    # the detection of each vertex: 13, 12, …, 4 (a scene of 14 detections)
+    members = np.where(np.arange(k) < 10, np.arange(k)[::-1] - 2, -1).astype(np.int32)[None]
+    db = types.SimpleNamespace(adj=a_j, members=(100 + np.arange(k, dtype=np.int32))[None])
+    g = ImageGraph(members=members, mask=members >= 0, adj=a_i, n=np.array([10]), w=None, overflow=None,
+                   main=members[:, 0])
+    scenes = types.SimpleNamespace(valid=np.ones((1, 14), bool))
+    plain = dataclasses.replace(cfg, leftover_tol_deg=None, verify=False)
+    result, _ = names_from_match(db, scenes, g, res, plain)
+    want = np.full(14, -1)
+    want[members[0, :10]] = 100 + np.arange(10)
+    want[members[0, 3]] = -1
+    np.testing.assert_array_equal(np.asarray(result.ids)[0], want)
+    assert bool(np.asarray(result.ok)[0])
 
 
 def test_power_iteration_early_stop_agrees_with_fixed_steps():

@@ -13,6 +13,7 @@ import numpy as np
 
 from jstarid.algorithms.sgm.graph import ImageGraph
 from jstarid.algorithms.sgm.search import SearchOutcome
+from jstarid.algorithms.sgm.subgraph import Ranking
 from jstarid.scene import Scene
 
 __all__ = ["Diagnostics", "search_diagnostics", "subgraph_diagnostics"]
@@ -76,27 +77,27 @@ def search_diagnostics(db, scenes: Scene, g: ImageGraph, usable: np.ndarray, out
         error=outcome.error, level=outcome.level, main_contested=main_contested)
 
 
-def subgraph_diagnostics(db, scenes: Scene, g: ImageGraph, usable: np.ndarray, ranked: dict,
+def subgraph_diagnostics(db, scenes: Scene, g: ImageGraph, usable: np.ndarray, ranking: Ranking,
                          outcome: SearchOutcome, n: int) -> Diagnostics:
     """:class:`Diagnostics` of the first ``n`` rows of a subgraph search (``level`` 0 when accepted).
 
     Args:
         db: :class:`~.database.Database`. scenes: the (B, N) scenes searched (padded, B ≥ n).
         g: their NumPy :class:`~.graph.ImageGraph`. usable: (B,) bool scenes searched.
-        ranked: :func:`.subgraph.subgraph_search`'s ranking. outcome: the accepted candidates'
-            :class:`~.search.SearchOutcome`. n: the scenes of the caller's batch.
+        ranking: :func:`.subgraph.subgraph_search`'s :class:`~.subgraph.Ranking`. outcome: the
+            accepted candidates' :class:`~.search.SearchOutcome`. n: the scenes of the caller's batch.
     """
-    best_err = np.min(ranked["error"], axis=1)
+    best_err = np.min(ranking.error, axis=1)
     at = np.arange(outcome.ok.size)
     return Diagnostics(
-        n_candidates=np.sum(ranked["rows"] >= 0, axis=1).astype(np.int32)[:n],
+        n_candidates=np.sum(ranking.rows >= 0, axis=1).astype(np.int32)[:n],
         overflow=(g.overflow | np.asarray(scenes.overflow))[:n], n_matched=outcome.n_matched[:n],
         n_pruned=outcome.n_pruned[:n], n_rejected=outcome.n_rejected[:n], n_i=g.n[:n], w_i=g.w[:n],
         main=g.main[:n], usable=usable[:n], match_ok=outcome.ok[:n], best=outcome.best[:n],
         best_main=_best_main(db, outcome)[:n],
         error=np.where(outcome.ok, outcome.error, best_err)[:n], level=outcome.level[:n],
         main_contested=np.zeros(n, bool),
-        cut=(outcome.ok & ranked["cut"][at, np.maximum(outcome.rank, 0)])[:n])
+        cut=(outcome.ok & ranking.cut[at, np.maximum(outcome.rank, 0)])[:n])
 
 
 def _best_main(db, outcome: SearchOutcome) -> np.ndarray:

@@ -130,12 +130,12 @@ def _subgraph_pass(db, scenes: Scene, config: Config, *, main_rank: int, with_at
         return empty, None
     sub_scenes = scenes[padded_indices(np.arange(b))]
     g, usable = searchable_graphs(db, sub_scenes, config, main_rank=main_rank)
-    ranked = subgraph_search(db, g, usable, config)
-    sub, outcome = names_from_ranking(db, sub_scenes, g, ranked, config)
+    ranking = subgraph_search(db, g, usable, config)
+    sub, outcome = names_from_ranking(db, sub_scenes, g, ranking, config)
     result = Identification(ids=jnp.asarray(np.asarray(sub.ids)[:b]), ok=jnp.asarray(np.asarray(sub.ok)[:b]),
                             attitude=None)
     if with_attitude:
         result = attitude_from_names(db, scenes, result)
     if not diagnostics:
         return result, None
-    return result, subgraph_diagnostics(db, sub_scenes, g, usable, ranked, outcome, b)
+    return result, subgraph_diagnostics(db, sub_scenes, g, usable, ranking, outcome, b)

@@ -32,6 +32,7 @@ import numpy as np
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import ImageGraph
 from jstarid.algorithms.sgm.search import SearchOutcome
+from jstarid.algorithms.sgm.subgraph import Ranking
 from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
 from jstarid.runtime import map_batch, on_every_device, padded_indices
@@ -70,46 +71,34 @@ def names_with_retries(db, scenes: Scene, g: ImageGraph, res: SearchOutcome, con
     return result, res, contested
 
 
-def _outcome_at(ranked: dict, pick: np.ndarray, n_rejected: np.ndarray) -> SearchOutcome:
-    """The :class:`~.search.SearchOutcome` of the candidate ``pick`` (B,) of each scene's ranking
-    (none where ``pick`` is past the ranking's end)."""
-    at = np.arange(pick.size)
-    inside = pick < ranked["ok"].shape[1]
-    pick = np.minimum(pick, ranked["ok"].shape[1] - 1)
-    ok = ranked["ok"][at, pick] & inside
-    n_tried = np.sum(np.isfinite(ranked["error"]), axis=1).astype(np.int32)
-    return SearchOutcome(ok=ok, best=np.where(ok, ranked["rows"][at, pick], -1).astype(np.int32),
-                         rank=np.where(ok, pick, -1).astype(np.int32),
-                         match=np.where(ok[:, None], ranked["match"][at, pick], -1),
-                         error=ranked["error"][at, pick], n_matched=n_tried,
-                         n_pruned=np.zeros(pick.size, np.int32), n_rejected=n_rejected,
-                         level=np.where(ok, 0, -1).astype(np.int32))
-
-
-def names_from_ranking(db, scenes: Scene, g: ImageGraph, ranked: dict, config: Config):
+def names_from_ranking(db, scenes: Scene, g: ImageGraph, ranking: Ranking,
+                       config: Config) -> tuple[Identification, SearchOutcome]:
     """Name and verify each scene's best accepted candidate of a subgraph search's ranking; a
     rejected one gives way to the next in the ranking (:func:`names_with_retries`). Returns
     ``(result, outcome)``."""
-    b = ranked["ok"].shape[0]
+    b = ranking.ok.shape[0]
     pick = np.zeros(b, np.int64)
     n_rejected = np.zeros(b, np.int32)
 
     def next_in_ranking(res, redo):
         pick[redo] += 1
         n_rejected[redo] += 1
-        return _outcome_at(ranked, pick, n_rejected)
+        return ranking.outcome_at(pick, n_rejected)
 
-    result, res, _ = names_with_retries(db, scenes, g, _outcome_at(ranked, pick, n_rejected), config,
+    result, res, _ = names_with_retries(db, scenes, g, ranking.outcome_at(pick, n_rejected), config,
                                         next_in_ranking)
     return result, res
 
 
-def names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
-                     rows: np.ndarray | None = None) -> Identification:
+def names_from_match(db, scenes: Scene, g: ImageGraph, res: SearchOutcome, config: Config,
+                     rows: np.ndarray | None = None) -> tuple[Identification, np.ndarray]:
     """Every step after the search: names from the correspondence, vertex check, leftover naming,
     verification and renaming (``Config``).
 
     Args:
+        db: :class:`~.database.Database`. scenes: (B, N) :class:`~jstarid.scene.Scene`.
+        g: their NumPy :class:`~.graph.ImageGraph` (B, K, …). res: the search's
+            :class:`~.search.SearchOutcome`. config: :class:`Config`.
         rows: optional (R,) scene rows to process (the result then has R rows), padded to a power of
             two so that the compiled verification serves every retry with a few shapes.
 
@@ -123,8 +112,8 @@ def names_from_match(db, scenes: Scene, g: dict, res: dict, config: Config,
                                     jax.tree.map(lambda v: v[padded], res), config)
         return sub[:rows.size], amb[:rows.size]
     if config.vertex_check_deg is not None:
-        res = dict(res)
-        res.match, res.ok = check_vertices(g.adj, db.adj, res, config)
+        match, ok = check_vertices(g.adj, db.adj, res, config)
+        res = res._replace(match=match, ok=ok)
     b, n_det = scenes.valid.shape
     ids = np.full((b, n_det), -1, np.int32)
     sc, vert = np.nonzero(res.match >= 0)
@@ -210,7 +199,8 @@ def _verify_scenes(xy, mag, valid, ids, ok, main, cat, cat_mag, cells, **setting
     return verify_ids(cat, cat_mag, cells, xy, mag, valid, ids, ok, main, **settings)
 
 
-def rename_and_reverify(db, scenes: Scene, verified: Identification, g, config: Config):
+def rename_and_reverify(db, scenes: Scene, verified: Identification, g: ImageGraph,
+                        config: Config) -> Identification:
     """``Config.verify_rename``: :func:`name_leftovers` on the verified names, then :func:`verify_claims`
     again on the scenes it changed; where that fails, the first result stands. Returns an
     :class:`~jstarid.scene.Identification` with the same ``ok`` as ``verified``.
@@ -229,7 +219,7 @@ def rename_and_reverify(db, scenes: Scene, verified: Identification, g, config: 
     return Identification(ids=jnp.asarray(ids), ok=verified.ok, attitude=None)
 
 
-def check_vertices(adj_i, db_adj, res, config: Config):
+def check_vertices(adj_i, db_adj, res: SearchOutcome, config: Config) -> tuple[np.ndarray, np.ndarray]:
     """Unname matched vertices whose median edge residual exceeds ``config.vertex_check_deg``.
 
     Args:
@@ -262,7 +252,7 @@ def check_vertices(adj_i, db_adj, res, config: Config):
     return match, ok
 
 
-def name_leftovers(db, scenes: Scene, result: Identification, g: dict, config: Config):
+def name_leftovers(db, scenes: Scene, result: Identification, g: ImageGraph, config: Config) -> np.ndarray:
     """(B, N) int32 ids: ``result.ids`` plus, in every successful scene, each unnamed image-graph member
     whose ICRS direction (``Cᵀ v``, attitude of the matched stars) lies within
     ``config.leftover_tol_deg`` of a catalog star not yet named in that scene.

@@ -219,7 +219,7 @@ def image_tables(adj_i, n_i) -> ImageTables:
     return ImageTables(rows=row_table(adj, mask), edges=sorted_edges(adj, mask))
 
 
-def edge_bounds(db, image: dict, n_i, scene, rows, config: Config) -> np.ndarray:
+def edge_bounds(db, image: ImageTables, n_i, scene, rows, config: Config) -> np.ndarray:
     """:func:`~.bound.edge_lower_bound` of (scene, candidate) pairs: the search's first-stage bound.
 
     Reads tables sorted once (``Database.edges``, :func:`image_tables`); pairs are grouped by padded
@@ -256,7 +256,7 @@ def beyond_row_bound(n_i, n_j, config: Config) -> np.ndarray:
     return np.abs(np.asarray(n_i, np.int64) - np.asarray(n_j, np.int64)) > config.prune_max_skip
 
 
-def lower_bounds(db, image: dict, n_i, scene, rows, config: Config):
+def lower_bounds(db, image: ImageTables, n_i, scene, rows, config: Config):
     """:func:`~.bound.error_lower_bound` of (scene, candidate) pairs: the search's second-stage bound.
 
     Args:
@@ -349,7 +349,7 @@ class SearchState:
     refined: np.ndarray
     deferred: np.ndarray
     covered: np.ndarray
-    matches: dict
+    matches: dict[tuple[int, int], np.ndarray]
     n_matched: np.ndarray
     n_pruned: np.ndarray
     n_rejected: np.ndarray

@@ -51,7 +51,7 @@ class CandidateErrors(NamedTuple):
     cand: np.ndarray
     level: np.ndarray
     error: np.ndarray
-    match: dict
+    match: dict[tuple[int, int, int], np.ndarray]
 
 
 @functools.partial(stored_jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
@@ -154,7 +154,7 @@ def replay_algorithm1(level, error, eps):
     return ok, np.where(ok, rank, -1)
 
 
-def grid_identifications(db, graphs, errors: dict, ok, rank, n_detections: int):
+def grid_identifications(db, graphs, errors: CandidateErrors, ok, rank, n_detections: int):
     """Catalog ids of every detection for each (scene, c, ε_δ) of a replayed grid.
 
     Args:
