@@ -256,6 +256,14 @@ def name_leftovers(db, scenes: Scene, result: Identification, g: ImageGraph, con
     """(B, N) int32 ids: ``result.ids`` plus, in every successful scene, each unnamed image-graph member
     whose ICRS direction (``Cᵀ v``, attitude of the matched stars) lies within
     ``config.leftover_tol_deg`` of a catalog star not yet named in that scene.
+
+    The rule is greedy, in member order: each member takes its nearest catalog star (float64
+    cosines) when it lies within the tolerance and neither the match nor an earlier member has
+    named it. Why not the shared :func:`jstarid.completion.name_stars`: it names other stars. It
+    also asks the second-nearest star to lie beyond the tolerance, leaves unnamed both members
+    that want one star, and compares float32 cosines and atan2 distances; so where a second
+    catalog star lies within ``leftover_tol_deg`` or two members share a nearest star, the two
+    rules disagree, and the verification and the whole-circle test read these names.
     """
     ids = np.array(result.ids)
     att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result, min_stars=3)
