@@ -6,9 +6,9 @@
    the principal point), its neighbor graph G_I (the detections within r) and its MST weight w_I
    (:func:`.graph.searchable_graphs`); the rough search (eq. 1, a k-vector over the database's
    sorted w_J) and the dynamic Δw search, every candidate matched spectrally (eqs. 2–5) until
-   J* = argmin δ passes ε_δ (:mod:`.search`); the names of G_I through J*'s vertex correspondence
-   (:mod:`.naming`), then the verification (ours, :mod:`.verify`), which joins Algorithm 1's
-   acceptance test: a rejected J* is struck out and the search goes on.
+   J* = argmin δ (eq. 6) passes ε_δ (:mod:`.search`); the names of G_I through J*'s vertex
+   correspondence (:mod:`.naming`), then the verification (ours, :mod:`.verify`), which joins
+   Algorithm 1's acceptance test: a rejected J* is struck out and the search goes on.
 2. **Extensions** (:mod:`.extensions`; ``Config`` fields, all off in ``Config.paper()``), in order:
    the next main stars, the finishing stage every algorithm shares (focal-length ladder and camera
    check), the ladder's scenes named again under the fitted focal length, and those kept only
@@ -19,6 +19,8 @@ With ``Config.subgraph`` the pass searches the image graph as a subgraph of the 
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax.numpy as jnp
 import numpy as np
@@ -46,6 +48,11 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
              with_attitude: bool = True):
     """Identify the stars of the main star's neighbor circle in every scene.
 
+    Algorithm 1 (You et al. 2022) with names and verification runs on every scene first; then our
+    extensions, in order (:mod:`.extensions`): :func:`~.extensions.next_main_stars`,
+    :func:`~.extensions.finishing_stage`, :func:`~.extensions.name_at_fitted_focal`,
+    :func:`~.extensions.whole_circles_only`.
+
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database` (built with the same ``radius_deg``).
         scenes: (B, N) :class:`~jstarid.scene.Scene` from ``db.camera``.
@@ -69,14 +76,10 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
     if abs(config.radius_deg - db.radius_deg) > 1e-12:
         raise ValueError(f"config.radius_deg={config.radius_deg} but the database was built with "
                          f"r={db.radius_deg}")
-
-    def search(batch: Scene, cfg: Config, main_rank: int = 0) -> Identification:
-        """Algorithm 1 again, for an extension: other scenes, settings or main star."""
-        return _algorithm1(db, batch, cfg, main_rank=main_rank, with_attitude=with_attitude)[0]
-
     # the paper: Algorithm 1 on every scene, its main star the detection nearest the principal point
     result, diag = _algorithm1(db, scenes, config, with_attitude=with_attitude, diagnostics=diagnostics)
-    # ours, in order (module .extensions; each off in Config.paper())
+    # ours, in order (module .extensions; each off in Config.paper()), some running Algorithm 1 again
+    search = functools.partial(_search_again, db, with_attitude=with_attitude)
     result = next_main_stars(scenes, result, config, search)
     result, laddered = finishing_stage(db, scenes, result, config, search, with_attitude=with_attitude)
     result = name_at_fitted_focal(db, scenes, result, laddered, config)
@@ -93,27 +96,34 @@ def _algorithm1(db, scenes: Scene, config: Config, *, main_rank: int = 0, with_a
     if config.subgraph:
         return _subgraph_pass(db, scenes, config, main_rank=main_rank, with_attitude=with_attitude,
                               diagnostics=diagnostics)
-    # the main star's neighbor graph G_I (detections within r) and its MST weight w_I (Prim)
+    # lines 1–2: main star I, its neighbor graph G_I (the detections within r), A_I and w_I (MST)
     g, usable = searchable_graphs(db, scenes, config, main_rank=main_rank)
-    # rough search (eq. 1) at the widest Δw, then Δw level by level: spectral matching (eqs. 2–5)
-    # of each new candidate, J* = argmin δ, stop at the first level where δ_{I,J*} ≤ ε_δ
+    # lines 3–10: for Δw = Δw₀, Δw₀ + h_Δw, … ≤ Δw_max, the rough search S_I (eq. 1, k-vector), each
+    # new J ∈ S_I matched spectrally (eqs. 2–5), J* = argmin δ (eq. 6), until δ_{I,J*} ≤ ε_δ
     state = advance_search(db, g, start_search(db, g, usable, config), config)
     outcome = search_outcome(state, config, g.mask.shape[1])
 
-    def resume(outcome, redo):  # the verification rejected J*: strike it out, Algorithm 1 goes on
+    def resume(outcome, redo):  # the verification rejected J*: strike it out, lines 3–10 go on
         nonlocal state
         retry = np.zeros(outcome.ok.shape, bool)
         retry[redo] = True
         state = advance_search(db, g, reject_best(state, outcome, redo), config, retry)
         return search_outcome(state, config, g.mask.shape[1])
 
-    # G_I named through J*'s vertex correspondence, then our verification (and its retries)
+    # lines 11–12: G_I named through P_{I,J*}; then our verification, whose rejections resume the search
     result, outcome, contested_main = names_with_retries(db, scenes, g, outcome, config, resume)
     if with_attitude:
         result = attitude_from_names(db, scenes, result)
     if not diagnostics:
         return result, None
     return result, search_diagnostics(db, scenes, g, usable, outcome, contested_main)
+
+
+def _search_again(db, scenes: Scene, config: Config, main_rank: int = 0, *,
+                  with_attitude: bool) -> Identification:
+    """:func:`_algorithm1` for an extension (:data:`.extensions.Search`): other scenes, settings or
+    main star."""
+    return _algorithm1(db, scenes, config, main_rank=main_rank, with_attitude=with_attitude)[0]
 
 
 def _subgraph_pass(db, scenes: Scene, config: Config, *, main_rank: int, with_attitude: bool,
