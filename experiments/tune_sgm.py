@@ -23,7 +23,7 @@ import numpy as np
 import jstarid as js
 from jstarid import experiment as ex
 from jstarid.algorithms import sgm
-from jstarid.algorithms.sgm.identify import searchable_graphs
+from jstarid.algorithms.sgm.graph import searchable_graphs
 from jstarid.papers import sgm as paper
 
 

@@ -363,7 +363,7 @@ def test_sgm_camera_check_keeps_right_names_at_its_own_verification_cap(world):
     own verification cap (0.3°, 15.2 px on sgm2022): the camera check with SGM's cap keeps it,
     the default 10 px clip takes it back; a name from elsewhere in the sky goes either way."""
     from jstarid.algorithms import sgm
-    from jstarid.algorithms.sgm.identify import camera_check_cap_px
+    from jstarid.algorithms.sgm.extensions import camera_check_cap_px
 
     cat, nominal = world
     cap = camera_check_cap_px(sgm.Config(), nominal)
@@ -445,7 +445,7 @@ def test_studentized_check_keeps_the_right_names_the_plain_radius_takes_back(wor
     of 9–10 names bends the fit to σ̂ ≈ 4.4 px and stayed in 2 of 1,824 such scenes, with either
     radius.)"""
     from jstarid.algorithms import sgm
-    from jstarid.algorithms.sgm.identify import camera_check_cap_px
+    from jstarid.algorithms.sgm.extensions import camera_check_cap_px
 
     cat, nominal = world
     scenes, ids = _named_in_centre_circle(cat, nominal, n=1024, seed=9, sigma=1.0)

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import jstarid as js
-from jstarid.algorithms.sgm.search import _spread, skip_padding
+from jstarid.runtime import skip_padding
+from jstarid.runtime.pairs import _spread
 
 
 def test_use_cpu_cores_reads_an_explicit_count_and_refuses_a_late_change(monkeypatch, several_devices):

@@ -7,6 +7,9 @@
   call run rows of different sizes in chunks of the narrowest width that holds them
   (``map_by_width``);
 - :mod:`.padding`: the padding rules (``pad_rows``, ``next_power_of_two``, ``padded_indices``);
+- :mod:`.pairs`: one kernel over many (scene, candidate) pairs, grouped by static size, cut to a
+  memory budget and split over the devices (``run_pairs``), padding pairs skipped inside a call
+  (``skip_padding``);
 - :mod:`.cache`: device copies and derived tables of long-lived objects (``DeviceCache``);
 - :mod:`.memory_maps`: drop JAX's compiled caches before a process reaches Linux's limit on memory
   mappings (``relieve``);
@@ -23,10 +26,11 @@ from jstarid.runtime.cache import DeviceCache, device_cache, on_every_device
 from jstarid.runtime.devices import batch_mesh, map_batch, replicate, shard_batch, use_cpu_cores
 from jstarid.runtime.memory_maps import relieve
 from jstarid.runtime.padding import next_power_of_two, pad_rows, padded_indices
+from jstarid.runtime.pairs import run_pairs, skip_padding
 from jstarid.runtime.staging_memory import release_staging
 from jstarid.runtime.static import static_config
 
 __all__ = ["batch_mesh", "Call", "chunk_calls", "device_cache", "DeviceCache", "grow_until",
            "map_batch", "map_by_width", "next_power_of_two", "on_every_device", "pad_rows",
            "padded_indices", "program_store", "release_staging", "relieve", "replicate", "run_calls",
-           "shard_batch", "static_config", "take_rows", "use_cpu_cores"]
+           "run_pairs", "shard_batch", "skip_padding", "static_config", "take_rows", "use_cpu_cores"]

@@ -126,7 +126,8 @@ def test_noise_free_scenes_all_correct_including_twins(setup):
     # names that are knocked out
     import dataclasses
 
-    from jstarid.algorithms.sgm.identify import _name_leftovers, scene_graphs
+    from jstarid.algorithms.sgm.graph import scene_graphs
+    from jstarid.algorithms.sgm.naming import name_leftovers
     g = jax.tree.map(np.asarray, scene_graphs(
         scenes.xy, scenes.valid, camera=cam, radius_deg=cfg.radius_deg,
         capacity=db.capacity))
@@ -136,9 +137,9 @@ def test_noise_free_scenes_all_correct_including_twins(setup):
         if g.n[s] >= 6:  # keep ≥ 3 named stars for the attitude
             knocked[s, g.members[s][1:g.n[s]][:2]] = -1
     assert np.sum(knocked != ids) > 0
-    restored = _name_leftovers(db, scenes, js.Identification(ids=jnp.asarray(knocked),
-                                                             ok=result.ok), g,
-                               dataclasses.replace(cfg, leftover_tol_deg=0.05))
+    restored = name_leftovers(db, scenes, js.Identification(ids=jnp.asarray(knocked),
+                                                            ok=result.ok), g,
+                              dataclasses.replace(cfg, leftover_tol_deg=0.05))
     np.testing.assert_array_equal(restored, ids)
     # attitude from the identified stars
     from jstarid.attitude import attitude_errors_arcsec
@@ -288,7 +289,7 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)
     batch, info = sgm.identify(db, scenes, cfg, diagnostics=True)
-    from jstarid.algorithms.sgm.identify import scene_graphs
+    from jstarid.algorithms.sgm.graph import scene_graphs
     g = scene_graphs(scenes.xy, scenes.valid, camera=cam, radius_deg=cfg.radius_deg,
                      capacity=db.capacity)
     levels = []
@@ -315,7 +316,7 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
 
 def _noisy_graphs(setup5, cfg, *, n, seed, key):
     """n random main stars at σ = 2 px: (rows, scenes, image graphs as NumPy, usable)."""
-    from jstarid.algorithms.sgm.identify import searchable_graphs
+    from jstarid.algorithms.sgm.graph import searchable_graphs
     cat, cam, db = setup5
     rows = np.random.default_rng(seed).choice(len(cat), n, replace=False)
     scenes = js.simulate(jax.random.key(key), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
@@ -449,10 +450,10 @@ def test_capacity_and_padding_do_not_change_ids(setup):
 
 
 def _verify(db, cfg, scenes, ids, ok, with_main_ambiguous=False):
-    from jstarid.algorithms.sgm.identify import _verify
+    from jstarid.algorithms.sgm.naming import verify_claims
     main = js.metrics.main_star_index(scenes, db.camera)
     res = js.Identification(ids=jnp.asarray(ids), ok=jnp.asarray(ok), attitude=None)
-    out, main_ambiguous = _verify(db, scenes, res, main, cfg)
+    out, main_ambiguous = verify_claims(db, scenes, res, main, cfg)
     if with_main_ambiguous:
         return np.asarray(out.ids), np.asarray(out.ok), main_ambiguous
     return np.asarray(out.ids), np.asarray(out.ok)
@@ -478,7 +479,7 @@ def test_verification_on_the_named_rows_only_equals_all_rows(setup):
     """``verify_ids(max_named=M)`` tests only the named detections (compacted to M rows): the same
     ids and ok as testing every detection slot; a scene with more than M names fails, never
     verified partly."""
-    from jstarid.algorithms.sgm.identify import _verify_inputs
+    from jstarid.algorithms.sgm.naming import verify_inputs
     from jstarid.algorithms.sgm.verify import verify_ids
     cat, cam, cfg, db = setup
     rows = np.random.default_rng(5).choice(len(cat), 12, replace=False)
@@ -491,7 +492,7 @@ def test_verification_on_the_named_rows_only_equals_all_rows(setup):
     first_two = np.nonzero(ids[0] >= 0)[0][:2]
     ids[0, first_two] = ids[0, first_two[::-1]]  # a swapped pair of names
     n_named = np.sum(ids >= 0, axis=1)
-    (cat_dev, cat_mag, cells), settings = _verify_inputs(db, cfg)
+    (cat_dev, cat_mag, cells), settings = verify_inputs(db, cfg)
     main = js.metrics.main_star_index(scenes, cam)
 
     def run(max_named):
@@ -541,7 +542,8 @@ def test_verification_catches_a_swapped_close_pair(setup):
 def test_rename_after_verification_names_a_detection_the_match_paired_wrongly(setup):
     """``verify_rename``: a detection the match named after the wrong star (seen noise-free in the
     full-size run) is unnamed by the verification, then named correctly from the verified attitude."""
-    from jstarid.algorithms.sgm.identify import _rename_and_reverify, scene_graphs
+    from jstarid.algorithms.sgm.graph import scene_graphs
+    from jstarid.algorithms.sgm.naming import rename_and_reverify
     cat, cam, cfg, db = setup
     rows = np.random.default_rng(5).choice(len(cat), 6, replace=False)
     scenes = js.simulate(jax.random.key(12), cat, cam, js.NoiseConfig(), capacity=CAPACITY,
@@ -570,7 +572,7 @@ def test_rename_after_verification_names_a_detection_the_match_paired_wrongly(se
     assert all(ids[s, d] == -1 for s, d in enumerate(victim))  # the verification unnames it
     assert not np.any((ids >= 0) & (ids != truth))
     verified = js.Identification(ids=jnp.asarray(ids), ok=jnp.asarray(vok), attitude=None)
-    renamed = _rename_and_reverify(db, scenes, verified, g, cfg)
+    renamed = rename_and_reverify(db, scenes, verified, g, cfg)
     np.testing.assert_array_equal(np.asarray(renamed.ids), named)  # named again, correctly
     np.testing.assert_array_equal(np.asarray(renamed.ok), vok)
 
@@ -899,7 +901,7 @@ def test_ladder_answers_are_named_again_under_the_fitted_focal_length(setup):
     true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
     scenes = js.simulate(jax.random.key(7), cat, true, js.NoiseConfig(position_sigma_px=0.5),
                          batch_size=8, capacity=CAPACITY)
-    from jstarid.algorithms.sgm.identify import _name_at_fitted_focal
+    from jstarid.algorithms.sgm.extensions import name_at_fitted_focal
     from jstarid.camera_fit import rescale_scenes
 
     full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config(power_iterations=30))
@@ -920,7 +922,7 @@ def test_ladder_answers_are_named_again_under_the_fitted_focal_length(setup):
                                 attitude=full.attitude,
                                 focal_scale=jnp.where(jnp.asarray(ok), 0.98, jnp.nan),
                                 distortion_k1=jnp.zeros(ok.shape))
-    renamed = _name_at_fitted_focal(db, scenes, partial, ok, cfg)
+    renamed = name_at_fitted_focal(db, scenes, partial, ok, cfg)
     got = np.asarray(renamed.ids)
     assert np.all((got == truth) | (got < 0))  # nothing wrong
     back = dropped & (got == truth)
@@ -940,7 +942,7 @@ def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
     true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
     scenes = js.simulate(jax.random.key(7), cat, true, js.NoiseConfig(position_sigma_px=0.5, n_false=2),
                          batch_size=16, capacity=CAPACITY)
-    from jstarid.algorithms.sgm.identify import _whole_circles_only
+    from jstarid.algorithms.sgm.extensions import whole_circles_only
     from jstarid.camera_fit import rescale_scenes
 
     full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config(power_iterations=30))
@@ -964,7 +966,7 @@ def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
     take = ok.copy()
     spared = named[0]  # a partly named scene outside ``take`` keeps its answer
     take[spared] = False
-    out = _whole_circles_only(db, scenes, given, take, sgm.Config(power_iterations=30))
+    out = whole_circles_only(db, scenes, given, take, sgm.Config(power_iterations=30))
     expect_ok = ok & (whole | ~take)
     np.testing.assert_array_equal(np.asarray(out.ok), expect_ok)
     np.testing.assert_array_equal(np.asarray(out.ids)[expect_ok], ids[expect_ok])
@@ -975,10 +977,10 @@ def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
 
 
 def test_renaming_circle_is_the_union_of_both_circles():
-    """``_with_members_of``: the leftover naming under the fitted focal length reads the members of
+    """``with_members_of``: the leftover naming under the fitted focal length reads the members of
     both circles (fitted and nominal), each detection once; checked against Python sets."""
+    from jstarid.algorithms.sgm.extensions import with_members_of
     from jstarid.algorithms.sgm.graph import ImageGraph
-    from jstarid.algorithms.sgm.identify import _with_members_of
 
     rng = np.random.default_rng(3)
     members = np.full((2, 6, 5), -1, np.int32)
@@ -993,7 +995,7 @@ def test_renaming_circle_is_the_union_of_both_circles():
         return ImageGraph(members=members[w], mask=mask[w], adj=None, n=mask[w].sum(1), w=None,
                           overflow=None)
 
-    out = _with_members_of(graph(0), graph(1))
+    out = with_members_of(graph(0), graph(1))
     for s in range(6):
         got = out.members[s][out.mask[s]].tolist()
         assert len(got) == len(set(got))

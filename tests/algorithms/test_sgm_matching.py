@@ -190,7 +190,7 @@ def test_vertex_check_unnames_the_inconsistent_vertex():
     import dataclasses
 
     from jstarid.algorithms.sgm import Config
-    from jstarid.algorithms.sgm.identify import _check_vertices
+    from jstarid.algorithms.sgm.naming import check_vertices
     from jstarid.algorithms.sgm.search import SearchOutcome
 
     rng = np.random.default_rng(4)
@@ -208,14 +208,32 @@ def test_vertex_check_unnames_the_inconsistent_vertex():
     res = SearchOutcome(ok=np.array([True]), best=one, rank=one, match=match, error=np.zeros(1),
                         n_matched=one, n_pruned=one, n_rejected=one, level=one)
     cfg = dataclasses.replace(Config(), vertex_check_deg=0.2)
-    m, ok = _check_vertices(a_i, a_j, res, cfg)
+    m, ok = check_vertices(a_i, a_j, res, cfg)
     assert bool(ok[0])
     expect = match[0].copy()
     expect[3] = -1
     np.testing.assert_array_equal(m[0], expect)
     # too few consistent vertices left → the scene fails
-    m, ok = _check_vertices(a_i, a_j, res, dataclasses.replace(cfg, min_matched=10))
+    m, ok = check_vertices(a_i, a_j, res, dataclasses.replace(cfg, min_matched=10))
     assert not bool(ok[0]) and np.all(m == -1)
+    # … and through the naming: the unnamed vertex's detection gets no name, the others theirs
+    import types
+
+    from jstarid.algorithms.sgm.graph import ImageGraph
+    from jstarid.algorithms.sgm.naming import names_from_match
+    # the detection of each vertex: 13, 12, …, 4 (a scene of 14 detections)
+    members = np.where(np.arange(k) < 10, np.arange(k)[::-1] - 2, -1).astype(np.int32)[None]
+    db = types.SimpleNamespace(adj=a_j, members=(100 + np.arange(k, dtype=np.int32))[None])
+    g = ImageGraph(members=members, mask=members >= 0, adj=a_i, n=np.array([10]), w=None, overflow=None,
+                   main=members[:, 0])
+    scenes = types.SimpleNamespace(valid=np.ones((1, 14), bool))
+    plain = dataclasses.replace(cfg, leftover_tol_deg=None, verify=False)
+    result, _ = names_from_match(db, scenes, g, res, plain)
+    want = np.full(14, -1)
+    want[members[0, :10]] = 100 + np.arange(10)
+    want[members[0, 3]] = -1
+    np.testing.assert_array_equal(np.asarray(result.ids)[0], want)
+    assert bool(np.asarray(result.ok)[0])
 
 
 def test_power_iteration_early_stop_agrees_with_fixed_steps():

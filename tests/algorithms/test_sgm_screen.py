@@ -97,7 +97,7 @@ def test_plane_coords_keep_radii_and_turn_with_the_sky():
 
 
 def test_true_graphs_pass_and_most_others_fail_at_three_pixels(setup5):
-    from jstarid.algorithms.sgm.identify import searchable_graphs
+    from jstarid.algorithms.sgm.graph import searchable_graphs
     cat, cam, db = setup5
     cfg = sgm.Config()
     rows = np.random.default_rng(4).choice(len(cat), 48, replace=False)
@@ -148,7 +148,7 @@ def test_search_with_the_screen_is_algorithm1_over_the_candidates_that_pass(setu
 
 def _image_graphs(setup5, *, sigma, key, seed, n):
     """``(db, config, scenes, graphs, usable)`` of n random main stars at position noise σ (px)."""
-    from jstarid.algorithms.sgm.identify import searchable_graphs
+    from jstarid.algorithms.sgm.graph import searchable_graphs
     cat, cam, db = setup5
     cfg = sgm.Config()
     scenes = js.simulate(jax.random.key(key), cat, cam, js.NoiseConfig(position_sigma_px=sigma),

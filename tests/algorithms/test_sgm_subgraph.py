@@ -12,8 +12,7 @@ from scipy.spatial.transform import Rotation
 import jstarid as js
 from jstarid import Finishing
 from jstarid.algorithms import sgm
-from jstarid.algorithms.sgm.graph import adjacency_deg
-from jstarid.algorithms.sgm.identify import searchable_graphs
+from jstarid.algorithms.sgm.graph import adjacency_deg, searchable_graphs
 from jstarid.algorithms.sgm.subgraph import drop_outliers, partial_match, radial_votes, radii_table
 
 TOL = 0.05  # edge residual tolerance of these tests (deg); star noise 0.004° ≪ TOL

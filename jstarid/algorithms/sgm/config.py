@@ -157,7 +157,7 @@ class Config:
             is studentized for SGM (``studentized=True``: 6 σ̂ becomes 10.0 σ̂ over 12 names; the
             plain radius took back right names 3–4 px out at σ = 1 px, where σ̂ of a dozen names
             came out at half σ) and capped at ``verify_cap_deg``
-            (:func:`~jstarid.algorithms.sgm.identify.camera_check_cap_px`).
+            (:func:`~jstarid.algorithms.sgm.extensions.camera_check_cap_px`).
         focal_search_dw_max_deg: Δw_max of those searches (deg; ``None``: ``dw_max_deg``). Why:
             a scene the rescaled camera explains is found at small Δw, and the scenes left are
             mostly ones no focal length solves, which would search every level four more times

@@ -27,10 +27,10 @@ from jstarid.algorithms.sgm.graph import adjacency_deg, catalog_neighbors, mst_w
 from jstarid.camera import radius_that_fits
 from jstarid.catalog import cache_dir, load_or_build, read_arrays, write_arrays
 from jstarid.geometry import KVector, build_kvector
-from jstarid.runtime import device_cache
+from jstarid.runtime import device_cache, on_every_device
 from jstarid.runtime.program_store import stored_jit
 
-__all__ = ["Database", "build_database"]
+__all__ = ["Database", "build_database", "database_tables"]
 
 _FORMAT = 2  # bump when the stored arrays change meaning (2: adjacency recomputed on load)
 _STORED = ("main", "members", "n", "w")
@@ -312,3 +312,9 @@ def first_use(catalog, camera, config: Config | None = None) -> tuple[str, float
     if (cache_dir() / f"sgm-{_cache_key(catalog, config)}.npz").exists():
         return None
     return f"SGM neighbor graphs of {len(catalog):,} stars", 5.0
+
+
+def database_tables(db: Database, table: str = "adj"):
+    """``(db.<table>, n)`` as device arrays on every device (placed once per database and table):
+    ``"adj"`` for the spectral matching, ``"rows"`` (``Database.rows``) for the row bound."""
+    return on_every_device(db, table, lambda: (jnp.asarray(getattr(db, table)), jnp.asarray(db.n)))

@@ -3,19 +3,29 @@
 Vertices: the main star and every star within the neighbor-circle radius r of it; edge weights:
 angular separations (deg). Stored padded to K vertices: vertices first (main star = vertex 0), a
 (K,) mask, and a (K, K) adjacency that is 0 on the padding.
+
+Algorithm 1's first step on a batch of scenes is :func:`searchable_graphs`: each scene's main star
+(the detection nearest the principal point), its image graph G_I and w_I (:func:`scene_graphs`),
+and which scenes can be searched at all.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.algorithms.sgm.config import Config
 from jstarid.geometry.angles import angle_between
+from jstarid.metrics import by_distance_to_principal_point, nearest_to_principal_point
+from jstarid.runtime.program_store import stored_jit
+from jstarid.scene import Scene
 
-__all__ = ["separation_deg", "adjacency_deg", "plane_coords", "mst_weight", "image_graph"]
+__all__ = ["separation_deg", "adjacency_deg", "plane_coords", "mst_weight", "image_graph", "scene_graphs",
+           "searchable_graphs"]
 
 
 def separation_deg(u, v):
@@ -102,7 +112,7 @@ class ImageGraph(NamedTuple):
         n: (…,) int32 vertices. w: (…,) float32 MST weight w_I (deg).
         overflow: (…,) bool, more than K detections inside the circle (the graph is unusable).
         main: (…,) int32 detection index of the main star; ``any``: (…,) bool, the scene has a
-            detection (both set by :func:`~jstarid.algorithms.sgm.identify.scene_graphs`; −1 and
+            detection (both set by :func:`scene_graphs`; −1 and
             False for a lone graph).
         plane: (…, K, 2) float32 :func:`plane_coords` of the vertices (deg).
     """
@@ -148,6 +158,41 @@ def image_graph(vecs, valid, main, radius_deg: float, capacity: int):
     return ImageGraph(members=members, mask=mask, adj=adj.astype(jnp.float32), n=n.astype(jnp.int32),
                       w=mst_weight(adj, mask).astype(jnp.float32), overflow=count > capacity,
                       plane=plane_coords(v, mask))
+
+
+@functools.partial(stored_jit, static_argnames=("camera", "radius_deg", "capacity", "main_rank"))
+def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int, main_rank: int = 0):
+    """Image neighbor graphs of a batch.
+
+    Args:
+        xy: (B, N, 2) centroids (px). valid: (B, N) bool.
+        camera: static :class:`~jstarid.camera.Camera`. radius_deg: r (deg). capacity: static K.
+        main_rank: static; the main star is the valid detection nearest the principal point (0, the
+            paper's choice) or the ``main_rank``-th nearest after it (``Config.subgraph_main_stars``).
+
+    Returns:
+        :class:`ImageGraph` of (B, …) arrays, with ``main`` (B,) int32 main-star detection and
+        ``any`` (B,) bool (the scene has such a detection).
+    """
+    if main_rank == 0:
+        main = nearest_to_principal_point(xy, valid, camera)
+        has = jnp.any(valid, axis=-1)
+    else:
+        main = by_distance_to_principal_point(xy, valid, camera)[:, main_rank]
+        has = jnp.sum(valid, axis=-1) > main_rank
+    vecs = camera.unproject(xy)
+    g = jax.vmap(image_graph, in_axes=(0, 0, 0, None, None))(vecs, valid, main, radius_deg,
+                                                             capacity)
+    return g._replace(main=main.astype(jnp.int32), any=has)
+
+
+def searchable_graphs(db, scenes: Scene, config: Config, main_rank: int = 0):
+    """The scenes' image graphs (:func:`scene_graphs`, as NumPy arrays) and which ones Algorithm 1
+    searches: (B,) bool, a detection, no overflow, at least ``config.min_stars`` vertices."""
+    g = jax.tree.map(np.asarray, scene_graphs(scenes.xy, scenes.valid, camera=db.camera,
+                                              radius_deg=float(db.radius_deg), capacity=int(db.capacity),
+                                              main_rank=main_rank))
+    return g, g.any & ~g.overflow & (g.n >= config.min_stars)
 
 
 def catalog_neighbors(unit_vectors: np.ndarray, row: int, radius_deg: float) -> np.ndarray:

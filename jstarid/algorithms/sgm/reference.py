@@ -1,5 +1,10 @@
-"""A straightforward NumPy SGM, as a researcher would first write it: the paper's algorithm alone,
-independent of the JAX code, and the baseline of ``experiments/bench_sgm.py``.
+"""The independent reference: a straightforward NumPy SGM, as a researcher would first write it.
+
+Not part of the identification (:func:`~jstarid.algorithms.sgm.identify` never calls it): the
+paper's Algorithm 1 alone, written apart from the JAX code, so that ``Config.paper()`` can be
+checked against it id for id (tests/test_experiments.py) and ``experiments/bench_sgm.py`` can time
+it as the baseline. It lives in the package, not under tests/, because that benchmark imports it
+(experiment scripts import the package only, never the tests or each other).
 
 One scene at a time, Python loops: main star nearest the image centre, neighbor graph and Prim MST in
 NumPy, Algorithm 1's Δw loop over the sorted database weights, and for every candidate the affinity

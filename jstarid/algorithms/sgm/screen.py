@@ -31,12 +31,11 @@ import numpy as np
 
 from jstarid.runtime import device_cache, map_batch
 from jstarid.runtime.padding import power_of_two_chunks
+from jstarid.runtime.pairs import MIN_CALL_PAIRS
 from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["hypothesis_neighbors", "nearest_radii", "neighbor_polar", "polar_support", "screen_pairs",
            "screen_pass", "triangle_support"]
-
-MIN_CALL_PAIRS = 64  # smallest compiled pair count (as the search's other pair kernels)
 
 
 def neighbor_polar(plane):

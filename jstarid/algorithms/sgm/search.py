@@ -48,22 +48,20 @@ import numpy as np
 
 from jstarid.algorithms.sgm.bound import edge_lower_bound, error_lower_bound, row_table, sorted_edges
 from jstarid.algorithms.sgm.config import Config
+from jstarid.algorithms.sgm.database import database_tables
 from jstarid.algorithms.sgm.graph import ImageGraph
 from jstarid.algorithms.sgm.matching import spectral_match
 from jstarid.algorithms.sgm.screen import screen_pairs
 from jstarid.geometry import range_search
-from jstarid.runtime import Call, map_batch, next_power_of_two, on_every_device, release_staging, run_calls
+from jstarid.runtime import map_batch, next_power_of_two, release_staging, run_pairs, skip_padding
+from jstarid.runtime.pairs import MIN_CALL_PAIRS
 from jstarid.runtime.program_store import stored_jit
 from jstarid.runtime.staging_memory import trim_heap
 
 __all__ = ["ImageTables", "SearchOutcome", "SearchState", "advance_search", "beyond_row_bound",
-           "bucket_up", "candidate_windows", "database_tables", "dynamic_search", "edge_bounds",
-           "image_tables", "lower_bounds", "order_candidates", "prune_mask",
-           "reject_best", "run_pairs", "search_outcome", "start_search"]
-
-
-def _bucket(x: int, m: int) -> int:
-    return max(m, int(math.ceil(x / m) * m))
+           "bucket_up", "candidate_windows", "dynamic_search", "edge_bounds", "image_tables",
+           "lower_bounds", "order_candidates", "prune_mask", "reject_best", "search_outcome",
+           "start_search"]
 
 
 @stored_jit
@@ -139,16 +137,6 @@ def _match_pairs(a_i, n_i, cand, db_adj, db_n, c, *, p, q, n_iter, tol, min_matc
                         (jnp.full((p,), -1, jnp.int32), jnp.asarray(jnp.inf, jnp.float32)))
 
 
-def skip_padding(fn, live, args, dead):
-    """``lax.map`` of ``fn(*args_n)`` over pairs n, returning ``dead`` where ``live`` is False (on CPU the
-    ``lax.cond`` runs one branch only, so padding costs nothing).
-    """
-    def one(xs):
-        return jax.lax.cond(xs[0], lambda a: fn(*a), lambda a: dead, xs[1:])
-
-    return jax.lax.map(one, (live, *args))
-
-
 @functools.partial(stored_jit, static_argnames=("r", "max_skip"))
 def _bound_pairs(rows_i, n_i, cand, db_rows, db_n, *, r, max_skip):
     """:func:`~.bound.error_lower_bound` of N (image graph, database graph) pairs → (N,) (deg).
@@ -178,88 +166,6 @@ def _bound_pairs(rows_i, n_i, cand, db_rows, db_n, *, r, max_skip):
 def _edge_bound_pairs(e_i, n_i, e_j, n_j):
     """:func:`~.bound.edge_lower_bound` of N pairs of sorted edge lists (N, E) → (N,) (deg); ``vmap``."""
     return jax.vmap(edge_lower_bound)(e_i, n_i, e_j, n_j)
-
-
-MIN_CALL_PAIRS = 64  # smallest compiled pair count of a kernel call
-
-
-def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int):
-    """Slices ``(lo, hi, padded)`` of ≤ the budget, each padded to a power of two ≥ :data:`MIN_CALL_PAIRS`.
-
-    Power-of-two sizes bound the compilations per kernel; the floor of 64 merges the small sizes of a
-    small batch into one compilation (docs/design/sgm.md). Padding pairs are skipped by the kernels.
-    """
-    cap = max(MIN_CALL_PAIRS,
-              1 << int(math.floor(math.log2(max(budget_bytes // max(per_pair_bytes, 1), 16)))))
-    for lo in range(0, n_pairs, cap):
-        hi = min(lo + cap, n_pairs)
-        yield lo, hi, max(MIN_CALL_PAIRS, next_power_of_two(hi - lo))
-
-
-def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes, budget, size_names, out_tails,
-              tables, **static):
-    """Run a pair kernel over flat (scene, candidate) pairs grouped by padded graph size, each call's
-    pairs split over every device (:func:`jstarid.runtime.map_batch`; with
-    ``--xla_force_host_platform_device_count=n`` that uses n CPU cores).
-
-    Args:
-        kernel: :func:`_match_pairs` or :func:`_bound_pairs`, called as ``kernel(image_i, n_i, cand,
-            *tables, **static, **sizes)`` with the image table sliced to the group's size; calls are
-            filled to a power of two with padding pairs (``cand`` −1) that the kernel must skip or
-            give a harmless value.
-        key_sizes: (N, k) int static sizes of each pair (e.g. (p, q) or (r,)); pairs are grouped by row.
-        image: (B, K, K) per-scene NumPy table the kernel reads (adjacencies, or sorted rows
-            :func:`~.bound.row_table`). n_i: (B,) image vertex counts.
-        scene, cand: (N,) int scene row and database row of each pair.
-        per_pair_bytes: function of the sizes → bytes one pair needs inside the kernel.
-        budget: bytes per call. size_names: the kernel's static keyword for each column of ``key_sizes``.
-        out_tails: trailing shape of each output (a per-vertex axis, returned at the group's size, is
-            given as K and padded with −1).
-        tables: tuple of arrays every pair reads, ideally already on every device (:func:`database_tables`).
-        **static: the kernel's other (hashable) keyword arguments.
-
-    Returns:
-        List of the kernel outputs in pair order (NumPy arrays of shape (N,) + tail).
-    """
-    n_dev = jax.local_device_count()
-    groups = {}
-    for idx, key in enumerate(map(tuple, key_sizes)):
-        groups.setdefault(key, []).append(idx)
-    calls = []
-    for sizes, members in groups.items():
-        members = np.asarray(members)
-        for lo, hi, padded in _batches(members.size, per_pair_bytes(*sizes), budget):
-            # the real pairs are dealt round-robin to the devices' equal slices so each gets its share
-            calls.append(Call(rows=members[lo:hi], size=padded, slots=_spread(hi - lo, padded, n_dev),
-                              static=tuple(zip(size_names, sizes, strict=True))))
-
-    def args(call):
-        # padding pairs repeat the call's first scene with candidate −1 (the kernels skip them)
-        k = dict(call.static)[size_names[0]]
-        fill = np.full(call.size, call.rows[0])
-        fill[call.slots] = call.rows
-        cand_fill = np.full(call.size, -1, np.int32)
-        cand_fill[call.slots] = cand[call.rows]
-        # host arrays go straight to their devices' slices (no staging copy on one device)
-        return (np.ascontiguousarray(image[scene[fill], :k, :k]), n_i[scene[fill]].astype(np.int32),
-                cand_fill)
-
-    return run_calls(kernel, calls, args, tuple(tables), static=static, n_rows=scene.size,
-                     tails=out_tails, fills=[-1] * len(out_tails))
-
-
-def _spread(n: int, padded: int, n_dev: int) -> np.ndarray:
-    """Slots (n,) in a call of ``padded`` pairs for n real pairs: k-th pair → device k mod n_dev."""
-    if n_dev <= 1 or padded % n_dev:
-        return np.arange(n)
-    k = np.arange(n)
-    return (k % n_dev) * (padded // n_dev) + k // n_dev
-
-
-def database_tables(db, table: str = "adj"):
-    """``(db.<table>, n)`` as device arrays on every device (placed once per database and table):
-    ``"adj"`` for the spectral matching, ``"rows"`` (``Database.rows``) for the row bound."""
-    return on_every_device(db, table, lambda: (jnp.asarray(getattr(db, table)), jnp.asarray(db.n)))
 
 
 class ImageTables(NamedTuple):
@@ -313,7 +219,7 @@ def image_tables(adj_i, n_i) -> ImageTables:
     return ImageTables(rows=row_table(adj, mask), edges=sorted_edges(adj, mask))
 
 
-def edge_bounds(db, image: dict, n_i, scene, rows, config: Config) -> np.ndarray:
+def edge_bounds(db, image: ImageTables, n_i, scene, rows, config: Config) -> np.ndarray:
     """:func:`~.bound.edge_lower_bound` of (scene, candidate) pairs: the search's first-stage bound.
 
     Reads tables sorted once (``Database.edges``, :func:`image_tables`); pairs are grouped by padded
@@ -350,7 +256,7 @@ def beyond_row_bound(n_i, n_j, config: Config) -> np.ndarray:
     return np.abs(np.asarray(n_i, np.int64) - np.asarray(n_j, np.int64)) > config.prune_max_skip
 
 
-def lower_bounds(db, image: dict, n_i, scene, rows, config: Config):
+def lower_bounds(db, image: ImageTables, n_i, scene, rows, config: Config):
     """:func:`~.bound.error_lower_bound` of (scene, candidate) pairs: the search's second-stage bound.
 
     Args:
@@ -443,7 +349,7 @@ class SearchState:
     refined: np.ndarray
     deferred: np.ndarray
     covered: np.ndarray
-    matches: dict
+    matches: dict[tuple[int, int], np.ndarray]
     n_matched: np.ndarray
     n_pruned: np.ndarray
     n_rejected: np.ndarray

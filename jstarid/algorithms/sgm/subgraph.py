@@ -35,19 +35,61 @@ lose a match, never make one wrong, because every name is verified.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.algorithms.sgm.graph import ImageGraph
 from jstarid.algorithms.sgm.matching import affinity_eigenvector, greedy_binarize, matching_error
 from jstarid.algorithms.sgm.screen import triangle_support
+from jstarid.algorithms.sgm.search import SearchOutcome
 from jstarid.runtime import device_cache, map_batch, on_every_device
 from jstarid.runtime.program_store import stored_jit
 
-__all__ = ["radii_table", "radial_votes", "partner_vertices", "drop_outliers", "grow_match",
-           "partial_match",
-           "rank_candidates", "subgraph_search"]
+__all__ = ["Ranking", "radii_table", "radial_votes", "partner_vertices", "drop_outliers", "grow_match",
+           "partial_match", "rank_candidates", "subgraph_search"]
+
+
+class Ranking(NamedTuple):
+    """Each scene's matched candidates, best first (:func:`subgraph_search`; NumPy, batch axis
+    first, M = ``min(subgraph_matchings, subgraph_candidates)``).
+
+    Attributes:
+        rows: (B, M) int32 database rows (−1 where the scene was not searched).
+        match: (B, M, K) int32 database vertex (of the whole graph) per image vertex (−1 none;
+            K the image graphs' capacity).
+        error: (B, M) float32 δ over the remaining pairs (deg, eq. 5; inf where the scene was not
+            searched or fewer than ``min_matched`` pairs remain).
+        pairs: (B, M) int32 matched pairs.
+        ok: (B, M) bool accepted (step 4; False where the scene was not searched).
+        cut: (B, M) bool, the cut graph was cut further (:func:`partner_vertices`).
+    """
+
+    rows: np.ndarray
+    match: np.ndarray
+    error: np.ndarray
+    pairs: np.ndarray
+    ok: np.ndarray
+    cut: np.ndarray
+
+    def outcome_at(self, pick: np.ndarray, n_rejected: np.ndarray) -> SearchOutcome:
+        """The :class:`~.search.SearchOutcome` of the candidate ``pick`` (B,) of each scene's
+        ranking (none where ``pick`` is past the ranking's end), so that the naming and the
+        verification take it as they take Algorithm 1's answer; ``n_rejected`` (B,) int32 the
+        answers struck out so far (``level`` 0 when accepted)."""
+        at = np.arange(pick.size)
+        inside = pick < self.ok.shape[1]
+        pick = np.minimum(pick, self.ok.shape[1] - 1)
+        ok = self.ok[at, pick] & inside
+        n_tried = np.sum(np.isfinite(self.error), axis=1).astype(np.int32)
+        return SearchOutcome(ok=ok, best=np.where(ok, self.rows[at, pick], -1).astype(np.int32),
+                             rank=np.where(ok, pick, -1).astype(np.int32),
+                             match=np.where(ok[:, None], self.match[at, pick], -1),
+                             error=self.error[at, pick], n_matched=n_tried,
+                             n_pruned=np.zeros(pick.size, np.int32), n_rejected=n_rejected,
+                             level=np.where(ok, 0, -1).astype(np.int32))
 
 
 def radii_table(db) -> np.ndarray:
@@ -269,7 +311,7 @@ _rank_scenes_jit = stored_jit(_rank_scenes, static_argnames=(
     "extra"))
 
 
-def subgraph_search(db, graphs, usable: np.ndarray, config):
+def subgraph_search(db, graphs: ImageGraph, usable: np.ndarray, config) -> Ranking:
     """Steps 1–4 for a batch of image graphs (host side).
 
     Scenes are grouped by their image graph's padded size P (``size_bucket``) and run in chunks
@@ -281,15 +323,13 @@ def subgraph_search(db, graphs, usable: np.ndarray, config):
         usable: (B,) bool scenes to search. config: :class:`~.config.Config` with ``subgraph``.
 
     Returns:
-        dict of NumPy arrays: ``rows`` (B, M) int32, ``match`` (B, M, K) int32 (padded to the image
-        capacity K), ``error`` (B, M), ``pairs`` (B, M), ``ok`` (B, M) bool (False where not usable),
-        ``cut`` (B, M) bool; candidates best first.
+        :class:`Ranking` (``match`` padded to the image capacity K).
     """
     b, k = graphs.mask.shape
     m = int(min(config.subgraph_matchings, config.subgraph_candidates))
-    out = dict(rows=np.full((b, m), -1, np.int32), match=np.full((b, m, k), -1, np.int32),
-               error=np.full((b, m), np.inf, np.float32), pairs=np.zeros((b, m), np.int32),
-               ok=np.zeros((b, m), bool), cut=np.zeros((b, m), bool))
+    out = Ranking(rows=np.full((b, m), -1, np.int32), match=np.full((b, m, k), -1, np.int32),
+                  error=np.full((b, m), np.inf, np.float32), pairs=np.zeros((b, m), np.int32),
+                  ok=np.zeros((b, m), bool), cut=np.zeros((b, m), bool))
     todo = np.nonzero(usable)[0]
     if not todo.size:
         return out
@@ -318,7 +358,7 @@ def subgraph_search(db, graphs, usable: np.ndarray, config):
                                                jnp.asarray(graphs.plane[fill, :p])),
                             (*tables, *scalars), static=static)
             r, mt, e, pr, okk, ct = (np.asarray(a)[:rows.size] for a in res)
-            out["rows"][rows], out["error"][rows], out["pairs"][rows] = r, e, pr
-            out["ok"][rows], out["cut"][rows] = okk, ct
-            out["match"][rows, :, :p] = mt
+            out.rows[rows], out.error[rows], out.pairs[rows] = r, e, pr
+            out.ok[rows], out.cut[rows] = okk, ct
+            out.match[rows, :, :p] = mt
     return out

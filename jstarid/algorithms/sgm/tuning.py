@@ -24,19 +24,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms.sgm.config import Config, Tuning
-from jstarid.algorithms.sgm.identify import searchable_graphs
+from jstarid.algorithms.sgm.database import database_tables
+from jstarid.algorithms.sgm.graph import searchable_graphs
 from jstarid.algorithms.sgm.matching import spectral_match
-from jstarid.algorithms.sgm.search import (
-    bucket_up,
-    candidate_windows,
-    database_tables,
-    order_candidates,
-    prune_mask,
-    run_pairs,
-    skip_padding,
-)
-from jstarid.attitude import estimate_attitude
-from jstarid.runtime import next_power_of_two, replicate
+from jstarid.algorithms.sgm.naming import attitude_from_names
+from jstarid.algorithms.sgm.search import bucket_up, candidate_windows, order_candidates, prune_mask
+from jstarid.runtime import next_power_of_two, replicate, run_pairs, skip_padding
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification
 
@@ -58,7 +51,7 @@ class CandidateErrors(NamedTuple):
     cand: np.ndarray
     level: np.ndarray
     error: np.ndarray
-    match: dict
+    match: dict[tuple[int, int, int], np.ndarray]
 
 
 @functools.partial(stored_jit, static_argnames=("p", "q", "n_iter", "tol", "min_matched"))
@@ -86,7 +79,7 @@ def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_err
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database`.
         graphs: image graphs as NumPy arrays (``adj`` (B, K, K), ``mask``, ``n``, ``w``), as from
-            :func:`~jstarid.algorithms.sgm.identify.scene_graphs`.
+            :func:`~jstarid.algorithms.sgm.graph.scene_graphs`.
         usable: (B,) bool scenes to search.
         config: :class:`Config` (window, schedule, power iteration, pruning switch).
         cs: (C,) values of c (1/deg).
@@ -161,7 +154,7 @@ def replay_algorithm1(level, error, eps):
     return ok, np.where(ok, rank, -1)
 
 
-def grid_identifications(db, graphs, errors: dict, ok, rank, n_detections: int):
+def grid_identifications(db, graphs, errors: CandidateErrors, ok, rank, n_detections: int):
     """Catalog ids of every detection for each (scene, c, ε_δ) of a replayed grid.
 
     Args:
@@ -244,7 +237,5 @@ def identify_grid(db, scenes, configs) -> list[Identification]:
         ci, ei = cs.index(float(config.c)), eps.index(float(config.max_error_deg))
         result = Identification(ids=jnp.asarray(ids[:, ci, ei]), ok=jnp.asarray(ok[:, ci, ei]),
                                 attitude=None)
-        att, _, have = estimate_attitude(db.catalog, db.camera, scenes, result)
-        att = jnp.where((have & result.ok)[:, None, None], att, jnp.nan)
-        out.append(Identification(ids=result.ids, ok=result.ok, attitude=att))
+        out.append(attitude_from_names(db, scenes, result))
     return out
