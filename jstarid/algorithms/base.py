@@ -26,10 +26,11 @@ An algorithm is a module (usually a subpackage of :mod:`jstarid.algorithms`) exp
     :func:`jstarid.catalog.cache_dir` (:func:`jstarid.catalog.load_or_build`); ``use_cache=False``
     neither reads nor writes the cache (an algorithm that caches nothing accepts and ignores it).
 
-``identify(database, scenes, config=None, *, diagnostics=False)``
+``identify(database, scenes, config=None, *, tuning=None, diagnostics=False)``
     Returns an :class:`~jstarid.scene.Identification` for the (B, N) scene batch, or
     ``(Identification, Diagnostics)`` with ``diagnostics=True``. ``config=None`` means ``Config()``
-    (or, where the database fixes settings, the database's config). A failure is reported as
+    (or, where the database fixes settings, the database's config); ``tuning=None`` means
+    ``config.tuning()``, and a ``Tuning`` given replaces the config's tolerances. A failure is reported as
     ``ok = False`` with every id −1; it is always preferred over a wrong name.
 
 **The finishing stage.** An algorithm whose features are angles ends ``identify`` with
@@ -181,7 +182,7 @@ class Algorithm(Protocol):
     def build_database(self, catalog, camera, config=None, *, use_cache: bool = True,
                        progress: bool = True) -> Any: ...
 
-    def identify(self, database, scenes: Scene, config=None, *,
+    def identify(self, database, scenes: Scene, config=None, *, tuning=None,
                  diagnostics: bool = False) -> Identification | tuple[Identification, Any]: ...
 
 
@@ -214,7 +215,7 @@ def check_algorithm(module: ModuleType, name: str | None = None) -> ModuleType:
                         f"{DiagnosticsFields._fields}, got {tuple(fields[:2])}")
     if not callable(getattr(module.Database, "cache_key", None)):
         raise TypeError(f"algorithm {label!r}: Database has no cache_key()")
-    for fn, params in (("identify", ("config", "diagnostics")),
+    for fn, params in (("identify", ("config", "tuning", "diagnostics")),
                        ("build_database", ("config", "use_cache", "progress"))):
         have = inspect.signature(getattr(module, fn)).parameters
         lacking = [p for p in params if p not in have]

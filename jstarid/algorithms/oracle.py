@@ -80,9 +80,9 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
 
 
 def identify(database: Database, scenes: Scene, config: Config | None = None, *,
-             diagnostics: bool = False):
+             tuning: Tuning | None = None, diagnostics: bool = False):
     """Truth for every true star, −1 for false stars; a scene with no true star fails; scenes
-    corrupted as configured."""
+    corrupted as configured (``tuning``: the oracle has none, accepted for the contract)."""
     config = Config() if config is None else config
     check_scenes(scenes)
     result = _identify(scenes, database.n_stars, config)

@@ -230,8 +230,9 @@ def solve(database: Database, scenes: Scene, max_errors, *, timeout_ms: int = 50
 
 
 def identify(database: Database, scenes: Scene, config: Config | None = None, *,
-             diagnostics: bool = False):
-    """Solve every scene with cedar-solve (module docstring); ``attitude`` is not returned."""
+             tuning: Tuning | None = None, diagnostics: bool = False):
+    """Solve every scene with cedar-solve (module docstring); ``attitude`` is not returned
+    (``tuning``: cedar has none, accepted for the contract)."""
     config = Config() if config is None else config
     check_scenes(scenes)
     answer = solve(database, scenes, [config.match_max_error], timeout_ms=config.timeout_ms)

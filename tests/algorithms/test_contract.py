@@ -291,6 +291,18 @@ def test_identify_grid_gives_what_identify_gives(name):
         np.testing.assert_array_equal(np.asarray(result.ok), np.asarray(alone.ok))
 
 
+@pytest.mark.parametrize("name", NAMES)
+def test_identify_takes_the_configs_tuning(name):
+    """One ``identify`` signature everywhere: ``tuning=config.tuning()`` gives what the config
+    alone gives."""
+    w = world(name)
+    scenes = _clean_scenes(w, 2, seed=9)
+    alone = w.algo.identify(w.database, scenes, w.config)
+    tuned = w.algo.identify(w.database, scenes, w.config, tuning=w.config.tuning())
+    np.testing.assert_array_equal(np.asarray(tuned.ids), np.asarray(alone.ids))
+    np.testing.assert_array_equal(np.asarray(tuned.ok), np.asarray(alone.ok))
+
+
 class _Tuning(NamedTuple):
     """Nothing to sweep."""
 
@@ -328,7 +340,7 @@ def _build_database(catalog, camera, config=None, *, use_cache=True, progress=Tr
     return _Database(key=base.cache_key("hookless", 1, catalog, camera, {}))
 
 
-def _identify(database, scenes, config=None, *, diagnostics=False):
+def _identify(database, scenes, config=None, *, tuning=None, diagnostics=False):
     """The truth of every detection (as the oracle)."""
     base.check_scenes(scenes)
     ids = jnp.where(scenes.valid, scenes.truth, -1).astype(jnp.int32)

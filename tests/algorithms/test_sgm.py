@@ -172,6 +172,12 @@ def test_false_stars_only_fail_cleanly(setup):
     assert not np.any(np.asarray(other_c.ok))
     assert not np.any(np.asarray(result.ok))
     assert np.all(np.asarray(result.ids) == -1)
+    # the contract's tuning= gives what the config's own c and ε_δ give; one value per call
+    base = _search_config(dw_max_deg=0.5)
+    tuned = sgm.identify(db, scenes, base, tuning=sgm.Tuning(c=1.0, max_error_deg=base.max_error_deg))
+    np.testing.assert_array_equal(np.asarray(tuned.ids), np.asarray(other_c.ids))
+    with pytest.raises(ValueError, match="one c per call"):
+        sgm.identify(db, scenes, base, tuning=sgm.Tuning(c=np.array([1.0, 2.0]), max_error_deg=0.4))
 
 
 def test_too_few_stars_fail(setup):

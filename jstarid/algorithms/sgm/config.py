@@ -7,11 +7,12 @@ import math
 from typing import ClassVar, NamedTuple
 
 import jax
+import numpy as np
 
 from jstarid.camera import radius_that_fits, tolerance_scales
 from jstarid.finishing import Finishing
 
-__all__ = ["Config", "Tuning"]
+__all__ = ["Config", "Tuning", "with_tuning"]
 
 # Angles that are really centroid errors (or sums of them: the MST weight window), so they scale
 # with the pixel's angle (Config.for_camera); c, in 1/deg, scales inversely.
@@ -322,3 +323,23 @@ class Config:
         """The fields that shape the database (its cache key, with the catalog fingerprint)."""
         return {"radius_deg": float(self.radius_deg), "neighbor_capacity": self.neighbor_capacity,
                 "size_bucket": int(self.size_bucket)}
+
+
+def with_tuning(config: Config, tuning: Tuning) -> Config:
+    """``config`` with c and ε_δ taken from ``tuning`` (scalars, or arrays holding one value).
+
+    SGM's search reads both on the host (its stop rule and the matching kernel's c), so one
+    ``identify`` call serves one value of each; a grid is a batch axis of
+    :func:`~jstarid.algorithms.sgm.tuning.grid_identifications` instead.
+
+    Raises:
+        ValueError: a field holding several values.
+    """
+    values = {}
+    for name, value in zip(Tuning._fields, tuning, strict=True):
+        distinct = np.unique(np.asarray(value, np.float64))
+        if distinct.size != 1:
+            raise ValueError(f"SGM's identify takes one {name} per call, got {distinct.size} values; "
+                             "run a grid with sgm.tuning.grid_identifications (or js.grid)")
+        values[name] = float(distinct[0])
+    return dataclasses.replace(config, **values)

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.algorithms.base import check_scenes
-from jstarid.algorithms.sgm.config import Config
+from jstarid.algorithms.sgm.config import Config, Tuning, with_tuning
 from jstarid.algorithms.sgm.diagnostics import Diagnostics, search_diagnostics, subgraph_diagnostics
 from jstarid.algorithms.sgm.extensions import (
     finishing_stage,
@@ -44,8 +44,8 @@ from jstarid.scene import Identification, Scene
 __all__ = ["Diagnostics", "identify"]
 
 
-def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bool = False,
-             with_attitude: bool = True):
+def identify(db, scenes: Scene, config: Config | None = None, *, tuning: Tuning | None = None,
+             diagnostics: bool = False, with_attitude: bool = True):
     """Identify the stars of the main star's neighbor circle in every scene.
 
     Algorithm 1 (You et al. 2022) with names and verification runs on every scene first; then our
@@ -58,6 +58,9 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
         scenes: (B, N) :class:`~jstarid.scene.Scene` from ``db.camera``.
         config: :class:`Config` (its database fields must match ``db``); ``None`` → the paper's
             defaults plus the extensions that are on by default.
+        tuning: c and ε_δ (:class:`~jstarid.algorithms.sgm.Tuning`) in place of the config's: scalars,
+            or (B,) arrays holding one value (a grid of them runs as one batch through
+            :func:`~jstarid.algorithms.sgm.tuning.grid_identifications`); ``None``: the config's.
         diagnostics: also return the per-scene :class:`Diagnostics`.
         with_attitude: also solve Wahba from the identified stars (``Identification.attitude``).
 
@@ -69,10 +72,13 @@ def identify(db, scenes: Scene, config: Config | None = None, *, diagnostics: bo
         length / the camera's (NaN where not fitted).
 
     Raises:
-        ValueError: ``config.radius_deg`` differs from the database's.
+        ValueError: ``config.radius_deg`` differs from the database's, or ``tuning`` holds several
+            values per field.
     """
     config = Config() if config is None else config
     check_scenes(scenes)
+    if tuning is not None:
+        config = with_tuning(config, tuning)
     if abs(config.radius_deg - db.radius_deg) > 1e-12:
         raise ValueError(f"config.radius_deg={config.radius_deg} but the database was built with "
                          f"r={db.radius_deg}")
