@@ -65,7 +65,7 @@ from jstarid.robust import brighter_than_named, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
-from jstarid.runtime.padding import next_power_of_two
+from jstarid.runtime.padding import next_power_of_two, padded_indices
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import pad_with_empty
 
@@ -83,6 +83,7 @@ MAX_TOL_PX = 10.0  # largest verification radius (px): 5 σ at 2 px per axis, be
 LADDER_MIN_NAMES = 6  # fewest names of a solution found under a rescaled focal length
 FEW_RETRIES = 64  # search_focal: up to this many retries (scenes × factors) always run in one call
 BATCH_RETRIES = 1  # … and up to this many times the batch size
+RETRY_FLOOR = 8  # … and a retried batch is padded to a power of two at least this large
 FEW_NAMES = 10  # up to this many names the robust fit tests each name by leaving it out
 DROP_STEPS = 2  # … and drops at most this many
 DELETION_RATIO = 3.0  # … each time the others' RMS residual shrinks at least this many times
@@ -553,7 +554,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
 
     def columns(call, few):
         need = max(int(count[call.rows].max()), 1)
-        return min(FEW_NAMES, n) if few else min(n, max(CHECK_MIN_WIDTH, _bucket(need)))
+        return min(FEW_NAMES, n) if few else min(n, max(CHECK_MIN_WIDTH, next_power_of_two(need)))
 
     for few in (True, False):
         rows = np.flatnonzero(ok & ((count <= FEW_NAMES) == few))
@@ -800,12 +801,9 @@ def _move_about_centre(scenes, camera, move):
 
 def _call_size(n: int) -> int:
     """The padded size of a call of :func:`verify_names`'s kernels holding ``n`` scenes."""
-    return max(CHECK_MIN_CALL, _bucket(n))
+    return next_power_of_two(n, floor=CHECK_MIN_CALL)
 
 
-def _bucket(n: int) -> int:
-    """The padded size of a retried batch of ``n`` scenes: the next power of two, at least 8."""
-    return next_power_of_two(n, floor=8)
 
 
 def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER_MIN_NAMES):
@@ -843,8 +841,8 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
         # each scene keeps the first factor, in order, that solved it: the sequential outcome
         factor = np.repeat(np.asarray(scales, np.float32), todo.size)
         rows = np.tile(todo, len(scales))
-        size = _bucket(rows.size)
-        padded = np.concatenate([rows, np.full(size - rows.size, rows[-1])])
+        padded = padded_indices(rows, floor=RETRY_FLOOR)
+        size = padded.size
         factor = np.concatenate([factor, np.full(size - rows.size, factor[-1])])
         # empty padding scenes: they fail at once, where copies of a scene would repeat its search
         moved = rescale_scenes(pad_with_empty(scenes[rows], size), camera, factor)
@@ -868,9 +866,8 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
         # the retried batch padded to a power of two with empty scenes (they fail at once): every
         # new batch size compiles the algorithm's kernels again, and a long run of retries on
         # batches of many sizes would otherwise fill memory with executables
-        size = _bucket(todo.size)
-        padded = np.concatenate([todo, np.full(size - todo.size, todo[-1])])
-        retry = run(rescale_scenes(pad_with_empty(scenes[todo], size), camera, float(scale)), padded)
+        padded = padded_indices(todo, floor=RETRY_FLOOR)
+        retry = run(rescale_scenes(pad_with_empty(scenes[todo], padded.size), camera, float(scale)), padded)
         retry_ids = np.asarray(retry.ids)[: todo.size]
         solved = np.asarray(retry.ok)[: todo.size] & (np.sum(retry_ids >= 0, axis=1) >= min_named)
         rows = todo[solved]

@@ -45,7 +45,7 @@ from jstarid.algorithms.sgm.graph import ImageGraph
 from jstarid.algorithms.sgm.matching import affinity_eigenvector, greedy_binarize, matching_error
 from jstarid.algorithms.sgm.screen import triangle_support
 from jstarid.algorithms.sgm.search import SearchOutcome
-from jstarid.runtime import device_cache, map_batch, on_every_device
+from jstarid.runtime import device_cache, map_batch, on_every_device, padded_indices
 from jstarid.runtime.program_store import stored_jit
 
 __all__ = ["Ranking", "radii_table", "radial_votes", "partner_vertices", "drop_outliers", "grow_match",
@@ -352,7 +352,7 @@ def subgraph_search(db, graphs: ImageGraph, usable: np.ndarray, config) -> Ranki
         chunk = 1 << int(np.clip(np.log2(config.memory_budget_mb * 2**20 / per_scene), 0, 6))
         for lo in range(0, group.size, chunk):
             rows = group[lo:lo + chunk]
-            fill = np.concatenate([rows, np.full(chunk - rows.size, rows[0])])
+            fill = padded_indices(rows, floor=chunk)  # chunk: a power of two ≥ rows.size
             res = map_batch(_rank_scenes_jit, (jnp.asarray(graphs.adj[fill, :p, :p]),
                                                jnp.asarray(graphs.n[fill]),
                                                jnp.asarray(graphs.plane[fill, :p])),
