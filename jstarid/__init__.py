@@ -26,6 +26,7 @@ from jstarid.render import SensorConfig, mean_electrons, render, sensor_for_came
 from jstarid.runtime import use_cpu_cores
 from jstarid.scene import Identification, Scene, pad_with_empty, scenes_from_centroids, undistort_scenes
 from jstarid.simulator import NoiseConfig, SceneSampler, noise_grid, scene_sampler, simulate
+from jstarid.solution import Solution, solve
 
 __version__ = "0.1.0"
 
@@ -40,6 +41,6 @@ __all__ = [
     "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",
     "rotation_to_radec_roll", "save_camera", "scene_outcomes", "scene_sampler", "scenes_from_centroids",
     "SceneSampler", "simulate",
-    "solve_wahba", "undistort_scenes",
+    "Solution", "solve", "solve_wahba", "undistort_scenes",
     "use_cpu_cores", "v_from_hp",
 ]

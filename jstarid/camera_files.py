@@ -9,12 +9,16 @@ A camera file is TOML or JSON with these keys (lengths in the units their names 
                                  #   fov_diagonal_deg, f_px, or focal_length_mm with pixel_size_um
     cx = 639.5                   # optional principal point (px); default: the image centre
     cy = 479.5
-    mag_limit = 6.5              # detection limit (V mag); default 6.0
+    mag_limit = 6.5              # detection limit (V mag); default: the field's depth
+                                 #   (jstarid.sky_depth.identification_depth: V 8.5 at 6°, 6.0 at 20°)
     distortion = [-0.05, 0.01]   # optional, OpenCV's order (k1, k2, p1, p2, k3), any leading part
                                  #   (or the keys k1, k2, p1, p2, k3 one by one)
 
 :func:`load_camera` turns a preset name, such a file or a :class:`~jstarid.Camera` into a camera,
 optionally resized or given another field of view (the CLI's ``--camera``, ``--size`` and ``--fov``).
+A camera whose field the user describes (a file without ``mag_limit``, or a new size or field of view)
+gets the catalog depth of that field (:func:`jstarid.sky_depth.identification_depth`); a preset keeps
+its paper's.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from jstarid.camera import Camera, camera_preset, preset_names
+from jstarid.sky_depth import identification_depth
 
 __all__ = ["camera_from_dict", "camera_to_dict", "load_camera", "save_camera"]
 
@@ -75,10 +80,13 @@ def camera_from_dict(fields: Mapping, *, name: str = "custom") -> Camera:
         distortion = tuple(float(c) for c in fields["distortion"])
     else:
         distortion = tuple(float(fields.get(k, 0.0)) for k in _DISTORTION_KEYS)
-    return Camera(width, height, f_px, cx=_optional_float(fields.get("cx")),
-                  cy=_optional_float(fields.get("cy")),
-                  mag_limit=float(fields.get("mag_limit", 6.0)),
-                  name=str(fields.get("name", name)), distortion=distortion)
+    camera = Camera(width, height, f_px, cx=_optional_float(fields.get("cx")),
+                    cy=_optional_float(fields.get("cy")),
+                    mag_limit=float(fields.get("mag_limit", 6.0)),
+                    name=str(fields.get("name", name)), distortion=distortion)
+    if "mag_limit" in fields:
+        return camera
+    return dataclasses.replace(camera, mag_limit=identification_depth(camera))
 
 
 def camera_to_dict(camera: Camera) -> dict:
@@ -113,6 +121,7 @@ def load_camera(spec: str | Path | Camera, *, size: tuple[int, int] | None = Non
         size: ``(width, height)`` px: the frame's new size, principal point at its centre; without
             ``fov_deg`` the horizontal field of view is kept.
         fov_deg: the horizontal field of view (deg, edge to edge) that sets the focal length.
+            With ``size`` or ``fov_deg`` the detection limit becomes the new field's catalog depth.
 
     Returns:
         The camera; named after its spec, with ``WxH`` and the field appended when changed.
@@ -142,7 +151,8 @@ def load_camera(spec: str | Path | Camera, *, size: tuple[int, int] | None = Non
     fov = camera.fov_x_deg if fov_deg is None else float(fov_deg)
     changes["f_px"] = (width / 2.0) / math.tan(math.radians(fov) / 2.0)
     changes["name"] = f"{camera.name} {width}x{height} {fov:.4g}deg"
-    return dataclasses.replace(camera, **changes)
+    changed = dataclasses.replace(camera, **changes)
+    return dataclasses.replace(changed, mag_limit=identification_depth(changed))
 
 
 def _read_file(path: Path) -> Camera:

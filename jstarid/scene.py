@@ -99,6 +99,17 @@ def undistort_scenes(scenes: Scene, camera) -> Scene:
     return dataclasses.replace(scenes, xy=jnp.asarray(ideal, scenes.xy.dtype))
 
 
+def brightest(scenes: Scene, k: int) -> Scene:
+    """The ``k`` brightest detections of every scene (valid entries come first, brightest first);
+    ``overflow`` is set where more were kept. Returns ``scenes`` itself when ``k`` ≥ N."""
+    if k >= scenes.capacity:
+        return scenes
+    rest = np.asarray(scenes.valid)[:, k:].any(axis=1)
+    return dataclasses.replace(scenes, xy=scenes.xy[:, :k], mag=scenes.mag[:, :k],
+                               truth=scenes.truth[:, :k], valid=scenes.valid[:, :k],
+                               overflow=np.asarray(scenes.overflow) | rest)
+
+
 def pad_with_empty(scenes: Scene, size: int) -> Scene:
     """The batch followed by empty scenes (no valid detection) up to ``size`` scenes.
 

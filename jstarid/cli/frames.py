@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from jstarid.cli.cameras import add_camera_options, camera_from_args
-from jstarid.experiment import with_overrides
+from jstarid.solution import IMAGE_BLEND_PX, NAMING_CAPACITY
 
 
 def add_commands(sub) -> None:
@@ -57,60 +57,21 @@ def _frame_options(p, *, camera: str, capacity: int) -> None:
                    help="Config overrides of --algorithm, VALUE in JSON (e.g. sgm.radius_deg=3.8)")
 
 
-def _identify(args, scenes, labels: list[str], measured=None) -> list[dict]:
-    """Identify ``scenes`` (pinhole pixels) and describe each one (names, boresight, roll, residual
-    and, with ``--name-all``, the focal length fitted with the attitude); stars are reported at
-    their ``measured`` pixels (the scenes before the lens distortion was undone)."""
-    import jstarid as js
-    from jstarid.algorithms import base
+def _identify(args, scenes, labels: list[str], measured=None, blend_px=None) -> list[dict]:
+    """Identify ``measured`` scenes (centroids as measured; ``scenes`` is accepted for the callers
+    that undistorted them already and ignored) the way :func:`jstarid.solve` does, one JSON entry per
+    scene."""
+    from jstarid.solution import solve_scenes
 
     if args.capacity < 1:
         raise ValueError("--capacity must be ≥ 1")
-    cam = camera_from_args(args).pinhole()  # the scenes' centroids are undistorted already
-    limit = cam.mag_limit if args.mag_limit is None else args.mag_limit
-    cat = js.load_catalog(limit, epoch=args.epoch)
-    algo = js.algorithms.get(args.algorithm)
-    cfg = with_overrides(js.engine.default_config(args.algorithm, rpnet_network=args.rpnet_network,
-                                                  camera=cam, frames=True), algorithm_settings(args))
-    js.engine.check_camera([js.Entry(args.algorithm, args.algorithm, cfg)], cam, cat)
-    built = base.first_use(algo, cat, cam, cfg)
-    if built:
-        print(f"first use builds {built[0]} (≈ {built[1] / 60:.0f} min), once", file=sys.stderr)
-    result = algo.identify(algo.build_database(cat, cam, cfg), scenes, cfg)
-    if args.name_all:
-        result = js.name_from_attitude(cat, cam, scenes, result, tol_px=args.tol_px,
-                                       max_scale_error=args.fov_max_error)
-    att, rms_arcsec, have = (np.asarray(a) for a in js.estimate_attitude(cat, cam, scenes, result))
-    if result.attitude is not None:  # the camera fit's attitude (focal length fitted with it)
-        fitted = np.isfinite(np.asarray(result.attitude)).all(axis=(1, 2))
-        att = np.where(fitted[:, None, None], np.asarray(result.attitude), att)
-    scale = (np.full(len(labels), np.nan) if result.focal_scale is None
-             else np.asarray(result.focal_scale, np.float64))
-    k1 = (np.full(len(labels), np.nan) if result.distortion_k1 is None
-          else np.asarray(result.distortion_k1, np.float64))
-    ra, dec, roll = (np.degrees(np.asarray(a)) for a in js.rotation_to_radec_roll(att))
-    xy = np.asarray((scenes if measured is None else measured).xy)
-    ids, ok = np.asarray(result.ids), np.asarray(result.ok)
-    n_det = np.asarray(scenes.valid).sum(axis=1)
-    out = []
-    for i, label in enumerate(labels):
-        named = np.nonzero(ids[i] >= 0)[0]
-        solved = bool(ok[i] and have[i])
-        entry = {"scene": label, "detections": int(n_det[i]), "solved": solved,
-                 "stars": [{"hip": int(cat.hip[ids[i, j]]), "x": float(xy[i, j, 0]),
-                            "y": float(xy[i, j, 1]), "v": float(cat.mag[ids[i, j]])} for j in named]}
-        if solved:
-            entry.update(ra_deg=float(ra[i]), dec_deg=float(dec[i]), roll_deg=float(roll[i]),
-                         residual_arcsec=float(rms_arcsec[i]), attitude=att[i].tolist(),
-                         quaternion=np.asarray(js.quaternion_from_rotation(att[i])).tolist())
-            if np.isfinite(scale[i]):
-                entry.update(focal_scale=float(scale[i]), f_px_fitted=float(cam.f_px * scale[i]),
-                             fov_x_deg_fitted=float(np.degrees(2 * np.arctan(cam.width / 2 / (cam.f_px
-                                                                                          * scale[i])))))
-            if np.isfinite(k1[i]):
-                entry.update(distortion_k1=float(k1[i]))
-        out.append(entry)
-    return out
+    solutions = solve_scenes(scenes if measured is None else measured, camera_from_args(args),
+                             args.algorithm, labels=labels, capacity=args.capacity, epoch=args.epoch,
+                             mag_limit=args.mag_limit,
+                             name_all=args.name_all, tol_px=args.tol_px,
+                             fov_max_error=args.fov_max_error, overrides=algorithm_settings(args),
+                             rpnet_network=args.rpnet_network, blend_px=blend_px)
+    return [s.to_dict() for s in solutions]
 
 
 def _summary(entry: dict) -> str:
@@ -164,7 +125,7 @@ def run_identify(args) -> int:
     if any(m is None for m in mag) and not all(m is None for m in mag):
         mag = [np.arange(len(x), dtype=float) if m is None else m for x, m in zip(xy, mag, strict=True)]
     measured = js.scenes_from_centroids(xy, None if all(m is None for m in mag) else mag,
-                                        capacity=args.capacity)
+                                        capacity=max(NAMING_CAPACITY, args.capacity))
     _note_epoch(args)
     solutions = _identify(args, js.undistort_scenes(measured, camera), labels, measured)
     for entry in solutions:
@@ -190,9 +151,10 @@ def run_solve(args) -> int:
         raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "
                          f"got {sorted({im.shape for im in images})}")
     _note_epoch(args)
-    measured = js.extract_centroids(np.stack(images), capacity=args.capacity, shard=True)
+    measured = js.extract_centroids(np.stack(images), capacity=max(NAMING_CAPACITY, args.capacity),
+                                    shard=True)
     solutions = _identify(args, js.undistort_scenes(measured, cam), [str(p) for p in args.images],
-                          measured)
+                          measured, blend_px=IMAGE_BLEND_PX)
     for entry in solutions:
         entry["image"] = entry.pop("scene")
         print(_summary({**entry, "scene": entry["image"]}))

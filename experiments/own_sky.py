@@ -1,0 +1,151 @@
+"""Real frames of a camera the defaults were never tuned on, solved with only its size and field of view.
+
+The OreSat star-tracker frames (``shared/data/oresat``: 22 frames, 17.06° × 12.8° at 1280×960 and the
+same frames binned to 640×480, each plate-solved by astrometry.net) go through the one-call path,
+:func:`jstarid.solve`, with a camera made of nothing but ``--size`` and the field of view
+(``js.load_camera("tetra3_test", size=…, fov_deg=…)`` — what ``jstarid solve --size WxH --fov DEG``
+builds), the observation epoch, and every other setting at its default. Per frame, against the
+independent solution:
+
+- **solved** (and by the plate solver: all 22 were);
+- **names** of the plate solution's matched stars (``truth/stars.csv``, Hipparcos within 10″): the
+  nearest of our named detections within ``--match-px`` is ``right`` when its number is the star's,
+  ``blend`` when the star is one of its blend's numbers (:class:`jstarid.solution.Star`), ``wrong``
+  otherwise; a matched star with no named detection near it is ``unnamed``. A named detection with no
+  matched star near it is not judged (the plate solver matched only some stars);
+- **boresight**: the angle between our boresight and the plate solution's sky position of our
+  principal point (arcsec, through astropy's reading of its TAN-SIP header);
+- **named fraction**: named detections / detections kept (the ``capacity`` brightest).
+
+Usage::
+
+    python experiments/own_sky.py                     # MLV on the three sets
+    python experiments/own_sky.py --algorithm sgm --sets exp1000
+
+Writes results/own_sky/{config.json, results.json, table.md}.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+import jstarid as js
+from jstarid import experiment as ex
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "oresat"
+EPOCH = 2018.3  # the frames were captured before 2018-05-18 (README of the data)
+FOV_DEG = {"exp1000": 17.06, "exp2500": 17.06, "downsample": 17.06}
+
+
+def parse_args(argv=None):
+    p = ex.parser(__doc__.splitlines()[0], out="results/own_sky")
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the oresat folder")
+    p.add_argument("--sets", nargs="+", default=list(FOV_DEG))
+    p.add_argument("--algorithm", default="mlv")
+    p.add_argument("--match-px", type=float, default=3.0,
+                   help="largest distance (px) between a matched star and our detection of it")
+    return p.parse_args(argv)
+
+
+def read_truth(folder: Path) -> tuple[dict, dict]:
+    """``(stars, frames)``: per image the matched stars (x, y, hip) and the frame's row."""
+    stars: dict[str, list] = {}
+    with open(folder / "truth" / "stars.csv") as f:
+        for row in csv.DictReader(f):
+            stars.setdefault(row["image"], []).append((float(row["x"]), float(row["y"]), int(row["hip"])))
+    with open(folder / "truth" / "frames.csv") as f:
+        frames = {row["image"]: row for row in csv.DictReader(f)}
+    return stars, frames
+
+
+def boresight_error_arcsec(solution, wcs_path: Path) -> float:
+    """Angle (arcsec) between our boresight and the plate solution's direction of our principal point."""
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    cam = solution.camera
+    with fits.open(wcs_path) as hdus:
+        ra, dec = WCS(hdus[0].header).all_pix2world([[cam.cx + 1.0, cam.cy + 1.0]], 1)[0]
+    ours = _unit(solution.ra_deg, solution.dec_deg)
+    theirs = _unit(ra, dec)
+    angle = math.atan2(np.linalg.norm(np.cross(ours, theirs)), float(np.dot(ours, theirs)))
+    return math.degrees(angle) * 3600.0
+
+
+def _unit(ra_deg: float, dec_deg: float) -> np.ndarray:
+    a, d = math.radians(ra_deg), math.radians(dec_deg)
+    return np.array([math.cos(a) * math.cos(d), math.sin(a) * math.cos(d), math.sin(d)])
+
+
+def judge(solution, truth: list, match_px: float) -> dict:
+    """Counts of right / blend / wrong / unnamed matched stars (module docstring)."""
+    counts = {"right": 0, "blend": 0, "wrong": 0, "unnamed": 0}
+    named = np.array([[s.x, s.y] for s in solution.stars]).reshape(-1, 2)
+    for x, y, hip in truth:
+        if hip < 0:
+            continue
+        d = np.hypot(named[:, 0] - x, named[:, 1] - y) if len(named) else np.array([])
+        if not len(d) or d.min() > match_px:
+            counts["unnamed"] += 1
+            continue
+        star = solution.stars[int(np.argmin(d))]
+        kind = "right" if star.hip == hip else "blend" if hip in star.blend else "wrong"
+        counts[kind] += 1
+    return counts
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    records = []
+    for name in args.sets:
+        folder = args.data / name
+        truth, frames = read_truth(folder)
+        first = next(iter(frames.values()))
+        camera = js.load_camera("tetra3_test", size=(int(first["width"]), int(first["height"])),
+                                fov_deg=FOV_DEG[name])
+        images = sorted(folder.glob("images/*.png"), key=lambda p: int(p.stem))
+        print(f"{name}: {len(images)} frames, {camera.width}×{camera.height} px, "
+              f"{camera.fov_x_deg:.2f}°, catalog V ≤ {camera.mag_limit:g}", flush=True)
+        solutions = js.solve([str(p) for p in images], camera, args.algorithm, epoch=EPOCH)
+        for path, sol in zip(images, solutions, strict=True):
+            rec = {"set": name, "image": path.name, "solved": sol.solved, "detections": sol.detections,
+                   "named": len(sol.stars), **judge(sol, truth.get(path.name, []), args.match_px)}
+            if sol.solved:
+                rec["boresight_arcsec"] = round(boresight_error_arcsec(
+                    sol, folder / frames[path.name]["wcs_file"]), 1)
+            records.append(rec)
+            print(f"  {path.name}: {'solved' if sol.solved else 'not solved'}, {len(sol.stars)} of "
+                  f"{sol.detections} named; matched stars {rec['right']} right, {rec['blend']} blend, "
+                  f"{rec['wrong']} wrong, {rec['unnamed']} unnamed"
+                  + (f"; boresight {rec['boresight_arcsec']}″" if sol.solved else ""), flush=True)
+    rows = []
+    for name in args.sets:
+        recs = [r for r in records if r["set"] == name]
+        solved = [r for r in recs if r["solved"]]
+        total = {k: sum(r[k] for r in recs) for k in ("right", "blend", "wrong", "unnamed", "named",
+                                                      "detections")}
+        matched = total["right"] + total["blend"] + total["wrong"] + total["unnamed"]
+        errors = [r["boresight_arcsec"] for r in solved]
+        rows.append({"set": name, "solved": f"{len(solved)} / {len(recs)}",
+                     "right": total["right"], "blend": total["blend"], "wrong": total["wrong"],
+                     "unnamed": total["unnamed"],
+                     "recall": f"{100 * (total['right'] + total['blend']) / max(matched, 1):.1f} %",
+                     "named_fraction": f"{100 * total['named'] / max(total['detections'], 1):.1f} %",
+                     "boresight": (f"{np.median(errors):.0f} / {max(errors):.0f}" if errors else "—")})
+    table = ex.markdown_table(rows, [("set", "set", "{}"), ("solved", "solved / plate-solved", "{}"),
+                                     ("right", "matched stars right", "{}"), ("blend", "blend", "{}"),
+                                     ("wrong", "wrong", "{}"), ("unnamed", "unnamed", "{}"),
+                                     ("recall", "recall", "{}"), ("named_fraction", "detections named", "{}"),
+                                     ("boresight", "boresight ″ median / max", "{}")])
+    print(table)
+    ex.write(args.out, config={"algorithm": args.algorithm, "sets": args.sets, "epoch": EPOCH,
+                               "match_px": args.match_px},
+             results={"frames": records, "sets": rows}, table=table)
+
+
+if __name__ == "__main__":
+    main()
