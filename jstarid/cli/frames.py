@@ -10,19 +10,23 @@ from pathlib import Path
 import numpy as np
 
 from jstarid.cli.cameras import add_camera_options, camera_from_args
+from jstarid.cli.centroid_input import add_centroid_file_options
 from jstarid.experiment import with_overrides
 
 
 def add_commands(sub) -> None:
     i = sub.add_parser(
-        "identify", help="centroid file(s) (x, y, magnitude per line; CSV or JSON) → star names and "
+        "identify", help="centroid file(s) (CSV/TSV with named columns, or JSON) → star names and "
                          "attitude as JSON; exit 1 when a scene is not solved",
         description="Identify the stars of one scene or many given as centroids (px, origin at the "
-                    "centre of pixel (0, 0)). CSV: x, y[, magnitude] per line, scenes separated by "
-                    "blank lines or a leading 'scene' column; JSON: [[x, y, mag], …], a list of "
-                    "those, or {\"scenes\": [...]}. Prints JSON (or writes --out).")
-    i.add_argument("files", nargs="+", type=Path, help="centroid files (.csv, .txt or .json)")
+                    "centre of pixel (0, 0)). Tables name their columns in a header, in any order: "
+                    "x, y, mag (or flux), hip (true ids, copied to the output as true_hip), scene; "
+                    "without a header x, y[, magnitude] per line, scenes split by blank lines. "
+                    "JSON: [[x, y, mag], …], a list of those, or {\"scenes\": [...]}. Prints JSON "
+                    "(or writes --out).")
+    i.add_argument("files", nargs="+", type=Path, help="centroid files (.csv, .tsv, .txt or .json)")
     _frame_options(i, camera="sgm2022", capacity=64)
+    add_centroid_file_options(i)
     i.add_argument("--out", type=Path, default=None, help="write the JSON here instead of stdout")
     i.set_defaults(func=run_identify)
     s = sub.add_parser("solve", help="identify the stars of raw images (TIFF/PNG) and print the "
@@ -152,21 +156,14 @@ def _epoch_fields(args) -> dict:
 
 def run_identify(args) -> int:
     import jstarid as js
-    from jstarid.centroid_files import read_centroids
+    from jstarid.cli.centroid_input import add_true_hips, combine, read_centroid_files
 
     camera = camera_from_args(args)  # a bad camera fails before any file is read
-    xy, mag, labels = [], [], []
-    for path in args.files:
-        x, m = read_centroids(path)
-        xy += x
-        mag += m
-        labels += [f"{path}" if len(x) == 1 else f"{path}#{k}" for k in range(len(x))]
-    if any(m is None for m in mag) and not all(m is None for m in mag):
-        mag = [np.arange(len(x), dtype=float) if m is None else m for x, m in zip(xy, mag, strict=True)]
-    measured = js.scenes_from_centroids(xy, None if all(m is None for m in mag) else mag,
-                                        capacity=args.capacity)
+    found = combine(read_centroid_files(args))
+    measured = found.scenes(args.capacity)
     _note_epoch(args)
-    solutions = _identify(args, js.undistort_scenes(measured, camera), labels, measured)
+    solutions = _identify(args, js.undistort_scenes(measured, camera), list(found.labels), measured)
+    add_true_hips(solutions, found, measured)
     for entry in solutions:
         print(_summary(entry), file=sys.stderr)
     text = json.dumps({"camera": js.camera_files.camera_to_dict(camera), "algorithm": args.algorithm,
