@@ -210,12 +210,13 @@ def _scene_rows(n_scenes=2):
 
 
 def test_identify_centroid_files(tmp_path, capsys):
-    """CSV (scenes split by a blank line) and JSON in, names that are the simulated stars' out."""
+    """CSV (columns in any order, scenes split by a blank line, true ids passed through) and JSON
+    in, names that are the simulated stars' out."""
     scenes = _scene_rows()
     csv = tmp_path / "frames.csv"
-    csv.write_text("x, y, magnitude\n" + "\n\n".join(
-        "\n".join(f"{x:.3f}, {y:.3f}, {m:.2f}" for (x, y), m in zip(xy, mag, strict=True))
-        for xy, mag, _ in scenes) + "\n")
+    csv.write_text("HIP, y, x, magnitude\n" + "\n\n".join(
+        "\n".join(f"{h}, {y:.3f}, {x:.3f}, {m:.2f}" for (x, y), m, h in zip(xy, mag, hip, strict=True))
+        for xy, mag, hip in scenes) + "\n")
     js_file = tmp_path / "one.json"
     js_file.write_text(json.dumps([[float(x), float(y), float(m)] for (x, y), m
                                    in zip(scenes[0][0], scenes[0][1], strict=True)]))
@@ -229,7 +230,9 @@ def test_identify_centroid_files(tmp_path, capsys):
         assert abs(entry["focal_scale"] - 1.0) < 2e-3 and entry["f_px_fitted"] > 0
         for star in entry["stars"]:
             j = np.argmin(np.linalg.norm(xy - [star["x"], star["y"]], axis=1))
-            assert hip[j] == star["hip"]
+            assert hip[j] == star["hip"] == star.get("true_hip", hip[j])
+    assert all("true_hip" in star for entry in solved[:2] for star in entry["stars"])
+    assert not any("true_hip" in star for star in solved[2]["stars"])
     assert "boresight RA" in capsys.readouterr().err
 
     # a camera file with a distorting lens: centroids measured through it are named the same

@@ -2,9 +2,10 @@
 
 Commands: ``demo`` (every algorithm on a position-noise sweep), ``sweep`` (any axis, camera or
 parameter grid), ``reproduce`` (the papers' experiments), ``report`` (one markdown page of saved
-results), ``identify`` (centroid files → names and attitude), ``solve`` (raw images → names and
-attitude), ``train`` (a database or network built ahead of time), ``list`` and ``catalog``. Bad
-arguments print one line and exit with status 2.
+results), ``identify`` (centroid files → names and attitude), ``score`` (labelled centroid files
+→ names scored against the true stars), ``solve`` (raw images → names and attitude), ``train`` (a
+database or network built ahead of time), ``list`` and ``catalog``. Bad arguments print one line
+and exit with status 2.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from jstarid.cli import build, frames, info, papers, sweeps
+from jstarid.cli import build, frames, info, papers, score, sweeps
 
 __all__ = ["build_parser", "main"]
 
@@ -34,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     sweeps.add_commands(sub)
     papers.add_commands(sub)
     frames.add_commands(sub)
+    score.add_commands(sub)
     build.add_commands(sub)
     info.add_commands(sub)
     return p

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 
-from jstarid.cli.cameras import add_camera_options, camera_from_args
+from jstarid.cli.cameras import FRAME_CAMERA, add_camera_options, camera_from_args
 from jstarid.cli.first_use import about
 from jstarid.cli.frames import algorithm_settings
 
@@ -18,7 +18,7 @@ def add_commands(sub) -> None:
                     "an interrupted training resumes), MLV's triangle database, SGM's neighbor "
                     "graphs. Later commands on the same camera and catalog load them.")
     t.add_argument("algorithm", help="registry name (`jstarid list`), e.g. rpnet")
-    add_camera_options(t, default="sgm2022")
+    add_camera_options(t, default=FRAME_CAMERA)
     t.add_argument("--mag-limit", type=float, default=None,
                    help="catalog depth V (default: the camera's detection limit)")
     t.add_argument("--epoch", type=float, default=None,

@@ -9,26 +9,30 @@ from pathlib import Path
 
 import numpy as np
 
-from jstarid.cli.cameras import add_camera_options, camera_from_args
+from jstarid.cli.cameras import FRAME_CAMERA, add_camera_options, camera_from_args
+from jstarid.cli.centroid_input import add_centroid_file_options
 from jstarid.solution import IMAGE_BLEND_PX, NAMING_CAPACITY
 
 
 def add_commands(sub) -> None:
     i = sub.add_parser(
-        "identify", help="centroid file(s) (x, y, magnitude per line; CSV or JSON) → star names and "
+        "identify", help="centroid file(s) (CSV/TSV with named columns, or JSON) → star names and "
                          "attitude as JSON; exit 1 when a scene is not solved",
         description="Identify the stars of one scene or many given as centroids (px, origin at the "
-                    "centre of pixel (0, 0)). CSV: x, y[, magnitude] per line, scenes separated by "
-                    "blank lines or a leading 'scene' column; JSON: [[x, y, mag], …], a list of "
-                    "those, or {\"scenes\": [...]}. Prints JSON (or writes --out).")
-    i.add_argument("files", nargs="+", type=Path, help="centroid files (.csv, .txt or .json)")
-    _frame_options(i, camera="sgm2022", capacity=64)
+                    "centre of pixel (0, 0)). Tables name their columns in a header, in any order: "
+                    "x, y, mag (or flux), hip (true ids, copied to the output as true_hip), scene; "
+                    "without a header x, y[, magnitude] per line, scenes split by blank lines. "
+                    "JSON: [[x, y, mag], …], a list of those, or {\"scenes\": [...]}. Prints JSON "
+                    "(or writes --out).")
+    i.add_argument("files", nargs="+", type=Path, help="centroid files (.csv, .tsv, .txt or .json)")
+    _frame_options(i, camera=FRAME_CAMERA, capacity=64)
+    add_centroid_file_options(i)
     i.add_argument("--out", type=Path, default=None, help="write the JSON here instead of stdout")
     i.set_defaults(func=run_identify)
     s = sub.add_parser("solve", help="identify the stars of raw images (TIFF/PNG) and print the "
                                      "attitude; exit 1 when an image is not solved")
     s.add_argument("images", nargs="+", help="grayscale image files, all from one camera")
-    _frame_options(s, camera="tetra3_test", capacity=24)
+    _frame_options(s, camera=FRAME_CAMERA, capacity=24)
     s.add_argument("--out", default="results/solve", help="results directory (default results/solve)")
     s.set_defaults(func=run_solve)
 
@@ -37,13 +41,15 @@ def _frame_options(p, *, camera: str, capacity: int) -> None:
     add_camera_options(p, default=camera)
     p.add_argument("--algorithm", default="mlv", help="registry name (default mlv)")
     p.add_argument("--mag-limit", type=float, default=None,
-                   help="catalog depth V (default: the camera's detection limit, 7.0 for "
-                        "tetra3_test)")
+                   help="identification catalog depth V (default: the camera's detection limit: "
+                        "a preset's, else the field's depth, e.g. 8.5 for a 6° field; naming "
+                        "goes deeper)")
     p.add_argument("--epoch", type=float, default=None,
                    help="Julian year of the observation, for proper motion (e.g. 2019.57); "
                         "default: the catalog's epoch J1991.25")
     p.add_argument("--capacity", type=int, default=capacity,
-                   help=f"brightest detections used per scene (default {capacity})")
+                   help=f"brightest detections the algorithm uses per scene (default {capacity}; "
+                        f"naming looks at up to {NAMING_CAPACITY})")
     p.add_argument("--name-all", action=argparse.BooleanOptionalAction, default=True,
                    help="name every detection the solved attitude explains (js.name_from_attitude); "
                         "--no-name-all keeps the algorithm's own names")
@@ -113,21 +119,14 @@ def _epoch_fields(args) -> dict:
 
 def run_identify(args) -> int:
     import jstarid as js
-    from jstarid.centroid_files import read_centroids
+    from jstarid.cli.centroid_input import add_true_hips, combine, read_centroid_files
 
     camera = camera_from_args(args)  # a bad camera fails before any file is read
-    xy, mag, labels = [], [], []
-    for path in args.files:
-        x, m = read_centroids(path)
-        xy += x
-        mag += m
-        labels += [f"{path}" if len(x) == 1 else f"{path}#{k}" for k in range(len(x))]
-    if any(m is None for m in mag) and not all(m is None for m in mag):
-        mag = [np.arange(len(x), dtype=float) if m is None else m for x, m in zip(xy, mag, strict=True)]
-    measured = js.scenes_from_centroids(xy, None if all(m is None for m in mag) else mag,
-                                        capacity=max(NAMING_CAPACITY, args.capacity))
+    found = combine(read_centroid_files(args))
+    measured = found.scenes(max(NAMING_CAPACITY, args.capacity))
     _note_epoch(args)
-    solutions = _identify(args, js.undistort_scenes(measured, camera), labels, measured)
+    solutions = _identify(args, js.undistort_scenes(measured, camera), list(found.labels), measured)
+    add_true_hips(solutions, found, measured)
     for entry in solutions:
         print(_summary(entry), file=sys.stderr)
     text = json.dumps({"camera": js.camera_files.camera_to_dict(camera), "algorithm": args.algorithm,
