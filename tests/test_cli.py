@@ -294,8 +294,10 @@ def test_train_builds_ahead_and_says_so(tmp_path, capsys, monkeypatch):
     assert "min on 2 CPU cores" in capsys.readouterr().out.splitlines()[0]
     camera, catalog, config = calls[0]
     assert (camera.width, camera.height) == (640, 480) and abs(camera.fov_x_deg - 9) < 1e-9
-    # the catalog `solve --epoch 2019.57` will load; the pattern radius fits the 3.4° half field
-    assert catalog.fingerprint == js.load_catalog(6.0, epoch=2019.57).fingerprint
+    # the catalog `solve --epoch 2019.57` will load, as deep as the 9° field needs (not the preset's
+    # V 6.0); the pattern radius fits the 3.4° half field
+    assert camera.mag_limit == js.sky_depth.identification_depth(camera) == 7.6
+    assert catalog.fingerprint == js.load_catalog(7.6, epoch=2019.57).fingerprint
     assert config == rpnet.Config.for_camera(camera, training=rpnet.Training.quick())
     assert config.rho_deg == 3.0
     assert cli.main(["train", "nope"]) == 2
