@@ -1,6 +1,6 @@
 """jstarid: lost-in-space star identification in JAX (public API, docs/conventions.md §9)."""
 
-from jstarid import algorithms, engine, experiment, plotting, runtime
+from jstarid import algorithms, engine, experiment, plotting, runtime, wcs
 from jstarid.attitude import (
     attitude_errors_arcsec,
     estimate_attitude,
@@ -34,7 +34,7 @@ __all__ = [
     "Camera", "Catalog", "CentroidConfig", "Entry", "Finishing", "Identification", "NoiseConfig", "Scene",
     "SensorConfig", "mean_electrons", "render", "sensor_for_camera",
     "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",
-    "plotting", "runtime", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
+    "plotting", "runtime", "wcs", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
     "estimate_attitude", "evaluate", "extract_centroids", "load_camera", "load_catalog", "name_from_attitude",
     "noise_grid", "pad_with_empty", "preset_names", "quaternion_from_rotation", "random_rotation",
     "ImageFile", "read_image", "read_image_file",
