@@ -44,7 +44,8 @@ import numpy as np
 
 import jstarid as js
 from jstarid import experiment as ex
-from jstarid.centroid import CentroidConfig, extract_centroids, read_image
+from jstarid.centroid import CentroidConfig, extract_centroids
+from jstarid.image_files import read_image
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 IMAGE_EPOCH = 2019.57  # 2019-07-29, the date in the file names (Julian years)

@@ -1,6 +1,6 @@
 """jstarid: lost-in-space star identification in JAX (public API, docs/conventions.md §9)."""
 
-from jstarid import algorithms, engine, experiment, plotting, runtime, sky_depth
+from jstarid import algorithms, engine, experiment, plotting, runtime, sky_depth, wcs
 from jstarid.attitude import (
     attitude_errors_arcsec,
     estimate_attitude,
@@ -15,12 +15,13 @@ from jstarid.attitude import (
 from jstarid.camera import Camera, camera_preset, preset_names
 from jstarid.camera_files import load_camera, save_camera
 from jstarid.catalog import Catalog, load_catalog, v_from_hp
-from jstarid.centroid import CentroidConfig, extract_centroids, read_image
+from jstarid.centroid import CentroidConfig, extract_centroids
 from jstarid.compilation_cache import enable_compilation_cache
 from jstarid.completion import name_from_attitude
 from jstarid.engine import Entry, SweepResult, compare, grid, sweep
 from jstarid.engine import load as load_sweep
 from jstarid.finishing import Finishing
+from jstarid.image_files import ImageFile, read_image, read_image_file
 from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.render import SensorConfig, mean_electrons, render, sensor_for_camera
 from jstarid.runtime import use_cpu_cores
@@ -34,10 +35,11 @@ __all__ = [
     "Camera", "Catalog", "CentroidConfig", "Entry", "Finishing", "Identification", "NoiseConfig", "Scene",
     "SensorConfig", "mean_electrons", "render", "sensor_for_camera",
     "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",
-    "plotting", "runtime", "sky_depth", "attitude_errors_arcsec", "camera_preset", "enable_compilation_cache",
+    "plotting", "runtime", "sky_depth", "wcs", "attitude_errors_arcsec", "camera_preset",
+    "enable_compilation_cache",
     "estimate_attitude", "evaluate", "extract_centroids", "load_camera", "load_catalog", "name_from_attitude",
     "noise_grid", "pad_with_empty", "preset_names", "quaternion_from_rotation", "random_rotation",
-    "read_image",
+    "ImageFile", "read_image", "read_image_file",
     "rotation_from_boresight", "rotation_from_quaternion", "rotation_from_radec_roll",
     "rotation_to_radec_roll", "save_camera", "scene_outcomes", "scene_sampler", "scenes_from_centroids",
     "SceneSampler", "simulate",

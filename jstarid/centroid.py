@@ -44,7 +44,7 @@ from jstarid.runtime import map_batch
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene, undistort_scenes
 
-__all__ = ["CentroidConfig", "extract_centroids", "read_image"]
+__all__ = ["CentroidConfig", "extract_centroids"]
 
 _MAD_TO_SIGMA = 1.4826  # σ / median|x| for a zero-mean Gaussian
 
@@ -91,26 +91,6 @@ class CentroidConfig:
         for name, ok in checks.items():
             if not ok:
                 raise ValueError(f"CentroidConfig.{name} out of range: {getattr(self, name)!r}")
-
-
-def read_image(path) -> np.ndarray:
-    """A grayscale image file (8/16-bit TIFF, PNG, …) as a (H, W) float32 array (host, Pillow).
-
-    Raises:
-        ValueError: any input that yields no image: a missing or unreadable path, a directory, a
-            truncated or corrupt file, a format Pillow does not know.
-    """
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            if im.mode not in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
-                im = im.convert("L")
-            return np.asarray(im).astype(np.float32)
-    # OSError covers a directory, a permission error and a truncated file; Pillow's decoders raise
-    # SyntaxError or ValueError on some corrupt headers
-    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as err:
-        raise ValueError(f"cannot read an image from {path}: {err}") from err
 
 
 def extract_centroids(images, config: CentroidConfig = CentroidConfig(), *,

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-__all__ = ["plot_image", "plot_scene", "plot_sweep", "plot_sweep_axes"]
+__all__ = ["plot_image", "plot_scene", "plot_solution", "plot_sweep", "plot_sweep_axes", "save_solution_plot"]
 
 
 def plot_scene(scenes, index: int, catalog, camera, *, ids=None, ax=None, label_limit: int = 40):
@@ -95,6 +97,44 @@ def plot_image(image, xy, *, labels=None, correct=None, ax=None):
     ax.set_xlabel("x (column, px)")
     ax.set_ylabel("y (row, px)")
     return ax
+
+
+def plot_solution(image, solution: dict, *, ax=None):
+    """Draw a frame as ``jstarid solve`` solved it: each named star circled and labelled ``HIP n``.
+
+    Args:
+        image: (H, W) pixel values.
+        solution: one entry of the solve's ``solutions`` (its JSON): ``stars`` (``hip``, ``x``, ``y``
+            in px, measured), and ``ra_deg``, ``dec_deg``, ``roll_deg`` when solved; ``image`` or
+            ``scene`` names it in the title.
+        ax: matplotlib axes (a new figure when ``None``).
+
+    Returns:
+        The axes.
+    """
+    stars = solution.get("stars", [])
+    xy = np.array([[s["x"], s["y"]] for s in stars], np.float64).reshape(-1, 2)
+    ax = plot_image(image, xy, labels=[f"HIP {s['hip']}" for s in stars], ax=ax)
+    name = Path(str(solution.get("image", solution.get("scene", "")))).name
+    if solution.get("solved"):
+        ax.set_title(f"{name}: {len(stars)} stars named; boresight RA {solution['ra_deg']:.3f}°, "
+                     f"Dec {solution['dec_deg']:+.3f}°, roll {solution['roll_deg']:+.2f}°", fontsize=8)
+    else:
+        ax.set_title(f"{name}: not solved", fontsize=8)
+    return ax
+
+
+def save_solution_plot(image, solution: dict, path) -> None:
+    """:func:`plot_solution` into ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plot_solution(image, solution).figure
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def plot_sweep_axes(rows, *, axes=None, x_field: str | None = None, labels: dict | None = None):

@@ -95,6 +95,19 @@ class Solution:
     distortion_k1: float | None = None
     epoch: float | None = None
 
+    def wcs(self):
+        """The solution as an ``astropy.wcs.WCS`` (TAN, TAN-SIP where a lens distortion was given or
+        fitted; :func:`jstarid.wcs.wcs_from_solution`).
+
+        Raises:
+            ValueError: the frame was not solved.
+        """
+        from jstarid.wcs import wcs_from_solution
+
+        if not self.solved:
+            raise ValueError(f"{self.label} was not solved: it has no WCS")
+        return wcs_from_solution(self.camera, self.to_dict())
+
     def to_dict(self) -> dict:
         """The JSON entry the CLI writes (``scene``, ``detections``, ``solved``, ``stars`` and, when
         solved, attitude fields)."""

@@ -1,4 +1,5 @@
 import json
+import math
 
 import numpy as np
 import pytest
@@ -139,9 +140,11 @@ def _render(xy, mag, height, width, *, zero_point=16.7, psf_sigma=0.8, seed=0):
 
 
 def test_solve_identifies_a_rendered_image(tmp_path, capsys):
-    """Simulated sky → rendered 16-bit TIFF → `jstarid solve` → the true attitude and names."""
+    """Simulated sky → rendered 16-bit FITS frame (stored with BZERO) → `jstarid solve` → the true
+    attitude and names, and a WCS that puts every named star on its detection."""
     import jax
-    from PIL import Image
+    from astropy.io import fits
+    from astropy.wcs import WCS
 
     import jstarid as js
 
@@ -151,10 +154,11 @@ def test_solve_identifies_a_rendered_image(tmp_path, capsys):
     scene = js.simulate(jax.random.key(3), cat, cam, capacity=64, boresight_ids=np.array([row]))
     valid = np.asarray(scene.valid[0])
     xy, mag, truth = (np.asarray(a[0])[valid] for a in (scene.xy, scene.mag, scene.truth))
-    path = tmp_path / "frame.tiff"
-    Image.fromarray(_render(xy, mag, cam.height, cam.width)).save(path)
-    assert cli.main(["solve", str(path), "--out", str(tmp_path)]) == 0
-    saved = json.loads((tmp_path / "solutions.json").read_text())
+    path = tmp_path / "frame.fits"
+    fits.PrimaryHDU(_render(xy, mag, cam.height, cam.width)).writeto(path)  # uint16: BZERO = 32768
+    out = tmp_path / "out"
+    assert cli.main(["solve", str(path), "--out", str(out), "--annotate"]) == 0
+    saved = json.loads((out / "solutions.json").read_text())
     assert "func" not in saved["args"]  # the settings a run used, not the handler's address
     sol = saved["solutions"][0]
     assert sol["solved"] and "boresight RA" in capsys.readouterr().out
@@ -167,6 +171,14 @@ def test_solve_identifies_a_rendered_image(tmp_path, capsys):
         j = np.argmin(np.linalg.norm(xy - [star["x"], star["y"]], axis=1))
         assert cat.hip[truth[j]] == star["hip"]
     assert abs(sol["focal_scale"] - 1.0) < 2e-3  # the camera fit finds the preset's focal length
+    # the standard outputs: the .wcs, the image with the WCS in its header, the annotated PNG
+    assert sol["wcs"] == str(out / "frame.wcs") and (out / "frame.png").exists()
+    assert fits.getheader(out / "frame.fits")["BZERO"] == 32768
+    rows = cat.row_of_hip([star["hip"] for star in sol["stars"]])
+    radec = np.degrees(np.stack([cat.ra[rows], cat.dec[rows]], axis=1))
+    for header in (fits.getheader(out / "frame.wcs"), fits.getheader(out / "frame.fits")):
+        px = WCS(header).all_world2pix(radec, 0)
+        assert np.abs(px - [[star["x"], star["y"]] for star in sol["stars"]]).max() < 0.5
 
 
 def test_solve_bad_input(tmp_path, capsys):
@@ -190,6 +202,37 @@ def test_solve_bad_input(tmp_path, capsys):
     assert cli.main(["solve", str(tmp_path / "cut.png")]) == 2
     err = capsys.readouterr().err
     assert "cannot read an image" in err and err.count("\n") == 1
+
+
+def test_solve_takes_epoch_and_focal_length_from_fits_headers(capsys):
+    """DATE-OBS sets the epoch without --epoch; FOCALLEN / XPIXSZ the focal length (and the image its
+    size) only when neither --camera nor --fov is given; output names stay apart."""
+    from jstarid.cli import frames
+    from jstarid.cli.cameras import camera_from_args
+    from jstarid.image_files import ImageFile
+
+    files = [ImageFile(np.zeros((480, 640), np.float32), header={}, epoch=e, focal_px=2000.0)
+             for e in (2018.2, 2018.4)]
+
+    def parsed(*extra):
+        return cli.build_parser().parse_args(["solve", "a.fits", *extra])
+
+    args = parsed()
+    frames._camera_from_headers(args, files)
+    assert frames._epoch_from_headers(args, files) and args.epoch == pytest.approx(2018.3)
+    cam = camera_from_args(args)
+    assert (cam.width, cam.height, cam.f_px) == (640, 480, pytest.approx(2000.0))
+    assert "FOCALLEN" in capsys.readouterr().err
+    for extra, f_px in [(["--fov", "20"], 320 / math.tan(math.radians(10))),
+                        (["--camera", "tetra3_test"], js.load_camera("tetra3_test", size=(640, 480)).f_px)]:
+        args = parsed(*extra, "--size", "640x480", "--epoch", "2019.5")
+        frames._camera_from_headers(args, files)
+        assert not frames._epoch_from_headers(args, files) and args.epoch == 2019.5
+        assert camera_from_args(args).f_px == pytest.approx(f_px)
+    args = parsed()  # no header focal length: the default preset
+    frames._camera_from_headers(args, [ImageFile(np.zeros((2, 2), np.float32))])
+    assert args.camera == "tetra3_test" and args.fov is None
+    assert frames._stems(["a/1.png", "b/1.fits.gz", "c/x.fit"]) == ["1", "1-2", "x"]
 
 
 def _scene_rows(n_scenes=2):

@@ -29,12 +29,24 @@ def add_commands(sub) -> None:
     add_centroid_file_options(i)
     i.add_argument("--out", type=Path, default=None, help="write the JSON here instead of stdout")
     i.set_defaults(func=run_identify)
-    s = sub.add_parser("solve", help="identify the stars of raw images (TIFF/PNG) and print the "
-                                     "attitude; exit 1 when an image is not solved")
-    s.add_argument("images", nargs="+", help="grayscale image files, all from one camera")
+    s = sub.add_parser(
+        "solve", help="identify the stars of raw images (FITS, TIFF, PNG) and print the attitude; "
+                      "writes a FITS WCS per solved image; exit 1 when an image is not solved",
+        description="Raw images → centroids → star names → attitude. Writes <out>/solutions.json and, "
+                    "per solved image, <out>/<stem>.wcs (a FITS WCS header, TAN or TAN-SIP) and, for "
+                    "FITS input, <out>/<stem>.fits (the image with that WCS in its header). From a "
+                    "FITS header: DATE-OBS gives the epoch when --epoch is not given, and FOCALLEN / "
+                    "XPIXSZ the focal length (and the image its size) when neither --camera nor --fov "
+                    "is given.")
+    s.add_argument("images", nargs="+", help="image files (FITS, TIFF, PNG, …; colour is taken as "
+                                             "luminance), all from one camera")
     _frame_options(s, camera=FRAME_CAMERA, capacity=24)
     s.add_argument("--out", default="results/solve", help="results directory (default results/solve)")
-    s.set_defaults(func=run_solve)
+    s.add_argument("--annotate", action="store_true",
+                   help="also write <out>/<stem>.png: the frame with each named star circled and "
+                        "labelled HIP n")
+    # no --camera given is told apart from the default preset: a FITS header may give the focal length
+    s.set_defaults(func=run_solve, camera=None)
 
 
 def _frame_options(p, *, camera: str, capacity: int) -> None:
@@ -141,27 +153,113 @@ def run_identify(args) -> int:
 
 
 def run_solve(args) -> int:
-    """Raw images → centroids → identification → attitude, one line per image plus a JSON file."""
+    """Raw images → centroids → identification → attitude, one line per image, a JSON file and the
+    standard outputs (a ``.wcs`` per solved image, a FITS copy with its WCS for FITS input, and with
+    ``--annotate`` a PNG of the named stars)."""
     import jstarid as js
+    from jstarid.image_files import read_image_file
 
+    files = [read_image_file(p) for p in args.images]
+    _camera_from_headers(args, files)
     cam = camera_from_args(args)
-    images = [js.read_image(p) for p in args.images]
+    images = [f.pixels for f in files]
     if len({im.shape for im in images}) != 1 or images[0].shape != (cam.height, cam.width):
         raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "
                          f"got {sorted({im.shape for im in images})}")
+    header_epoch = _epoch_from_headers(args, files)
     _note_epoch(args)
     measured = js.extract_centroids(np.stack(images), capacity=max(NAMING_CAPACITY, args.capacity),
                                     shard=True)
     solutions = _identify(args, js.undistort_scenes(measured, cam), [str(p) for p in args.images],
                           measured, blend_px=IMAGE_BLEND_PX)
-    for entry in solutions:
-        entry["image"] = entry.pop("scene")
-        print(_summary({**entry, "scene": entry["image"]}))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    for entry, file, stem in zip(solutions, files, _stems(args.images), strict=True):
+        entry["image"] = entry.pop("scene")
+        if file.epoch is not None:
+            entry["observation_epoch"] = file.epoch
+        entry.update(_write_outputs(args, cam, entry, file, out, stem))
+        print(_summary({**entry, "scene": entry["image"]}))
     settings = {k: v for k, v in vars(args).items() if k != "func"}  # not the handler's address
+    epoch = _epoch_fields(args)
+    if header_epoch:
+        epoch["epoch_source"] = "DATE-OBS of the FITS headers (proper motion applied)"
     (out / "solutions.json").write_text(json.dumps(
-        {"args": settings, "camera": js.camera_files.camera_to_dict(cam), **_epoch_fields(args),
+        {"args": settings, "camera": js.camera_files.camera_to_dict(cam), **epoch,
          "solutions": solutions}, indent=1, default=str))
-    print(f"wrote {out / 'solutions.json'}")
+    print(f"wrote {out / 'solutions.json'}" + ("" if not any("wcs" in e for e in solutions) else
+                                               " and a WCS per solved image"))
     return 0 if all(s["solved"] for s in solutions) else 1
+
+
+def _camera_from_headers(args, files) -> None:
+    """With neither ``--camera`` nor ``--fov``, the focal length of the first FITS header that gives
+    one (FOCALLEN / XPIXSZ) and the image's size become ``--fov`` and ``--size``; otherwise the
+    default preset stands. Edits ``args``, so every later step builds the same camera."""
+    header_focal = [f.focal_px for f in files if f.focal_px is not None]
+    use_header = args.camera is None and args.fov is None and bool(header_focal)
+    if args.camera is None:
+        args.camera = FRAME_CAMERA
+    if not use_header:
+        return
+    height, width = files[0].pixels.shape
+    if args.size is None:
+        args.size = f"{width}x{height}"
+    else:
+        try:
+            width = int(args.size.lower().replace("×", "x").split("x")[0])
+        except ValueError:
+            return  # camera_from_args reports the malformed --size
+    args.fov = float(np.degrees(2.0 * np.arctan(width / 2.0 / header_focal[0])))
+    spread = max(header_focal) / min(header_focal) - 1.0
+    print(f"camera: focal length {header_focal[0]:.1f} px (field {args.fov:.3f}°) from the FITS "
+          f"header's FOCALLEN / XPIXSZ" + (f"; the headers differ by {spread:.1%}, the first kept"
+                                           if spread > 1e-3 else ""), file=sys.stderr)
+
+
+def _epoch_from_headers(args, files) -> bool:
+    """Without ``--epoch``, the mean DATE-OBS of the FITS headers that give one becomes it (proper
+    motion over the frames' spread is far below a pixel unless it spans decades); True when used."""
+    epochs = [f.epoch for f in files if f.epoch is not None]
+    if args.epoch is not None or not epochs:
+        return False
+    args.epoch = round(float(np.mean(epochs)), 4)
+    if max(epochs) - min(epochs) > 1.0:
+        print(f"warning: the images' DATE-OBS span {min(epochs):.2f}–{max(epochs):.2f}; star "
+              f"positions at their mean, {args.epoch:.2f}", file=sys.stderr)
+    return True
+
+
+def _stems(paths) -> list[str]:
+    """Output names: each image's name without its suffix (``a.fits.gz`` → ``a``), ``-2``, ``-3`` …
+    appended where two images share one."""
+    seen: dict[str, int] = {}
+    out = []
+    for p in paths:
+        name = Path(p).name
+        for packed in (".gz", ".fz", ".bz2"):
+            name = name.removesuffix(packed)
+        stem = Path(name).stem or name
+        seen[stem] = seen.get(stem, 0) + 1
+        out.append(stem if seen[stem] == 1 else f"{stem}-{seen[stem]}")
+    return out
+
+
+def _write_outputs(args, camera, entry: dict, file, out: Path, stem: str) -> dict:
+    """The standard outputs of one image; returns the entry's record of the files written."""
+    from jstarid.plotting import save_solution_plot
+    from jstarid.wcs import wcs_from_solution, write_fits_with_wcs, write_wcs
+
+    written = {}
+    if entry["solved"]:
+        wcs = wcs_from_solution(camera, entry)
+        written["wcs"] = str(write_wcs(wcs, out / f"{stem}.wcs"))
+        if file.header is not None:  # FITS input
+            target = out / f"{stem}.fits"
+            if target.resolve() == Path(entry["image"]).resolve():  # never over the input
+                target = out / f"{stem}-wcs.fits"
+            written["fits"] = str(write_fits_with_wcs(entry["image"], wcs, target))
+    if args.annotate:
+        save_solution_plot(file.pixels, entry, out / f"{stem}.png")
+        written["annotated"] = str(out / f"{stem}.png")
+    return written
