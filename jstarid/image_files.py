@@ -123,7 +123,7 @@ def _read_pillow(path) -> np.ndarray:
             if im.mode in ("1", "LA"):  # bilevel, or gray with alpha: the gray channel
                 return np.asarray(im.convert("L")).astype(np.float32)
             rgb = np.asarray(im.convert("RGB"), np.float32)
-            return rgb @ np.asarray(LUMINANCE, np.float32)
+            return np.matmul(rgb, np.asarray(LUMINANCE, np.float32))
     # OSError covers a permission error and a truncated file; Pillow's decoders raise SyntaxError or
     # ValueError on some corrupt headers
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as err:

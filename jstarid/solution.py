@@ -137,8 +137,9 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
 
     Args:
         frames: one frame or a list of them. A frame is an image (a path, or a (H, W) array of pixel
-            values) or centroids ((n, 2) x, y or (n, 3) x, y, magnitude, px; the rows brightest first
-            without magnitudes).
+            values) or centroids ((n, 2) x, y or (n, 3) x, y, magnitude, px, the rows brightest
+            first without magnitudes; or a centroid file, ``.csv``/``.tsv``/``.json``, whose every
+            scene is a frame).
         camera: a preset name, a camera file or a :class:`~jstarid.Camera`.
         algorithm: registry name (``mlv``, ``sgm``, ``rpnet``, …).
         epoch: the observation's Julian year (proper motion); ``None``: the catalog's J1991.25.
@@ -153,7 +154,7 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
         labels: a name per frame (default: the path, or ``frame i``).
 
     Returns:
-        A :class:`Solution`, or a list of them for a list of frames.
+        A :class:`Solution`, or a list of them for a list of frames (or a file of several scenes).
 
     Raises:
         ValueError: an unreadable file, images of another size than the camera's, bad centroids or
@@ -170,9 +171,9 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
     kinds = {_kind(f) for f in items}
     if len(kinds) != 1:
         raise ValueError("give either images or centroids, not both in one call")
-    if labels is None:
-        labels = [str(f) if isinstance(f, str | Path) else f"frame {i}" for i, f in enumerate(items)]
     if kinds == {"image"}:
+        if labels is None:
+            labels = [str(f) if isinstance(f, str | Path) else f"frame {i}" for i, f in enumerate(items)]
         images = [js.read_image(f) if isinstance(f, str | Path) else np.asarray(f, np.float32)
                   for f in items]
         if any(im.shape != (cam.height, cam.width) for im in images):
@@ -180,7 +181,7 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
                              f"got {sorted({im.shape for im in images})}")
         measured = js.extract_centroids(np.stack(images), capacity=NAMING_CAPACITY, shard=True)
     else:
-        arrays = [np.asarray(f, np.float64) for f in items]
+        arrays, labels = _centroid_arrays(items, labels)
         if any(a.ndim != 2 or a.shape[1] not in (2, 3) for a in arrays):
             raise ValueError("centroids must be (n, 2) x, y or (n, 3) x, y, magnitude arrays (px)")
         mags = None if all(a.shape[1] == 2 for a in arrays) else [
@@ -192,7 +193,27 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
                        mag_limit=mag_limit, blend_px=IMAGE_BLEND_PX if kinds == {"image"} else None,
                        name_all=name_all, tol_px=tol_px, fov_max_error=fov_max_error,
                        overrides=overrides, rpnet_network=rpnet_network)
-    return out[0] if single else out
+    return out[0] if single and len(out) == 1 else out
+
+
+def _centroid_arrays(items, labels):
+    """(n, 2|3) arrays and labels of centroid frames: arrays as given, files read by
+    :func:`jstarid.centroid_files.read_centroid_set` (every scene of a file is a frame)."""
+    from jstarid.centroid_files import read_centroid_set
+
+    arrays, names = [], []
+    for i, item in enumerate(items):
+        if isinstance(item, str | Path):
+            found = read_centroid_set(item).brightest_first()
+            for label, xy, mag in zip(found.labels, found.xy, found.mag, strict=True):
+                arrays.append(xy if mag is None else np.column_stack([xy, mag]))
+                names.append(str(item) if len(found) == 1 else f"{item}#{label}")
+        else:
+            arrays.append(np.asarray(item, np.float64))
+            names.append(f"frame {i}")
+    if labels is not None and len(labels) != len(arrays):
+        raise ValueError(f"got {len(labels)} labels for {len(arrays)} frames")
+    return arrays, names if labels is None else list(labels)
 
 
 def _kind(frame) -> str:

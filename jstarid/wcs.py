@@ -51,7 +51,7 @@ def _rotation(attitude) -> np.ndarray:
     """The nearest rotation to ``attitude`` (float64): a solution saved as float32 JSON is orthogonal
     only to ~1e-7, which would shear the CD matrix by as much."""
     u, _, vt = np.linalg.svd(np.asarray(attitude, np.float64).reshape(3, 3))
-    c = u @ vt
+    c = np.matmul(u, vt)
     if np.linalg.det(c) < 0:
         raise ValueError("the attitude is a reflection, not a rotation")
     return c
@@ -86,7 +86,7 @@ def solution_wcs(camera, attitude, *, focal_scale: float = 1.0, k1: float = 0.0,
     east = np.array([-math.sin(ra0), math.cos(ra0), 0.0])
     north = np.array([-math.sin(dec0) * math.cos(ra0), -math.sin(dec0) * math.sin(ra0), math.cos(dec0)])
     f = camera.f_px * focal_scale
-    cd = np.degrees(np.array([[east @ c[0], east @ c[1]], [north @ c[0], north @ c[1]]])) / f
+    cd = np.degrees(np.matmul(np.stack([east, north]), c[:2].T)) / f  # [[e·C₀, e·C₁], [n·C₀, n·C₁]]
     sip = k1 != 0.0 or bool(camera.distortion)
     w = WCS(naxis=2)
     w.wcs.ctype = ["RA---TAN-SIP", "DEC--TAN-SIP"] if sip else ["RA---TAN", "DEC--TAN"]
