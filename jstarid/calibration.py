@@ -126,8 +126,9 @@ def calibrate(solutions: Sequence, camera, *, epoch: float | None = None,
     after = least_squares(residuals, np.concatenate([np.zeros(len(fit)), rotations.ravel()]),
                           loss="soft_l1", f_scale=LOSS_SCALE_PX, x_scale="jac")
     values, rot = unpack(after.x)
+    name = camera.name if camera.name.endswith(" calibrated") else f"{camera.name} calibrated"
     fitted = js.Camera(camera.width, camera.height, values["f_px"], cx=values["cx"], cy=values["cy"],
-                       mag_limit=camera.mag_limit, name=f"{camera.name} calibrated",
+                       mag_limit=camera.mag_limit, name=name,
                        distortion=(values["k1"], values["k2"], values["p1"], values["p2"]))
     return Calibration(camera=fitted, fitted=fit, rms_before_px=_rms(before.fun),
                        rms_after_px=_rms(after.fun), frames=len(used), stars=len(xy),

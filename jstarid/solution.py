@@ -75,7 +75,8 @@ class Solution:
         camera: the nominal camera (with its lens distortion).
         attitude: (3, 3) rotation, ``v_cam = C r_icrs`` (docs/conventions.md §1).
         ra_deg, dec_deg, roll_deg: boresight and roll (deg).
-        residual_arcsec: RMS angle between the named detections and their stars (arcsec).
+        residual_arcsec: RMS angle between the named detections, seen through the fitted focal
+            length and radial term, and their stars (arcsec).
         focal_scale: fitted focal length / nominal (``None`` where not fitted).
         distortion_k1: fitted radial term (:mod:`jstarid.camera_fit`; ``None`` where not fitted).
         epoch: the star positions' epoch (Julian year; ``None``: the catalog's J1991.25).
@@ -148,7 +149,9 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
             64 for centroids. Naming (``name_all``) uses up to :data:`NAMING_CAPACITY`.
         name_all: name every detection the attitude explains (step 3).
         tol_px: naming tolerance (px).
-        fov_max_error: largest relative focal-length correction a solved frame may need.
+        fov_max_error: how far off the camera's focal length (field of view) may be: unsolved frames
+            are tried again at 1 % steps out to it (the finishing stage's ladder), and a solved
+            frame may need at most this correction.
         overrides: ``FIELD=VALUE`` items for the algorithm's config (JSON values).
         rpnet_network: RpNet's network preset (trained for the camera on first use).
         labels: a name per frame (default: the path, or ``frame i``).
@@ -260,10 +263,12 @@ def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[s
     algo = js.algorithms.get(algorithm)
     cfg = with_overrides(js.engine.default_config(algorithm, rpnet_network=rpnet_network,
                                                   camera=pinhole, frames=True), list(overrides))
+    cfg = _ladder_for(cfg, fov_max_error)
     js.engine.check_camera([js.Entry(algorithm, algorithm, cfg)], pinhole, cat)
     built = base.first_use(algo, cat, pinhole, cfg)
     if built:
-        log(f"first use builds {built[0]} (≈ {built[1] / 60:.0f} min), once")
+        took = f"{built[1] / 60:.0f} min" if built[1] >= 90 else f"{max(built[1], 1):.0f} s"
+        log(f"first use builds {built[0]} (≈ {took} on 2 CPU cores), once")
     few = brightest(scenes, capacity or scenes.capacity)
     result = algo.identify(algo.build_database(cat, pinhole, cfg), few, cfg)
     if not name_all:  # the algorithm's names only: the detections it was given
@@ -297,12 +302,55 @@ def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[s
         if solved:
             fields = dict(attitude=np.asarray(att[i], np.float64), ra_deg=float(ra[i]),
                           dec_deg=float(dec[i]), roll_deg=float(roll[i]),
-                          residual_arcsec=float(rms_arcsec[i]),
+                          residual_arcsec=_residual_arcsec(
+                              pinhole, np.asarray(scenes.xy[i])[named], cat.unit_vectors[ids[i, named]],
+                              att[i], scale[i], k1[i]) if np.isfinite(scale[i]) else float(rms_arcsec[i]),
                           focal_scale=float(scale[i]) if np.isfinite(scale[i]) else None,
                           distortion_k1=float(k1[i]) if np.isfinite(k1[i]) else None)
         out.append(Solution(label=label, solved=solved, detections=int(n_det[i]), stars=stars,
                             camera=camera, epoch=epoch, **fields))
     return out
+
+
+def _residual_arcsec(camera, xy, ref, attitude, scale, k1) -> float:
+    """RMS angle (arcsec) between named detections (n, 2) px, seen through the fitted focal length
+    ``scale · f_px`` and radial term ``k1`` (:func:`jstarid.camera_fit.unproject_scaled`), and their
+    stars (n, 3) rotated by ``attitude``."""
+    f = camera.f_px * scale
+    u_d = (np.asarray(xy, np.float64) - [camera.cx, camera.cy]) / f
+    u = u_d
+    for _ in range(20):  # |k1| r² ≪ 1: each step shrinks the error by that factor
+        u = u_d / (1.0 + (0.0 if not np.isfinite(k1) else k1) * np.sum(u * u, axis=1, keepdims=True))
+    body = np.column_stack([u, np.ones(len(u))])
+    body /= np.linalg.norm(body, axis=1, keepdims=True)
+    pred = np.matmul(np.asarray(ref, np.float64), np.asarray(attitude, np.float64).T)
+    angle = np.arctan2(np.linalg.norm(np.cross(body, pred), axis=1), np.sum(body * pred, axis=1))
+    return float(np.degrees(np.sqrt(np.mean(angle**2))) * 3600.0)
+
+
+LADDER_STEP = 0.01  # the focal-length ladder's step: MLV's features tolerate about 1 %
+
+
+def focal_ladder(max_error: float, step: float = LADDER_STEP) -> tuple[float, ...]:
+    """Focal-length factors 1 ∓ step, 1 ∓ 2 step, … out to ``1 ∓ max_error``, nearest first."""
+    n = int(math.floor(max_error / step + 1e-9))
+    return tuple(round(1.0 + sign * k * step, 6) for k in range(1, n + 1) for sign in (-1, 1))
+
+
+def _ladder_for(config, max_error: float):
+    """``config`` with its finishing stage's ladder reaching ``max_error`` (a field of view known to
+    ±10 % is tried at 1 % steps) and its camera check allowing that correction; a config without a
+    finishing stage, or with its ladder turned off, is returned as it is."""
+    finishing = getattr(config, "finishing", None)
+    if finishing is None or not finishing.focal_search:
+        return config
+    reach = max(abs(f - 1.0) for f in finishing.focal_search)
+    if max_error <= reach:
+        return config
+    ladder = finishing.focal_search + tuple(f for f in focal_ladder(max_error) if abs(f - 1.0) > reach + 1e-9)
+    wider = dataclasses.replace(finishing, focal_search=ladder,
+                                max_focal_error=max(finishing.max_focal_error, max_error))
+    return dataclasses.replace(config, finishing=wider)
 
 
 def _widened(result, n: int):

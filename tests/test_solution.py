@@ -132,3 +132,33 @@ def test_a_close_pair_is_reported_as_a_blend():
     assert set(blend(row)) == set(NU_DRACONIS)
     lone = int(cat.row_of_hip([32349])[0])  # Sirius: nothing within 2 px at 2.5 mag
     assert blend(lone) == ()
+
+
+def test_the_ladder_reaches_the_field_of_view_error():
+    from jstarid.solution import _ladder_for, focal_ladder
+
+    assert focal_ladder(0.03) == (0.99, 1.01, 0.98, 1.02, 0.97, 1.03)
+    cfg = js.algorithms.get("mlv").Config()
+    wide = _ladder_for(cfg, 0.1)
+    assert wide.finishing.focal_search[:4] == cfg.finishing.focal_search  # the default first
+    assert min(wide.finishing.focal_search) == 0.9 and max(wide.finishing.focal_search) == 1.1
+    assert len(set(wide.finishing.focal_search)) == 20 and wide.finishing.max_focal_error >= 0.1
+    assert _ladder_for(cfg, 0.02) is cfg  # within the default ladder
+    off = js.algorithms.get("mlv").Config.paper()
+    assert _ladder_for(off, 0.1) is off  # the paper's algorithm: no ladder added
+
+
+def test_a_field_of_view_off_by_seven_percent_is_solved():
+    """Centroids spread 7 % wider than the camera says (its focal length 7 % too short) are solved,
+    the fitted focal scale says by how much, and no name is wrong."""
+    cam = js.camera_preset("mlv2021")
+    arr, hip = _scene_arrays()[0]
+    wide = arr.copy()
+    wide[:, :2] = (arr[:, :2] - [cam.cx, cam.cy]) * 1.07 + [cam.cx, cam.cy]
+    inside = (wide[:, 0] >= 0) & (wide[:, 0] <= 1023) & (wide[:, 1] >= 0) & (wide[:, 1] <= 1023)
+    sol = js.solve(wide[inside], cam, mag_limit=5.5, fov_max_error=0.1)
+    assert sol.solved and sol.focal_scale == pytest.approx(1.07, abs=0.003)
+    xy, truth = wide[inside, :2], hip[inside]
+    nearest = [int(np.argmin(np.hypot(*(xy - [s.x, s.y]).T))) for s in sol.stars]
+    assert len(sol.stars) >= 20 and [s.hip for s in sol.stars] == truth[nearest].tolist()
+    assert sol.residual_arcsec < 0.5 * cam.pixel_scale_arcsec  # 0.2 px noise per axis, 89″/px
