@@ -34,12 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
+from jstarid.centroid import CentroidConfig
+
 __all__ = ["Solution", "Star", "solve", "solve_scenes"]
 
 # a companion whose light reaches the centroid window of an extracted detection (the window's
 # half-diagonal, CentroidConfig.window_px = 4, plus a PSF core's 2 px) blends with it
 IMAGE_BLEND_PX = 4.0 * math.sqrt(2.0) + 2.0
-NAMING_CAPACITY = 256  # detections per frame that naming looks at (the algorithms use fewer)
+NAMING_CAPACITY = 512  # detections per frame that naming looks at (the algorithms use fewer)
+# peaks the extractor examines per image: noisy 8-bit frames (OreSat's) hold hundreds of hot pixels
+# and noise peaks above 5 σ, which would otherwise crowd out the faint stars
+NAMING_CENTROIDS = CentroidConfig(max_peaks=2 * NAMING_CAPACITY)
 BLEND_MAG = 2.5  # a companion up to 2.5 mag fainter (10 % of the flux) moves a blended centroid
 
 
@@ -182,7 +187,8 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
         if any(im.shape != (cam.height, cam.width) for im in images):
             raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "
                              f"got {sorted({im.shape for im in images})}")
-        measured = js.extract_centroids(np.stack(images), capacity=NAMING_CAPACITY, shard=True)
+        measured = js.extract_centroids(np.stack(images), NAMING_CENTROIDS, capacity=NAMING_CAPACITY,
+                                        shard=True)
     else:
         arrays, labels = _centroid_arrays(items, labels)
         if any(a.ndim != 2 or a.shape[1] not in (2, 3) for a in arrays):

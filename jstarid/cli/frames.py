@@ -11,7 +11,7 @@ import numpy as np
 
 from jstarid.cli.cameras import FRAME_CAMERA, add_camera_options, camera_from_args
 from jstarid.cli.centroid_input import add_centroid_file_options
-from jstarid.solution import IMAGE_BLEND_PX, NAMING_CAPACITY
+from jstarid.solution import IMAGE_BLEND_PX, NAMING_CAPACITY, NAMING_CENTROIDS
 
 
 def add_commands(sub) -> None:
@@ -168,7 +168,8 @@ def run_solve(args) -> int:
                          f"got {sorted({im.shape for im in images})}")
     header_epoch = _epoch_from_headers(args, files)
     _note_epoch(args)
-    measured = js.extract_centroids(np.stack(images), capacity=max(NAMING_CAPACITY, args.capacity),
+    measured = js.extract_centroids(np.stack(images), NAMING_CENTROIDS,
+                                    capacity=max(NAMING_CAPACITY, args.capacity),
                                     shard=True)
     solutions = _identify(args, js.undistort_scenes(measured, cam), [str(p) for p in args.images],
                           measured, blend_px=IMAGE_BLEND_PX)
