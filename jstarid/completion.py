@@ -44,6 +44,7 @@ __all__ = ["first_argmax", "magnitude_agrees", "name_from_attitude", "name_stars
 
 EXTEND_ROUNDS = 2  # naming rounds of name_from_attitude, each with the camera refitted to all names
 SCALE_SCAN = 81  # focal scales tried by the first round (0.25 % apart at max_scale_error = 0.1)
+SCAN_BATCH = 9  # of them evaluated together (memory: SCAN_BATCH × detections × local stars per scene)
 
 
 def first_argmax(x):
@@ -215,7 +216,9 @@ def _extend(star_vec, star_mag, cells, att, scale, k1, use, xy, valid, mag, ids,
                 c_s = solve_wahba(unproject_scaled(camera, xy_i, s_s), ref, have.astype(jnp.float32))
                 return jnp.sum(names(c_s, s_s)[1]), c_s
 
-            counts, cs = jax.vmap(count)(grid_s)
+            # a few scales at a time: all of them at once hold (scan, N, M) cosines per scene, GBs for
+            # a frame of 512 detections against a deep catalog
+            counts, cs = jax.lax.map(count, grid_s, batch_size=SCAN_BATCH)
             near_one = jnp.abs(jnp.arange(scan) - (scan - 1) / 2.0)
             best = first_argmax(counts.astype(jnp.float32) * scan - near_one)
             c, s = cs[best], grid_s[best]

@@ -3,6 +3,7 @@ import math
 
 import numpy as np
 import pytest
+from labelled_scenes import catalog_star_scenes
 
 import jstarid as js
 from jstarid import cli
@@ -237,19 +238,7 @@ def test_solve_takes_epoch_and_focal_length_from_fits_headers(capsys):
 
 def _scene_rows(n_scenes=2):
     """Simulated mlv2021 scenes as (xy, mag, hip) per scene (catalog stars only)."""
-    import jax
-
-    import jstarid as js
-
-    cat, cam = js.load_catalog(5.5), js.camera_preset("mlv2021")
-    scenes = js.simulate(jax.random.key(7), cat, cam, js.NoiseConfig(position_sigma_px=0.3),
-                         batch_size=n_scenes)
-    out = []
-    for i in range(n_scenes):
-        keep = np.asarray(scenes.valid[i]) & (np.asarray(scenes.truth[i]) >= 0)
-        out.append((np.asarray(scenes.xy[i])[keep], np.asarray(scenes.mag[i])[keep],
-                    cat.hip[np.asarray(scenes.truth[i])[keep]]))
-    return out
+    return catalog_star_scenes(7, n_scenes)
 
 
 def test_identify_centroid_files(tmp_path, capsys):

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from labelled_scenes import catalog_star_scenes
 
 from jstarid import cli
 from jstarid.scoring import close_pairs, score_scene, summarize
@@ -40,20 +41,8 @@ def test_close_pairs_from_the_catalog():
 
 def _simulated_rows(n_scenes=3):
     """Simulated mlv2021 scenes (catalog stars only) as rows of scene, x, y, mag, true HIP."""
-    import jax
-
-    import jstarid as js
-
-    cat, cam = js.load_catalog(5.5), js.camera_preset("mlv2021")
-    scenes = js.simulate(jax.random.key(3), cat, cam, js.NoiseConfig(position_sigma_px=0.3),
-                         batch_size=n_scenes)
-    rows = []
-    for i in range(n_scenes):
-        keep = np.asarray(scenes.valid[i]) & (np.asarray(scenes.truth[i]) >= 0)
-        xy, mag = np.asarray(scenes.xy[i])[keep], np.asarray(scenes.mag[i])[keep]
-        hip = cat.hip[np.asarray(scenes.truth[i])[keep]]
-        rows += [(f"s{i}", x, y, m, h) for (x, y), m, h in zip(xy, mag, hip, strict=True)]
-    return rows
+    return [(f"s{i}", x, y, m, h) for i, (xy, mag, hip) in enumerate(catalog_star_scenes(3, n_scenes))
+            for (x, y), m, h in zip(xy, mag, hip, strict=True)]
 
 
 def test_score_a_simulated_labelled_set(tmp_path, capsys):

@@ -3,9 +3,9 @@
 import json
 import math
 
-import jax
 import numpy as np
 import pytest
+from labelled_scenes import catalog_star_scenes
 
 import jstarid as js
 from jstarid import cli
@@ -64,16 +64,8 @@ def test_brightest_keeps_the_first_and_flags_the_rest():
 def _scene_arrays(n_scenes=2, camera_limit=6.5):
     """mlv2021 scenes whose stars reach V ``camera_limit`` (deeper than the V 5.5 identification
     catalog), as (n, 3) arrays and the true HIP numbers."""
-    cat = js.load_catalog(camera_limit)
-    cam = js.camera_preset("mlv2021", mag_limit=camera_limit)
-    scenes = js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(position_sigma_px=0.2),
-                         batch_size=n_scenes, capacity=256)
-    out = []
-    for i in range(n_scenes):
-        keep = np.asarray(scenes.valid[i]) & (np.asarray(scenes.truth[i]) >= 0)
-        arr = np.column_stack([np.asarray(scenes.xy[i])[keep], np.asarray(scenes.mag[i])[keep]])
-        out.append((arr.astype(np.float64), cat.hip[np.asarray(scenes.truth[i])[keep]]))
-    return out
+    return [(np.column_stack([xy, mag]).astype(np.float64), hip) for xy, mag, hip in catalog_star_scenes(
+        11, n_scenes, camera_limit=camera_limit, position_sigma_px=0.2, capacity=256)]
 
 
 def test_solve_names_the_deeper_stars_and_matches_the_cli(tmp_path):
