@@ -15,6 +15,8 @@ independent solution:
   matched star near it is not judged (the plate solver matched only some stars);
 - **boresight**: the angle between our boresight and the plate solution's sky position of our
   principal point (arcsec, through astropy's reading of its TAN-SIP header);
+- **WCS gap**: the matched stars put through our WCS (:meth:`jstarid.Solution.wcs`) and through the
+  plate solution's: their distance (px, RMS and largest over the solved frames);
 - **recall**: matched stars named right or as a blend, over all frames and over the solved ones.
 
 Usage::
@@ -28,7 +30,6 @@ Writes results/own_sky/{config.json, results.json, table.md}.
 from __future__ import annotations
 
 import csv
-import math
 from pathlib import Path
 
 import numpy as np
@@ -52,40 +53,44 @@ def parse_args(argv=None):
 
 
 def read_truth(folder: Path) -> tuple[dict, dict]:
-    """``(stars, frames)``: per image the matched stars (x, y, hip) and the frame's row."""
+    """``(stars, frames)``: per image the matched stars (x, y, hip, RA, Dec in deg) and the frame's
+    row."""
     stars: dict[str, list] = {}
     with open(folder / "truth" / "stars.csv") as f:
         for row in csv.DictReader(f):
-            stars.setdefault(row["image"], []).append((float(row["x"]), float(row["y"]), int(row["hip"])))
+            star = (float(row["x"]), float(row["y"]), int(row["hip"]), float(row["ra_deg_j2000"]),
+                    float(row["dec_deg_j2000"]))
+            stars.setdefault(row["image"], []).append(star)
     with open(folder / "truth" / "frames.csv") as f:
         frames = {row["image"]: row for row in csv.DictReader(f)}
     return stars, frames
 
 
-def boresight_error_arcsec(solution, wcs_path: Path) -> float:
-    """Angle (arcsec) between our boresight and the plate solution's direction of our principal point."""
+def against_plate_solution(solution, wcs_path: Path, truth: list) -> dict:
+    """Our solution against the plate solver's TAN-SIP header (astropy reads both): the boresight
+    error (arcsec: our boresight against their sky position of our principal point) and how far
+    apart the two WCSs put the matched stars (``truth`` rows; px, RMS and largest)."""
+    import astropy.units as u
+    from astropy.coordinates import SkyCoord
     from astropy.io import fits
     from astropy.wcs import WCS
 
     cam = solution.camera
     with fits.open(wcs_path) as hdus:
-        ra, dec = WCS(hdus[0].header).all_pix2world([[cam.cx + 1.0, cam.cy + 1.0]], 1)[0]
-    ours = _unit(solution.ra_deg, solution.dec_deg)
-    theirs = _unit(ra, dec)
-    angle = math.atan2(np.linalg.norm(np.cross(ours, theirs)), float(np.dot(ours, theirs)))
-    return math.degrees(angle) * 3600.0
-
-
-def _unit(ra_deg: float, dec_deg: float) -> np.ndarray:
-    a, d = math.radians(ra_deg), math.radians(dec_deg)
-    return np.array([math.cos(a) * math.cos(d), math.sin(a) * math.cos(d), math.sin(d)])
+        theirs = WCS(hdus[0].header)
+    ra, dec = theirs.all_pix2world([[cam.cx, cam.cy]], 0)[0]
+    error = SkyCoord(solution.ra_deg * u.deg, solution.dec_deg * u.deg).separation(
+        SkyCoord(ra * u.deg, dec * u.deg)).arcsec
+    radec = np.array([(r, d) for *_, r, d in truth])
+    gap = np.linalg.norm(solution.wcs().all_world2pix(radec, 0) - theirs.all_world2pix(radec, 0), axis=1)
+    return {"boresight_arcsec": round(float(error), 1), "wcs_gaps_px": gap.tolist()}
 
 
 def judge(solution, truth: list, match_px: float) -> dict:
     """Counts of right / blend / wrong / unnamed matched stars (module docstring)."""
     counts = {"right": 0, "blend": 0, "wrong": 0, "unnamed": 0}
     named = np.array([[s.x, s.y] for s in solution.stars]).reshape(-1, 2)
-    for x, y, hip in truth:
+    for x, y, hip, *_ in truth:
         if hip < 0:
             continue
         d = np.hypot(named[:, 0] - x, named[:, 1] - y) if len(named) else np.array([])
@@ -96,6 +101,10 @@ def judge(solution, truth: list, match_px: float) -> dict:
         kind = "right" if star.hip == hip else "blend" if hip in star.blend else "wrong"
         counts[kind] += 1
     return counts
+
+
+def _gaps(gaps: list) -> str:
+    return f"{np.sqrt(np.mean(np.square(gaps))):.2f} / {max(gaps):.2f}" if gaps else "—"
 
 
 def _recall(recs: list) -> str:
@@ -122,8 +131,8 @@ def main(argv=None):
             rec = {"set": name, "image": path.name, "solved": sol.solved, "detections": sol.detections,
                    "named": len(sol.stars), **judge(sol, truth.get(path.name, []), args.match_px)}
             if sol.solved:
-                rec["boresight_arcsec"] = round(boresight_error_arcsec(
-                    sol, folder / frames[path.name]["wcs_file"]), 1)
+                rec.update(against_plate_solution(sol, folder / frames[path.name]["wcs_file"],
+                                                  truth.get(path.name, [])))
             records.append(rec)
             print(f"  {path.name}: {'solved' if sol.solved else 'not solved'}, {len(sol.stars)} of "
                   f"{sol.detections} named; matched stars {rec['right']} right, {rec['blend']} blend, "
@@ -142,13 +151,15 @@ def main(argv=None):
                      "unnamed": total["unnamed"],
                      "recall": f"{100 * (total['right'] + total['blend']) / max(matched, 1):.1f} %",
                      "recall_solved": _recall([r for r in recs if r["solved"]]),
-                     "boresight": (f"{np.median(errors):.0f} / {max(errors):.0f}" if errors else "—")})
+                     "boresight": (f"{np.median(errors):.0f} / {max(errors):.0f}" if errors else "—"),
+                     "wcs": _gaps([g for r in solved for g in r["wcs_gaps_px"]])})
     table = ex.markdown_table(rows, [("set", "set", "{}"), ("solved", "solved / plate-solved", "{}"),
                                      ("right", "matched stars right", "{}"), ("blend", "blend", "{}"),
                                      ("wrong", "wrong", "{}"), ("unnamed", "unnamed", "{}"),
                                      ("recall", "recall", "{}"),
                                      ("recall_solved", "recall, solved frames", "{}"),
-                                     ("boresight", "boresight ″ median / max", "{}")])
+                                     ("boresight", "boresight ″ median / max", "{}"),
+                                     ("wcs", "WCS gap px RMS / max", "{}")])
     print(table)
     ex.write(args.out, config={"algorithm": args.algorithm, "sets": args.sets, "epoch": EPOCH,
                                "match_px": args.match_px},

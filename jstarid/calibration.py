@@ -23,6 +23,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from jstarid.catalog import load_every_star
+
 __all__ = ["Calibration", "calibrate"]
 
 LOSS_SCALE_PX = 1.0  # soft-L1 scale: residuals beyond ≈ 1 px count linearly, not squared
@@ -81,7 +83,7 @@ def calibrate(solutions: Sequence, camera, *, epoch: float | None = None,
         raise ValueError(f"no solved frame with {MIN_STARS_PER_FRAME} or more named stars to calibrate on")
     if epoch is None:
         epoch = used[0].epoch
-    cat = js.load_catalog(12.5, double_sep_deg=0.0, epoch=epoch)
+    cat = load_every_star(epoch)
     frame_of, xy, ref = [], [], []
     for k, sol in enumerate(used):
         stars = [st for st in sol.stars if not st.blend]
@@ -97,39 +99,33 @@ def calibrate(solutions: Sequence, camera, *, epoch: float | None = None,
     if unknown:
         raise ValueError(f"cannot fit {', '.join(unknown)}; choose from {', '.join(_NAMES)}")
     fit = tuple(n for n in _NAMES if n in fit)
-    coefficients = tuple(camera.distortion) + (0.0,) * 5
-    start = dict(f_px=camera.f_px, cx=camera.cx, cy=camera.cy, k1=coefficients[0],
-                 k2=coefficients[1], p1=coefficients[2], p2=coefficients[3])
+    k1, k2, p1, p2, k3 = tuple(camera.distortion) + (0.0,) * (5 - len(camera.distortion))
+    given = dict(f_px=camera.f_px, cx=camera.cx, cy=camera.cy, k1=k1, k2=k2, p1=p1, p2=p2, k3=k3)
+    start = dict(given)  # k3, never fitted, stays as given
     if any(s.focal_scale is not None for s in used):  # the frames' own fits: a better start
         start["f_px"] = camera.f_px * float(np.median([s.focal_scale or 1.0 for s in used]))
-    rotations = Rotation.from_matrix(np.stack([s.attitude for s in used])).as_rotvec()
-    scale = {"f_px": camera.f_px * 0.01, "cx": 1.0, "cy": 1.0, "k1": 0.01, "k2": 0.01, "p1": 1e-3,
-             "p2": 1e-3}
+    rotations = Rotation.from_matrix(np.stack([s.attitude for s in used])).as_rotvec().ravel()
+    step = {"f_px": camera.f_px * 0.01, "cx": 1.0, "cy": 1.0, "k1": 0.01, "k2": 0.01, "p1": 1e-3,
+            "p2": 1e-3}  # the parameters' natural sizes: the solver works in these units
 
-    def unpack(p):
-        values = dict(start)
-        values.update({n: start[n] + scale[n] * p[i] for i, n in enumerate(fit)})
-        return values, Rotation.from_rotvec(p[len(fit):].reshape(-1, 3))
+    def camera_values(p):
+        return {**start, **{n: start[n] + step[n] * p[i] for i, n in enumerate(fit)}}
 
-    def residuals(p, camera_fixed=False):
-        values, rot = unpack(p)
-        if camera_fixed:
-            values = start_values
-        c = rot.as_matrix()[frame_of]  # (n, 3, 3)
-        v = np.einsum("nij,nj->ni", c, ref)
-        return (project(values, v) - xy).ravel()
+    def residuals(values, rotvecs):
+        c = Rotation.from_rotvec(rotvecs.reshape(-1, 3)).as_matrix()[frame_of]  # (n, 3, 3)
+        return (project(values, np.einsum("nij,nj->ni", c, ref)) - xy).ravel()
 
-    start_values = dict(start, f_px=camera.f_px)
+    robust = dict(loss="soft_l1", f_scale=LOSS_SCALE_PX)
     # the given camera's residual, each frame's attitude refitted to it
-    before = least_squares(lambda q: residuals(np.concatenate([np.zeros(len(fit)), q]), True),
-                           rotations.ravel(), loss="soft_l1", f_scale=LOSS_SCALE_PX)
-    after = least_squares(residuals, np.concatenate([np.zeros(len(fit)), rotations.ravel()]),
-                          loss="soft_l1", f_scale=LOSS_SCALE_PX, x_scale="jac")
-    values, rot = unpack(after.x)
+    before = least_squares(lambda q: residuals(given, q), rotations, **robust)
+    after = least_squares(lambda p: residuals(camera_values(p), p[len(fit):]),
+                          np.concatenate([np.zeros(len(fit)), rotations]), x_scale="jac", **robust)
+    values = camera_values(after.x)
+    rot = Rotation.from_rotvec(after.x[len(fit):].reshape(-1, 3))
     name = camera.name if camera.name.endswith(" calibrated") else f"{camera.name} calibrated"
     fitted = js.Camera(camera.width, camera.height, values["f_px"], cx=values["cx"], cy=values["cy"],
                        mag_limit=camera.mag_limit, name=name,
-                       distortion=(values["k1"], values["k2"], values["p1"], values["p2"]))
+                       distortion=tuple(values[k] for k in ("k1", "k2", "p1", "p2", "k3")))
     return Calibration(camera=fitted, fitted=fit, rms_before_px=_rms(before.fun),
                        rms_after_px=_rms(after.fun), frames=len(used), stars=len(xy),
                        attitudes=rot.as_matrix())
@@ -137,10 +133,15 @@ def calibrate(solutions: Sequence, camera, *, epoch: float | None = None,
 
 def project(values: dict, v_cam: np.ndarray) -> np.ndarray:
     """Pixels (n, 2) of camera-frame directions ``v_cam`` (n, 3) through a Brown–Conrady lens
-    (:class:`jstarid.Camera`'s model, float64 NumPy)."""
+    (``values``: ``f_px, cx, cy, k1, k2, p1, p2, k3``).
+
+    :meth:`jstarid.Camera.project` and :meth:`~jstarid.Camera.distort` in float64 NumPy: the least
+    squares' finite-difference Jacobian steps parameters by ~1e-8 of their size, below float32's
+    resolution (``tests/test_calibration.py`` checks the two agree).
+    """
     u, w = v_cam[:, 0] / v_cam[:, 2], v_cam[:, 1] / v_cam[:, 2]
     r2 = u * u + w * w
-    radial = 1.0 + r2 * (values["k1"] + r2 * values["k2"])
+    radial = 1.0 + r2 * (values["k1"] + r2 * (values["k2"] + r2 * values["k3"]))
     ud = u * radial + 2.0 * values["p1"] * u * w + values["p2"] * (r2 + 2.0 * u * u)
     wd = w * radial + values["p1"] * (r2 + 2.0 * w * w) + 2.0 * values["p2"] * u * w
     return np.stack([values["cx"] + values["f_px"] * ud, values["cy"] + values["f_px"] * wd], axis=-1)

@@ -280,7 +280,17 @@ def _build(settings: dict) -> dict[str, np.ndarray]:
     }
 
 
-def load_catalog(mag_limit: float = 6.0, *, double_sep_deg: float = 0.05,
+DOUBLE_SEP_DEG = 0.05  # load_catalog's default close-pair separation (deg)
+FULL_DEPTH = 12.5  # V: every Hipparcos star but the 130 (of 117,955) fainter
+
+
+def load_every_star(epoch: float | None = None) -> Catalog:
+    """All of Hipparcos to V :data:`FULL_DEPTH`, close pairs kept apart, no simulation list: the
+    reference that naming depths, blends, scores and calibration look stars up in."""
+    return load_catalog(FULL_DEPTH, double_mode="keep", sim_margin=0.0, epoch=epoch)
+
+
+def load_catalog(mag_limit: float = 6.0, *, double_sep_deg: float = DOUBLE_SEP_DEG,
                  double_mode: str = "drop", sim_margin: float = 1.0, epoch: float | None = None,
                  use_cache: bool = True) -> Catalog:
     """Load the Hipparcos 2 catalog down to ``mag_limit`` (cached as ``.npz``).

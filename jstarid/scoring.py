@@ -22,12 +22,10 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from jstarid.catalog import DOUBLE_SEP_DEG as CATALOG_DOUBLE_SEP_DEG
+from jstarid.catalog import load_every_star
+
 __all__ = ["CATALOG_DOUBLE_SEP_DEG", "close_pairs", "score_scene", "summarize"]
-
-CATALOG_DOUBLE_SEP_DEG = 0.05  # load_catalog's close-pair separation, which the CLI's catalogs use
-
-# every Hipparcos star but the 130 (of 117,955) fainter than V 12.5, each close pair kept whole
-_FULL_DEPTH = 12.5
 
 
 def close_pairs(hip_a, hip_b, radius_deg: float, *, epoch: float | None = None) -> np.ndarray:
@@ -41,12 +39,10 @@ def close_pairs(hip_a, hip_b, radius_deg: float, *, epoch: float | None = None) 
     Returns:
         (K,) bool; False where either number is not a Hipparcos star (V ≤ 12.5).
     """
-    from jstarid.catalog import load_catalog
-
     hip_a, hip_b = np.atleast_1d(hip_a), np.atleast_1d(hip_b)
     if hip_a.size == 0:
         return np.zeros(0, bool)
-    cat = load_catalog(_FULL_DEPTH, double_mode="keep", sim_margin=0.0, epoch=epoch)
+    cat = load_every_star(epoch)
     ra, rb = cat.row_of_hip(hip_a), cat.row_of_hip(hip_b)
     found = (ra >= 0) & (rb >= 0)
     cos = np.sum(cat.unit_vectors[ra] * cat.unit_vectors[rb], axis=-1)

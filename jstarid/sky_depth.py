@@ -21,21 +21,21 @@ import math
 
 import numpy as np
 
+from jstarid.catalog import FULL_DEPTH as DEEPEST  # V: the whole Hipparcos catalog
+from jstarid.catalog import load_every_star
+
 __all__ = ["identification_depth", "naming_depth", "stars_brighter_than"]
 
 STARS_PER_FIELD = 40.0  # mean catalog stars in the field the identification catalog aims at
 CHANCE_NEIGHBOUR = 0.01  # largest mean chance of a catalog star within the naming radius
 SHALLOWEST = 6.0  # V: never shallower than the papers' catalog (wide fields)
 DEEPEST_IDENTIFICATION = 9.5  # V: Hipparcos is complete to about V 8–9; below, counts thin out
-DEEPEST = 12.5  # V: the whole Hipparcos catalog
 _SKY_DEG2 = 4.0 * math.pi * math.degrees(1.0) ** 2  # 41,253 deg²
 
 
 @functools.cache
 def _sorted_magnitudes() -> np.ndarray:
-    from jstarid.catalog import load_catalog
-
-    return np.sort(np.asarray(load_catalog(DEEPEST, double_sep_deg=0.0).mag, np.float64))
+    return np.sort(np.asarray(load_every_star().mag, np.float64))
 
 
 def stars_brighter_than(v: float) -> int:

@@ -34,10 +34,16 @@ from pathlib import Path
 
 import numpy as np
 
+from jstarid.catalog import load_every_star
 from jstarid.centroid import CentroidConfig
 
 __all__ = ["Solution", "Star", "solve", "solve_scenes"]
 
+#: The camera of a user's frames when none is given (identify, solve, score, calibrate, train): a real
+#: tracker's, 11.4° over 1024×768. Sweeps default to the papers' camera instead.
+DEFAULT_CAMERA = "tetra3_test"
+IMAGE_CAPACITY = 24  # detections of an image the algorithm uses (the brightest)
+CENTROID_CAPACITY = 64  # centroids of a given scene the algorithm uses
 # a companion whose light reaches the centroid window of an extracted detection (the window's
 # half-diagonal, CentroidConfig.window_px = 4, plus a PSF core's 2 px) blends with it
 IMAGE_BLEND_PX = 4.0 * math.sqrt(2.0) + 2.0
@@ -57,6 +63,7 @@ class Star:
         x: column (px) as measured (before the lens distortion is undone).
         y: row (px) as measured.
         v: the star's V (mag).
+        detection: the detection's slot in its scene (brightest first).
         blend: Hipparcos numbers of every star the detection may be the light of (``hip`` first);
             ``()`` for a single star.
     """
@@ -65,6 +72,7 @@ class Star:
     x: float
     y: float
     v: float
+    detection: int
     blend: tuple[int, ...] = ()
 
 
@@ -120,7 +128,7 @@ class Solution:
         import jstarid as js
 
         entry = {"scene": self.label, "detections": self.detections, "solved": self.solved,
-                 "stars": [{"hip": s.hip, "x": s.x, "y": s.y, "v": s.v,
+                 "stars": [{"hip": s.hip, "x": s.x, "y": s.y, "v": s.v, "detection": s.detection,
                             **({"blend": list(s.blend)} if s.blend else {})} for s in self.stars]}
         if self.solved:
             entry.update(ra_deg=self.ra_deg, dec_deg=self.dec_deg, roll_deg=self.roll_deg,
@@ -135,7 +143,7 @@ class Solution:
         return entry
 
 
-def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float | None = None,
+def solve(frames, camera=DEFAULT_CAMERA, algorithm: str = "mlv", *, epoch: float | None = None,
           mag_limit: float | None = None, capacity: int | None = None, name_all: bool = True,
           tol_px: float = 2.0, fov_max_error: float = 0.1, overrides: Sequence[str] = (),
           rpnet_network: str = "quick", labels: Sequence[str] | None = None):
@@ -150,8 +158,9 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
         algorithm: registry name (``mlv``, ``sgm``, ``rpnet``, …).
         epoch: the observation's Julian year (proper motion); ``None``: the catalog's J1991.25.
         mag_limit: identification catalog depth (V mag); ``None``: the camera's detection limit.
-        capacity: detections the algorithm uses per frame (the brightest); ``None``: 24 for images,
-            64 for centroids. Naming (``name_all``) uses up to :data:`NAMING_CAPACITY`.
+        capacity: detections the algorithm uses per frame (the brightest); ``None``:
+            :data:`IMAGE_CAPACITY` for images, :data:`CENTROID_CAPACITY` for centroids. Naming
+            (``name_all``) uses up to :data:`NAMING_CAPACITY`.
         name_all: name every detection the attitude explains (step 3).
         tol_px: naming tolerance (px).
         fov_max_error: how far off the camera's focal length (field of view) may be: unsolved frames
@@ -182,13 +191,8 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
     if kinds == {"image"}:
         if labels is None:
             labels = [str(f) if isinstance(f, str | Path) else f"frame {i}" for i, f in enumerate(items)]
-        images = [js.read_image(f) if isinstance(f, str | Path) else np.asarray(f, np.float32)
-                  for f in items]
-        if any(im.shape != (cam.height, cam.width) for im in images):
-            raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "
-                             f"got {sorted({im.shape for im in images})}")
-        measured = js.extract_centroids(np.stack(images), NAMING_CENTROIDS, capacity=NAMING_CAPACITY,
-                                        shard=True)
+        measured = image_detections([js.read_image(f) if isinstance(f, str | Path)
+                                     else np.asarray(f, np.float32) for f in items], cam)
     else:
         arrays, labels = _centroid_arrays(items, labels)
         if any(a.ndim != 2 or a.shape[1] not in (2, 3) for a in arrays):
@@ -196,13 +200,28 @@ def solve(frames, camera="tetra3_test", algorithm: str = "mlv", *, epoch: float 
         mags = None if all(a.shape[1] == 2 for a in arrays) else [
             a[:, 2] if a.shape[1] == 3 else np.arange(len(a), dtype=float) for a in arrays]
         measured = js.scenes_from_centroids([a[:, :2] for a in arrays], mags,
-                                            capacity=max(NAMING_CAPACITY, capacity or 64))
-    capacity = capacity or (24 if kinds == {"image"} else 64)
+                                            capacity=max(NAMING_CAPACITY, capacity or CENTROID_CAPACITY))
+    capacity = capacity or (IMAGE_CAPACITY if kinds == {"image"} else CENTROID_CAPACITY)
     out = solve_scenes(measured, cam, algorithm, labels=list(labels), capacity=capacity, epoch=epoch,
                        mag_limit=mag_limit, blend_px=IMAGE_BLEND_PX if kinds == {"image"} else None,
                        name_all=name_all, tol_px=tol_px, fov_max_error=fov_max_error,
                        overrides=overrides, rpnet_network=rpnet_network)
     return out[0] if single and len(out) == 1 else out
+
+
+def image_detections(images, camera):
+    """The detections naming looks at (:data:`NAMING_CAPACITY`, brightest first) of (H, W) images
+    taken by ``camera``, as measured (lens distortion not undone): a (B, N) Scene.
+
+    Raises:
+        ValueError: an image of another size than the camera's.
+    """
+    from jstarid.centroid import extract_centroids
+
+    if any(np.shape(im) != (camera.height, camera.width) for im in images):
+        raise ValueError(f"every image must be {camera.height}×{camera.width} px (camera {camera.name}); "
+                         f"got {sorted({np.shape(im) for im in images})}")
+    return extract_centroids(np.stack(images), NAMING_CENTROIDS, capacity=NAMING_CAPACITY, shard=True)
 
 
 def _centroid_arrays(items, labels):
@@ -229,7 +248,8 @@ def _kind(frame) -> str:
     if isinstance(frame, str | Path):
         return "centroids" if Path(frame).suffix.lower() in (".csv", ".tsv", ".json") else "image"
     array = np.asarray(frame)
-    return "centroids" if array.ndim == 2 and array.shape[1] in (2, 3) and array.shape[0] != 2 else "image"
+    # no image is 2 or 3 px wide
+    return "centroids" if array.ndim == 2 and array.shape[1] in (2, 3) else "image"
 
 
 def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[str], capacity=None,
@@ -285,7 +305,7 @@ def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[s
         cat = deep
         result = js.name_from_attitude(cat, pinhole, scenes, result, tol_px=tol_px,
                                        max_scale_error=fov_max_error)
-    att, rms_arcsec, have = (np.asarray(a) for a in js.estimate_attitude(cat, pinhole, scenes, result))
+    att, _, have = (np.asarray(a) for a in js.estimate_attitude(cat, pinhole, scenes, result))
     if result.attitude is not None:  # the camera fit's attitude (focal length fitted with it)
         fitted = np.isfinite(np.asarray(result.attitude)).all(axis=(1, 2))
         att = np.where(fitted[:, None, None], np.asarray(result.attitude), att)
@@ -296,21 +316,20 @@ def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[s
     xy = np.asarray(measured.xy)
     ids, ok = np.asarray(result.ids), np.asarray(result.ok)
     n_det = np.asarray(measured.valid).sum(axis=1)
+    residual = _residual_arcsec(pinhole, scenes, ids, cat.unit_vectors, att, scale, k1)
     blends = _blend_finder(cat, pinhole, tol_px if blend_px is None else blend_px)
     out = []
     for i, label in enumerate(labels):
         named = np.nonzero(ids[i] >= 0)[0]
         solved = bool(ok[i] and have[i])
         stars = tuple(Star(hip=int(cat.hip[ids[i, j]]), x=float(xy[i, j, 0]), y=float(xy[i, j, 1]),
-                           v=float(cat.mag[ids[i, j]]), blend=blends(int(ids[i, j])))
+                           v=float(cat.mag[ids[i, j]]), detection=int(j), blend=blends(int(ids[i, j])))
                       for j in named)
         fields = {}
         if solved:
             fields = dict(attitude=np.asarray(att[i], np.float64), ra_deg=float(ra[i]),
                           dec_deg=float(dec[i]), roll_deg=float(roll[i]),
-                          residual_arcsec=_residual_arcsec(
-                              pinhole, np.asarray(scenes.xy[i])[named], cat.unit_vectors[ids[i, named]],
-                              att[i], scale[i], k1[i]) if np.isfinite(scale[i]) else float(rms_arcsec[i]),
+                          residual_arcsec=float(residual[i]),
                           focal_scale=float(scale[i]) if np.isfinite(scale[i]) else None,
                           distortion_k1=float(k1[i]) if np.isfinite(k1[i]) else None)
         out.append(Solution(label=label, solved=solved, detections=int(n_det[i]), stars=stars,
@@ -318,20 +337,24 @@ def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[s
     return out
 
 
-def _residual_arcsec(camera, xy, ref, attitude, scale, k1) -> float:
-    """RMS angle (arcsec) between named detections (n, 2) px, seen through the fitted focal length
-    ``scale · f_px`` and radial term ``k1`` (:func:`jstarid.camera_fit.unproject_scaled`), and their
-    stars (n, 3) rotated by ``attitude``."""
-    f = camera.f_px * scale
-    u_d = (np.asarray(xy, np.float64) - [camera.cx, camera.cy]) / f
-    u = u_d
-    for _ in range(20):  # |k1| r² ≪ 1: each step shrinks the error by that factor
-        u = u_d / (1.0 + (0.0 if not np.isfinite(k1) else k1) * np.sum(u * u, axis=1, keepdims=True))
-    body = np.column_stack([u, np.ones(len(u))])
-    body /= np.linalg.norm(body, axis=1, keepdims=True)
-    pred = np.matmul(np.asarray(ref, np.float64), np.asarray(attitude, np.float64).T)
-    angle = np.arctan2(np.linalg.norm(np.cross(body, pred), axis=1), np.sum(body * pred, axis=1))
-    return float(np.degrees(np.sqrt(np.mean(angle**2))) * 3600.0)
+def _residual_arcsec(camera, scenes, ids, star_vectors, attitude, scale, k1) -> np.ndarray:
+    """(B,) RMS angle (arcsec) between the named detections, seen through each scene's fitted focal
+    length ``scale · f_px`` and radial term ``k1`` (:func:`jstarid.camera_fit.unproject_scaled`;
+    1 and 0 where not fitted), and their stars rotated by ``attitude`` (B, 3, 3); NaN where nothing
+    is named."""
+    from jstarid.camera_fit import unproject_scaled
+    from jstarid.geometry.angles import angle_between
+
+    scale = np.where(np.isfinite(scale), scale, 1.0).astype(np.float32)
+    k1 = np.where(np.isfinite(k1), k1, 0.0).astype(np.float32)
+    body = unproject_scaled(camera, np.asarray(scenes.xy), scale[:, None], k1[:, None])
+    ref = np.asarray(star_vectors, np.float32)[np.clip(ids, 0, len(star_vectors) - 1)]
+    pred = np.einsum("bij,bnj->bni", np.nan_to_num(attitude), ref)
+    angle = np.asarray(angle_between(body, pred), np.float64)
+    named = (ids >= 0) & np.asarray(scenes.valid)
+    with np.errstate(invalid="ignore"):
+        mean_square = np.where(named, angle**2, 0.0).sum(axis=1) / named.sum(axis=1)
+    return np.degrees(np.sqrt(mean_square)) * 3600.0
 
 
 LADDER_STEP = 0.01  # the focal-length ladder's step: MLV's features tolerate about 1 %
@@ -386,9 +409,8 @@ def _blend_finder(catalog, camera, blend_px: float):
     when it is the only one."""
     from scipy.spatial import cKDTree
 
-    import jstarid as js
 
-    every = js.load_catalog(12.5, double_sep_deg=0.0, epoch=catalog.settings["epoch"])
+    every = load_every_star(catalog.settings["epoch"])
     radius = max(blend_px / camera.f_px, math.radians(catalog.settings["double_sep_deg"]))
     tree = cKDTree(every.unit_vectors)
 

@@ -28,6 +28,7 @@ and :func:`write_fits_with_wcs` (a FITS image with the solution in its header).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
@@ -111,24 +112,12 @@ def wcs_from_solution(camera, solution: dict):
                         k1=solution.get("distortion_k1", 0.0))
 
 
-def _lens(camera, f: float, k1: float):
-    """``(distort, undistort)``: ideal pixels (N, 2) ↔ measured pixels (N, 2) through the fitted k1
-    and the camera's own distortion (module docstring), float64."""
-    centre = np.array([camera.cx, camera.cy])
-
-    def distort(ideal):
-        u = (ideal - centre) / f
-        fitted = centre + f * u * (1.0 + k1 * np.sum(u * u, axis=-1, keepdims=True))
-        return np.asarray(camera.distort(fitted), np.float64)
-
-    def undistort(measured):
-        u_d = (np.asarray(camera.undistort(measured), np.float64) - centre) / f
-        u = u_d
-        for _ in range(30):  # fixed point: |k1| r² ≪ 1, each step shrinks the error by that factor
-            u = u_d / (1.0 + k1 * np.sum(u * u, axis=-1, keepdims=True))
-        return centre + f * u
-
-    return distort, undistort
+def _undistort(camera, f: float, k1: float):
+    """Measured pixels (N, 2) → ideal pixels (N, 2) of focal length ``f`` (float64): the camera's own
+    distortion undone, then the fitted ``k1`` (a :class:`~jstarid.Camera` lens of focal length ``f``:
+    :func:`jstarid.camera_fit.project_scaled`'s model)."""
+    fitted = dataclasses.replace(camera.pinhole(), f_px=f, distortion=(k1,) if k1 else ())
+    return lambda measured: np.asarray(fitted.undistort(camera.undistort(measured)), np.float64)
 
 
 def _terms(order: int, lowest: int):
@@ -164,7 +153,7 @@ def _grid(camera, n: int) -> np.ndarray:
 def _fit_sip(camera, f: float, k1: float, tol_px: float):
     """SIP ``(A, B, AP, BP)`` (each (order+1, order+1)) reproducing the lens within ``tol_px`` (module
     docstring; the highest order tried, :data:`SIP_MAX_ORDER`, where none does)."""
-    _, undistort = _lens(camera, f, k1)  # the grid is of measured pixels: one direction suffices
+    undistort = _undistort(camera, f, k1)  # the grid is of measured pixels: one direction suffices
     centre = np.array([camera.cx, camera.cy])
     fit_m, check_m = _grid(camera, _FIT_POINTS), _grid(camera, _CHECK_POINTS)
     fit_i, check_i = undistort(fit_m), undistort(check_m)

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from jstarid.cli.cameras import FRAME_CAMERA, camera_from_args
+from jstarid.solution import IMAGE_CAPACITY
 
 ROUNDS = 2  # solve → fit, then solve again with the fitted camera (more names) → fit
 
@@ -22,7 +23,7 @@ def add_commands(sub) -> None:
                     "k1, k2, p1, p2; blends left out), solve again with it and fit again, then write "
                     "the camera file (--out) that later commands take as --camera.")
     p.add_argument("frames", nargs="+", type=Path, help="images (FITS, TIFF, PNG) or centroid files")
-    _frame_options(p, camera=FRAME_CAMERA, capacity=24)
+    _frame_options(p, camera=FRAME_CAMERA, capacity=IMAGE_CAPACITY)
     p.add_argument("--fit", default=None, metavar="NAME[,NAME…]",
                    help="parameters to fit (f_px, cx, cy, k1, k2, p1, p2; default all of them with "
                         "60 or more named stars, else f_px, k1, k2)")

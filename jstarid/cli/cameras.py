@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-#: The camera of every command that works on a user's frames or builds for them (identify, solve,
-#: score, train): a real tracker's (11.4°, 1024×768). Sweeps default to the papers' camera.
-FRAME_CAMERA = "tetra3_test"
+from jstarid.solution import DEFAULT_CAMERA as FRAME_CAMERA  # noqa: F401  (the commands' default)
 
 
 def add_camera_options(p, *, default: str) -> None:

@@ -36,33 +36,21 @@ def combine(sets: list[tuple[str, CentroidSet]]) -> CentroidSet:
     return CentroidSet(tuple(labels), tuple(xy), tuple(mag), tuple(hip))
 
 
-def star_detections(solutions: list[dict], measured) -> list[list[int]]:
-    """The detection (slot of ``measured``) of every named star of each of ``solutions``.
-
-    ``solutions`` are :func:`jstarid.cli.frames._identify`'s entries for ``measured``: they report
-    each star at its slot's pixels, so a star's slot is the one at its ``x, y``. For scenes made by
-    :meth:`CentroidSet.scenes`, slot j is detection j of :meth:`CentroidSet.brightest_first`.
-    """
-    xy = np.asarray(measured.xy, np.float64)
-    n_valid = np.asarray(measured.valid).sum(axis=1)
-    return [[int(np.argmin(np.sum((xy[i, :n_valid[i]] - [s["x"], s["y"]]) ** 2, axis=1)))
-             for s in entry["stars"]] for i, entry in enumerate(solutions)]
-
-
-def named_detections(solutions: list[dict], found: CentroidSet, measured) -> list[np.ndarray]:
-    """The HIP each detection of ``found`` (brightest first, ``measured = found.scenes(...)``) was
-    given, −1 where none; detections past the capacity were never offered and stay −1."""
+def named_detections(solutions: list[dict], found: CentroidSet) -> list[np.ndarray]:
+    """The HIP each detection of ``found`` (brightest first, the scenes ``solutions`` were made from:
+    a star's ``detection`` is its slot) was given, −1 where none; detections past the capacity were
+    never offered and stay −1."""
     out = []
-    for i, slots in enumerate(star_detections(solutions, measured)):
-        names = np.full(len(found.xy[i]), -1, np.int64)
-        names[slots] = [star["hip"] for star in solutions[i]["stars"]]
+    for entry, xy in zip(solutions, found.xy, strict=True):
+        names = np.full(len(xy), -1, np.int64)
+        names[[star["detection"] for star in entry["stars"]]] = [star["hip"] for star in entry["stars"]]
         out.append(names)
     return out
 
 
-def add_true_hips(solutions: list[dict], found: CentroidSet, measured) -> None:
+def add_true_hips(solutions: list[dict], found: CentroidSet) -> None:
     """Give every named star of a labelled scene its detection's ``true_hip`` (in place)."""
-    for i, slots in enumerate(star_detections(solutions, measured)):
-        if found.hip[i] is not None:
-            for star, j in zip(solutions[i]["stars"], slots, strict=True):
-                star["true_hip"] = int(found.hip[i][j])
+    for entry, hip in zip(solutions, found.hip, strict=True):
+        if hip is not None:
+            for star in entry["stars"]:
+                star["true_hip"] = int(hip[star["detection"]])

@@ -11,7 +11,13 @@ import numpy as np
 
 from jstarid.cli.cameras import FRAME_CAMERA, add_camera_options, camera_from_args
 from jstarid.cli.centroid_input import add_centroid_file_options
-from jstarid.solution import IMAGE_BLEND_PX, NAMING_CAPACITY, NAMING_CENTROIDS
+from jstarid.solution import (
+    CENTROID_CAPACITY,
+    IMAGE_BLEND_PX,
+    IMAGE_CAPACITY,
+    NAMING_CAPACITY,
+    image_detections,
+)
 
 
 def add_commands(sub) -> None:
@@ -25,7 +31,7 @@ def add_commands(sub) -> None:
                     "JSON: [[x, y, mag], …], a list of those, or {\"scenes\": [...]}. Prints JSON "
                     "(or writes --out).")
     i.add_argument("files", nargs="+", type=Path, help="centroid files (.csv, .tsv, .txt or .json)")
-    _frame_options(i, camera=FRAME_CAMERA, capacity=64)
+    _frame_options(i, camera=FRAME_CAMERA, capacity=CENTROID_CAPACITY)
     add_centroid_file_options(i)
     i.add_argument("--out", type=Path, default=None, help="write the JSON here instead of stdout")
     i.set_defaults(func=run_identify)
@@ -40,7 +46,7 @@ def add_commands(sub) -> None:
                     "is given.")
     s.add_argument("images", nargs="+", help="image files (FITS, TIFF, PNG, …; colour is taken as "
                                              "luminance), all from one camera")
-    _frame_options(s, camera=FRAME_CAMERA, capacity=24)
+    _frame_options(s, camera=FRAME_CAMERA, capacity=IMAGE_CAPACITY)
     s.add_argument("--out", default="results/solve", help="results directory (default results/solve)")
     s.add_argument("--annotate", action="store_true",
                    help="also write <out>/<stem>.png: the frame with each named star circled and "
@@ -75,15 +81,14 @@ def _frame_options(p, *, camera: str, capacity: int) -> None:
                    help="Config overrides of --algorithm, VALUE in JSON (e.g. sgm.radius_deg=3.8)")
 
 
-def _identify(args, scenes, labels: list[str], measured=None, blend_px=None) -> list[dict]:
-    """Identify ``measured`` scenes (centroids as measured; ``scenes`` is accepted for the callers
-    that undistorted them already and ignored) the way :func:`jstarid.solve` does, one JSON entry per
-    scene."""
+def _identify(args, measured, labels: list[str], blend_px=None) -> list[dict]:
+    """Identify ``measured`` scenes (centroids as measured, brightest first) the way
+    :func:`jstarid.solve` does, one JSON entry per scene."""
     from jstarid.solution import solve_scenes
 
     if args.capacity < 1:
         raise ValueError("--capacity must be ≥ 1")
-    solutions = solve_scenes(scenes if measured is None else measured, camera_from_args(args),
+    solutions = solve_scenes(measured, camera_from_args(args),
                              args.algorithm, labels=labels, capacity=args.capacity, epoch=args.epoch,
                              mag_limit=args.mag_limit,
                              name_all=args.name_all, tol_px=args.tol_px,
@@ -137,8 +142,8 @@ def run_identify(args) -> int:
     found = combine(read_centroid_files(args))
     measured = found.scenes(max(NAMING_CAPACITY, args.capacity))
     _note_epoch(args)
-    solutions = _identify(args, js.undistort_scenes(measured, camera), list(found.labels), measured)
-    add_true_hips(solutions, found, measured)
+    solutions = _identify(args, measured, list(found.labels))
+    add_true_hips(solutions, found)
     for entry in solutions:
         print(_summary(entry), file=sys.stderr)
     text = json.dumps({"camera": js.camera_files.camera_to_dict(camera), "algorithm": args.algorithm,
@@ -162,17 +167,10 @@ def run_solve(args) -> int:
     files = [read_image_file(p) for p in args.images]
     _camera_from_headers(args, files)
     cam = camera_from_args(args)
-    images = [f.pixels for f in files]
-    if len({im.shape for im in images}) != 1 or images[0].shape != (cam.height, cam.width):
-        raise ValueError(f"every image must be {cam.height}×{cam.width} px (camera {cam.name}); "
-                         f"got {sorted({im.shape for im in images})}")
+    measured = image_detections([f.pixels for f in files], cam)
     header_epoch = _epoch_from_headers(args, files)
     _note_epoch(args)
-    measured = js.extract_centroids(np.stack(images), NAMING_CENTROIDS,
-                                    capacity=max(NAMING_CAPACITY, args.capacity),
-                                    shard=True)
-    solutions = _identify(args, js.undistort_scenes(measured, cam), [str(p) for p in args.images],
-                          measured, blend_px=IMAGE_BLEND_PX)
+    solutions = _identify(args, measured, [str(p) for p in args.images], blend_px=IMAGE_BLEND_PX)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for entry, file, stem in zip(solutions, files, _stems(args.images), strict=True):

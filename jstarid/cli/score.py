@@ -15,7 +15,7 @@ import numpy as np
 
 from jstarid.cli.cameras import FRAME_CAMERA, camera_from_args
 from jstarid.cli.centroid_input import add_centroid_file_options
-from jstarid.solution import NAMING_CAPACITY
+from jstarid.solution import CENTROID_CAPACITY, NAMING_CAPACITY
 
 
 def add_commands(sub) -> None:
@@ -33,7 +33,7 @@ def add_commands(sub) -> None:
                     "separation or --tol-px, whichever is wider) is a blend, neither right nor wrong. "
                     "Prints a table (and writes --out as JSON).")
     p.add_argument("files", nargs="+", type=Path, help="labelled centroid files (.csv, .tsv, .txt, .json)")
-    _frame_options(p, camera=FRAME_CAMERA, capacity=64)
+    _frame_options(p, camera=FRAME_CAMERA, capacity=CENTROID_CAPACITY)
     add_centroid_file_options(p)
     p.add_argument("--out", type=Path, default=None, help="write the scores as JSON here")
     p.set_defaults(func=run_score)
@@ -55,14 +55,14 @@ def run_score(args) -> int:
     found = combine(sets)
     measured = found.scenes(max(NAMING_CAPACITY, args.capacity))
     _note_epoch(args)
-    solutions = _identify(args, js.undistort_scenes(measured, camera), list(found.labels), measured)
+    solutions = _identify(args, measured, list(found.labels))
     radius_deg = blend_radius_deg(args, camera)
 
     def blends(named, true):
         return close_pairs(named, true, radius_deg, epoch=args.epoch)
 
     scores = []
-    named = named_detections(solutions, found, measured)
+    named = named_detections(solutions, found)
     for i, entry in enumerate(solutions):
         score = score_scene(named[i], found.hip[i], entry["solved"], blends=blends)
         for key in ("wrong_detections", "blend_detections"):  # indices → the detections themselves
