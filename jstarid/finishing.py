@@ -35,6 +35,8 @@ from jstarid.scene import Identification, Scene
 
 __all__ = ["Finished", "Finishing", "finish"]
 
+LADDER_STEP = 0.01  # the ladder's step: MLV's features tolerate about 1 % of focal length
+
 
 @dataclasses.dataclass(frozen=True)
 class Finishing:
@@ -80,6 +82,22 @@ class Finishing:
                 raise TypeError(f"Finishing has no field(s) {sorted(unknown)}; fields: {sorted(known)}")
             return cls(**value)
         raise TypeError(f"finishing must be a jstarid.finishing.Finishing or a mapping, got {value!r}")
+
+    def reaching(self, max_error: float, step: float = LADDER_STEP) -> Finishing:
+        """These settings with the ladder extended in steps of ``step`` out to ``1 ± max_error`` (after its
+        own factors) and the check allowing that correction: a camera whose field of view is known
+        to ±10 % (``jstarid solve --fov-max-error``). Returned as they are when the ladder is off
+        or already reaches that far."""
+        if not self.focal_search:
+            return self
+        reach = max(abs(f - 1.0) for f in self.focal_search)
+        if max_error <= reach:
+            return self
+        n = int(math.floor(max_error / step + 1e-9))
+        wider = tuple(round(1.0 + sign * k * step, 6) for k in range(1, n + 1) for sign in (-1, 1))
+        return dataclasses.replace(
+            self, focal_search=self.focal_search + tuple(f for f in wider if abs(f - 1.0) > reach + 1e-9),
+            max_focal_error=max(self.max_focal_error, max_error))
 
     @classmethod
     def off(cls, **overrides) -> Finishing:

@@ -289,7 +289,8 @@ def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[s
     algo = js.algorithms.get(algorithm)
     cfg = with_overrides(js.engine.default_config(algorithm, rpnet_network=rpnet_network,
                                                   camera=pinhole, frames=True), list(overrides))
-    cfg = _ladder_for(cfg, fov_max_error)
+    if getattr(cfg, "finishing", None) is not None:  # a field of view known to ± fov_max_error
+        cfg = dataclasses.replace(cfg, finishing=cfg.finishing.reaching(fov_max_error))
     js.engine.check_camera([js.Entry(algorithm, algorithm, cfg)], pinhole, cat)
     built = base.first_use(algo, cat, pinhole, cfg)
     if built:
@@ -355,31 +356,6 @@ def _residual_arcsec(camera, scenes, ids, star_vectors, attitude, scale, k1) -> 
     with np.errstate(invalid="ignore"):
         mean_square = np.where(named, angle**2, 0.0).sum(axis=1) / named.sum(axis=1)
     return np.degrees(np.sqrt(mean_square)) * 3600.0
-
-
-LADDER_STEP = 0.01  # the focal-length ladder's step: MLV's features tolerate about 1 %
-
-
-def focal_ladder(max_error: float, step: float = LADDER_STEP) -> tuple[float, ...]:
-    """Focal-length factors 1 ∓ step, 1 ∓ 2 step, … out to ``1 ∓ max_error``, nearest first."""
-    n = int(math.floor(max_error / step + 1e-9))
-    return tuple(round(1.0 + sign * k * step, 6) for k in range(1, n + 1) for sign in (-1, 1))
-
-
-def _ladder_for(config, max_error: float):
-    """``config`` with its finishing stage's ladder reaching ``max_error`` (a field of view known to
-    ±10 % is tried at 1 % steps) and its camera check allowing that correction; a config without a
-    finishing stage, or with its ladder turned off, is returned as it is."""
-    finishing = getattr(config, "finishing", None)
-    if finishing is None or not finishing.focal_search:
-        return config
-    reach = max(abs(f - 1.0) for f in finishing.focal_search)
-    if max_error <= reach:
-        return config
-    ladder = finishing.focal_search + tuple(f for f in focal_ladder(max_error) if abs(f - 1.0) > reach + 1e-9)
-    wider = dataclasses.replace(finishing, focal_search=ladder,
-                                max_focal_error=max(finishing.max_focal_error, max_error))
-    return dataclasses.replace(config, finishing=wider)
 
 
 def _widened(result, n: int):

@@ -127,17 +127,15 @@ def test_a_close_pair_is_reported_as_a_blend():
 
 
 def test_the_ladder_reaches_the_field_of_view_error():
-    from jstarid.solution import _ladder_for, focal_ladder
-
-    assert focal_ladder(0.03) == (0.99, 1.01, 0.98, 1.02, 0.97, 1.03)
-    cfg = js.algorithms.get("mlv").Config()
-    wide = _ladder_for(cfg, 0.1)
-    assert wide.finishing.focal_search[:4] == cfg.finishing.focal_search  # the default first
-    assert min(wide.finishing.focal_search) == 0.9 and max(wide.finishing.focal_search) == 1.1
-    assert len(set(wide.finishing.focal_search)) == 20 and wide.finishing.max_focal_error >= 0.1
-    assert _ladder_for(cfg, 0.02) is cfg  # within the default ladder
-    off = js.algorithms.get("mlv").Config.paper()
-    assert _ladder_for(off, 0.1) is off  # the paper's algorithm: no ladder added
+    finishing = js.algorithms.get("mlv").Config().finishing
+    wide = finishing.reaching(0.1)
+    assert wide.focal_search[:4] == finishing.focal_search  # the default first
+    assert wide.focal_search[4:8] == (0.97, 1.03, 0.96, 1.04)  # then outward, nearest first
+    assert min(wide.focal_search) == 0.9 and max(wide.focal_search) == 1.1
+    assert len(set(wide.focal_search)) == 20 and wide.max_focal_error >= 0.1
+    assert finishing.reaching(0.02) is finishing  # within the default ladder
+    off = js.Finishing.off()
+    assert off.reaching(0.1) is off  # the paper's algorithm: no ladder added
 
 
 def test_a_field_of_view_off_by_seven_percent_is_solved():
