@@ -73,8 +73,9 @@ def _frame_options(p, *, camera: str, capacity: int) -> None:
                         "--no-name-all keeps the algorithm's own names")
     p.add_argument("--tol-px", type=float, default=2.0, help="tolerance of --name-all (px)")
     p.add_argument("--fov-max-error", type=float, default=0.1,
-                   help="largest relative focal-length (field of view) correction the camera fit of "
-                        "--name-all may make before a frame counts as not solved (default 0.1)")
+                   help="how far off the field of view (focal length) may be, relative: unsolved "
+                        "frames are tried again at 1 %% steps out to it, and a frame needing more "
+                        "counts as not solved (default 0.1)")
     p.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet network (trained for the camera on first use, then cached)")
     p.add_argument("--set", nargs="*", default=[], metavar="[ALGORITHM.]FIELD=VALUE",
