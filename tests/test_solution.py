@@ -152,3 +152,13 @@ def test_a_field_of_view_off_by_seven_percent_is_solved():
     nearest = [int(np.argmin(np.hypot(*(xy - [s.x, s.y]).T))) for s in sol.stars]
     assert len(sol.stars) >= 20 and [s.hip for s in sol.stars] == truth[nearest].tolist()
     assert sol.residual_arcsec < 0.5 * cam.pixel_scale_arcsec  # 0.2 px noise per axis, 89″/px
+
+
+def test_random_points_are_not_claimed_under_the_wide_ladder():
+    """Twenty focal-length retries are twenty more chances of a chance match: frames of random
+    points (no star among them) still come back unsolved, none named."""
+    rng = np.random.default_rng(4)
+    frames = [np.column_stack([rng.uniform(0, 1023, (30, 2)), np.sort(rng.uniform(2, 6, 30))])
+              for _ in range(16)]
+    solutions = js.solve(frames, "mlv2021", mag_limit=5.5, fov_max_error=0.1)
+    assert not any(s.solved or s.stars for s in solutions)
