@@ -30,9 +30,7 @@ def add_commands(sub) -> None:
                     "without a header x, y[, magnitude] per line, scenes split by blank lines. "
                     "JSON: [[x, y, mag], …], a list of those, or {\"scenes\": [...]}. Prints JSON "
                     "(or writes --out).")
-    i.add_argument("files", nargs="+", type=Path, help="centroid files (.csv, .tsv, .txt or .json)")
-    _frame_options(i, camera=FRAME_CAMERA, capacity=CENTROID_CAPACITY)
-    add_centroid_file_options(i)
+    centroid_file_command(i, "centroid files (.csv, .tsv, .txt or .json)")
     i.add_argument("--out", type=Path, default=None, help="write the JSON here instead of stdout")
     i.set_defaults(func=run_identify)
     s = sub.add_parser(
@@ -53,6 +51,14 @@ def add_commands(sub) -> None:
                         "labelled HIP n")
     # no --camera given is told apart from the default preset: a FITS header may give the focal length
     s.set_defaults(func=run_solve, camera=None)
+
+
+def centroid_file_command(p, files_help: str) -> None:
+    """The arguments of a command on centroid files (``identify``, ``score``): the files, the frame
+    options and the file-layout options."""
+    p.add_argument("files", nargs="+", type=Path, help=files_help)
+    _frame_options(p, camera=FRAME_CAMERA, capacity=CENTROID_CAPACITY)
+    add_centroid_file_options(p)
 
 
 def _frame_options(p, *, camera: str, capacity: int) -> None:

@@ -13,13 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from jstarid.cli.cameras import FRAME_CAMERA, camera_from_args
-from jstarid.cli.centroid_input import add_centroid_file_options
-from jstarid.solution import CENTROID_CAPACITY, NAMING_CAPACITY
+from jstarid.cli.cameras import camera_from_args
+from jstarid.solution import NAMING_CAPACITY
 
 
 def add_commands(sub) -> None:
-    from jstarid.cli.frames import _frame_options
+    from jstarid.cli.frames import centroid_file_command
 
     p = sub.add_parser(
         "score", help="labelled centroid files (true HIP per detection) → identified and scored: "
@@ -32,9 +31,7 @@ def add_commands(sub) -> None:
                     "name of another star within the blend radius (the catalog's close-pair "
                     "separation or --tol-px, whichever is wider) is a blend, neither right nor wrong. "
                     "Prints a table (and writes --out as JSON).")
-    p.add_argument("files", nargs="+", type=Path, help="labelled centroid files (.csv, .tsv, .txt, .json)")
-    _frame_options(p, camera=FRAME_CAMERA, capacity=CENTROID_CAPACITY)
-    add_centroid_file_options(p)
+    centroid_file_command(p, "labelled centroid files (.csv, .tsv, .txt, .json)")
     p.add_argument("--out", type=Path, default=None, help="write the scores as JSON here")
     p.set_defaults(func=run_score)
 
