@@ -439,6 +439,7 @@ def test_studentized_radius_has_the_tail_of_a_known_sigma(dof):
     assert radius >= k
 
 
+@pytest.mark.slow
 def test_studentized_check_keeps_the_right_names_the_plain_radius_takes_back(world):
     """σ = 1 px, each scene named in a 6° circle (≈ 12 names, SGM's): 6 σ̂ of a dozen names takes
     right names 3–4 px out back (σ̂ scatters by about 15 %, 1 / √(2 dof)), the studentized radius

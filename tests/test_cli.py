@@ -23,6 +23,7 @@ def test_demo_runs_the_engine_and_writes_results(tmp_path, capsys):
     assert "| oracle | 2 | 6 |" in text and "wrote" in text
 
 
+@pytest.mark.slow
 def test_demo_adds_the_baselines_on_request(tmp_path):
     out = tmp_path / "baselines"
     assert cli.main(["demo", "--algorithms", "oracle", "--baselines", "--scenes", "4", "--levels", "0",
@@ -73,6 +74,7 @@ def test_report_collects_saved_sweeps(tmp_path):
     assert text.startswith("# Results\n\nkept by hand") and text.count("jstarid report: start") == 1
 
 
+@pytest.mark.slow
 def test_reproduce_quick_experiment(tmp_path, capsys):
     assert cli.main(["reproduce", "mlv", "--experiments", "fig8", "--scenes", "3", "--out",
                      str(tmp_path), "--quiet", "--baselines"]) == 0
@@ -140,6 +142,7 @@ def _render(xy, mag, height, width, *, zero_point=16.7, psf_sigma=0.8, seed=0):
     return np.clip(img, 0, 65535).astype(np.uint16)
 
 
+@pytest.mark.slow
 def test_solve_identifies_a_rendered_image(tmp_path, capsys):
     """Simulated sky → rendered 16-bit FITS frame (stored with BZERO) → `jstarid solve` → the true
     attitude and names, and a WCS that puts every named star on its detection."""
@@ -241,6 +244,7 @@ def _scene_rows(n_scenes=2):
     return catalog_star_scenes(7, n_scenes)
 
 
+@pytest.mark.slow
 def test_identify_centroid_files(tmp_path, capsys):
     """CSV (columns in any order, scenes split by a blank line, true ids passed through) and JSON
     in, names that are the simulated stars' out."""

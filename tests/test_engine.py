@@ -101,6 +101,7 @@ def test_chunking_and_seed(small):
     assert not np.array_equal(other.scenes["n_identified"], small.scenes["n_identified"])
 
 
+@pytest.mark.slow
 def test_grid_runs_as_one_batch_and_equals_single_entries():
     mlv = js.algorithms.get("mlv")
     base = _mlv_entry().config

@@ -137,6 +137,7 @@ def test_program_memory_tiny(tmp_path):
     assert (tmp_path / "table.md").exists()
 
 
+@pytest.mark.slow
 def test_bench_sgm_tiny_with_overrides():
     """``--set`` reaches the SGM config; noise-free scenes are all named, as by the NumPy version."""
     bench = _load("bench_sgm")

@@ -8,9 +8,14 @@ import matplotlib
 import pytest
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
+# The quickstart runs by default; the others (≈ 15–25 s each on 2 cores, mostly compilation of
+# kernels other tests cover) with the slow tests.
+DEFAULT_NOTEBOOKS = ("quickstart.ipynb",)
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
+@pytest.mark.parametrize("path", [p if p.name in DEFAULT_NOTEBOOKS
+                                  else pytest.param(p, marks=pytest.mark.slow) for p in NOTEBOOKS],
+                         ids=lambda p: p.name)
 def test_notebook_runs(path, monkeypatch):
     matplotlib.use("Agg")
     monkeypatch.chdir(path.parents[1])

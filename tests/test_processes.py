@@ -66,6 +66,7 @@ def test_share_splits_rows_contiguously():
     assert processes.share(10) == slice(0, 10)  # one process: everything
 
 
+@pytest.mark.slow
 def test_two_processes_and_one_device_equal_this_process(tmp_path):
     here, one, two = tmp_path / "here", tmp_path / "one", tmp_path / "two"
     assert cli.main([*SWEEP, "--out", str(here)]) == 0  # this process: 4 devices

@@ -42,6 +42,7 @@ def _probe(name: str, n_scenes: int, seed: int, labels=None) -> list[str]:
     return lines
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["rpnet"])  # where the wrong names were; all three in the slow test
 def test_no_wrong_name_under_a_wrong_camera(name, capsys):
     lines = _probe(name, 16, seed=39, labels=QUICK)

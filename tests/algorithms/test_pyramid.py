@@ -111,6 +111,7 @@ def test_noise_free_scenes_are_named_and_noisy_ones_at_one_pixel_never_wrongly(c
     assert float(jnp.max(err)) < 3600 * math.degrees(1.0 / CAM.f_px)
 
 
+@pytest.mark.slow
 def test_a_small_buffer_is_flagged_and_grown(catalog6, key):
     """Triples past ``triangle_capacity`` are flagged and run again with 4 × the triangles: 16 slots
     then give what 64 give; 1 slot (4 on the rerun) stays flagged, and its scenes name nothing wrong."""

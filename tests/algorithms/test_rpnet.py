@@ -332,6 +332,7 @@ def test_families_simulated_apart_keep_the_batch_layout(tiny):
     np.testing.assert_array_equal(np.asarray(batch.label), np.asarray(plain.label))
 
 
+@pytest.mark.slow
 def test_brightness_order_takes_the_brightest_detections_as_guides(tiny, clean_scenes):
     _, cam, cfg, db, _ = tiny
     cfg = dataclasses.replace(cfg, guide_order="brightness")
@@ -581,6 +582,7 @@ def test_identify_chunking_consistent(tiny, clean_scenes):
         rpnet.identify(db, clean_scenes[:4], dataclasses.replace(cfg, m=9))
 
 
+@pytest.mark.slow
 def test_coverage_of_an_overflowed_scene_counts_only_what_it_kept(tiny, clean_scenes):
     """A scene cut to its brightest detections (``overflow``, as a dense real frame) is judged by
     the stars it kept: the same detections without the flag fail the coverage test."""

@@ -873,6 +873,7 @@ def _false_star_at_the_centre(scenes, camera, mag=3.0):
                                mag=jnp.asarray(mags), truth=jnp.asarray(truth))
 
 
+@pytest.mark.slow
 def test_next_main_star_solves_scenes_whose_main_star_is_a_false_star(setup5):
     """``main_stars`` = 2 searches an unsolved scene again around the second detection nearest the
     principal point: a false star there fails the paper's single main star, the next one names the

@@ -129,6 +129,7 @@ def _hip_correct(ids, truth, db_cat, sim_cat):
     return named, right
 
 
+@pytest.mark.slow
 def test_subgraph_identifies_scenes_deeper_than_the_database_and_never_wrongly(setup5):
     """Scenes drawn to V 5.5 with 0.2 mag of magnitude noise, the 20 brightest detections kept, the
     database to V 5.0: the image and database graphs each hold stars the other lacks (the paper's
