@@ -26,13 +26,21 @@ from jstarid.metrics import evaluate, scene_outcomes
 from jstarid.render import SensorConfig, mean_electrons, render, sensor_for_camera
 from jstarid.runtime import use_cpu_cores
 from jstarid.scene import Identification, Scene, pad_with_empty, scenes_from_centroids, undistort_scenes
-from jstarid.simulator import NoiseConfig, SceneSampler, noise_grid, scene_sampler, simulate
+from jstarid.simulator import (
+    CATALOG_MAG_SLOPE,
+    NoiseConfig,
+    SceneSampler,
+    noise_grid,
+    scene_sampler,
+    simulate,
+)
 from jstarid.solution import Solution, solve
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "Camera", "Catalog", "CentroidConfig", "Entry", "Finishing", "Identification", "NoiseConfig", "Scene",
+    "CATALOG_MAG_SLOPE", "Camera", "Catalog", "CentroidConfig", "Entry", "Finishing", "Identification",
+    "NoiseConfig", "Scene",
     "SensorConfig", "mean_electrons", "render", "sensor_for_camera",
     "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",
     "plotting", "runtime", "sky_depth", "wcs", "attitude_errors_arcsec", "camera_preset",

@@ -46,6 +46,7 @@ def threefry2x32(k0, k1, x0, x1):
 # Counter streams of a scene's seed (the second Threefry input word): one per kind of draw.
 POSITION, MAG, MISSING, FALSE_XY, FALSE_MAG = 1, 2, 3, 4, 5
 FALSE_R, FALSE_T = 6, 7
+FALSE_COUNT = 8
 
 
 def scene_seed(key):

@@ -15,10 +15,13 @@ Per scene:
    per axis) is added to the kept detections' centroids, so a centroid near the border may fall just
    outside ``[0, W−1] × [0, H−1]``, as in the papers' simulations;
 5. missing stars: k of the detected true stars, chosen uniformly, are removed;
-6. false stars: ``n_false`` plus ``round(p N_t / (1 − p))`` for a ratio p (RpNet eq. 12, N_t the true
-   stars left), uniform over the frame or over the part inside it of a disk of radius
-   ``false_radius_px`` about the principal point; magnitude uniform in ``[false_mag_min,
-   false_mag_max]``; no position noise (their position is random anyway);
+6. false stars (clutter): ``n_false`` (or a count uniform in ``[n_false, n_false_max]``), plus a
+   Poisson count of mean ``false_mean``, plus ``round(p N_t / (1 − p))`` for a ratio p (RpNet eq. 12,
+   N_t the true stars left), plus ``round(r N_t)`` for ``false_per_true`` r; uniform over the frame or
+   over the part inside it of a disk of radius ``false_radius_px`` about the principal point;
+   magnitude in ``[false_mag_min, false_mag_max]`` with density ∝ 10^(``false_mag_slope`` · m) (0:
+   uniform, the papers'; :data:`CATALOG_MAG_SLOPE`: star-like, as the catalog's counts grow); no
+   position noise (their position is random anyway);
 7. detections are ordered by observed magnitude and the brightest ``capacity`` kept; ``overflow``
    says more were present (or false stars exceeded their buffer). Scenes do not depend on how a
    large batch is chunked.
@@ -48,7 +51,7 @@ from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene
 from jstarid.sky_index import build_sky_index, cell_of
 
-__all__ = ["NoiseConfig", "SceneSampler", "noise_grid", "scene_sampler", "simulate"]
+__all__ = ["CATALOG_MAG_SLOPE", "NoiseConfig", "SceneSampler", "noise_grid", "scene_sampler", "simulate"]
 
 
 @jax.tree_util.register_dataclass
@@ -66,6 +69,15 @@ class NoiseConfig:
         false_mag_max: faintest false-star magnitude (mag).
         false_radius_px: false stars within this radius (px) of the principal point; ``inf`` = whole
             frame.
+        n_false_max: when above ``n_false``, the fixed count becomes uniform in ``[n_false,
+            n_false_max]`` per scene (clutter that varies from frame to frame).
+        false_mean: mean of a Poisson number of false stars added per scene (hot pixels, cosmic
+            rays).
+        false_per_true: extra false stars as a multiple r of the true stars, ``round(r N_t)``
+            (a false-to-true ratio of 0–10 where ``false_ratio`` stops below 1).
+        false_mag_slope: false-star magnitudes have density ∝ 10^(slope · m) on ``[false_mag_min,
+            false_mag_max]`` (1/mag); 0 is uniform (the papers'), :data:`CATALOG_MAG_SLOPE` draws
+            them as the catalog's stars are distributed, so "the brightest" are not a defence.
     """
 
     position_sigma_px: float = 0.0
@@ -76,11 +88,15 @@ class NoiseConfig:
     false_mag_min: float = 3.5
     false_mag_max: float = 5.5
     false_radius_px: float = math.inf
+    n_false_max: int = 0
+    false_mean: float = 0.0
+    false_per_true: float = 0.0
+    false_mag_slope: float = 0.0
 
     def broadcast(self, batch_size: int) -> NoiseConfig:
         """Every field as a (B,) array with the simulator's dtypes."""
         def cast(name, value):
-            dtype = jnp.int32 if name in ("n_missing", "n_false") else jnp.float32
+            dtype = jnp.int32 if name in _INTEGER_FIELDS else jnp.float32
             arr = jnp.asarray(value, dtype)
             if arr.ndim > 1 or (arr.ndim == 1 and arr.shape[0] not in (1, batch_size)):
                 raise ValueError(f"NoiseConfig.{name} must be a scalar or have shape ({batch_size},), "
@@ -106,12 +122,18 @@ class NoiseConfig:
             "false_mag_min": lambda a: np.all(np.isfinite(a)),
             "false_mag_max": lambda a: np.all(np.isfinite(a)),
             "false_radius_px": lambda a: np.all(a > 0),
+            "n_false_max": lambda a: np.all((a >= 0) & (a <= 10_000) & (a == np.round(a))),
+            "false_mean": lambda a: np.all((a >= 0) & (a <= 1_000)),
+            "false_per_true": lambda a: np.all((a >= 0) & (a <= 100)),
+            "false_mag_slope": lambda a: np.all(np.abs(a) <= 5),
         }
         rules = {
             "position_sigma_px": "in [0, 1000] px", "magnitude_sigma": "in [0, 10] mag",
             "n_missing": "an integer in [0, 10000]", "n_false": "an integer in [0, 10000]",
             "false_ratio": "in [0, 1)", "false_mag_min": "finite", "false_mag_max": "finite",
             "false_radius_px": "> 0 (inf for the whole frame)",
+            "n_false_max": "an integer in [0, 10000]", "false_mean": "in [0, 1000]",
+            "false_per_true": "in [0, 100]", "false_mag_slope": "in [-5, 5] per mag",
         }
         for name, ok in checks.items():
             a = arr(name)
@@ -136,13 +158,24 @@ def noise_grid(repeats: int, **levels) -> NoiseConfig:
     return NoiseConfig(**fixed, **cols)
 
 
+# log10 N(≤ V) of Hipparcos grows 0.47 per magnitude between V 4 and 8 (529 → 41,604 stars):
+# false stars drawn with this slope are as bright, relative to each other, as the stars.
+CATALOG_MAG_SLOPE = 0.47
+
+_INTEGER_FIELDS = ("n_missing", "n_false", "n_false_max")
+
+
 def _false_capacity(noise: NoiseConfig, capacity: int) -> int:
-    n_false = int(np.max(np.asarray(noise.n_false)))
-    ratio = float(np.max(np.asarray(noise.false_ratio)))
+    def top(name):
+        return float(np.max(np.asarray(getattr(noise, name))))
+    n_false = int(max(top("n_false"), top("n_false_max")))
+    mean = top("false_mean")
+    # A Poisson count above mean + 6√mean + 8 has odds below 1e-9; past it the scene flags overflow.
+    poisson = 0 if mean <= 0 else int(math.ceil(mean + 6.0 * math.sqrt(mean) + 8.0))
     # With a ratio, false stars beyond `capacity` could never all be kept anyway: bound the buffer and
     # flag overflow when a scene asks for more.
-    extra = 0 if ratio <= 0 else capacity
-    return int(n_false + extra)
+    extra = 0 if top("false_ratio") <= 0 and top("false_per_true") <= 0 else capacity
+    return int(n_false + poisson + extra)
 
 
 def check_key(key) -> None:
@@ -563,12 +596,9 @@ def _detections(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, 
     # 6. false stars
     n_true = jnp.sum(detected, dtype=jnp.int32)
     if false_capacity > 0:
-        p = noise.false_ratio
-        from_ratio = jnp.round(p * n_true / jnp.maximum(1.0 - p, 1e-6)).astype(jnp.int32)
-        n_false = noise.n_false + from_ratio
+        n_false = _false_count(seed, noise, n_true, false_capacity)
         f_xy = _false_positions(seed, false_capacity, noise.false_radius_px, camera, disk=false_disk)
-        f_mag = noise.false_mag_min + (noise.false_mag_max - noise.false_mag_min) * streams.uniforms(
-            seed, streams.FALSE_MAG, false_capacity)
+        f_mag = _false_magnitudes(streams.uniforms(seed, streams.FALSE_MAG, false_capacity), noise)
         f_on = jnp.arange(false_capacity) < n_false
         false_overflow = n_false > false_capacity
         xy = jnp.concatenate([xy, f_xy])
@@ -618,6 +648,40 @@ def _keep_brightest(seed, noise, att, det, keep, *, capacity, n_cand):
                  truth=out_truth.astype(jnp.int32), valid=valid,
                  attitude=att.astype(jnp.float32),
                  overflow=(det.n_detected > capacity) | det.false_overflow)
+
+
+def _false_count(seed, noise, n_true, bound):
+    """Step 6's count of false stars for one scene (int32 scalar; may exceed ``bound``, the buffer).
+
+    The fixed count (uniform in ``[n_false, n_false_max]`` when the maximum is larger), a Poisson
+    count of mean ``false_mean`` drawn by inverting its CDF over ``0 … bound`` on one uniform, and the
+    two ratios to the true stars left.
+    """
+    u_fixed, u_poisson = streams.uniforms(seed, streams.FALSE_COUNT, 2)
+    spread = jnp.maximum(noise.n_false_max - noise.n_false, 0)
+    fixed = noise.n_false + jnp.minimum(jnp.floor(u_fixed * (spread + 1)).astype(jnp.int32), spread)
+    k = jnp.arange(bound + 1, dtype=jnp.float32)
+    lam = jnp.maximum(noise.false_mean, 1e-30)
+    log_pmf = k * jnp.log(lam) - lam - jax.lax.lgamma(k + 1.0)
+    cdf = jnp.cumsum(jnp.exp(log_pmf))
+    # counts past the buffer keep the CDF short of u: the count then exceeds the bound (overflow)
+    poisson = jnp.where(noise.false_mean > 0, jnp.sum(cdf < u_poisson, dtype=jnp.int32), 0)
+    p = noise.false_ratio
+    from_ratio = jnp.round(p * n_true / jnp.maximum(1.0 - p, 1e-6)).astype(jnp.int32)
+    per_true = jnp.round(noise.false_per_true * n_true).astype(jnp.int32)
+    return fixed + poisson + from_ratio + per_true
+
+
+def _false_magnitudes(u, noise):
+    """Magnitudes (n,) on ``[false_mag_min, false_mag_max]`` with density ∝ 10^(slope · m), by
+    inverting the truncated exponential's CDF at uniforms ``u`` (n,); slope 0 is uniform."""
+    lo, hi = noise.false_mag_min, noise.false_mag_max
+    a = noise.false_mag_slope * math.log(10.0)
+    span = hi - lo
+    flat = jnp.abs(a * span) < 1e-6
+    a_safe = jnp.where(flat, 1.0, a)
+    tilted = jnp.log1p(u * jnp.expm1(a_safe * span)) / a_safe
+    return lo + jnp.where(flat, u * span, tilted)
 
 
 def _false_positions(seed, n, radius_px, camera, *, disk: bool, tries: int = 8):

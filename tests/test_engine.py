@@ -42,6 +42,13 @@ def test_level_grid_is_the_product_first_axis_slowest():
     assert noise.magnitude_sigma == 0.2
 
 
+def test_clutter_axes_by_their_short_names():
+    grid = lv.level_grid({"false-per-true": [0, 5, 10], "false-mean": [20]})
+    assert grid[2] == {"false_per_true": 10.0, "false_mean": 20.0}
+    noise = lv.level_noise(grid, 2, {"false_mag_slope": js.CATALOG_MAG_SLOPE})
+    assert np.asarray(noise.false_per_true).tolist() == [0, 0, 5, 5, 10, 10]
+
+
 @pytest.mark.parametrize("axes, match", [
     ({}, "one or two"), ({"a": [1], "b": [1], "c": [1]}, "one or two"),
     ({"wobble": [1]}, "unknown axis"), ({"position": []}, "no values"),

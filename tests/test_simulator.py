@@ -8,6 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import jstarid as js
+from jstarid import random_streams as streams
 from jstarid import simulator as sim_module
 
 
@@ -137,6 +138,61 @@ def test_false_ratio_and_radius(catalog6):
     assert r.max() <= radius + 1e-3
     # uniform over the disk: half of the points within radius/√2
     assert np.mean(r < radius / np.sqrt(2)) == pytest.approx(0.5, abs=0.06)
+
+
+def test_clutter_counts_and_magnitudes_follow_their_distributions(catalog6, sgm_camera):
+    """One (B,) batch: a uniform count, a Poisson count, a false-to-true ratio with star-like
+    magnitudes; each group against SciPy's distribution (counts) or the analytic CDF (magnitudes)."""
+    from scipy import stats
+
+    n = 1500
+    group = np.repeat(np.arange(3), n)
+    noise = js.NoiseConfig(
+        n_false=np.where(group == 0, 2, 0).astype(np.int32),
+        n_false_max=np.where(group == 0, 6, 0).astype(np.int32),
+        false_mean=np.where(group == 1, 5.0, 0.0).astype(np.float32),
+        false_per_true=np.where(group == 2, 2.0, 0.0).astype(np.float32),
+        false_mag_min=3.0, false_mag_max=8.0,
+        false_mag_slope=np.where(group == 2, js.CATALOG_MAG_SLOPE, 0.0).astype(np.float32))
+    scenes = js.simulate(jax.random.key(21), catalog6, sgm_camera, noise, batch_size=3 * n, capacity=512)
+    ok = ~np.asarray(scenes.overflow)
+    valid, truth = np.asarray(scenes.valid), np.asarray(scenes.truth)
+    n_t, n_f = (valid & (truth >= 0)).sum(1), (valid & (truth < 0)).sum(1)
+    assert ok.all()
+    # uniform on {2, …, 6}
+    counts = np.bincount(n_f[group == 0], minlength=8)
+    assert counts[:2].sum() == 0 and counts[7:].sum() == 0
+    assert stats.chisquare(counts[2:7]).pvalue > 1e-3
+    # Poisson of mean 5 (bins 0 … 11, the tail pooled)
+    k = np.minimum(n_f[group == 1], 12)
+    observed = np.bincount(k, minlength=13)
+    expected = np.append(stats.poisson.pmf(np.arange(12), 5.0), stats.poisson.sf(11, 5.0)) * n
+    assert stats.chisquare(observed, expected).pvalue > 1e-3
+    # two false stars per true star, exactly
+    np.testing.assert_array_equal(n_f[group == 2], 2 * n_t[group == 2])
+    # magnitudes: uniform where the slope is 0, density ∝ 10^(0.47 m) where it is the catalog's
+    fmag = np.asarray(scenes.mag)
+    flat = fmag[(valid & (truth < 0)) & (group[:, None] < 2)]
+    assert stats.kstest(flat, stats.uniform(3.0, 5.0).cdf).pvalue > 1e-3
+    a = js.CATALOG_MAG_SLOPE * np.log(10.0)
+    tilted = fmag[(valid & (truth < 0)) & (group[:, None] == 2)]
+    assert stats.kstest(tilted, lambda m: np.expm1(a * (m - 3.0)) / np.expm1(a * 5.0)).pvalue > 1e-3
+    assert np.median(tilted) > 6.5  # mostly faint, as stars are
+
+
+def test_catalog_mag_slope_is_the_catalogs(catalog6):
+    """The constant is the slope of log10 N(≤ V) over V 4–8 of the full Hipparcos catalog."""
+    stars = js.catalog.load_every_star(2000.0)
+    counts = [np.sum(np.asarray(stars.mag) <= v) for v in (4.0, 8.0)]
+    assert np.log10(counts[1] / counts[0]) / 4.0 == pytest.approx(js.CATALOG_MAG_SLOPE, abs=0.01)
+
+
+def test_poisson_count_past_the_buffer_is_not_clipped():
+    """A Poisson draw beyond the buffer comes back larger than it (the simulator flags overflow)."""
+    one = jax.tree.map(lambda a: a[0], js.NoiseConfig(false_mean=4.0).broadcast(1))
+    seeds = jax.vmap(streams.scene_seed)(jax.random.split(jax.random.key(0), 400))
+    counts = jax.vmap(lambda s: sim_module._false_count(s, one, jnp.int32(10), 3))(seeds)
+    assert int(counts.max()) == 4 and np.mean(np.asarray(counts) == 4) > 0.4  # P(N > 3) = 0.57
 
 
 def test_magnitude_noise_lets_stars_appear_and_vanish(catalog6, sgm_camera):

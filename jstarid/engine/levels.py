@@ -26,11 +26,14 @@ NOISE_AXES = {
     "n_missing": "missing stars per scene",
     "n_false": "false stars per scene",
     "false_ratio": "false-star ratio",
+    "false_per_true": "false stars per true star",
+    "false_mean": "mean false stars per scene (Poisson)",
 }
 AXES = {**NOISE_AXES, **SENSOR_AXES}  # every axis a sweep may vary (sensor axes: from pixels only)
 # the short names the command line accepts
 _SHORT = {"position": "position_sigma_px", "magnitude": "magnitude_sigma", "missing": "n_missing",
-          "false": "n_false", "false-ratio": "false_ratio", "false_ratio": "false_ratio"}
+          "false": "n_false", "false-ratio": "false_ratio", "false_ratio": "false_ratio",
+          "false-per-true": "false_per_true", "false-mean": "false_mean"}
 _SHORT.update({"exposure": "exposure_s", "read-noise": "read_noise_e", "defocus": "defocus_px",
                "smear": "smear_px"})
 _INTEGER = ("n_missing", "n_false", "hot_pixels")
