@@ -36,6 +36,7 @@ import numpy as np
 
 from jstarid.catalog import load_every_star
 from jstarid.centroid import CentroidConfig
+from jstarid.false_match import false_match_probability
 
 __all__ = ["Solution", "Star", "solve", "solve_scenes"]
 
@@ -92,6 +93,9 @@ class Solution:
             length and radial term, and their stars (arcsec).
         focal_scale: fitted focal length / nominal (``None`` where not fitted).
         distortion_k1: fitted radial term (:mod:`jstarid.camera_fit`; ``None`` where not fitted).
+        false_match_probability: an upper bound on the chance that a blind search finds a wrong
+            attitude confirming as many of the algorithm's detections as this solution does
+            (:mod:`jstarid.false_match`); near 1 means the names could be a coincidence.
         epoch: the star positions' epoch (Julian year; ``None``: the catalog's J1991.25).
     """
 
@@ -107,6 +111,7 @@ class Solution:
     residual_arcsec: float | None = None
     focal_scale: float | None = None
     distortion_k1: float | None = None
+    false_match_probability: float | None = None
     epoch: float | None = None
 
     def wcs(self):
@@ -133,7 +138,8 @@ class Solution:
         if self.solved:
             entry.update(ra_deg=self.ra_deg, dec_deg=self.dec_deg, roll_deg=self.roll_deg,
                          residual_arcsec=self.residual_arcsec, attitude=self.attitude.tolist(),
-                         quaternion=np.asarray(js.quaternion_from_rotation(self.attitude)).tolist())
+                         quaternion=np.asarray(js.quaternion_from_rotation(self.attitude)).tolist(),
+                         false_match_probability=self.false_match_probability)
             if self.focal_scale is not None:
                 f_px = self.camera.f_px * self.focal_scale
                 entry.update(focal_scale=self.focal_scale, f_px_fitted=f_px,
@@ -298,6 +304,8 @@ def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[s
         log(f"first use builds {built[0]} (≈ {took} on 2 CPU cores), once")
     few = brightest(scenes, capacity or scenes.capacity)
     result = algo.identify(algo.build_database(cat, pinhole, cfg), few, cfg)
+    # the evidence of the identification itself: its catalog, the detections it was given
+    false_match = false_match_probability(few, result, cat.unit_vectors, pinhole)
     if not name_all:  # the algorithm's names only: the detections it was given
         scenes, measured = few, brightest(measured, few.capacity)
     else:
@@ -332,7 +340,8 @@ def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[s
                           dec_deg=float(dec[i]), roll_deg=float(roll[i]),
                           residual_arcsec=float(residual[i]),
                           focal_scale=float(scale[i]) if np.isfinite(scale[i]) else None,
-                          distortion_k1=float(k1[i]) if np.isfinite(k1[i]) else None)
+                          distortion_k1=float(k1[i]) if np.isfinite(k1[i]) else None,
+                          false_match_probability=float(false_match[i]))
         out.append(Solution(label=label, solved=solved, detections=int(n_det[i]), stars=stars,
                             camera=camera, epoch=epoch, **fields))
     return out

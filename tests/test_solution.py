@@ -80,6 +80,7 @@ def test_solve_names_the_deeper_stars_and_matches_the_cli(tmp_path):
         names = {(round(s.x, 3), round(s.y, 3)): s.hip for s in sol.stars}
         assert all(truth[k] == v for k, v in names.items())  # no wrong name
         assert len(names) >= 0.95 * len(truth)
+        assert sol.false_match_probability < 1e-6  # dozens of stars: no coincidence
         deeper = cat_mag(hip) > 5.5  # named only through the naming catalog
         assert deeper.sum() > 20 and np.isin(hip[deeper], list(names.values())).mean() >= 0.95
         wcs = sol.wcs()  # the WCS maps every named star back to its pixel
@@ -96,6 +97,7 @@ def test_solve_names_the_deeper_stars_and_matches_the_cli(tmp_path):
     entry = json.loads(out.read_text())["scenes"][0]
     assert [s["hip"] for s in entry["stars"]] == [s.hip for s in solutions[0].stars]
     assert entry["ra_deg"] == pytest.approx(solutions[0].ra_deg, abs=1e-9)
+    assert entry["false_match_probability"] == pytest.approx(solutions[0].false_match_probability)
 
 
 def cat_mag(hip):

@@ -110,7 +110,8 @@ def _summary(entry: dict) -> str:
     return (f"{entry['scene']}: {len(entry['stars'])} of {entry['detections']} detections identified; "
             f"boresight RA {entry['ra_deg']:.4f}°, Dec {entry['dec_deg']:+.4f}°, roll "
             f"{entry['roll_deg']:+.3f}°, residual {entry['residual_arcsec']:.1f}″"
-            + (f", focal length × {entry['focal_scale']:.4f}" if "focal_scale" in entry else ""))
+            + (f", focal length × {entry['focal_scale']:.4f}" if "focal_scale" in entry else "")
+            + f"; false-match probability ≤ {entry['false_match_probability']:.1e}")
 
 
 def algorithm_settings(args) -> list[str]:

@@ -1,0 +1,108 @@
+"""Is the false-match probability calibrated? Claims of right and wrong attitudes, and the P given to each.
+
+Each algorithm (its default config for the camera, and ``Config.paper()``, the published algorithm
+without the finishing stage) identifies simulated scenes of one camera at a few clutter levels
+(``n_false`` false detections with star-like magnitudes, ``false_mag_slope = CATALOG_MAG_SLOPE``
+between V 1 and the camera's limit, 0.5 px centroid noise) and scenes of random points. Every
+claimed solution gets :func:`jstarid.false_match.false_match_probability`; a claim is a **wrong
+attitude** when its boresight is more than ``--wrong-px`` pixels from the truth (a coincidence lands
+degrees away; a right attitude from three or four names can be a pixel or two off), and every claim
+on random points is one. Per set: claims, wrong attitudes, claims with any wrong name (the strict
+criterion: a right attitude with one name given to the wrong star of a close pair counts), the median
+P of the right attitudes, their share with P ≤ 1e-3, and the smallest P a wrong attitude got. The
+probability is calibrated when, for every t, wrong attitudes are at most a share t of the claims with
+P ≤ t (``calibrated``).
+
+Usage::
+
+    python experiments/false_match.py                                  # MLV on mlv2021
+    python experiments/false_match.py --algorithm sgm --camera sgm2022 --scenes 200
+
+Writes results/false_match/{config.json, results.json, table.md}.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+import jstarid as js
+from jstarid import experiment as ex
+from jstarid.false_match import false_match_probability
+
+THRESHOLDS = (1e-9, 1e-6, 1e-3, 1e-2, 0.1)
+
+
+def _sets(cat, cam, args):
+    """(name, scenes, truth_known) for every clutter level and the random points."""
+    key = jax.random.key(args.seed)
+    for level, n_false in enumerate(args.false):
+        noise = js.NoiseConfig(position_sigma_px=0.5, n_false=n_false, false_mag_min=1.0,
+                               false_mag_max=cam.mag_limit, false_mag_slope=js.CATALOG_MAG_SLOPE)
+        yield (f"{n_false} false", js.simulate(jax.random.fold_in(key, level), cat, cam, noise,
+                                               batch_size=args.scenes, capacity=64), True)
+    rng = np.random.default_rng(args.seed)
+    size = np.array([cam.width - 1, cam.height - 1])
+    for n_points in args.points:
+        xy = [rng.uniform(0, 1, (n_points, 2)) * size for _ in range(args.scenes)]
+        mag = [np.sort(rng.uniform(1.0, cam.mag_limit, n_points)) for _ in range(args.scenes)]
+        yield f"{n_points} random points", js.scenes_from_centroids(xy, mag, capacity=64), False
+
+
+def _row(name, config_name, scenes, truth_known, result, p, wrong_arcsec):
+    ok = np.asarray(result.ok)
+    ids, truth, valid = np.asarray(result.ids), np.asarray(scenes.truth), np.asarray(scenes.valid)
+    misnamed = ok & np.any((ids >= 0) & (ids != truth) & valid, axis=1)
+    if truth_known:
+        bore, _ = js.attitude_errors_arcsec(result.attitude, scenes.attitude)
+        wrong = ok & ~(np.asarray(bore) < wrong_arcsec)
+    else:
+        wrong = ok
+    right = ok & ~wrong
+    calibrated = all(np.sum(wrong & (p <= t)) <= t * max(np.sum(ok & (p <= t)), 1) for t in THRESHOLDS)
+    return {"set": name, "config": config_name, "scenes": int(ok.size), "claimed": int(ok.sum()),
+            "wrong_attitudes": int(wrong.sum()), "wrong_names": int(misnamed.sum()),
+            "right_median_p": float(np.median(p[right])) if right.any() else None,
+            "right_below_1e-3": float(np.mean(p[right] <= 1e-3)) if right.any() else None,
+            "wrong_min_p": float(np.min(p[wrong])) if wrong.any() else None,
+            "calibrated": calibrated}
+
+
+def main(argv=None):
+    parser = ex.parser(__doc__.splitlines()[0], out="results/false_match")
+    parser.add_argument("--algorithm", default="mlv")
+    parser.add_argument("--camera", default="mlv2021", help="a camera preset")
+    parser.add_argument("--scenes", type=int, default=300, help="scenes per set")
+    parser.add_argument("--false", type=int, nargs="+", default=[0, 20, 40], help="false detections")
+    parser.add_argument("--points", type=int, nargs="+", default=[8, 15, 30], help="random points")
+    parser.add_argument("--wrong-px", type=float, default=10.0, help="boresight error of a wrong attitude")
+    args = parser.parse_args(argv)
+    cam = js.camera_preset(args.camera)
+    cat = js.load_catalog(cam.mag_limit)
+    algo = js.algorithms.get(args.algorithm)
+    configs = {"default": ex.with_overrides(js.engine.default_config(args.algorithm, camera=cam), args.set),
+               "paper": algo.Config.paper()}
+    rows = []
+    with ex.Stopwatch() as clock:
+        for config_name, config in configs.items():
+            db = algo.build_database(cat, cam, config)
+            for name, scenes, truth_known in _sets(cat, cam, args):
+                result = algo.identify(db, scenes, config)
+                p = false_match_probability(scenes, result, cat.unit_vectors, cam)
+                rows.append(_row(name, config_name, scenes, truth_known, result, p,
+                                 args.wrong_px * cam.pixel_scale_arcsec))
+                print(rows[-1])
+    table = ex.markdown_table(rows, [
+        ("config", "config", "{}"), ("set", "set", "{}"), ("claimed", "claimed", "{}"),
+        ("wrong_attitudes", "wrong attitudes", "{}"), ("wrong_names", "any wrong name", "{}"),
+        ("right_median_p", "right: median P", "{:.1e}"),
+        ("right_below_1e-3", "right: P ≤ 1e-3", "{:.0%}"), ("wrong_min_p", "wrong: smallest P", "{:.2g}"),
+        ("calibrated", "calibrated", "{}")],
+        title=f"False-match probability, {args.algorithm} on {args.camera} ({args.scenes} scenes per set)",
+        note=f"{clock.seconds:.0f} s including compilation.")
+    ex.write(args.out, config={"args": vars(args), "configs": configs}, results={"rows": rows}, table=table)
+    print(table)
+
+
+if __name__ == "__main__":
+    main()
