@@ -103,7 +103,8 @@ def _scene_log10(xy, valid, ids, ok, att, scale, k1, density, *, star_vectors, c
     sin_res = jnp.linalg.norm(jnp.cross(rays, stars_cam), axis=-1)
     residual = jnp.where(named, jnp.arctan2(sin_res, jnp.sum(rays * stars_cam, -1)), 0.0)
     radius = jnp.maximum(jnp.max(residual), MIN_RADIUS_PX / (camera.f_px * scale))
-    q = -jnp.expm1(-density * math.pi * radius**2)
+    crowd = density * math.pi * radius**2  # expected stars within r: q = 1 − e^(−crowd)
+    log_q, log_not_q = jnp.log(-jnp.expm1(-crowd)), -crowd  # finite even where q rounds to 1
 
     # P₁: at least n − 2 of the N − 2 detections beyond the attitude's two land within r of a star
     trials = jnp.sum(valid, dtype=jnp.float32) - 2.0
@@ -111,7 +112,7 @@ def _scene_log10(xy, valid, ids, ok, att, scale, k1, density, *, star_vectors, c
     k = jnp.arange(xy.shape[0] + 1, dtype=jnp.float32)
     log_pmf = (jax.lax.lgamma(trials + 1.0) - jax.lax.lgamma(k + 1.0)
                - jax.lax.lgamma(jnp.maximum(trials - k, 0.0) + 1.0)
-               + k * jnp.log(q) + (trials - k) * jnp.log1p(-q))
+               + k * log_q + (trials - k) * log_not_q)
     log_tail = jax.nn.logsumexp(jnp.where((k >= n_named - 2.0) & (k <= trials), log_pmf, -jnp.inf))
 
     # H: attitudes from every detection pair matched to every catalog pair within δ = 2r

@@ -78,6 +78,10 @@ def test_unclaimed_scenes_and_missing_attitudes_are_certain_failures(mlv_world):
     assert np.all(false_match_probability(scenes, unclaimed, cat.unit_vectors, cam) == 1.0)
     blind = js.Identification(ids=result.ids, ok=result.ok)
     assert np.all(false_match_probability(scenes, blind, cat.unit_vectors, cam) == 1.0)
+    # the same names under an attitude 30° away: residuals of radians, still a finite P of 1
+    turn = np.asarray(js.rotation_from_radec_roll(0.0, 0.0, np.radians(30.0)), np.float32)
+    far = js.Identification(ids=result.ids, ok=result.ok, attitude=np.asarray(result.attitude) @ turn)
+    assert np.all(false_match_probability(scenes, far, cat.unit_vectors, cam) == 1.0)
 
 
 def test_wrong_attitudes_claimed_by_the_papers_mlv_are_not_called_certain(mlv_world):

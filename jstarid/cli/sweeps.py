@@ -55,7 +55,9 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
                    help="catalog depth V (default: the camera's detection limit)")
     p.add_argument("--axis", default="position",
                    help="noise axis: position (px), magnitude (mag), missing, false (stars per "
-                        "scene) or false-ratio; with --pixels also a sensor axis: exposure (s), "
+                        "scene), false-ratio, false-per-true (false stars per true star) or "
+                        "false-mean (Poisson mean); clutter as bright as stars: --fixed "
+                        "false_mag_slope=0.47; with --pixels also a sensor axis: exposure (s), "
                         "read-noise (e⁻), defocus (px), smear (px), psf_sigma_px, sky_e_per_s, "
                         "dark_e_per_s, hot_pixels")
     p.add_argument("--levels", default=levels, help=f"comma-separated levels of --axis (default {levels})")
