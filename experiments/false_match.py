@@ -59,7 +59,8 @@ def _row(name, config_name, scenes, truth_known, result, p, wrong_arcsec):
     else:
         wrong = ok
     right = ok & ~wrong
-    calibrated = all(np.sum(wrong & (p <= t)) <= t * max(np.sum(ok & (p <= t)), 1) for t in THRESHOLDS)
+    # a NaN counts as claimed at every threshold: it must not pass for calibrated
+    calibrated = all(np.sum(wrong & ~(p > t)) <= t * max(np.sum(ok & ~(p > t)), 1) for t in THRESHOLDS)
     return {"set": name, "config": config_name, "scenes": int(ok.size), "claimed": int(ok.sum()),
             "wrong_attitudes": int(wrong.sum()), "wrong_names": int(misnamed.sum()),
             "right_median_p": float(np.median(p[right])) if right.any() else None,
