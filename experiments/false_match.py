@@ -72,13 +72,13 @@ def _row(name, config_name, scenes, truth_known, result, p, wrong_arcsec):
 def main(argv=None):
     parser = ex.parser(__doc__.splitlines()[0], out="results/false_match")
     parser.add_argument("--algorithm", default="mlv")
-    parser.add_argument("--camera", default="mlv2021", help="a camera preset")
+    parser.add_argument("--camera", default="mlv2021", help="a camera preset or camera file")
     parser.add_argument("--scenes", type=int, default=300, help="scenes per set")
     parser.add_argument("--false", type=int, nargs="+", default=[0, 20, 40], help="false detections")
     parser.add_argument("--points", type=int, nargs="+", default=[8, 15, 30], help="random points")
     parser.add_argument("--wrong-px", type=float, default=10.0, help="boresight error of a wrong attitude")
     args = parser.parse_args(argv)
-    cam = js.camera_preset(args.camera)
+    cam = js.load_camera(args.camera)
     cat = js.load_catalog(cam.mag_limit)
     algo = js.algorithms.get(args.algorithm)
     configs = {"default": ex.with_overrides(js.engine.default_config(args.algorithm, camera=cam), args.set),
