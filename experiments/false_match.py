@@ -69,7 +69,7 @@ def _row(name, config_name, scenes, truth_known, result, p, wrong_arcsec):
             "calibrated": calibrated}
 
 
-def main(argv=None):
+def parse_args(argv=None):
     parser = ex.parser(__doc__.splitlines()[0], out="results/false_match")
     parser.add_argument("--algorithm", default="mlv")
     parser.add_argument("--camera", default="mlv2021", help="a camera preset or camera file")
@@ -77,7 +77,11 @@ def main(argv=None):
     parser.add_argument("--false", type=int, nargs="+", default=[0, 20, 40], help="false detections")
     parser.add_argument("--points", type=int, nargs="+", default=[8, 15, 30], help="random points")
     parser.add_argument("--wrong-px", type=float, default=10.0, help="boresight error of a wrong attitude")
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
+
+
+def main(argv=None):
+    args = parse_args(argv)
     cam = js.load_camera(args.camera)
     cat = js.load_catalog(cam.mag_limit)
     algo = js.algorithms.get(args.algorithm)

@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.camera_fit import unproject_scaled
+from jstarid.geometry.precise import small_matmul
 
 __all__ = ["MIN_RADIUS_PX", "false_match_log10", "false_match_probability"]
 
@@ -86,7 +87,7 @@ def false_match_log10(xy, valid, ids, ok, attitude, scale, k1, star_vectors, *, 
     cone_sr = 2.0 * math.pi * (1.0 - cos_field)
 
     def local_count(att):  # catalog stars within the field's circumscribed cone about the boresight
-        return jnp.sum(star_vectors @ att[2] >= cos_field, dtype=jnp.float32)
+        return jnp.sum(small_matmul(star_vectors, att[2][:, None])[:, 0] >= cos_field, dtype=jnp.float32)
 
     counts = jax.lax.map(local_count, attitude, batch_size=DENSITY_GROUP)
     density = jnp.maximum(counts / cone_sr, m / (4.0 * math.pi))  # stars/sr, at least the mean
@@ -98,7 +99,7 @@ def _scene_log10(xy, valid, ids, ok, att, scale, k1, density, *, star_vectors, c
     """One scene's log10 P (module docstring's P = min(1, H · P₁))."""
     rays = unproject_scaled(camera, xy, scale, k1)  # (N, 3) camera frame
     named = valid & (ids >= 0)
-    stars_cam = star_vectors[jnp.maximum(ids, 0)] @ att.T  # v_cam = C r
+    stars_cam = small_matmul(star_vectors[jnp.maximum(ids, 0)], att.T)  # v_cam = C r
     # atan2(|a × b|, a · b): arccos of a float32 cosine cannot resolve sub-pixel angles
     sin_res = jnp.linalg.norm(jnp.cross(rays, stars_cam), axis=-1)
     residual = jnp.where(named, jnp.arctan2(sin_res, jnp.sum(rays * stars_cam, -1)), 0.0)
