@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.camera_fit import unproject_scaled
+from jstarid.geometry.angles import angle_between, pairwise_angles
 from jstarid.geometry.precise import small_matmul
 
 __all__ = ["MIN_RADIUS_PX", "false_match_log10", "false_match_probability"]
@@ -100,9 +101,7 @@ def _scene_log10(xy, valid, ids, ok, att, scale, k1, density, *, star_vectors, c
     rays = unproject_scaled(camera, xy, scale, k1)  # (N, 3) camera frame
     named = valid & (ids >= 0)
     stars_cam = small_matmul(star_vectors[jnp.maximum(ids, 0)], att.T)  # v_cam = C r
-    # atan2(|a × b|, a · b): arccos of a float32 cosine cannot resolve sub-pixel angles
-    sin_res = jnp.linalg.norm(jnp.cross(rays, stars_cam), axis=-1)
-    residual = jnp.where(named, jnp.arctan2(sin_res, jnp.sum(rays * stars_cam, -1)), 0.0)
+    residual = jnp.where(named, angle_between(rays, stars_cam), 0.0)  # exact at sub-pixel angles
     radius = jnp.maximum(jnp.max(residual), MIN_RADIUS_PX / (camera.f_px * scale))
     crowd = density * math.pi * radius**2  # expected stars within r: q = 1 − e^(−crowd)
     log_q, log_not_q = jnp.log(-jnp.expm1(-crowd)), -crowd  # finite even where q rounds to 1
@@ -117,7 +116,7 @@ def _scene_log10(xy, valid, ids, ok, att, scale, k1, density, *, star_vectors, c
     log_tail = jax.nn.logsumexp(jnp.where((k >= n_named - 2.0) & (k <= trials), log_pmf, -jnp.inf))
 
     # H: attitudes from every detection pair matched to every catalog pair within δ = 2r
-    sin_pair = jnp.linalg.norm(jnp.cross(rays[:, None, :], rays[None, :, :]), axis=-1)
+    sin_pair = jnp.sin(pairwise_angles(rays))
     pair = valid[:, None] & valid[None, :] & jnp.triu(jnp.ones(sin_pair.shape, bool), 1)
     sin_sum = jnp.sum(jnp.where(pair, sin_pair, 0.0))
     log_hypotheses = (2.0 * math.log(n_catalog) + jnp.log(2.0 * radius)
