@@ -983,6 +983,52 @@ def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
     assert bool(np.asarray(out.ok)[spared])
 
 
+def test_few_names_stay_solved_only_where_the_frame_confirms_them(setup):
+    """``Config.confirm_names``: a claim of at most four names stands only where the frame, named
+    from its attitude, confirms it. Each scene holds the four brightest stars of the next scene
+    (placed exactly, so four names that fit an attitude perfectly) among its own detections: named
+    after the next scene's stars under its attitude the claim is wrong and fails; the scene's own
+    four brightest stars under its true attitude stand, ids as given; five wrong names are not this
+    step's to judge, and ``Config.paper()`` leaves every claim alone."""
+    from jstarid.algorithms.sgm.extensions import confirmed_by_the_frame
+
+    cat, cam, _, db = setup
+    scenes = js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(position_sigma_px=0.5),
+                         batch_size=8, capacity=CAPACITY)
+    xy, mag, truth = (np.array(a) for a in (scenes.xy, scenes.mag, scenes.truth))
+    valid = np.asarray(scenes.valid)
+    assert np.all(np.sum(valid & (truth >= 0), axis=1) >= 10)
+    nxt = np.roll(np.arange(8), -1)
+    mixed_xy, mixed_mag, mixed_truth = xy.copy(), mag.copy(), truth.copy()
+    for s, t in enumerate(nxt):  # slots 0-4 of scene s: the five brightest stars of scene t
+        stars = np.flatnonzero(valid[t] & (truth[t] >= 0))[:5]
+        mixed_xy[s, :5], mixed_mag[s, :5], mixed_truth[s, :5] = xy[t, stars], mag[t, stars], truth[t, stars]
+    mixed = dataclasses.replace(scenes, xy=jnp.asarray(mixed_xy), mag=jnp.asarray(mixed_mag),
+                                truth=jnp.asarray(mixed_truth))
+    ok = jnp.ones(8, bool)
+    config = sgm.Config(power_iterations=30)
+
+    def claim(n_names, attitude):
+        ids = np.full(truth.shape, -1, np.int32)
+        ids[:, :n_names] = mixed_truth[:, :n_names]
+        return js.Identification(ids=jnp.asarray(ids), ok=ok, attitude=attitude)
+
+    wrong = confirmed_by_the_frame(db, mixed, claim(4, scenes.attitude[nxt]), config)
+    assert not np.any(np.asarray(wrong.ok)) and np.all(np.asarray(wrong.ids) == -1)
+    assert np.all(np.isnan(np.asarray(wrong.attitude)))
+    five = confirmed_by_the_frame(db, mixed, claim(5, scenes.attitude[nxt]), config)
+    assert np.all(np.asarray(five.ok))
+    paper = confirmed_by_the_frame(db, mixed, claim(4, scenes.attitude[nxt]), sgm.Config.paper())
+    assert np.all(np.asarray(paper.ok))
+
+    own_ids = np.where(np.arange(truth.shape[1]) < 4, truth, -1)
+    own_ids = np.where(valid, own_ids, -1)
+    own = js.Identification(ids=jnp.asarray(own_ids), ok=ok, attitude=scenes.attitude)
+    right = confirmed_by_the_frame(db, scenes, own, config)
+    np.testing.assert_array_equal(np.asarray(right.ok), own_ids[:, :4].min(1) >= 0)
+    np.testing.assert_array_equal(np.asarray(right.ids), own_ids)
+
+
 def test_renaming_circle_is_the_union_of_both_circles():
     """``with_members_of``: the leftover naming under the fitted focal length reads the members of
     both circles (fitted and nominal), each detection once; checked against Python sets."""

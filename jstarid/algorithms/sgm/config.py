@@ -171,6 +171,14 @@ class Config:
             whole circle answers a scene the paper's criterion counts as not identified, and
             answered it lowers eq. 9's accuracy (lost stars, σ = 3 px: 152 of the ladder's 169
             answers, 71.30 → 69.09 %).
+        confirm_names: extension, 4 (0 = off, as in :meth:`paper`): a solved scene that names at
+            most this many stars stays solved only where the whole frame, named from its attitude,
+            confirms it (:func:`~jstarid.algorithms.sgm.extensions.confirmed_by_the_frame`). Why:
+            three or four points fit some catalog graph by chance (a 10° camera with five or six
+            stars per frame claimed 22 of 300 frames of random points).
+        confirm_false_match: the largest false-match probability
+            (:func:`jstarid.false_match.false_match_probability`) of the frame's names that confirms
+            such a scene.
     """
 
     # what :func:`jstarid.engine.default_config` sets for detections from real frames, which do not
@@ -223,6 +231,8 @@ class Config:
     finishing: Finishing = Finishing(studentized=True)
     focal_search_dw_max_deg: float | None = 1.0
     focal_search_whole_circle: bool = True
+    confirm_names: int = 4
+    confirm_false_match: float = 1e-3
 
     def __post_init__(self):
         if not 0 < self.radius_deg < 90:
@@ -253,6 +263,9 @@ class Config:
         if self.focal_search_dw_max_deg is not None and not self.focal_search_dw_max_deg >= self.dw0_deg:
             raise ValueError(f"focal_search_dw_max_deg must be ≥ dw0_deg or None, got "
                              f"{self.focal_search_dw_max_deg}")
+        if self.confirm_names < 0 or not 0 < self.confirm_false_match <= 1:
+            raise ValueError(f"need confirm_names ≥ 0 and confirm_false_match in (0, 1], got "
+                             f"{self.confirm_names}, {self.confirm_false_match}")
         if self.verify_retries < 0:
             raise ValueError(f"verify_retries must be ≥ 0, got {self.verify_retries}")
         if (self.verify_k <= 0 or not 0 < self.verify_floor_deg <= self.verify_cap_deg
@@ -283,11 +296,12 @@ class Config:
     @classmethod
     def paper(cls, **overrides) -> Config:
         """The paper's algorithm alone: no ``verify``, no ``leftover_tol_deg``, no triangle
-        ``screen``, no ``subgraph`` search, no focal-length search or fit (pruning stays on: it
-        changes only the work); returns, id for id, what :mod:`~jstarid.algorithms.sgm.reference` returns.
+        ``screen``, no ``subgraph`` search, no focal-length search or fit, no confirmation by the
+        frame (pruning stays on: it changes only the work); returns, id for id, what
+        :mod:`~jstarid.algorithms.sgm.reference` returns.
         """
         return cls(**{"verify": False, "leftover_tol_deg": None, "screen": False, "subgraph": False,
-                      "finishing": Finishing.off(), "main_stars": 1, **overrides})
+                      "finishing": Finishing.off(), "main_stars": 1, "confirm_names": 0, **overrides})
 
     @classmethod
     def for_camera(cls, camera, **overrides) -> Config:

@@ -11,8 +11,8 @@
    Algorithm 1's acceptance test: a rejected J* is struck out and the search goes on.
 2. **Extensions** (:mod:`.extensions`; ``Config`` fields, all off in ``Config.paper()``), in order:
    the next main stars, the finishing stage every algorithm shares (focal-length ladder and camera
-   check), the ladder's scenes named again under the fitted focal length, and those kept only
-   where their whole circle is named.
+   check), the ladder's scenes named again under the fitted focal length, those kept only
+   where their whole circle is named, and scenes of few names kept only where the frame confirms them.
 
 With ``Config.subgraph`` the pass searches the image graph as a subgraph of the database graphs
 (:func:`_subgraph_pass`, :mod:`.subgraph`) instead of by its MST weight; the rest is the same.
@@ -29,6 +29,7 @@ from jstarid.algorithms.base import check_scenes
 from jstarid.algorithms.sgm.config import Config, Tuning, with_tuning
 from jstarid.algorithms.sgm.diagnostics import Diagnostics, search_diagnostics, subgraph_diagnostics
 from jstarid.algorithms.sgm.extensions import (
+    confirmed_by_the_frame,
     finishing_stage,
     name_at_fitted_focal,
     next_main_stars,
@@ -51,7 +52,7 @@ def identify(db, scenes: Scene, config: Config | None = None, *, tuning: Tuning 
     Algorithm 1 (You et al. 2022) with names and verification runs on every scene first; then our
     extensions, in order (:mod:`.extensions`): :func:`~.extensions.next_main_stars`,
     :func:`~.extensions.finishing_stage`, :func:`~.extensions.name_at_fitted_focal`,
-    :func:`~.extensions.whole_circles_only`.
+    :func:`~.extensions.whole_circles_only`, :func:`~.extensions.confirmed_by_the_frame`.
 
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database` (built with the same ``radius_deg``).
@@ -90,6 +91,7 @@ def identify(db, scenes: Scene, config: Config | None = None, *, tuning: Tuning 
     result, laddered = finishing_stage(db, scenes, result, config, search, with_attitude=with_attitude)
     result = name_at_fitted_focal(db, scenes, result, laddered, config)
     result = whole_circles_only(db, scenes, result, laddered, config)
+    result = confirmed_by_the_frame(db, scenes, result, config)
     release_staging()
     return (result, diag) if diagnostics else result
 
