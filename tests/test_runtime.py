@@ -268,3 +268,23 @@ def test_static_config_resets_what_the_kernels_do_not_compile():
     assert static_config(mlv.Config(n_stars=8), traced).n_stars == 8
     with pytest.raises(ValueError, match="no field"):
         static_config(mlv.Config(), ("not_a_field",))
+
+
+def test_count_compilations_counts_each_new_program_once():
+    """``CountCompilations``: a new jit program counts once, the same shapes again not at all, a new
+    shape again once; nothing is counted after the block. (Programs this small stay out of XLA's
+    persistent cache, whose hits would not count.)"""
+    from jstarid.runtime import CountCompilations
+
+    f = jax.jit(lambda x: jnp.sin(x) * 3.0 + 1.0)
+    x4, y4, x5 = jnp.arange(4.0), jnp.arange(4.0) + 1.0, jnp.arange(5.0)
+    with CountCompilations() as first:
+        f(x4).block_until_ready()
+    with CountCompilations() as again:
+        f(y4).block_until_ready()
+    with CountCompilations() as other:
+        f(x5).block_until_ready()
+        assert other.programs == 1  # live inside the block
+    f(jnp.arange(6.0)).block_until_ready()
+    assert (first.programs, again.programs, other.programs) == (1, 0, 1)
+    assert first.seconds > 0 and again.seconds == 0

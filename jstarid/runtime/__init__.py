@@ -16,6 +16,7 @@
 - :mod:`.staging_memory`: drop what JAX keeps of staging programs already compiled, and trim the
   heap (``release_staging``);
 - :mod:`.static`: the static config a kernel compiles with (``static_config``);
+- :mod:`.compilations`: count the programs XLA compiles inside a block (``CountCompilations``);
 - :mod:`.program_store`: keep compiled programs on disk so that a later process loads them without
   tracing, lowering or compiling (``stored_jit``; on in the CLI and scripts).
 """
@@ -23,6 +24,7 @@
 from jstarid.runtime import program_store
 from jstarid.runtime.batching import Call, chunk_calls, grow_until, map_by_width, run_calls, take_rows
 from jstarid.runtime.cache import DeviceCache, device_cache, on_every_device
+from jstarid.runtime.compilations import CountCompilations
 from jstarid.runtime.devices import batch_mesh, map_batch, replicate, shard_batch, use_cpu_cores
 from jstarid.runtime.memory_maps import relieve
 from jstarid.runtime.padding import next_power_of_two, pad_rows, padded_indices
@@ -30,7 +32,7 @@ from jstarid.runtime.pairs import run_pairs, skip_padding
 from jstarid.runtime.staging_memory import release_staging
 from jstarid.runtime.static import static_config
 
-__all__ = ["batch_mesh", "Call", "chunk_calls", "device_cache", "DeviceCache", "grow_until",
-           "map_batch", "map_by_width", "next_power_of_two", "on_every_device", "pad_rows",
+__all__ = ["batch_mesh", "Call", "chunk_calls", "CountCompilations", "device_cache", "DeviceCache",
+           "grow_until", "map_batch", "map_by_width", "next_power_of_two", "on_every_device", "pad_rows",
            "padded_indices", "program_store", "release_staging", "relieve", "replicate", "run_calls",
            "run_pairs", "shard_batch", "skip_padding", "static_config", "take_rows", "use_cpu_cores"]

@@ -502,3 +502,20 @@ def test_narrow_twin_identified_with_the_defaults_for_its_camera():
     result = mlv.identify(mlv.build_database(cat, cam, cfg, progress=False), scenes, cfg)
     report = js.evaluate(scenes, result, "strict")
     assert report["identification_rate"] >= 0.95 and report["misid_rate"] == 0.0
+
+
+def test_fresh_scenes_of_a_size_met_before_compile_nothing(catalog, database):
+    """A sweep meets fresh scenes every call: once MLV has identified a batch of a size, more fresh
+    batches of that size and settings compile no XLA program (``CountCompilations``)."""
+    from jstarid.runtime import CountCompilations
+
+    batches = [js.simulate(jax.random.key(40 + k), catalog, CAM, js.NoiseConfig(position_sigma_px=1.0),
+                           batch_size=4, capacity=64) for k in range(3)]
+    jax.block_until_ready(batches)
+    jax.block_until_ready(mlv.identify(database, batches[0], CFG).ids)  # this size met once
+    with CountCompilations() as count:
+        for scenes in batches[1:]:
+            result = mlv.identify(database, scenes, CFG)
+            jax.block_until_ready(result.ids)
+    assert count.programs == 0, f"{count.programs} programs compiled on fresh scenes"
+    assert np.any(np.asarray(result.ok))  # the calls did identify
