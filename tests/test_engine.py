@@ -7,6 +7,7 @@ import dataclasses
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
@@ -136,6 +137,9 @@ def test_save_and_load_round_trip(small, tmp_path):
     small.save(tmp_path)
     back = js.load_sweep(tmp_path)
     assert back.equal_outcomes(small) and back.rows() == small.rows()
+    # XLA's compile time is recorded per entry and level, a part of the wall time
+    assert small.compile_seconds.shape == small.seconds.shape
+    assert np.all((small.compile_seconds >= 0) & (small.compile_seconds <= small.seconds))
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["rows"][0]["label"] == "oracle"
     assert (tmp_path / "rates.png").stat().st_size > 10_000
@@ -290,16 +294,20 @@ def test_frames_config_turns_on_sgm_subgraph_search_only():
 
 
 def test_a_grid_run_config_by_config_is_timed_config_by_config():
-    """Successive ``identify`` calls of a grid (no ``identify_grid``) each get their own wall time."""
+    """Successive ``identify`` calls of a grid (no ``identify_grid``) each get their own wall time,
+    and their own XLA compile time (a program compiled in the first call counts there only)."""
     import time
     import types
 
     from jstarid.engine.run import _runner
 
     def identify(db, scenes, config):
+        if config == 0.0:  # a program no call has compiled before
+            jax.jit(lambda x: jnp.cos(x) * 7.0 - 2.0)(jnp.arange(3.0)).block_until_ready()
         time.sleep(config)
         return js.Identification(ids=np.zeros((1, 2), np.int32), ok=np.ones(1, bool), attitude=None)
 
     db = types.SimpleNamespace(cache_key=lambda: "k")
-    results, shares = _runner(types.SimpleNamespace(identify=identify), [db, db], [0.0, 0.2])(None)
+    results, shares, compiled = _runner(types.SimpleNamespace(identify=identify), [db, db], [0.0, 0.2])(None)
     assert len(results) == 2 and shares[0] < 0.1 < 0.2 <= shares[1]
+    assert 0 < compiled[0] <= shares[0] and compiled[1] == 0

@@ -30,6 +30,8 @@ COLUMNS = (("identification_rate", "identified", "{:.2%}"),
            ("failure_rate", "failed", "{:.2%}"),
            ("boresight_err_arcsec_median", "boresight ″ (median)", "{:.1f}"),
            ("scenes_per_second", "scenes/s", "{:,.0f}"),
+           ("compile_seconds", "XLA compile s", "{:.1f}"),
+           ("scenes_per_second_compiled", "scenes/s, XLA compile excluded", "{:,.0f}"),
            ("peak_rss_mb", "peak MB", "{:,.0f}"))
 
 
@@ -47,6 +49,9 @@ class SweepResult:
             ``roll_err_arcsec`` (NaN where the entry gave no attitude).
         seconds: (E, L) identify wall seconds per entry and level (compilation of shapes first met
             there included), added over processes.
+        compile_seconds: (E, L) the part of ``seconds`` XLA spent compiling programs
+            (:class:`jstarid.runtime.CountCompilations`; tracing and lowering not included), or
+            ``None`` for a sweep saved before it was recorded.
         timing: per entry, ``database_seconds``, ``first_call_seconds`` (its first identify call,
             mostly compilation on a first run) and ``peak_rss_mb`` (the process's peak after the
             entry ran).
@@ -61,6 +66,7 @@ class SweepResult:
     seconds: np.ndarray
     timing: list
     processes: int = 1
+    compile_seconds: np.ndarray | None = None
 
     @classmethod
     def from_arrays(cls, *, entries, levels, level_of, arrays, timing, settings, processes=1):
@@ -69,10 +75,12 @@ class SweepResult:
 
         arrays = dict(arrays)
         seconds = np.asarray(arrays.pop("seconds"), np.float64)
+        compiled = arrays.pop("compile_seconds", None)
         return cls(settings=experiment.to_json(settings), entries=[describe(e) for e in entries],
                    levels=[dict(lv) for lv in levels], level_of=np.asarray(level_of, np.int32),
                    scenes={k: np.asarray(v) for k, v in arrays.items()}, seconds=seconds,
-                   timing=experiment.to_json(list(timing)), processes=int(processes))
+                   timing=experiment.to_json(list(timing)), processes=int(processes),
+                   compile_seconds=None if compiled is None else np.asarray(compiled, np.float64))
 
     @property
     def labels(self) -> list[str]:
@@ -110,6 +118,10 @@ class SweepResult:
                 sec = float(self.seconds[e, lv])
                 row["seconds"] = sec
                 row["scenes_per_second"] = n / sec if sec > 0 else None
+                compiled = None if self.compile_seconds is None else float(self.compile_seconds[e, lv])
+                row["compile_seconds"] = compiled
+                rest = None if compiled is None else sec - compiled
+                row["scenes_per_second_compiled"] = n / rest if rest is not None and rest > 0 else None
                 row["peak_rss_mb"] = self.timing[e]["peak_rss_mb"]
                 out.append(row)
         return out
@@ -129,9 +141,10 @@ class SweepResult:
         note = (f"Camera {s.get('camera', {}).get('name', '?')}, {s.get('boresight', '?')} boresights, "
                 f"criterion {s.get('criterion', '?')}, seed {s.get('seed', '?')}, fixed "
                 f"{s.get('fixed') or 'nothing else'}. Intervals: 95 % Wilson. scenes/s: identify "
-                "wall time per process, compilation of the shapes a level meets first included "
-                "(experiments/benchmark.py measures steady throughput); peak MB: the process's "
-                "resident peak after the algorithm ran.")
+                "wall time per process, compilation of the shapes a level meets first included; "
+                "XLA compile s: the part XLA spent compiling, and the rate without it (tracing "
+                "still included; experiments/compile_budget.py measures fresh-scene rates); peak MB: "
+                "the process's resident peak after the algorithm ran.")
         if s.get("pixels"):
             note += (f" From pixels: frames rendered (sky to the camera's limit + "
                      f"{s.get('render_depth_mag', '?')} mag) and their centroids extracted, "
@@ -145,7 +158,8 @@ class SweepResult:
 
         config = {"settings": self.settings, "entries": self.entries, "levels": self.levels,
                   "processes": self.processes}
-        results = {"rows": self.rows(), "timing": self.timing, "seconds": self.seconds}
+        results = {"rows": self.rows(), "timing": self.timing, "seconds": self.seconds,
+                   "compile_seconds": self.compile_seconds}
         out = experiment.write(out, config=config, results=results, table=self.table(title),
                                figures={"rates.png": plot_sweep} if figure else None)
         np.savez_compressed(out / "scenes.npz", level_of=self.level_of, **self.scenes)
@@ -175,5 +189,7 @@ def load(out: str | Path) -> SweepResult:
     return SweepResult(settings=config["settings"], entries=config["entries"],
                        levels=config["levels"], level_of=level_of, scenes=arrays,
                        seconds=np.asarray(results["seconds"], np.float64), timing=results["timing"],
-                       processes=config.get("processes", 1))
+                       processes=config.get("processes", 1),
+                       compile_seconds=(None if results.get("compile_seconds") is None
+                                        else np.asarray(results["compile_seconds"], np.float64)))
 

@@ -39,6 +39,7 @@ from jstarid.engine.result import SweepResult
 from jstarid.experiment import peak_rss_mb
 from jstarid.metrics import CRITERIA, scene_outcomes
 from jstarid.render import SensorConfig, sensor_for_camera
+from jstarid.runtime.compilations import CountCompilations
 from jstarid.runtime.memory_maps import relieve
 from jstarid.runtime.staging_memory import release_staging
 from jstarid.scene import Identification, Scene
@@ -285,6 +286,7 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
     scored: list[dict | None] = [None] * len(entries)
     timing: list[dict | None] = [None] * len(entries)
     seconds = np.zeros((len(entries), len(levels)))
+    compile_seconds = np.zeros((len(entries), len(levels)))
     for members in _groups(entries):
         first = entries[members[0]]
         module = get_algorithm(first.algorithm)
@@ -300,10 +302,11 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
         outs = [[] for _ in members]
         first_call = None
         for c, (part, level) in enumerate(chunks):
-            results, shares = run(local[part])
+            results, shares, compile_shares = run(local[part])
             first_call = sum(shares) if first_call is None else first_call
             for k, i in enumerate(members):
                 seconds[i, level] += shares[k]
+                compile_seconds[i, level] += compile_shares[k]
                 outs[k].append(_score(local[part], results[k], catalog, camera, criterion,
                                       base.scoring_radius_deg(entries[i].config)))
             release_staging()  # outside the timed call (runtime.staging_memory)
@@ -318,7 +321,8 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
     local_arrays = {name: np.stack([s[name] for s in scored], axis=1) for name in SCORES}  # (S_i, E)
     merged = processes.gather(local_arrays, n_total)
     # (P, E, L) → (E, L): every process's seconds at each level, added
-    merged["seconds"] = processes.gather({"s": seconds[None]}, processes.process_count())["s"].sum(0)
+    spent = processes.gather({"s": seconds[None], "c": compile_seconds[None]}, processes.process_count())
+    merged["seconds"], merged["compile_seconds"] = spent["s"].sum(0), spent["c"].sum(0)
     return SweepResult.from_arrays(entries=entries, levels=levels, level_of=level_of, arrays=merged,
                                    timing=timing, settings=dict(settings or {}),
                                    processes=processes.process_count())
@@ -350,30 +354,32 @@ def plan(algorithms: Sequence | str, catalog, camera: Camera, *, rpnet_network: 
 
 
 def _runner(module, dbs, configs):
-    """``run(scenes) -> ([Identification per config], [seconds per config])``: the algorithm's
-    ``identify_grid`` (one batch, its wall time shared equally) where it can take the grid, else one
-    timed ``identify`` call per config with its own database."""
+    """``run(scenes) -> ([Identification per config], [seconds per config], [XLA compile seconds per
+    config])``: the algorithm's ``identify_grid`` (one batch, its times shared equally) where it can
+    take the grid, else one timed ``identify`` call per config with its own database."""
     # only an algorithm's own identify_grid batches the grid: the contract's default is the
     # per-config calls below, which time each config on its own
     state = {"batched": (len(configs) > 1 and base.declares(module, "identify_grid")
                          and len({d.cache_key() for d in dbs}) == 1)}
 
-    def timed(call):  # call() -> [Identification]; returns it and its wall time (s)
-        t0 = time.perf_counter()
-        out = call()
-        jax.block_until_ready([r.ids for r in out])
-        return out, time.perf_counter() - t0
+    def timed(call):  # call() -> [Identification]; returns it, its wall time and XLA's compile time (s)
+        with CountCompilations() as compiled:
+            t0 = time.perf_counter()
+            out = call()
+            jax.block_until_ready([r.ids for r in out])
+            dt = time.perf_counter() - t0
+        return out, dt, compiled.seconds
 
     def run(scenes):
         if state["batched"]:
             try:
-                results, dt = timed(lambda: base.identify_grid(module, dbs[0], scenes, configs))
-                return results, [dt / len(configs)] * len(configs)
+                results, dt, ct = timed(lambda: base.identify_grid(module, dbs[0], scenes, configs))
+                return results, [dt / len(configs)] * len(configs), [ct / len(configs)] * len(configs)
             except ValueError:  # the grid varies settings it cannot batch (e.g. MLV's Δv)
                 state["batched"] = False
         each = [timed(lambda db=db, c=c: [module.identify(db, scenes, c)])
                 for db, c in zip(dbs, configs, strict=True)]
-        return [out[0] for out, _ in each], [dt for _, dt in each]
+        return [out[0] for out, _, _ in each], [dt for _, dt, _ in each], [ct for _, _, ct in each]
 
     return run
 
