@@ -3,12 +3,15 @@
     python experiments/benchmark.py                       # all benchmarks
     python experiments/benchmark.py --only simulate --batch 10000
     python experiments/benchmark.py --only render,centroid --images 64
+    python experiments/benchmark.py --only compile        # the compile budget (bench_compile.py)
 
-``simulate``, ``render`` and ``centroid`` run here; ``sgm``, ``mlv`` and ``rpnet`` run
+``simulate``, ``render`` and ``centroid`` run here; ``sgm``, ``mlv``, ``rpnet`` and ``compile`` run
 ``experiments/bench_<name>.py`` in a subprocess each (``--batch``, ``--repeats``, ``--devices``,
-``--seed`` and, to MLV, ``--mag-sigma`` passed on; SGM keeps its own batch of 1,000) and their rows
-join the table. Each benchmark reports compile time (first call) apart from steady-state throughput
-(median of ``--repeats`` timed calls after compilation) and the process's peak resident memory.
+``--seed`` and, to MLV, ``--mag-sigma`` passed on; SGM keeps its own batch of 1,000, and
+``compile`` its batch sizes 1, 100 and 1,000) and their rows join the table. Each benchmark reports
+compile time (first call) apart from steady-state throughput (median of ``--repeats`` timed calls
+after compilation) and the process's peak resident memory; ``compile`` reports, per algorithm and
+batch size, the programs compiled and the rate on fresh scenes (its module docstring).
 
 Writes results/benchmark/{config.json, results.json, table.md}.
 """
@@ -31,12 +34,12 @@ from jstarid import experiment as ex
 from jstarid.random_streams import normals
 
 HERE = Path(__file__).resolve().parent
-SCRIPTS = ("sgm", "mlv", "rpnet")  # experiments/bench_<name>.py
+SCRIPTS = ("sgm", "mlv", "rpnet", "compile")  # experiments/bench_<name>.py
 
 
 def parse_args(argv=None):
     p = ex.parser(__doc__.splitlines()[0], out="results/benchmark", seed=0)
-    p.add_argument("--only", default="simulate,render,centroid,sgm,mlv,rpnet",
+    p.add_argument("--only", default="simulate,render,centroid,sgm,mlv,rpnet,compile",
                    help="comma-separated benchmarks")
     p.add_argument("--images", type=int, default=32, help="frames per render and centroid-extraction call")
     p.add_argument("--sample-stride", type=int, default=2,
@@ -152,7 +155,8 @@ def bench_centroid(args) -> list[dict]:
 
 def bench_script(name: str, args) -> list[dict]:
     """The rows of ``experiments/bench_<name>.py``, run in a subprocess of its own."""
-    flags = [] if name == "sgm" else ["--batch", str(args.batch), "--repeats", str(args.repeats)]
+    own_batches = name in ("sgm", "compile")
+    flags = [] if own_batches else ["--batch", str(args.batch), "--repeats", str(args.repeats)]
     if name == "mlv":
         flags += ["--magnitude-sigma", str(args.mag_sigma)]
     if args.devices is not None and name != "sgm":

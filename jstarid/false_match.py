@@ -72,10 +72,9 @@ def false_match_probability(scenes, result, star_vectors, camera) -> np.ndarray:
     k1 = np.where(np.isfinite(k1), k1, 0.0).astype(np.float32)
     attitude = np.asarray(result.attitude, np.float32)
     attitude = np.where(np.isfinite(attitude), attitude, np.eye(3, dtype=np.float32))
-    half_diagonal = math.radians(camera.fov_diagonal_deg) / 2.0
     log10 = false_match_log10(scenes.xy, scenes.valid, result.ids, result.ok, attitude, scale, k1,
                               jnp.asarray(star_vectors, jnp.float32), camera=camera,
-                              half_diagonal=half_diagonal)
+                              half_diagonal=camera.half_diagonal_rad)
     return np.power(10.0, np.asarray(log10, np.float64))
 
 

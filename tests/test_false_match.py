@@ -32,7 +32,9 @@ def _reference(xy, valid, ids, ok, attitude, scale, k1, star_vectors, catalog_al
     residual = np.arctan2(np.linalg.norm(np.cross(rays[named], stars), axis=-1),
                           np.sum(rays[named] * stars, -1))
     radius = max(residual.max(), MIN_RADIUS_PX / f)
-    half = math.radians(camera.fov_diagonal_deg) / 2
+    corner = np.hypot(max(camera.cx, camera.width - 1 - camera.cx),
+                      max(camera.cy, camera.height - 1 - camera.cy))
+    half = math.atan(corner / camera.f_px)  # the frame's farthest pixel from the boresight
     local = np.sum(catalog_all @ attitude[2] >= math.cos(half)) / (2 * math.pi * (1 - math.cos(half)))
     density = max(local, len(catalog_all) / (4 * math.pi))
     q = 1 - math.exp(-density * math.pi * radius**2)

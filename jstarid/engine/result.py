@@ -31,7 +31,7 @@ COLUMNS = (("identification_rate", "identified", "{:.2%}"),
            ("boresight_err_arcsec_median", "boresight ″ (median)", "{:.1f}"),
            ("scenes_per_second", "scenes/s", "{:,.0f}"),
            ("compile_seconds", "XLA compile s", "{:.1f}"),
-           ("scenes_per_second_compiled", "scenes/s, XLA compile excluded", "{:,.0f}"),
+           ("scenes_per_second_without_compile", "scenes/s, XLA compile excluded", "{:,.0f}"),
            ("peak_rss_mb", "peak MB", "{:,.0f}"))
 
 
@@ -121,7 +121,7 @@ class SweepResult:
                 compiled = None if self.compile_seconds is None else float(self.compile_seconds[e, lv])
                 row["compile_seconds"] = compiled
                 rest = None if compiled is None else sec - compiled
-                row["scenes_per_second_compiled"] = n / rest if rest is not None and rest > 0 else None
+                row["scenes_per_second_without_compile"] = n / rest if rest is not None and rest > 0 else None
                 row["peak_rss_mb"] = self.timing[e]["peak_rss_mb"]
                 out.append(row)
         return out
@@ -143,7 +143,7 @@ class SweepResult:
                 f"{s.get('fixed') or 'nothing else'}. Intervals: 95 % Wilson. scenes/s: identify "
                 "wall time per process, compilation of the shapes a level meets first included; "
                 "XLA compile s: the part XLA spent compiling, and the rate without it (tracing "
-                "still included; experiments/compile_budget.py measures fresh-scene rates); peak MB: "
+                "still included; experiments/bench_compile.py measures fresh-scene rates); peak MB: "
                 "the process's resident peak after the algorithm ran.")
         if s.get("pixels"):
             note += (f" From pixels: frames rendered (sky to the camera's limit + "

@@ -2,7 +2,7 @@
 
 A sweep meets fresh scenes every call; once it has met a batch size, identifying more scenes of
 that size and settings should compile nothing. :class:`CountCompilations` measures that (the
-compile-budget benchmark, ``experiments/compile_budget.py``, and the tests that hold an algorithm
+compile-budget benchmark, ``experiments/bench_compile.py``, and the tests that hold an algorithm
 to it): it listens to ``jax.monitoring``'s backend-compile events, which JAX sends once per program
 XLA compiles (a program loaded from JAX's persistent cache or jstarid's program store sends none).
 

@@ -246,7 +246,7 @@ def confirmed_by_the_frame(db, scenes: Scene, result: Identification, config: Co
     dense enough, and a circle that holds only three or four detections is all SGM looks at. On a
     10° × 7.5° camera with stars to V 5.7 (five or six per frame) the defaults claimed 22 of 300
     frames of 8 random points, and 14 of 21 claims with 10 false detections per scene were wrong
-    (docs/design/sgm.md, "Few names"). A right attitude predicts the frame's other stars; a wrong
+    (docs/design/sgm.md, ``confirm_names``). A right attitude predicts the frame's other stars; a wrong
     one confirms only what chance puts near a catalog star.
     """
     if not config.confirm_names or not scenes.batch_size:

@@ -17,11 +17,14 @@ twice, and the second run's first calls are what a later process pays.
 
 Usage::
 
-    python experiments/compile_budget.py                                  # sgm, mlv, rpnet at 1, 100, 1000
-    python experiments/compile_budget.py --algorithms mlv --batches 1,100,1000,4096 --calls 3
-    python experiments/compile_budget.py --warm                           # run twice: cache, then warm
+    python experiments/bench_compile.py                                  # sgm, mlv, rpnet at 1, 100, 1000
+    python experiments/bench_compile.py --algorithms mlv --batches 1,100,1000,4096 --calls 3
+    python experiments/bench_compile.py --warm                           # run twice: cache, then warm
+    python experiments/benchmark.py --only compile                       # the same, in benchmark's table
 
-Writes results/compile_budget/{config.json, results.json, table.md}.
+``experiments/benchmark.py`` runs it in a subprocess (a process of its own, so that nothing it
+measures was compiled before) and reads its rows from ``--json``. Writes
+results/bench_compile/{config.json, results.json, table.md}.
 """
 
 from __future__ import annotations
@@ -43,12 +46,14 @@ CAPACITY = 64
 
 
 def parse_args(argv=None):
-    p = ex.parser(__doc__.splitlines()[0], out="results/compile_budget", seed=0)
+    p = ex.parser(__doc__.splitlines()[0], out="results/bench_compile", seed=0)
     p.add_argument("--algorithms", default="sgm,mlv,rpnet", help="comma-separated registry names")
     p.add_argument("--batches", default="1,100,1000", help="comma-separated batch sizes")
     p.add_argument("--calls", type=int, default=2, help="calls on fresh scenes after the first")
     p.add_argument("--camera", default=None, help="one camera for every algorithm (default: each "
                    "algorithm's paper camera: " + ", ".join(f"{a} {c}" for a, c in CAMERAS.items()) + ")")
+    p.add_argument("--devices", type=int, default=None, help="JAX CPU devices (default: one per core)")
+    p.add_argument("--json", default=None, help="also write the rows to this file")
     p.add_argument("--warm", action="store_true",
                    help="turn on the program store and XLA's cache (run twice to see a warm process)")
     args = p.parse_args(argv)
@@ -91,19 +96,19 @@ def measure(name: str, camera_name: str, args) -> list[dict]:
         identified = [js.evaluate(s, c[0], "strict")["identification_rate"]
                       for s, c in zip(scenes, calls, strict=True)]
         steady_s = float(np.median([c[1] for c in later]))
-        rows.append({"algorithm": name, "camera": camera_name, "batch": batch,
+        rows.append({"benchmark": f"compile {name}", "camera": camera_name, "batch": batch,
                      "first_call_s": round(first_s, 2), "programs": programs,
                      "compile_s": round(compile_s, 2), "loaded": loaded,
                      "later_programs": int(sum(c[2] for c in later)),
-                     "steady_scenes_per_s": round(batch / steady_s, 1),
-                     "identified": float(np.mean(identified))})
+                     "scenes_per_s": round(batch / steady_s, 1),
+                     "identified": round(float(np.mean(identified)), 4), "peak_rss_mb": ex.peak_rss_mb()})
         print(rows[-1], flush=True)
     return rows
 
 
 def main(argv=None):
     args = parse_args(argv)
-    js.use_cpu_cores()
+    js.use_cpu_cores(args.devices)
     if args.warm:
         js.enable_compilation_cache()
     rows = []
@@ -112,11 +117,11 @@ def main(argv=None):
             rows += measure(name, args.camera or CAMERAS.get(name, "sgm2022"), args)
     cache = "program store and XLA cache on" if args.warm else "no persistent cache"
     table = ex.markdown_table(rows, [
-        ("algorithm", "algorithm", "{}"), ("camera", "camera", "{}"), ("batch", "B", "{:,}"),
+        ("benchmark", "benchmark", "{}"), ("camera", "camera", "{}"), ("batch", "B", "{:,}"),
         ("first_call_s", "first call s", "{}"), ("programs", "programs compiled", "{}"),
         ("compile_s", "XLA compile s", "{}"), ("loaded", "programs loaded", "{}"),
         ("later_programs", "programs in later calls", "{}"),
-        ("steady_scenes_per_s", "scenes/s, fresh scenes", "{:,}"), ("identified", "identified", "{:.1%}")],
+        ("scenes_per_s", "scenes/s, fresh scenes", "{:,}"), ("identified", "identified", "{:.1%}")],
         title="Compile budget",
         note=(f"{cache}; {ex.machine()['devices']}; {clock.seconds:.0f} s in all. First call: wall "
               "time of the first identify of that batch size (compilation included); XLA compile s: "
@@ -124,6 +129,7 @@ def main(argv=None):
               f"{args.calls} calls on fresh scenes of the same size (any compilation in them "
               f"included). Noise: 1 px, 0.1 mag; capacity {CAPACITY}."))
     ex.write(args.out, config={"args": vars(args)}, results={"rows": rows}, table=table)
+    ex.dump_json(args.json, rows)
     print(table)
 
 
