@@ -101,7 +101,8 @@ def measure(name: str, camera_name: str, args) -> list[dict]:
                      "compile_s": round(compile_s, 2), "loaded": loaded,
                      "later_programs": int(sum(c[2] for c in later)),
                      "scenes_per_s": round(batch / steady_s, 1),
-                     "identified": round(float(np.mean(identified)), 4), "peak_rss_mb": ex.peak_rss_mb()})
+                     "identified": round(float(np.mean(identified)), 4),
+                     "peak_rss_mb": round(ex.peak_rss_mb())})
         print(rows[-1], flush=True)
     return rows
 
