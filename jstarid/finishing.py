@@ -1,10 +1,18 @@
-"""The finishing stage every algorithm ends with: the focal-length ladder and the camera check.
+"""The finishing stage every algorithm ends with: the hypothesis search, the focal-length ladder and
+the camera check.
 
-An algorithm names stars under the nominal camera. Two steps after it make the answer hold on a
-camera whose focal length is not quite the datasheet's, and both are the same for every algorithm,
-so they are written once here and configured by one nested config, :class:`Finishing`
-(``Config.finishing`` of MLV, RpNet and SGM):
+An algorithm names stars under the nominal camera from the pattern of its brightest detections.
+Three steps after it make the answer hold on a cluttered frame and on a camera whose focal length is
+not quite the datasheet's; all three are the same for every algorithm, so they are written once here
+and configured by one nested config, :class:`Finishing` (``Config.finishing`` of MLV, RpNet and SGM):
 
+0. **Hypothesis search** (``hypotheses``): the scenes the algorithm left unsolved are searched over
+   every triangle of their brightest ``hypotheses`` detections, each verified against the frame
+   (:mod:`jstarid.hypotheses`); a claim must pass the false-match test. Where false detections as
+   bright as the stars outnumber them, the algorithm's pattern is mostly false; five stars anywhere
+   among the detections are enough here. Skipped where the camera's catalog has too many triangles
+   per frame (:func:`jstarid.triangle_index.index_problem`; the papers' wide cameras): such fields
+   hold dozens of stars.
 1. **Focal-length ladder** (``focal_search``): the scenes the algorithm left unsolved are tried again
    as if the focal length were each factor × the camera's, in order
    (:func:`jstarid.camera_fit.search_focal`). Features that are angles (triangle singular values,
@@ -18,7 +26,7 @@ so they are written once here and configured by one nested config, :class:`Finis
 An algorithm calls :func:`finish` with a ``rerun`` function (its own identification on moved
 centroids) and its catalog's rows; its own steps after the stage (SGM names the scenes the ladder
 solved again under the fitted focal length) read :attr:`Finished.laddered`.
-``Finishing.off()`` is the papers' algorithms: neither step.
+``Finishing.off()`` is the papers' algorithms: none of the steps.
 """
 
 from __future__ import annotations
@@ -51,12 +59,20 @@ class Finishing:
             (``|s − 1|``, in [0, 0.5)); beyond it the scene fails.
         studentized: the check's radius allows for the scatter of its own σ̂ over few names
             (:func:`jstarid.camera_fit.studentized_k`); SGM's default, off for MLV and RpNet.
+        hypotheses: the brightest detections whose every triangle the hypothesis search tries on a
+            scene still unsolved (C(n, 3) triangles; ≈ 0.1 s a scene at 48 on 2 cores); 0 turns the
+            search off.
+        hypothesis_eps_px: the search's side and confirmation tolerance (px at the focal length).
+        hypothesis_false_match: the largest false-match probability a claim of the search may have.
     """
 
     focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
     fit_focal: bool = True
     max_focal_error: float = 0.1
     studentized: bool = False
+    hypotheses: int = 48
+    hypothesis_eps_px: float = 3.0
+    hypothesis_false_match: float = 1e-3
 
     def __post_init__(self):
         object.__setattr__(self, "focal_search", tuple(float(f) for f in self.focal_search))
@@ -64,6 +80,12 @@ class Finishing:
             raise ValueError(f"focal_search factors must lie in (0.5, 2), got {self.focal_search}")
         if not 0.0 <= self.max_focal_error < 0.5:
             raise ValueError(f"max_focal_error must be in [0, 0.5), got {self.max_focal_error}")
+        if not (isinstance(self.hypotheses, int) and (self.hypotheses == 0 or 4 <= self.hypotheses <= 64)):
+            raise ValueError(f"hypotheses must be 0 (off) or an integer in [4, 64], got {self.hypotheses}")
+        if not (math.isfinite(self.hypothesis_eps_px) and 0 < self.hypothesis_eps_px <= 10):
+            raise ValueError(f"hypothesis_eps_px must be in (0, 10] px, got {self.hypothesis_eps_px}")
+        if not 0 < self.hypothesis_false_match <= 0.1:
+            raise ValueError(f"hypothesis_false_match must be in (0, 0.1], got {self.hypothesis_false_match}")
 
     @classmethod
     def coerce(cls, value: Finishing | Mapping) -> Finishing:
@@ -101,8 +123,8 @@ class Finishing:
 
     @classmethod
     def off(cls, **overrides) -> Finishing:
-        """Neither the ladder nor the check: the papers' algorithms."""
-        return cls(**{"focal_search": (), "fit_focal": False, **overrides})
+        """No hypothesis search, ladder or check: the papers' algorithms."""
+        return cls(**{"focal_search": (), "fit_focal": False, "hypotheses": 0, **overrides})
 
 
 class Finished(NamedTuple):
@@ -113,10 +135,12 @@ class Finished(NamedTuple):
             (``focal_scale`` and ``distortion_k1`` set where the check ran).
         laddered: (B,) bool NumPy, the scenes the first pass left unsolved and the ladder solved
             (before the check, which may unclaim some of them).
+        searched: (B,) bool NumPy, the scenes the hypothesis search solved (before the check).
     """
 
     result: Identification
     laddered: np.ndarray
+    searched: np.ndarray
 
 
 def finish(result: Identification, scenes: Scene, config: Finishing, *,
@@ -142,7 +166,9 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         :class:`Finished`.
     """
     b = scenes.batch_size
-    laddered = np.zeros(b, bool)
+    laddered = searched = np.zeros(b, bool)
+    if b and config.hypotheses:
+        result, searched = _search(result, scenes, config, camera, star_vectors)
     if b and config.focal_search:
         unsolved = ~np.asarray(result.ok)
         result = search_focal(rerun, result, scenes, camera, config.focal_search)
@@ -151,4 +177,19 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         result = check_identification(star_vectors, camera, scenes, result,
                                       max_scale_error=config.max_focal_error, max_tol_px=max_tol_px,
                                       star_mags=star_mags, studentized=config.studentized)
-    return Finished(result=result, laddered=laddered)
+    return Finished(result=result, laddered=laddered, searched=searched)
+
+
+def _search(result, scenes, config: Finishing, camera, star_vectors):
+    """Step 0 (:func:`jstarid.hypotheses.solve_unsolved`), or the result as it is where the catalog has
+    too many triangles per frame (a wide or deep field: many stars per frame, which the algorithms'
+    own patterns find among clutter)."""
+    from jstarid.hypotheses import solve_unsolved
+    from jstarid.triangle_index import index_problem
+
+    problem = index_problem(int(np.shape(star_vectors)[0]), camera)
+    if problem:
+        return result, np.zeros(scenes.batch_size, bool)
+    return solve_unsolved(result, scenes, star_vectors=star_vectors, camera=camera, n_use=config.hypotheses,
+                          eps_px=config.hypothesis_eps_px, min_confirm=1,
+                          max_false_match=config.hypothesis_false_match)

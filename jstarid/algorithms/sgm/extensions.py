@@ -87,7 +87,7 @@ def finishing_stage(db, scenes: Scene, result: Identification, config: Config, s
     """
     cap = config.focal_search_dw_max_deg
     retry = config if cap is None else dataclasses.replace(config, dw_max_deg=min(cap, config.dw_max_deg))
-    result, laddered = finish(
+    result, laddered, _ = finish(
         result, scenes, config.finishing, rerun=lambda moved, rows: search(moved, retry),
         camera=db.camera, star_vectors=jnp.asarray(db.catalog.unit_vectors, jnp.float32),
         star_mags=db.catalog.mag, max_tol_px=camera_check_cap_px(config, db.camera))

@@ -1,0 +1,286 @@
+"""Hypothesize and verify: a scene that an algorithm left unsolved, solved from any three of its
+detections that are stars — however many false detections surround them.
+
+Every algorithm picks its pattern from the brightest detections. Among false detections as bright
+as the stars (hot pixels, cosmic rays, satellites) those are mostly false, and the algorithm fails
+cleanly where the frame still holds five or six stars. This stage, the finishing stage's first step
+(``Finishing.hypotheses``), looks at every triangle instead (as openstartracker's BEAST and
+astrometry.net do with their own keys):
+
+1. the ``n`` brightest valid detections (``Finishing.hypotheses``) → camera-frame unit vectors; every
+   triple i < j < k of them;
+2. per triple, the catalog triangles whose sorted sides are within ε of the triple's
+   (:mod:`jstarid.triangle_index`, two binary searches) and that turn the same way (the sign of the
+   triple product, which a rotation keeps); vertices correspond by the side opposite them. Each
+   (triple, triangle) is a hypothesis; the first ``capacity`` of a scene are kept (more is flagged);
+3. each hypothesis's attitude (TRIAD on two of its stars) points every detection at the sky; a
+   detection within ε of a catalog star confirms it. The triangle's third star must be confirmed too.
+   The hypothesis with the most confirmations wins; another one with as many that names the
+   detections otherwise makes the scene ambiguous (failed);
+4. the attitude is refitted to the winner's names (Wahba), every detection is named from it, and the
+   scene is claimed only when it names at least ``3 + min_confirm`` stars and their false-match
+   probability (:mod:`jstarid.false_match`: could a wrong attitude have confirmed as many?) is at most
+   ``Finishing.hypothesis_false_match``. The search tries a few thousand triangles per scene, and the
+   probability's union bound counts every pair hypothesis a blind search could try, so the threshold
+   holds for this search too.
+
+``search_scene`` is the per-scene jit-able kernel (batched with ``lax.map``); :func:`solve_unsolved`
+is the host entry the finishing stage calls.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import itertools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jstarid.attitude import solve_wahba
+from jstarid.completion import first_argmax, name_stars
+from jstarid.geometry import precise
+from jstarid.geometry.angles import pairwise_angles
+from jstarid.runtime import padded_indices
+from jstarid.runtime.program_store import stored_jit
+from jstarid.scene import Identification, Scene
+from jstarid.sky_index import build_sky_index, local_stars
+from jstarid.triangle_index import TriangleIndex, build_triangle_index, query
+
+__all__ = ["Searched", "all_triples", "search_scene", "solve_unsolved"]
+
+TRIPLE_CHUNK = 512  # triples vmapped together inside a scene's lax.map
+HYPOTHESIS_CHUNK = 128  # hypotheses verified together
+SCENE_CHUNK = 64  # scenes per compiled call
+
+
+class Searched(NamedTuple):
+    """What :func:`search_scene` returns for one scene (a leading batch axis when batched).
+
+    Attributes:
+        ids: (cap,) int32 catalog rows named from the winning attitude (−1 none).
+        ok: () bool, a winner with at least ``3 + min_confirm`` names and no rival.
+        attitude: (3, 3) float32 C of the names (NaN when not ``ok``).
+        confirmed: () int32 the winner's confirmed detections (its triangle included).
+        n_hypotheses: () int32 (triple, triangle) hypotheses found (may exceed the capacity).
+        overflow: () bool, more hypotheses than the capacity (the rest were not verified) or a
+            triple with more matching triangles than its share.
+    """
+
+    ids: jax.Array
+    ok: jax.Array
+    attitude: jax.Array
+    confirmed: jax.Array
+    n_hypotheses: jax.Array
+    overflow: jax.Array
+
+
+def all_triples(n: int) -> np.ndarray:
+    """(C(n, 3), 3) int32 every triple i < j < k of n detections, lexicographic (brightest first)."""
+    if n < 3:
+        return np.zeros((1, 3), np.int32)
+    return np.asarray(list(itertools.combinations(range(n), 3)), np.int32)
+
+
+def _turn(u, v, w):
+    """Sign of the triple product u · (v × w), (..., 3) each → (...,) in {−1, 0, 1}."""
+    return jnp.sign(jnp.sum(u * jnp.cross(v, w), axis=-1))
+
+
+def _triad(b1, b2, r1, r2):
+    """Attitude C (v_cam = C r) from two vector pairs (TRIAD, exact on the first)."""
+    def frame(u, v):
+        w = jnp.cross(u, v)
+        w = w / jnp.linalg.norm(w, axis=-1, keepdims=True)
+        return jnp.stack([u, w, jnp.cross(u, w)], -1)  # columns
+
+    return precise.einsum("...ik,...jk->...ij", frame(b1, b2), frame(r1, r2))
+
+
+def search_scene(xy, valid, mag, triples, *, index: TriangleIndex, star_vectors, cells, grid: int, camera,
+                 n_use: int, eps_rad: float, min_confirm: int, capacity: int, per_triple: int) -> Searched:
+    """Steps 1–4 (but the false-match test) on one scene (module docstring).
+
+    Args:
+        xy: (cap, 2) float32 centroids (px). valid: (cap,) bool. mag: (cap,) float32 (mag).
+        triples: (T, 3) int32 :func:`all_triples` of ``min(n_use, cap)``, padded with copies of the
+            first to a multiple of :data:`TRIPLE_CHUNK` (an argument, not a constant: XLA takes
+            minutes over a loop that slices a constant).
+        index: the catalog's :class:`~jstarid.triangle_index.TriangleIndex`.
+        star_vectors: (M, 3) float32 ICRS unit vectors of the catalog rows.
+        cells: (6·G·G, K) int32 sky-index lists over ``star_vectors``; grid: G.
+        camera: the :class:`~jstarid.camera.Camera` (pinhole).
+        n_use: the brightest detections the triples come from. eps_rad: side and confirmation
+            tolerance (rad). min_confirm: confirmations needed beyond the triangle.
+        capacity: hypotheses verified per scene. per_triple: matching triangles kept per triple.
+    """
+    cap = xy.shape[0]
+    n = min(n_use, cap)
+    _, sel = jax.lax.top_k(-jnp.where(valid, mag, jnp.inf), n)
+    use = valid[sel]
+    body = camera.unproject(xy[sel])
+    theta = pairwise_angles(body)
+
+    def one_triple(t):
+        opposite = jnp.stack([theta[t[1], t[2]], theta[t[0], t[2]], theta[t[0], t[1]]])
+        order = jnp.argsort(opposite)
+        verts = t[order]  # vertex m is opposite the m-th shortest side, as in the index
+        slots, match = query(index, opposite[order], eps_rad)
+        abc = index.stars[slots]
+        va, vb, vc = (star_vectors[abc[:, m]] for m in range(3))
+        turn = _turn(body[verts[0]], body[verts[1]], body[verts[2]])
+        match = match & (_turn(va, vb, vc) == turn) & jnp.all(use[verts])
+        count = jnp.sum(match).astype(jnp.int32)
+        (first,) = jnp.nonzero(match, size=per_triple, fill_value=0)
+        return verts, abc[first], jnp.arange(per_triple) < count, count
+
+    n_t = len(all_triples(n)) if n >= 3 else 0
+    padded = triples.shape[0]
+    chunk = min(TRIPLE_CHUNK, padded)
+    verts, abc, has, counts = jax.lax.map(jax.vmap(one_triple), triples.reshape(-1, chunk, 3))
+    real = (jnp.arange(padded) < n_t)
+    verts, abc = verts.reshape(padded, 3), abc.reshape(padded, per_triple, 3)
+    has = has.reshape(padded, per_triple) & real[:, None]
+    counts = jnp.where(real, counts.reshape(padded), 0)
+    total = jnp.sum(counts)
+    (flat,) = jnp.nonzero(has.reshape(-1), size=capacity, fill_value=0)
+    live = jnp.arange(capacity) < jnp.sum(has)
+    h_verts = verts[flat // per_triple]  # (H, 3)
+    h_abc = abc.reshape(-1, 3)[flat]  # (H, 3)
+
+    def verify(hyp):
+        v, s, alive = hyp
+        att = _triad(body[v[0]], body[v[1]], star_vectors[s[0]], star_vectors[s[1]])
+        rows, vecs, _ = local_stars(cells, star_vectors, att[2], grid)
+        sky = precise.small_matmul(body, att)  # (n, 3) r = Cᵀ v
+        d = sky[:, None, :] - vecs[None, :, :]
+        dist2 = jnp.sum(d * d, axis=-1)  # (n, K) squared chords (≈ rad²)
+        near = first_argmax(-dist2)
+        hit = use & (jnp.take_along_axis(dist2, near[:, None], 1)[:, 0] <= eps_rad * eps_rad)
+        named = rows[near]
+        own = jnp.all(hit[v] & (named[v] == s))
+        return att, jnp.where(alive & own, jnp.sum(hit), 0).astype(jnp.int32), jnp.where(hit, named, -1)
+
+    atts, scores, names = jax.lax.map(verify, (h_verts, h_abc, live), batch_size=HYPOTHESIS_CHUNK)
+    win = first_argmax(scores)
+    best = scores[win]
+    # a rival names the detections otherwise (the same stars found from another triple agree, though
+    # their TRIAD attitudes differ by the noise of their short baselines)
+    differs = jnp.any(names != names[win][None, :], axis=1)
+    rival = jnp.any(differs & (scores == best))
+    # refit to the winner's names, then name every detection of the scene from that attitude
+    chosen = names[win]
+    att = solve_wahba(body, star_vectors[jnp.maximum(chosen, 0)], (chosen >= 0).astype(jnp.float32))
+    rows, vecs, _ = local_stars(cells, star_vectors, att[2], grid)
+    local, named = name_stars(att, camera.unproject(xy), valid, vecs, eps_rad)
+    ids = jnp.where(named, rows[local], -1)
+    ok = (best >= 3 + min_confirm) & ~rival & (jnp.sum(named) >= 3 + min_confirm)
+    named_body = camera.unproject(xy)
+    att = solve_wahba(named_body, star_vectors[jnp.maximum(ids, 0)], (ids >= 0).astype(jnp.float32))
+    return Searched(ids=jnp.where(ok, ids, -1), ok=ok, attitude=jnp.where(ok, att, jnp.nan),
+                    confirmed=best, n_hypotheses=total,
+                    overflow=(jnp.sum(has) > capacity) | jnp.any(counts > per_triple))
+
+
+@functools.partial(stored_jit, static_argnames=("grid", "camera", "n_use", "eps_rad", "min_confirm",
+                                                "capacity", "per_triple"))
+def _search_chunk(xy, valid, mag, triples, index, star_vectors, cells, **static):
+    fn = functools.partial(search_scene, triples=triples, index=index, star_vectors=star_vectors, cells=cells,
+                           **static)
+    return jax.lax.map(lambda a: fn(*a), (xy, valid, mag))
+
+
+def padded_triples(n: int) -> np.ndarray:
+    """:func:`all_triples` of n, padded with copies of the first to a whole number of chunks."""
+    triples = all_triples(n)
+    chunk = min(TRIPLE_CHUNK, len(triples))
+    extra = -len(triples) % chunk
+    return np.concatenate([triples, np.repeat(triples[:1], extra, 0)])
+
+
+_SKY: dict = {}
+
+
+def _sky_cells(star_vectors: np.ndarray, camera, eps_rad: float):
+    """The sky index of the catalog for the camera (memoised): the stars any boresight can see."""
+    digest = hashlib.sha1(np.ascontiguousarray(star_vectors, np.float32).tobytes()).hexdigest()[:16]
+    key = f"{digest}-hypotheses-{camera.half_diagonal_rad:.6e}"
+    if key not in _SKY:
+        index = build_sky_index(np.asarray(star_vectors, np.float64), camera.half_diagonal_rad,
+                                margin_rad=4 * eps_rad, key=key)
+        _SKY[key] = (index.device_arrays()[0], index.grid)
+    return _SKY[key]
+
+
+def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camera, n_use: int,
+                   eps_px: float, min_confirm: int, max_false_match: float, capacity: int = 2048,
+                   per_triple: int = 4) -> tuple[Identification, np.ndarray]:
+    """The search on every scene ``result`` leaves unsolved; claims pass the false-match test.
+
+    Args:
+        result: an algorithm's (B, N) :class:`~jstarid.scene.Identification` of ``scenes``.
+        scenes: (B, N) :class:`~jstarid.scene.Scene` from ``camera`` (pinhole centroids, px).
+        star_vectors: (M, 3) ICRS unit vectors of the catalog rows ``result.ids`` names.
+        camera: the :class:`~jstarid.camera.Camera`.
+        n_use: the brightest detections whose triples are tried (≥ 4).
+        eps_px: side and confirmation tolerance (px at the focal length).
+        min_confirm: confirmed detections needed beyond the triangle (≥ 1).
+        max_false_match: the largest false-match probability a claim may have.
+        capacity: hypotheses verified per scene. per_triple: matching triangles kept per triple.
+
+    Returns:
+        ``(result, solved)``: the result with the scenes the search solved filled in (ids, ok,
+        attitude; a solved scene's focal scale and k1 NaN until the camera check fits them) and (B,)
+        bool NumPy, those scenes.
+    """
+    from jstarid.false_match import false_match_probability
+
+    ok = np.asarray(result.ok)
+    rows = np.flatnonzero(~ok)
+    solved = np.zeros(ok.shape[0], bool)
+    if not rows.size:
+        return result, solved
+    eps_rad = float(eps_px) / camera.f_px
+    vectors = np.asarray(star_vectors, np.float32)
+    index = build_triangle_index(vectors, camera, eps_rad)
+    cells, grid = _sky_cells(vectors, camera, eps_rad)
+    xy, valid, mag = (np.asarray(a) for a in (scenes.xy, scenes.valid, scenes.mag))
+    static = dict(grid=grid, camera=camera, n_use=int(n_use), eps_rad=eps_rad, min_confirm=int(min_confirm),
+                  capacity=int(capacity), per_triple=int(per_triple))
+    triples = jnp.asarray(padded_triples(min(int(n_use), xy.shape[1])))
+    device_vectors = jnp.asarray(vectors)
+    found = []
+    for lo in range(0, rows.size, SCENE_CHUNK):
+        # sizes 16, 32, 64 only: each is one compiled program (≈ 5 s)
+        part = padded_indices(rows[lo:lo + SCENE_CHUNK], floor=16)
+        out = _search_chunk(jnp.asarray(xy[part], jnp.float32), jnp.asarray(valid[part]),
+                            jnp.asarray(mag[part], jnp.float32), triples, index, device_vectors, cells,
+                            **static)
+        n = min(SCENE_CHUNK, rows.size - lo)
+        found.append([np.asarray(a)[:n] for a in out])
+    found = Searched(*(np.concatenate(parts) for parts in zip(*found, strict=True)))
+    candidate = Identification(ids=jnp.asarray(found.ids), ok=jnp.asarray(found.ok),
+                               attitude=jnp.asarray(found.attitude))
+    p = false_match_probability(scenes[rows], candidate, vectors, camera)
+    won = found.ok & (p <= max_false_match)
+    take = rows[won]
+    solved[take] = True
+    if not take.size:
+        return result, solved
+
+    def filled(old, new):
+        base = np.array(old)  # a copy
+        base[take] = new[won]
+        return jnp.asarray(base)
+
+    b = ok.shape[0]
+    unfitted = np.full(rows.size, np.nan, np.float32)  # the camera check fits them next
+    attitude = np.full((b, 3, 3), np.nan, np.float32) if result.attitude is None else result.attitude
+    return Identification(
+        ids=filled(result.ids, found.ids), ok=filled(result.ok, found.ok),
+        attitude=filled(attitude, found.attitude.astype(np.float32)),
+        focal_scale=None if result.focal_scale is None else filled(result.focal_scale, unfitted),
+        distortion_k1=None if result.distortion_k1 is None else filled(result.distortion_k1, unfitted),
+    ), solved

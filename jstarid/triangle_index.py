@@ -1,0 +1,187 @@
+"""An index of the catalog's triangles by their two shortest sides: every star triangle that can lie
+in one frame, found from a measured triangle in a few binary searches.
+
+A triangle's sides sorted ascending, ``s₁ ≤ s₂ ≤ s₃`` (rad), do not depend on the order of its
+stars, and sorting moves no side by more than the largest error of any one side (the sorted order is
+1-Lipschitz in the largest-difference norm), so a measured triangle whose sides are each within ε
+of a catalog triangle's has sorted sides within ε of the catalog's sorted sides. The index cuts the
+(s₁, s₂) plane into square cells of width 2ε (ε = the build tolerance): a window ``[t − ε, t + ε]``
+spans at most two cells per axis, and the cells of one s₁ column are adjacent in the code order
+``code = c₁ · n_cells + c₂`` — so a query is two runs of the sorted codes, each found by a binary
+search (:func:`query`), and s₃ is checked on the run's entries.
+
+Built on the host from a pair table (:func:`jstarid.geometry.star_pairs.pair_table`), memoised per
+(stars, frame, tolerance). A triangle's sides are all at most the frame's diagonal; the table grows as
+the cube of the stars per field, so it is capped at :data:`MAX_TRIANGLES` (:func:`index_problem`
+says when a camera's catalog passes it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jstarid.geometry.star_pairs import frame_pair_angle, pair_table
+
+__all__ = ["MAX_TRIANGLES", "TriangleIndex", "build_triangle_index", "expected_triangles", "index_problem",
+           "query"]
+
+MAX_TRIANGLES = 6_000_000  # ≈ 170 MB of table: beyond it the catalog is too deep for the field
+_MEMO: dict = {}
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["codes", "stars", "sides"],
+                   meta_fields=["cell_rad", "n_cells", "run", "key"])
+@dataclasses.dataclass(frozen=True)
+class TriangleIndex:
+    """Catalog triangles sorted by cell (a pytree: arrays are leaves; the rest static).
+
+    Attributes:
+        codes: (T,) int32 cell code ``c₁ · n_cells + c₂`` of each triangle, ascending.
+        stars: (T, 3) int32 catalog rows; star m is opposite side m.
+        sides: (T, 3) float32 the sides s₁ ≤ s₂ ≤ s₃ (rad).
+        cell_rad: the cells' width 2ε (rad). n_cells: cells per axis.
+        run: the most triangles in two adjacent cells of one column (a query run's static length).
+        key: identifies the stars, frame and tolerance.
+    """
+
+    codes: jax.Array
+    stars: jax.Array
+    sides: jax.Array
+    cell_rad: float
+    n_cells: int
+    run: int
+    key: str = ""
+
+    @property
+    def size(self) -> int:
+        return int(self.codes.shape[0])
+
+
+def expected_triangles(n_stars: int, max_side_rad: float) -> float:
+    """About how many triangles of ``n_stars`` spread evenly over the sky have every side at most
+    ``max_side_rad`` (a star's neighbours within the angle, and the share of their pairs that are
+    neighbours too; ≈ 0.59 for a cap)."""
+    neighbours = n_stars * (1.0 - math.cos(max_side_rad)) / 2.0
+    return n_stars * neighbours * neighbours * 0.9 / 6.0
+
+
+def index_problem(n_stars: int, camera) -> str | None:
+    """Why a catalog of ``n_stars`` is too deep for a triangle index of ``camera``'s frame, or ``None``."""
+    expected = expected_triangles(n_stars, frame_pair_angle(camera))
+    if expected > MAX_TRIANGLES:
+        return (f"≈ {expected:,.0f} catalog triangles fit in a {camera.name} frame (more than "
+                f"{MAX_TRIANGLES:,}); the hypothesis search needs a brighter catalog")
+    return None
+
+
+def _triangles(vectors: np.ndarray, max_side: float) -> np.ndarray:
+    """(T, 3) int32 rows a < b < c of every triangle whose three sides are at most ``max_side``."""
+    n = vectors.shape[0]
+    _, pairs = pair_table(vectors, max_side)
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))].astype(np.int64)
+    edge_codes = pairs[:, 0] * n + pairs[:, 1]  # ascending: sorted by (first, second)
+    offsets = np.searchsorted(pairs[:, 0], np.arange(n + 1))
+    out = []
+    for a in range(n):
+        later = pairs[offsets[a]:offsets[a + 1], 1]  # neighbours after a, ascending
+        if later.size < 2:
+            continue
+        jb, jc = np.triu_indices(later.size, 1)
+        b, c = later[jb], later[jc]
+        code = b * n + c
+        at = np.minimum(np.searchsorted(edge_codes, code), edge_codes.size - 1)
+        keep = edge_codes[at] == code
+        if np.any(keep):
+            out.append(np.stack([np.full(int(keep.sum()), a), b[keep], c[keep]], 1))
+    return np.concatenate(out).astype(np.int32) if out else np.zeros((0, 3), np.int32)
+
+
+def build_triangle_index(vectors, camera, eps_rad: float) -> TriangleIndex:
+    """The triangle index of ``vectors`` for ``camera``'s frame at tolerance ``eps_rad`` (memoised).
+
+    Args:
+        vectors: (S, 3) ICRS unit vectors (row = catalog row).
+        camera: the :class:`~jstarid.camera.Camera`: sides up to its diagonal (with the pair table's
+            1 % margin).
+        eps_rad: the largest side tolerance a query may use (rad); the cells are 2ε wide.
+
+    Raises:
+        ValueError: a non-positive tolerance, or more than :data:`MAX_TRIANGLES` triangles
+            (:func:`index_problem`).
+    """
+    if not (math.isfinite(eps_rad) and eps_rad > 0):
+        raise ValueError(f"eps_rad must be a positive angle, got {eps_rad}")
+    vectors = np.asarray(vectors, np.float64)
+    max_side = frame_pair_angle(camera)
+    digest = hashlib.sha1(np.ascontiguousarray(vectors, np.float32).tobytes()).hexdigest()[:16]
+    key = f"{digest}-{max_side:.6e}-{eps_rad:.6e}"
+    if key in _MEMO:
+        return _MEMO[key]
+    problem = index_problem(vectors.shape[0], camera)
+    if problem:
+        raise ValueError(problem)
+    abc = _triangles(vectors, max_side)
+    if abc.shape[0] > MAX_TRIANGLES:
+        raise ValueError(f"{abc.shape[0]:,} catalog triangles fit in a {camera.name} frame (more than "
+                         f"{MAX_TRIANGLES:,}); the hypothesis search needs a brighter catalog")
+    va, vb, vc = vectors[abc[:, 0]], vectors[abc[:, 1]], vectors[abc[:, 2]]
+
+    def angle(u, v):  # atan2(|u × v|, u · v): exact at small separations
+        return np.arctan2(np.linalg.norm(np.cross(u, v), axis=1), np.sum(u * v, axis=1))
+
+    opposite = np.stack([angle(vb, vc), angle(va, vc), angle(va, vb)], 1)  # side opposite a, b, c
+    order = np.argsort(opposite, axis=1, kind="stable")
+    sides = np.take_along_axis(opposite, order, 1)
+    stars = np.take_along_axis(abc, order, 1)
+    cell = 2.0 * eps_rad
+    n_cells = int(math.floor(max_side / cell)) + 2
+    if n_cells * n_cells >= 2**31:
+        raise ValueError(f"a tolerance of {eps_rad:.3e} rad cuts a {camera.name} frame into too many cells")
+    c1, c2 = np.floor(sides[:, 0] / cell).astype(np.int64), np.floor(sides[:, 1] / cell).astype(np.int64)
+    codes = c1 * n_cells + c2
+    by_code = np.argsort(codes, kind="stable")
+    codes, stars, sides = codes[by_code], stars[by_code], sides[by_code]
+    # a query reads two adjacent cells of one column: the most triangles any such pair holds
+    counts = np.bincount(codes, minlength=n_cells * n_cells).reshape(n_cells, n_cells)
+    run = int(max(1, np.max(counts[:, :-1] + counts[:, 1:]) if counts.size else 1))
+    index = TriangleIndex(codes=jnp.asarray(codes.astype(np.int32)), stars=jnp.asarray(stars),
+                          sides=jnp.asarray(sides.astype(np.float32)), cell_rad=cell, n_cells=n_cells,
+                          run=run, key=key)
+    _MEMO[key] = index
+    return index
+
+
+def query(index: TriangleIndex, sides, eps_rad):
+    """Catalog triangles whose sorted sides are within ``eps_rad`` of ``sides`` (jit-able, fixed size).
+
+    Args:
+        index: the :class:`TriangleIndex` (``eps_rad`` at most its build tolerance).
+        sides: (3,) float32 the measured sides, ascending (rad).
+        eps_rad: () the tolerance (rad).
+
+    Returns:
+        ``(slots, match)``: (2·run,) int32 indices into the index's arrays and (2·run,) bool, True
+        where the triangle's three sides are within ``eps_rad``.
+    """
+    cell = index.cell_rad
+    last = index.n_cells - 1
+    lo1 = jnp.clip(jnp.floor((sides[0] - eps_rad) / cell), 0, last).astype(jnp.int32)
+    hi1 = jnp.clip(jnp.floor((sides[0] + eps_rad) / cell), 0, last).astype(jnp.int32)
+    lo2 = jnp.clip(jnp.floor((sides[1] - eps_rad) / cell), 0, last).astype(jnp.int32)
+    hi2 = jnp.clip(jnp.floor((sides[1] + eps_rad) / cell), 0, last).astype(jnp.int32)
+    columns = jnp.stack([lo1, hi1])
+    start = jnp.searchsorted(index.codes, columns * index.n_cells + lo2, side="left", method="scan")
+    stop = jnp.searchsorted(index.codes, columns * index.n_cells + hi2, side="right", method="scan")
+    stop = stop.at[1].set(jnp.where(hi1 == lo1, start[1], stop[1]))  # one column: read it once
+    slots = start[:, None] + jnp.arange(index.run, dtype=jnp.int32)[None, :]
+    live = slots < stop[:, None]
+    slots = jnp.minimum(slots, index.size - 1).reshape(-1)
+    near = jnp.all(jnp.abs(index.sides[slots] - sides[None, :]) <= eps_rad, axis=1)
+    return slots, live.reshape(-1) & near

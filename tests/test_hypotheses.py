@@ -1,0 +1,115 @@
+"""The hypothesis search of the finishing stage: the triangle index against brute force, and clutter."""
+
+import itertools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jstarid as js
+from jstarid.finishing import Finishing
+from jstarid.hypotheses import solve_unsolved
+from jstarid.scene import Identification
+from jstarid.triangle_index import build_triangle_index, index_problem, query
+
+
+def _cap_stars(n, radius_deg, seed):
+    """n random unit vectors within ``radius_deg`` of +z."""
+    rng = np.random.default_rng(seed)
+    cos_r = math.cos(math.radians(radius_deg))
+    z = rng.uniform(cos_r, 1.0, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(1 - z * z)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), z], 1)
+
+
+def _angle(u, v):
+    return np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), np.sum(u * v, axis=-1))
+
+
+def test_index_holds_every_triangle_and_queries_equal_brute_force():
+    vectors = _cap_stars(90, 12.0, 0)
+    cam = js.Camera(width=640, height=480, f_px=2400.0, name="tiny")  # ≈ 19° diagonal
+    eps = 2e-3
+    index = build_triangle_index(vectors, cam, eps)
+    max_side = 2.0 * cam.half_diagonal_rad * 1.01
+    abc = np.asarray(list(itertools.combinations(range(len(vectors)), 3)))
+    va, vb, vc = (vectors[abc[:, m]] for m in range(3))
+    all_sides = np.sort(np.stack([_angle(vb, vc), _angle(va, vc), _angle(va, vb)], 1), axis=1)
+    inside = all_sides[:, 2] <= max_side
+    brute = {tuple(t): s for t, s in zip(abc[inside].tolist(), all_sides[inside], strict=True)}
+    stars = np.asarray(index.stars)
+    assert {tuple(sorted(t)) for t in stars.tolist()} == set(brute) and len(stars) == len(brute)
+    # star m is opposite side m
+    v = vectors[stars]
+    opposite = np.stack([_angle(v[:, 1], v[:, 2]), _angle(v[:, 0], v[:, 2]), _angle(v[:, 0], v[:, 1])], 1)
+    np.testing.assert_allclose(opposite, np.asarray(index.sides), atol=1e-6)
+    keys = list(brute)
+    table = np.stack([brute[k] for k in keys])
+    rng = np.random.default_rng(1)
+    noise = rng.uniform(-0.9 * eps, 0.9 * eps, (40, 3))
+    probes = np.sort(table[np.arange(40) * 7 % len(keys)] + noise, axis=1)
+    slots, match = jax.jit(jax.vmap(query, in_axes=(None, 0, None)))(index, jnp.asarray(probes, jnp.float32),
+                                                                    jnp.float32(eps))
+    for sides, slot, hit in zip(probes.astype(np.float32), np.asarray(slots), np.asarray(match), strict=True):
+        found = {tuple(sorted(stars[s].tolist())) for s in slot[hit]}
+        gap = np.max(np.abs(table - sides), axis=1)
+        expected = {keys[k] for k in np.flatnonzero(gap <= eps - 1e-6)}
+        borderline = {keys[k] for k in np.flatnonzero(gap <= eps + 1e-6)}
+        assert expected <= found <= borderline
+
+
+def test_a_catalog_too_deep_for_the_frame_is_named_and_refused():
+    cam = js.camera_preset("sgm2022")
+    assert "brighter catalog" in index_problem(5070, cam)
+    assert index_problem(3000, js.Camera(width=1920, height=1440, f_px=10973.0)) is None
+
+
+@pytest.fixture(scope="module")
+def clutter_setup(catalog6):
+    cam = js.Camera(width=1280, height=960, f_px=1280 / (2 * math.tan(math.radians(4.0))), mag_limit=6.0,
+                    name="clutter8")
+    return catalog6, cam
+
+
+def test_stars_among_many_false_detections_are_found_and_random_points_never_claimed(clutter_setup):
+    cat, cam = clutter_setup
+    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=30, false_mag_min=1.0, false_mag_max=6.0,
+                           false_mag_slope=js.CATALOG_MAG_SLOPE)
+    scenes = js.simulate(jax.random.key(5), cat, cam, noise, batch_size=12, capacity=64)
+    b = scenes.batch_size
+    failed = Identification(ids=np.full((b, 64), -1, np.int32), ok=np.zeros(b, bool), attitude=None)
+    result, solved = solve_unsolved(failed, scenes, star_vectors=cat.unit_vectors, camera=cam, n_use=40,
+                                    eps_px=3.0, min_confirm=1, max_false_match=1e-3)
+    truth, ids, ok = np.asarray(scenes.truth), np.asarray(result.ids), np.asarray(result.ok)
+    stars = np.sum(truth >= 0, axis=1)
+    assert np.array_equal(ok, solved)
+    assert not np.any((ids >= 0) & (ids != truth))  # no wrong name anywhere
+    assert np.all(ids[~ok] == -1) and np.all(np.isnan(np.asarray(result.attitude)[~ok]))
+    assert np.all(ok[stars >= 7])  # plenty of stars among 30 false ones: solved
+    assert np.sum(ok) >= 8
+    # a solved scene's boresight is its truth's (within 20″)
+    true_z, found_z = np.asarray(scenes.attitude)[ok][:, 2], np.asarray(result.attitude)[ok][:, 2]
+    assert np.all(_angle(true_z.astype(np.float64), found_z.astype(np.float64)) < 1e-4)
+    rng = np.random.default_rng(3)
+    points = js.scenes_from_centroids([rng.uniform(0, 1, (30, 2)) * [1279, 959] for _ in range(12)],
+                                      [np.sort(rng.uniform(1, 6, 30)) for _ in range(12)], capacity=64)
+    _, claimed = solve_unsolved(failed, points, star_vectors=cat.unit_vectors, camera=cam, n_use=40,
+                                eps_px=3.0, min_confirm=1, max_false_match=1e-3)
+    assert not claimed.any()
+
+
+def test_solved_scenes_are_left_alone_and_the_setting_is_checked(clutter_setup):
+    cat, cam = clutter_setup
+    scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(), batch_size=3, capacity=32)
+    given = Identification(ids=jnp.asarray(scenes.truth), ok=jnp.ones(3, bool), attitude=None)
+    same, solved = solve_unsolved(given, scenes, star_vectors=cat.unit_vectors, camera=cam, n_use=32,
+                                  eps_px=3.0, min_confirm=1, max_false_match=1e-3)
+    assert same is given and not solved.any()
+    assert Finishing.off().hypotheses == 0 and Finishing().hypotheses == 48
+    for bad in ({"hypotheses": 3}, {"hypotheses": 65}, {"hypothesis_eps_px": 0.0},
+                {"hypothesis_false_match": 0.5}):
+        with pytest.raises(ValueError):
+            Finishing(**bad)
