@@ -33,6 +33,8 @@ def test_demo_adds_the_baselines_on_request(tmp_path):
     assert all(r["identification_rate"] == 1.0 for r in rows)  # noise-free scenes
 
 
+# slow (issue 69's 10-minute suite): grids and --set stay covered by test_engine and test_cli's other sweeps
+@pytest.mark.slow
 def test_sweep_with_a_grid_and_overrides(tmp_path):
     out = tmp_path / "grid"
     assert cli.main(["sweep", "--algorithms", "mlv", "--camera", "mlv2021", "--mag-limit", "5.5",

@@ -68,6 +68,9 @@ def _scene_arrays(n_scenes=2, camera_limit=6.5):
         11, n_scenes, camera_limit=camera_limit, position_sigma_px=0.2, capacity=256)]
 
 
+# slow (issue 69's 10-minute suite): js.solve and the CLI stay covered by the other
+# test_solution and test_cli tests
+@pytest.mark.slow
 def test_solve_names_the_deeper_stars_and_matches_the_cli(tmp_path):
     """Identified against V 5.5, named against the naming catalog: ≥ 95 % of the stars (to V 6.5)
     named, none wrong; ``jstarid identify`` on the same centroids gives the same names."""
@@ -156,6 +159,8 @@ def test_a_field_of_view_off_by_seven_percent_is_solved():
     assert sol.residual_arcsec < 0.5 * cam.pixel_scale_arcsec  # 0.2 px noise per axis, 89″/px
 
 
+# slow (issue 69's 10-minute suite): random points under the defaults stay in test_contract
+@pytest.mark.slow
 def test_random_points_are_not_claimed_under_the_wide_ladder():
     """Twenty focal-length retries are twenty more chances of a chance match: frames of random
     points (no star among them) still come back unsolved, none named."""
