@@ -25,7 +25,7 @@ from jstarid.runtime.program_store import stored_jit
 __all__ = [
     "random_rotation", "rotation_from_boresight", "rotation_to_radec_roll",
     "rotation_from_radec_roll", "quaternion_from_rotation", "rotation_from_quaternion",
-    "solve_wahba", "attitude_errors_arcsec", "estimate_attitude",
+    "solve_wahba", "triad", "attitude_errors_arcsec", "estimate_attitude",
 ]
 
 _RAD_TO_ARCSEC = 180.0 / jnp.pi * 3600.0
@@ -127,6 +127,24 @@ def rotation_to_radec_roll(c):
     x_axis = c[..., 0, :]
     roll = jnp.arctan2(jnp.sum(x_axis * north, -1), jnp.sum(x_axis * east, -1))
     return ra, dec, roll
+
+
+def triad(b1, b2, r1, r2):
+    """Attitude C (``v_cam = C r``) from two vector pairs (TRIAD, Shuster & Oh 1981): exact on the
+    first pair, the second fixes the roll about it.
+
+    Args:
+        b1, b2: (..., 3) unit vectors in the camera frame. r1, r2: (..., 3) their ICRS unit vectors.
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
+    def frame(u, v):
+        w = jnp.cross(u, v)
+        w = w / jnp.linalg.norm(w, axis=-1, keepdims=True)
+        return jnp.stack([u, w, jnp.cross(u, w)], -1)  # columns
+
+    return precise.einsum("...ik,...jk->...ij", frame(b1, b2), frame(r1, r2))
 
 
 def solve_wahba(body, ref, weights):

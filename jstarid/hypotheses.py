@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jstarid.attitude import solve_wahba
+from jstarid.attitude import solve_wahba, triad
 from jstarid.completion import first_argmax, name_stars
 from jstarid.geometry import precise
 from jstarid.geometry.angles import pairwise_angles
@@ -87,16 +87,6 @@ def all_triples(n: int) -> np.ndarray:
 def _turn(u, v, w):
     """Sign of the triple product u · (v × w), (..., 3) each → (...,) in {−1, 0, 1}."""
     return jnp.sign(jnp.sum(u * jnp.cross(v, w), axis=-1))
-
-
-def _triad(b1, b2, r1, r2):
-    """Attitude C (v_cam = C r) from two vector pairs (TRIAD, exact on the first)."""
-    def frame(u, v):
-        w = jnp.cross(u, v)
-        w = w / jnp.linalg.norm(w, axis=-1, keepdims=True)
-        return jnp.stack([u, w, jnp.cross(u, w)], -1)  # columns
-
-    return precise.einsum("...ik,...jk->...ij", frame(b1, b2), frame(r1, r2))
 
 
 def search_scene(xy, valid, mag, triples, *, index: TriangleIndex, star_vectors, cells, grid: int, camera,
@@ -152,7 +142,7 @@ def search_scene(xy, valid, mag, triples, *, index: TriangleIndex, star_vectors,
 
     def verify(hyp):
         v, s, alive = hyp
-        att = _triad(body[v[0]], body[v[1]], star_vectors[s[0]], star_vectors[s[1]])
+        att = triad(body[v[0]], body[v[1]], star_vectors[s[0]], star_vectors[s[1]])
         rows, vecs, _ = local_stars(cells, star_vectors, att[2], grid)
         sky = precise.small_matmul(body, att)  # (n, 3) r = Cᵀ v
         d = sky[:, None, :] - vecs[None, :, :]

@@ -88,3 +88,19 @@ def test_estimate_attitude_from_truth(catalog6, sgm_camera):
     # 0.5 px ≈ 35″ per star on this camera; tens of stars average it down
     assert np.median(bore) < 15 and np.median(roll) < 120
     assert np.all(np.asarray(resid)[np.asarray(have)] < 120)
+
+
+def test_triad_recovers_a_rotation_from_two_pairs_like_scipy():
+    """TRIAD on two noise-free vector pairs gives the rotation scipy's ``align_vectors`` finds."""
+    from jstarid.attitude import triad
+
+    rng = np.random.default_rng(4)
+    truth = Rotation.random(5, random_state=7).as_matrix()  # C: v_cam = C r
+    r = rng.normal(size=(5, 2, 3))
+    r /= np.linalg.norm(r, axis=-1, keepdims=True)
+    b = np.einsum("kij,knj->kni", truth, r)
+    got = np.asarray(triad(jnp.asarray(b[:, 0], jnp.float32), jnp.asarray(b[:, 1], jnp.float32),
+                           jnp.asarray(r[:, 0], jnp.float32), jnp.asarray(r[:, 1], jnp.float32)))
+    for k in range(5):
+        ref, _ = Rotation.align_vectors(b[k], r[k])
+        np.testing.assert_allclose(got[k], ref.as_matrix(), atol=2e-5)

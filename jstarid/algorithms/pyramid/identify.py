@@ -36,7 +36,7 @@ import numpy as np
 from jstarid.algorithms.base import check_scenes, tolerance_rad
 from jstarid.algorithms.pyramid.config import Config, Tuning
 from jstarid.algorithms.pyramid.database import Database, window_size
-from jstarid.attitude import solve_wahba
+from jstarid.attitude import solve_wahba, triad
 from jstarid.geometry import precise
 from jstarid.geometry.angles import pairwise_angles
 from jstarid.geometry.kvector import range_search
@@ -178,16 +178,6 @@ def candidate_triangles(theta_ij, theta_ik, theta_jk, turn, database: Database, 
     return abc, has, count, window_over | star_over | (count > capacity)
 
 
-def _triad(b1, b2, r1, r2):
-    """Attitude C (v_cam = C r) from two vector pairs (TRIAD, exact on the first): (..., 3) each."""
-    def frame(u, v):
-        w = jnp.cross(u, v)
-        w = w / jnp.linalg.norm(w, axis=-1, keepdims=True)
-        return jnp.stack([u, w, jnp.cross(u, w)], -1)  # columns
-
-    return precise.einsum("...ik,...jk->...ij", frame(b1, b2), frame(r1, r2))
-
-
 def _confirm(abc, has, tri, body, use, theta, database: Database, eps_rad):
     """Step 3 for one triple: which candidates a fourth detection confirms, and by which stars.
 
@@ -198,7 +188,7 @@ def _confirm(abc, has, tri, body, use, theta, database: Database, eps_rad):
     n = body.shape[0]
     vectors = database.star_vectors
     ref = vectors[abc]  # (C, 3, 3)
-    att = _triad(body[tri[0]][None], body[tri[1]][None], ref[:, 0], ref[:, 1])  # (C, 3, 3)
+    att = triad(body[tri[0]][None], body[tri[1]][None], ref[:, 0], ref[:, 1])  # (C, 3, 3)
     sky = precise.einsum("cji,nj->cni", att, body)  # (C, n, 3) each detection's direction in ICRS
     def around(boresight):
         return local_stars(database.cells, vectors, boresight, database.grid)
