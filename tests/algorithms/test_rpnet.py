@@ -235,8 +235,9 @@ def tiny():
                               eval_every=100, eval_size=128, pool_batches=3, sim_capacity=64, seed=1)
     cfg = rpnet.Config(rho_deg=20.0, e_deg=0.1, gen_widths=(64, 128), clf_width=64, training=training,
                        pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=16,
-                       # the passes under test; the ladder: test_camera_errors
-                       finishing=Finishing(focal_search=()))
+                       # the passes under test (the ladder: test_camera_errors; the hypothesis
+                       # search, which solves what the passes leave: test_hypotheses)
+                       finishing=Finishing(focal_search=(), hypotheses=0))
     db = rpnet.build_database(cat, cam, cfg, use_cache=False, progress=False)
     tables = data.build_tables(cat, cam, cfg, db.guide_rows)
     return cat, cam, cfg, db, tables
