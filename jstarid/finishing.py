@@ -33,13 +33,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Callable, Mapping
 from typing import NamedTuple
 
 import numpy as np
 
 from jstarid.camera_fit import MAX_TOL_PX, check_identification, search_focal
+from jstarid.hypotheses import SearchOutcome, solve_unsolved
 from jstarid.scene import Identification, Scene
+from jstarid.triangle_index import TooManyTriangles
 
 __all__ = ["Finished", "Finishing", "finish"]
 
@@ -139,11 +142,14 @@ class Finished(NamedTuple):
         laddered: (B,) bool NumPy, the scenes the first pass left unsolved and the ladder solved
             (before the check, which may unclaim some of them).
         searched: (B,) bool NumPy, the scenes the hypothesis search solved (before the check).
+        search_overflow: (B,) bool NumPy, scenes the search could not finish: more hypotheses than
+            it verifies (:class:`jstarid.hypotheses.SearchOutcome`).
     """
 
     result: Identification
     laddered: np.ndarray
     searched: np.ndarray
+    search_overflow: np.ndarray
 
 
 def finish(result: Identification, scenes: Scene, config: Finishing, *,
@@ -169,9 +175,13 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         :class:`Finished`.
     """
     b = scenes.batch_size
-    laddered = searched = np.zeros(b, bool)
+    laddered = searched = search_overflow = np.zeros(b, bool)
     if b and config.hypotheses:
-        result, searched = _search(result, scenes, config, camera, star_vectors)
+        result, searched, search_overflow = _search(result, scenes, config, camera, star_vectors)
+        if search_overflow.any():
+            warnings.warn(f"{int(search_overflow.sum())} scene(s): the hypothesis search found more "
+                          "hypotheses than it verifies and left the rest (Finished.search_overflow; "
+                          "fewer detections, Finishing.hypotheses, search less)", stacklevel=3)
     if b and config.focal_search:
         unsolved = ~np.asarray(result.ok)
         result = search_focal(rerun, result, scenes, camera, config.focal_search)
@@ -180,19 +190,17 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         result = check_identification(star_vectors, camera, scenes, result,
                                       max_scale_error=config.max_focal_error, max_tol_px=max_tol_px,
                                       star_mags=star_mags, studentized=config.studentized)
-    return Finished(result=result, laddered=laddered, searched=searched)
+    return Finished(result=result, laddered=laddered, searched=searched, search_overflow=search_overflow)
 
 
-def _search(result, scenes, config: Finishing, camera, star_vectors):
+def _search(result, scenes, config: Finishing, camera, star_vectors) -> SearchOutcome:
     """Step 0 (:func:`jstarid.hypotheses.solve_unsolved`), or the result as it is where the catalog has
     too many triangles per frame (a wide or deep field: many stars per frame, which the algorithms'
     own patterns find among clutter)."""
-    from jstarid.hypotheses import solve_unsolved
-    from jstarid.triangle_index import index_problem
-
-    problem = index_problem(int(np.shape(star_vectors)[0]), camera)
-    if problem:
-        return result, np.zeros(scenes.batch_size, bool)
-    return solve_unsolved(result, scenes, star_vectors=star_vectors, camera=camera, n_use=config.hypotheses,
-                          eps_px=config.hypothesis_eps_px, min_confirm=1,
-                          max_false_match=config.hypothesis_false_match)
+    try:
+        return solve_unsolved(result, scenes, star_vectors=star_vectors, camera=camera,
+                              n_use=config.hypotheses, eps_px=config.hypothesis_eps_px, min_confirm=1,
+                              max_false_match=config.hypothesis_false_match)
+    except TooManyTriangles:
+        nothing = np.zeros(scenes.batch_size, bool)
+        return SearchOutcome(result, nothing, nothing)

@@ -54,8 +54,8 @@ def test_finish_equals_the_ladder_then_the_check(world):
     first = _first_pass(truth)
     config = Finishing(studentized=True, max_focal_error=0.05, hypotheses=0)  # search: test_hypotheses
     calls = []
-    got, laddered, _ = finish(first, scenes, config, rerun=_rerun_naming(truth, calls), camera=camera,
-                           star_vectors=catalog.unit_vectors, star_mags=catalog.mag, max_tol_px=12.0)
+    got, laddered, *_ = finish(first, scenes, config, rerun=_rerun_naming(truth, calls), camera=camera,
+                               star_vectors=catalog.unit_vectors, star_mags=catalog.mag, max_tol_px=12.0)
     unsolved = ~np.asarray(first.ok)
     assert calls and all(np.all(unsolved[rows]) for rows in calls)
     np.testing.assert_array_equal(laddered, unsolved)
@@ -77,9 +77,10 @@ def test_finishing_off_returns_the_first_answer(world):
     catalog, camera, scenes, truth = world
     first = _first_pass(truth)
     calls = []
-    got, laddered, searched = finish(first, scenes, Finishing.off(), rerun=_rerun_naming(truth, calls),
-                                     camera=camera, star_vectors=catalog.unit_vectors)
-    assert got is first and not calls and not laddered.any() and not searched.any()
+    got, laddered, searched, overflow = finish(first, scenes, Finishing.off(),
+                                               rerun=_rerun_naming(truth, calls), camera=camera,
+                                               star_vectors=catalog.unit_vectors)
+    assert got is first and not calls and not laddered.any() and not searched.any() and not overflow.any()
 
 
 def test_check_alone_sets_focal_scale_and_leaves_failures(world):
@@ -87,7 +88,7 @@ def test_check_alone_sets_focal_scale_and_leaves_failures(world):
     catalog, camera, scenes, truth = world
     first = _first_pass(truth)
     calls = []
-    got, laddered, _ = finish(first, scenes, Finishing(focal_search=(), hypotheses=0),
+    got, laddered, *_ = finish(first, scenes, Finishing(focal_search=(), hypotheses=0),
                               rerun=_rerun_naming(truth, calls), camera=camera,
                               star_vectors=catalog.unit_vectors)
     assert not calls and not laddered.any()

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 import jstarid as js
-from jstarid.finishing import Finishing
+from jstarid.finishing import Finishing, finish
 from jstarid.hypotheses import solve_unsolved
 from jstarid.scene import Identification
-from jstarid.triangle_index import build_triangle_index, index_problem, query
+from jstarid.triangle_index import TooManyTriangles, build_triangle_index, index_problem, query
 
 
 def _cap_stars(n, radius_deg, seed):
@@ -61,10 +61,18 @@ def test_index_holds_every_triangle_and_queries_equal_brute_force():
         assert expected <= found <= borderline
 
 
-def test_a_catalog_too_deep_for_the_frame_is_named_and_refused():
+def test_a_catalog_too_deep_for_the_frame_is_named_and_refused(catalog6):
     cam = js.camera_preset("sgm2022")
     assert "brighter catalog" in index_problem(5070, cam)
     assert index_problem(3000, js.Camera(width=1920, height=1440, f_px=10973.0)) is None
+    with pytest.raises(TooManyTriangles, match="brighter catalog"):
+        build_triangle_index(catalog6.unit_vectors, cam, 1e-4)
+    # the finishing stage then leaves the scenes as the algorithm left them
+    scenes = js.simulate(jax.random.key(2), catalog6, cam, js.NoiseConfig(), batch_size=2, capacity=16)
+    failed = Identification(ids=np.full((2, 16), -1, np.int32), ok=np.zeros(2, bool), attitude=None)
+    finished = finish(failed, scenes, Finishing(focal_search=(), fit_focal=False), rerun=None, camera=cam,
+                      star_vectors=catalog6.unit_vectors)
+    assert finished.result is failed and not finished.searched.any()
 
 
 @pytest.fixture(scope="module")
@@ -81,8 +89,9 @@ def test_stars_among_many_false_detections_are_found_and_random_points_never_cla
     scenes = js.simulate(jax.random.key(5), cat, cam, noise, batch_size=12, capacity=64)
     b = scenes.batch_size
     failed = Identification(ids=np.full((b, 64), -1, np.int32), ok=np.zeros(b, bool), attitude=None)
-    result, solved = solve_unsolved(failed, scenes, star_vectors=cat.unit_vectors, camera=cam, n_use=40,
-                                    eps_px=3.0, min_confirm=1, max_false_match=1e-3)
+    result, solved, overflow = solve_unsolved(failed, scenes, star_vectors=cat.unit_vectors, camera=cam,
+                                              n_use=40, eps_px=3.0, min_confirm=1, max_false_match=1e-3)
+    assert not overflow.any()
     truth, ids, ok = np.asarray(scenes.truth), np.asarray(result.ids), np.asarray(result.ok)
     stars = np.sum(truth >= 0, axis=1)
     assert np.array_equal(ok, solved)
@@ -96,7 +105,7 @@ def test_stars_among_many_false_detections_are_found_and_random_points_never_cla
     rng = np.random.default_rng(3)
     points = js.scenes_from_centroids([rng.uniform(0, 1, (30, 2)) * [1279, 959] for _ in range(12)],
                                       [np.sort(rng.uniform(1, 6, 30)) for _ in range(12)], capacity=64)
-    _, claimed = solve_unsolved(failed, points, star_vectors=cat.unit_vectors, camera=cam, n_use=40,
+    _, claimed, _ = solve_unsolved(failed, points, star_vectors=cat.unit_vectors, camera=cam, n_use=40,
                                 eps_px=3.0, min_confirm=1, max_false_match=1e-3)
     assert not claimed.any()
 
@@ -105,7 +114,7 @@ def test_solved_scenes_are_left_alone_and_the_setting_is_checked(clutter_setup):
     cat, cam = clutter_setup
     scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(), batch_size=3, capacity=32)
     given = Identification(ids=jnp.asarray(scenes.truth), ok=jnp.ones(3, bool), attitude=None)
-    same, solved = solve_unsolved(given, scenes, star_vectors=cat.unit_vectors, camera=cam, n_use=32,
+    same, solved, _ = solve_unsolved(given, scenes, star_vectors=cat.unit_vectors, camera=cam, n_use=32,
                                   eps_px=3.0, min_confirm=1, max_false_match=1e-3)
     assert same is given and not solved.any()
     assert Finishing.off().hypotheses == 0 and Finishing().hypotheses == 48
@@ -113,3 +122,18 @@ def test_solved_scenes_are_left_alone_and_the_setting_is_checked(clutter_setup):
                 {"hypothesis_false_match": 0.5}):
         with pytest.raises(ValueError):
             Finishing(**bad)
+
+
+def test_hypotheses_past_the_capacity_are_flagged(clutter_setup):
+    """A search that cannot verify every hypothesis says so; what it claims still passes the test."""
+    cat, cam = clutter_setup
+    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=30, false_mag_min=1.0, false_mag_max=6.0,
+                           false_mag_slope=js.CATALOG_MAG_SLOPE)
+    scenes = js.simulate(jax.random.key(5), cat, cam, noise, batch_size=12, capacity=64)
+    failed = Identification(ids=np.full((12, 64), -1, np.int32), ok=np.zeros(12, bool), attitude=None)
+    result, solved, overflow = solve_unsolved(failed, scenes, star_vectors=cat.unit_vectors, camera=cam,
+                                              n_use=40, eps_px=3.0, min_confirm=1, max_false_match=1e-3,
+                                              capacity=8, per_triple=1)
+    assert overflow.all()
+    ids = np.asarray(result.ids)
+    assert not np.any((ids >= 0) & (ids != np.asarray(scenes.truth)))

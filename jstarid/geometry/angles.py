@@ -10,8 +10,9 @@ large jit, and the explicit form leaves nothing to rewrite.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["angle_between", "pairwise_angles"]
+__all__ = ["angle_between", "angle_between_host", "pairwise_angles", "turn_sign"]
 
 
 def angle_between(u, v):
@@ -26,6 +27,29 @@ def angle_between(u, v):
     return jnp.arctan2(cross, dot)
 
 
+def angle_between_host(u, v):
+    """:func:`angle_between` on the host in float64 NumPy (database builds): (n, 3) each → (n,) rad."""
+    u, v = np.asarray(u, np.float64), np.asarray(v, np.float64)
+    return np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), np.sum(u * v, axis=-1))
+
+
 def pairwise_angles(vectors):
     """(..., n, n) angles (rad) between every pair of the vectors (..., n, 3)."""
     return angle_between(vectors[..., :, None, :], vectors[..., None, :, :])
+
+
+def turn_sign(u, v, w):
+    """Sign of the triple product u · (v × w): which way a triangle of unit vectors turns. A rotation
+    keeps it, a mirror image flips it.
+
+    Args:
+        u, v, w: (..., 3) vectors.
+
+    Returns:
+        (...,) float32 in {−1, 0, 1}.
+    """
+    # written out by component, as angle_between is (module docstring)
+    cross = jnp.stack([v[..., 1] * w[..., 2] - v[..., 2] * w[..., 1],
+                       v[..., 2] * w[..., 0] - v[..., 0] * w[..., 2],
+                       v[..., 0] * w[..., 1] - v[..., 1] * w[..., 0]], -1)
+    return jnp.sign(u[..., 0] * cross[..., 0] + u[..., 1] * cross[..., 1] + u[..., 2] * cross[..., 2])

@@ -18,6 +18,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jstarid.catalog import cache_dir, load_or_build, read_arrays
+from jstarid.geometry.angles import angle_between_host
 from jstarid.geometry.kvector import KVector, build_kvector
 
 __all__ = ["MAX_PAIRS", "PairTable", "cached_pair_table", "expected_pairs", "frame_pair_angle",
@@ -79,8 +80,7 @@ def pair_table(vectors: np.ndarray, max_angle_rad: float, *, progress: bool = Fa
         keep = j > i
         i, j = i[keep], j[keep]
         u, v = vectors[i], vectors[j]
-        # atan2(|u × v|, u · v): full precision at small separations (jstarid.geometry.angles)
-        angles.append(np.arctan2(np.linalg.norm(np.cross(u, v), axis=1), np.sum(u * v, axis=1)))
+        angles.append(angle_between_host(u, v))  # full precision at small separations
         rows.append(np.stack([i, j], axis=1).astype(np.int32))
     angles = np.concatenate(angles) if angles else np.zeros((0,))
     rows = np.concatenate(rows) if rows else np.zeros((0, 2), np.int32)

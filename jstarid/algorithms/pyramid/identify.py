@@ -38,7 +38,7 @@ from jstarid.algorithms.pyramid.config import Config, Tuning
 from jstarid.algorithms.pyramid.database import Database, window_size
 from jstarid.attitude import solve_wahba, triad
 from jstarid.geometry import precise
-from jstarid.geometry.angles import pairwise_angles
+from jstarid.geometry.angles import pairwise_angles, turn_sign
 from jstarid.geometry.kvector import range_search
 from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, static_config, take_rows
 from jstarid.runtime.program_store import stored_jit
@@ -107,14 +107,6 @@ def _sq_dist(u, v):
     return d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
 
 
-def _turn(u, v, w):
-    """Sign of the triple product u · (v × w) (..., 3) → (...,) float32 in {−1, 0, 1}."""
-    cross = jnp.stack([v[..., 1] * w[..., 2] - v[..., 2] * w[..., 1],
-                       v[..., 2] * w[..., 0] - v[..., 0] * w[..., 2],
-                       v[..., 0] * w[..., 1] - v[..., 1] * w[..., 0]], -1)
-    return jnp.sign(u[..., 0] * cross[..., 0] + u[..., 1] * cross[..., 1] + u[..., 2] * cross[..., 2])
-
-
 def _partners_from(database: Database, stars, lower):
     """Index into ``database.partners`` of each star's first partner at angle ≥ ``lower`` (exact
     binary search inside the star's group; the group's end when none)."""
@@ -167,7 +159,8 @@ def candidate_triangles(theta_ij, theta_ik, theta_jk, turn, database: Database, 
     vectors = database.star_vectors
     va, vb, vc = vectors[a], vectors[b], vectors[c]
     chord = _sq_dist(vb[:, None, :], vc)
-    turns = _turn(jnp.broadcast_to(va[:, None, :], vc.shape), jnp.broadcast_to(vb[:, None, :], vc.shape), vc)
+    turns = turn_sign(jnp.broadcast_to(va[:, None, :], vc.shape), jnp.broadcast_to(vb[:, None, :], vc.shape),
+                      vc)
     match = (live[:, None] & inside & (c != b[:, None]) & (chord >= _chord2(theta_jk - eps_rad))
              & (chord <= _chord2(theta_jk + eps_rad)) & (turns == turn))
     count = jnp.sum(match).astype(jnp.int32)
@@ -234,7 +227,7 @@ def identify_scene(xy, valid, mag, overflow, eps_rad, *, database: Database, con
         t = jnp.stack([t[i_at], t[j_at], t[3 - i_at - j_at]])
         i, j, k = t[0], t[1], t[2]
         abc, has, count, over = candidate_triangles(
-            theta[i, j], theta[i, k], theta[j, k], _turn(body[i], body[j], body[k]), database, eps_rad,
+            theta[i, j], theta[i, k], theta[j, k], turn_sign(body[i], body[j], body[k]), database, eps_rad,
             window=window, star_capacity=config.star_capacity, capacity=config.triangle_capacity)
         fits, fourth = _confirm(abc, has, t, body, use, theta, database, eps_rad)
         confirmed = jnp.sum(fits, axis=1) >= config.min_confirm

@@ -87,10 +87,11 @@ def finishing_stage(db, scenes: Scene, result: Identification, config: Config, s
     """
     cap = config.focal_search_dw_max_deg
     retry = config if cap is None else dataclasses.replace(config, dw_max_deg=min(cap, config.dw_max_deg))
-    result, laddered, _ = finish(
+    finished = finish(
         result, scenes, config.finishing, rerun=lambda moved, rows: search(moved, retry),
         camera=db.camera, star_vectors=jnp.asarray(db.catalog.unit_vectors, jnp.float32),
         star_mags=db.catalog.mag, max_tol_px=camera_check_cap_px(config, db.camera))
+    result, laddered = finished.result, finished.laddered
     if scenes.batch_size and config.finishing.fit_focal and not with_attitude:
         result = dataclasses.replace(result, attitude=None)
     return result, laddered
