@@ -68,8 +68,8 @@ class Finishing:
         hypothesis_eps_px: the search's side and confirmation tolerance (px at the focal length).
         hypothesis_false_match: the largest false-match probability a claim of the search may have.
             Stricter than a single pattern's 1e-3: the search picks the best of thousands of
-            hypotheses, and at 80 false detections it found one wrong six-name claim at P = 1.5e-4
-            in 576 scenes (docs/design/hypotheses.md).
+            hypotheses, and a probe found one wrong six-name claim at P = 1.5e-4
+            (docs/design/hypotheses.md).
     """
 
     focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
