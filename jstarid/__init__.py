@@ -18,6 +18,7 @@ from jstarid.catalog import Catalog, load_catalog, v_from_hp
 from jstarid.centroid import CentroidConfig, extract_centroids
 from jstarid.compilation_cache import enable_compilation_cache
 from jstarid.completion import name_from_attitude
+from jstarid.detection_model import DetectionModel
 from jstarid.engine import Entry, SweepResult, compare, grid, sweep
 from jstarid.engine import load as load_sweep
 from jstarid.finishing import Finishing
@@ -39,7 +40,8 @@ from jstarid.solution import Solution, solve
 __version__ = "0.1.0"
 
 __all__ = [
-    "CATALOG_MAG_SLOPE", "Camera", "Catalog", "CentroidConfig", "Entry", "Finishing", "Identification",
+    "CATALOG_MAG_SLOPE", "Camera", "Catalog", "CentroidConfig", "DetectionModel", "Entry", "Finishing",
+    "Identification",
     "NoiseConfig", "Scene",
     "SensorConfig", "mean_electrons", "render", "sensor_for_camera",
     "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["threefry2x32", "scene_seed", "words", "unit_uniform", "unit_normal", "uniforms", "normals",
-           "POSITION", "MAG", "MISSING", "FALSE_XY", "FALSE_MAG", "FALSE_R", "FALSE_T"]
+           "POSITION", "MAG", "MISSING", "FALSE_XY", "FALSE_MAG", "FALSE_R", "FALSE_T", "FLUX"]
 
 
 def threefry2x32(k0, k1, x0, x1):
@@ -47,6 +47,7 @@ def threefry2x32(k0, k1, x0, x1):
 POSITION, MAG, MISSING, FALSE_XY, FALSE_MAG = 1, 2, 3, 4, 5
 FALSE_R, FALSE_T = 6, 7
 FALSE_COUNT = 8
+FLUX = 9  # the detection model's flux measurement (jstarid.detection_model)
 
 
 def scene_seed(key):

@@ -46,6 +46,7 @@ import numpy as np
 
 from jstarid import random_streams as streams
 from jstarid.attitude import random_rotation, rotation_from_boresight
+from jstarid.detection_model import DetectionModel, observe
 from jstarid.runtime import device_cache, map_batch, map_by_width, on_every_device
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene
@@ -195,7 +196,8 @@ def check_key(key) -> None:
 
 
 def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_size: int | None = None,
-             capacity: int = 64, boresight_ids=None, shard: bool = False) -> Scene:
+             capacity: int = 64, boresight_ids=None, shard: bool = False,
+             detection: DetectionModel | None = None) -> Scene:
     """Simulate a batch of scenes (conventions §3). A pure function of ``key`` and the settings.
 
     Args:
@@ -209,6 +211,10 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
             (mode b).
         shard: split the batch over every device (:func:`jstarid.runtime.map_batch`); the scenes
             are identical to the single-device call.
+        detection: a :class:`~jstarid.DetectionModel` (fields scalars or (B,) arrays): photometric
+            noise, completeness, bias and blends by magnitude, with ``noise``'s position and magnitude
+            σ as its floors. ``None`` (or :meth:`~jstarid.DetectionModel.ideal`): the papers' hard cut
+            at the camera's limit.
 
     Returns:
         A :class:`~jstarid.scene.Scene` of B scenes.
@@ -218,6 +224,7 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
             key that is not a PRNG key.
     """
     noise = _checked(noise, capacity)
+    detection = _checked_model(detection)
     if boresight_ids is not None:
         rows = np.asarray(boresight_ids)
         if rows.ndim != 1 or not np.issubdtype(rows.dtype, np.integer):
@@ -233,7 +240,7 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     check_key(key)
     plan = _plan(catalog, camera, noise, batch_size=int(batch_size), capacity=int(capacity),
-                 mode_b=boresight_ids is not None)
+                 mode_b=boresight_ids is not None, detection=detection)
     rows = (jnp.zeros((batch_size,), jnp.int32) if boresight_ids is None
             else jnp.asarray(boresight_ids, jnp.int32))
     if shard and jax.local_device_count() > 1:
@@ -245,7 +252,7 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
                       *on_every_device(catalog, "simulator_stars", lambda: tables[:3]))
         first = map_batch(_attitudes_of, (_scene_keys(key, batch_size), rows), (cat_vec,),
                           static=plan.stage1)
-        return map_batch(_stage2, (*first, plan.arrays[0]), replicated, static=plan.statics)
+        return map_batch(_stage2, (*first, *plan.arrays[:2]), replicated, static=plan.statics)
     return _draw(plan.arrays, key, rows, batch_size=int(batch_size), stage1=plan.stage1,
                  statics=plan.statics)
 
@@ -268,7 +275,8 @@ class SceneSampler(NamedTuple):
 
 
 def scene_sampler(catalog, camera, noise: NoiseConfig | None = None, *, batch_size: int,
-                  capacity: int = 64, mode_b: bool = False) -> SceneSampler:
+                  capacity: int = 64, mode_b: bool = False,
+                  detection: DetectionModel | None = None) -> SceneSampler:
     """The host-side work of :func:`simulate` done once, for a loop that draws many batches.
 
     ``sampler(key, rows)`` returns the batch that
@@ -291,23 +299,24 @@ def scene_sampler(catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         ValueError: as :func:`simulate` for bad settings.
     """
     noise = _checked(noise, capacity)
+    detection = _checked_model(detection)
     if not isinstance(batch_size, int | np.integer) or batch_size < 1:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     plan = _plan(catalog, camera, noise, batch_size=int(batch_size), capacity=int(capacity),
-                 mode_b=bool(mode_b))
+                 mode_b=bool(mode_b), detection=detection)
     return SceneSampler(plan.arrays, functools.partial(_draw, batch_size=int(batch_size),
                                                        stage1=plan.stage1, statics=plan.statics))
 
 
 def _draw(arrays, key, rows, *, batch_size, stage1, statics):
-    noise_b, index_arrays, star_tables, cat_vec = arrays
+    noise_b, model_b, index_arrays, star_tables, cat_vec = arrays
     if not stage1["mode_b"]:
         rows = jnp.zeros((batch_size,), jnp.int32)
     elif rows is None or jnp.shape(rows) != (batch_size,):  # shapes are static: checked under jit too
         raise ValueError(f"this sampler puts the boresights on catalog rows: give rows of shape "
                          f"({batch_size},), got {None if rows is None else jnp.shape(rows)}")
     seeds, att, cell = _attitudes(key, rows, cat_vec, **stage1)
-    return _stage2(seeds, att, cell, noise_b, *index_arrays, *star_tables, **statics)
+    return _stage2(seeds, att, cell, noise_b, model_b, *index_arrays, *star_tables, **statics)
 
 
 def _checked(noise: NoiseConfig | None, capacity) -> NoiseConfig:
@@ -317,6 +326,20 @@ def _checked(noise: NoiseConfig | None, capacity) -> NoiseConfig:
     if not isinstance(capacity, int | np.integer) or capacity < 1:
         raise ValueError(f"capacity must be a positive integer, got {capacity!r}")
     return noise
+
+
+def _checked_model(detection: DetectionModel | None) -> DetectionModel | None:
+    """The detection model validated; ``None`` for none or the ideal one (the same scenes either way,
+    and the papers' programs)."""
+    if detection is None:
+        return None
+    if not isinstance(detection, DetectionModel):
+        raise ValueError(f"detection must be a DetectionModel, got {type(detection).__name__}")
+    detection.validate()
+    if all(np.ndim(getattr(detection, f.name)) == 0 for f in dataclasses.fields(detection)) \
+            and detection == DetectionModel.ideal():
+        return None
+    return detection
 
 
 class _Plan(NamedTuple):
@@ -329,18 +352,30 @@ class _Plan(NamedTuple):
     arrays: tuple
 
 
-def _plan(catalog, camera, noise: NoiseConfig, *, batch_size: int, capacity: int, mode_b: bool) -> _Plan:
+def _plan(catalog, camera, noise: NoiseConfig, *, batch_size: int, capacity: int, mode_b: bool,
+          detection: DetectionModel | None = None) -> _Plan:
     sim_limit = catalog.mag_limit + catalog.settings["sim_margin"]
-    if camera.mag_limit > sim_limit + 1e-6:
+    max_msig = float(np.max(np.asarray(noise.magnitude_sigma)))
+    ideal = detection is None or bool(np.any(np.isinf(np.asarray(detection.zero_point_e))))
+    if ideal and camera.mag_limit > sim_limit + 1e-6:
         warnings.warn(f"camera limit V {camera.mag_limit} is deeper than the catalog's simulation "
                       f"list (V ≤ {sim_limit}); stars in between are missing from the scenes",
                       stacklevel=3)
+    limit = camera.mag_limit if ideal else -math.inf
+    if detection is not None and not np.all(np.isinf(np.asarray(detection.zero_point_e))):
+        seen = detection.faintest_detectable(max_msig, odds=1e-3)
+        if seen > sim_limit + 1e-6:
+            warnings.warn(f"the detection model still detects 0.1 % of the stars at V {seen:.1f}, "
+                          f"deeper than the catalog's simulation list (V ≤ {sim_limit}): the fainter "
+                          f"stars are missing from the scenes (load_catalog(sim_margin=…) reaches "
+                          f"deeper)", stacklevel=3)
+        limit = max(limit, math.ceil(10.0 * min(detection.faintest_detectable(), sim_limit)) / 10.0)
 
     margin = math.atan(1.0 / camera.f_px)  # a pixel of slack against rounding at the border
     # Stars fainter than the limit by more than 5.5 σ_m (detection odds < 2e-8) are left out of the
     # per-cell lists; the cut is rounded up to 0.1 mag so nearby σ share one index and compilation.
-    max_msig = float(np.max(np.asarray(noise.magnitude_sigma)))
-    faint_cut = camera.mag_limit + math.ceil(55.0 * max_msig) / 10.0
+    # Under a detection model the limit is where its odds fall below 1e-9.
+    faint_cut = limit + math.ceil(55.0 * max_msig) / 10.0
     subset = np.nonzero(catalog.sim_mag <= faint_cut)[0]
     index = build_sky_index(catalog.sim_unit_vectors, camera.half_diagonal_rad, margin_rad=margin,
                             subset=subset, key=f"{catalog.fingerprint}-sim-{faint_cut:.1f}")
@@ -351,19 +386,22 @@ def _plan(catalog, camera, noise: NoiseConfig, *, batch_size: int, capacity: int
         max_missing=int(np.max(np.asarray(noise.n_missing))),
         false_disk=bool(np.any(np.isfinite(np.asarray(noise.false_radius_px)))),
         n_candidates=index.capacity,
+        merge=detection is not None and bool(np.any(np.asarray(detection.merge_radius_px) > 0)),
     )
-    arrays = (noise.broadcast(batch_size), tuple(index.device_arrays()), tuple(tables[:3]), tables[3])
+    model_b = None if detection is None else detection.broadcast(batch_size)
+    arrays = (noise.broadcast(batch_size), model_b, tuple(index.device_arrays()), tuple(tables[:3]),
+              tables[3])
     return _Plan(index, dict(grid=index.grid, mode_b=mode_b), statics, arrays)
 
 
-def _stage2(seeds, att, cell, noise_b, cells, counts, star_vec, star_mag, star_row, *, n_candidates,
-            **statics):
+def _stage2(seeds, att, cell, noise_b, model_b, cells, counts, star_vec, star_mag, star_row, *,
+            n_candidates, **statics):
     """Steps 2–7 for a batch: one vmapped call for small batches, sorted chunks for large ones."""
     if seeds.shape[0] < _CHUNK_MIN_BATCH:
-        return _scenes_batch(seeds, noise_b, att, cell, cells, star_vec, star_mag, star_row,
+        return _scenes_batch(seeds, noise_b, model_b, att, cell, cells, star_vec, star_mag, star_row,
                              n_candidates=n_candidates, **statics)
-    return _scenes_chunked(seeds, noise_b, att, cell, cells, counts, star_vec, star_mag, star_row,
-                           widths=_candidate_widths(n_candidates), **statics)
+    return _scenes_chunked(seeds, noise_b, model_b, att, cell, cells, counts, star_vec, star_mag,
+                           star_row, widths=_candidate_widths(n_candidates), **statics)
 
 
 # Large batches are sorted by how many candidate stars their sky cell holds and processed in chunks
@@ -383,21 +421,21 @@ def _candidate_widths(k: int) -> tuple[int, ...]:
 
 
 @functools.partial(stored_jit, static_argnames=(
-    "camera", "capacity", "false_capacity", "max_missing", "false_disk", "widths"))
-def _scenes_chunked(seeds, noise, att, cell, cells, counts, star_vec, star_mag, star_row, *, camera,
-                    capacity, false_capacity, max_missing, false_disk, widths):
+    "camera", "capacity", "false_capacity", "max_missing", "false_disk", "merge", "widths"))
+def _scenes_chunked(seeds, noise, model, att, cell, cells, counts, star_vec, star_mag, star_row, *,
+                    camera, capacity, false_capacity, max_missing, false_disk, merge=False, widths):
     """Steps 2–7 for a large batch, in chunks sorted by candidate count, each with the narrowest
     candidate list that holds it (:func:`jstarid.runtime.map_by_width`)."""
     def run(width):
         def fn(args):
-            k, nz, a, c = args
+            k, nz, md, a, c = args
             return _scenes_batch(
-                k, nz, a, c, cells, star_vec, star_mag, star_row, camera=camera, capacity=capacity,
+                k, nz, md, a, c, cells, star_vec, star_mag, star_row, camera=camera, capacity=capacity,
                 false_capacity=false_capacity, max_missing=max_missing, false_disk=false_disk,
-                n_candidates=width, adaptive=True)
+                merge=merge, n_candidates=width, adaptive=True)
         return fn
 
-    return map_by_width(run, (seeds, noise, att, cell), counts[cell], widths, _CHUNK)
+    return map_by_width(run, (seeds, noise, model, att, cell), counts[cell], widths, _CHUNK)
 
 
 def _device_tables(catalog):
@@ -446,9 +484,11 @@ def _attitudes_of(keys, rows, cat_vec, *, grid, mode_b):
 
 
 @functools.partial(stored_jit, static_argnames=(
-    "camera", "capacity", "false_capacity", "max_missing", "false_disk", "n_candidates", "adaptive"))
-def _scenes_batch(seeds, noise, att, cell, cells, star_vec, star_mag, star_row, *, camera, capacity,
-                  false_capacity, max_missing, false_disk, n_candidates, adaptive=False):
+    "camera", "capacity", "false_capacity", "max_missing", "false_disk", "merge", "n_candidates",
+    "adaptive"))
+def _scenes_batch(seeds, noise, model, att, cell, cells, star_vec, star_mag, star_row, *, camera,
+                  capacity, false_capacity, max_missing, false_disk, n_candidates, merge=False,
+                  adaptive=False):
     """Steps 2–7 for a batch, given attitudes and sky cells; ``cells[:, :n_candidates]`` is used.
 
     ``adaptive`` (the large-batch chunks, sorted by candidate count): step 7 selects with the smallest k
@@ -456,13 +496,13 @@ def _scenes_batch(seeds, noise, att, cell, cells, star_vec, star_mag, star_row, 
     ``top_k``'s cost grows with k). The scenes are the same for every k (:func:`_brightest`). Small
     batches use k = capacity alone (extra branches would lengthen compilation, their main cost).
     """
-    def detections(seed, noise_i, att_i, cell_i):
-        return _detections(seed, noise_i, att_i, cells[cell_i, :n_candidates], star_vec=star_vec,
-                           star_mag=star_mag, star_row=star_row, camera=camera,
+    def detections(seed, noise_i, model_i, att_i, cell_i):
+        return _detections(seed, noise_i, model_i, att_i, cells[cell_i, :n_candidates],
+                           star_vec=star_vec, star_mag=star_mag, star_row=star_row, camera=camera,
                            false_capacity=false_capacity, max_missing=max_missing,
-                           false_disk=false_disk)
+                           false_disk=false_disk, merge=merge)
 
-    det = jax.vmap(detections)(seeds, noise, att, cell)
+    det = jax.vmap(detections)(seeds, noise, model, att, cell)
 
     def keep_brightest(k):
         def one(seed, noise_i, att_i, det_i):
@@ -492,13 +532,13 @@ def _keep_sizes(k_max: int) -> tuple[int, ...]:
 
 
 def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_vec, camera, capacity,
-                  grid, false_capacity, max_missing, mode_b, false_disk=True):
+                  grid, false_capacity, max_missing, mode_b, false_disk=True, model=None, merge=False):
     """One whole scene (steps 1–7) with the full candidate list: the per-scene reference."""
     att = _attitude_one(key, row, cat_vec, mode_b)
     return _scene_from_attitude(
         streams.scene_seed(key), noise, att, cells[cell_of(att[2], grid)], star_vec=star_vec,
         star_mag=star_mag, star_row=star_row, camera=camera, capacity=capacity, false_capacity=false_capacity,
-        max_missing=max_missing, false_disk=false_disk)
+        max_missing=max_missing, false_disk=false_disk, model=model, merge=merge)
 
 
 def _drop_missing(seed, detected, n_missing, max_missing):
@@ -531,7 +571,7 @@ def _drop_missing(seed, detected, n_missing, max_missing):
 
 
 def _scene_from_attitude(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, capacity,
-                         false_capacity, max_missing, false_disk=True):
+                         false_capacity, max_missing, false_disk=True, model=None, merge=False):
     """Steps 2–7 for one scene (module docstring); ``noise`` fields are scalars here.
 
     Args:
@@ -542,10 +582,12 @@ def _scene_from_attitude(seed, noise, att, idx, *, star_vec, star_mag, star_row,
         idx: (K,) candidate simulation-star indices (a prefix of the cell's list, padded with the
             sentinel row); the draws of candidate i do not depend on K.
         false_disk: static; False when no scene has a finite ``false_radius_px`` (disk draws skipped).
+        model: the scene's :class:`~jstarid.DetectionModel` or ``None`` (the camera's cut).
+        merge: static; blends are drawn (some scene's ``merge_radius_px`` > 0).
     """
-    det = _detections(seed, noise, att, idx, star_vec=star_vec, star_mag=star_mag, star_row=star_row,
-                      camera=camera, false_capacity=false_capacity, max_missing=max_missing,
-                      false_disk=false_disk)
+    det = _detections(seed, noise, model, att, idx, star_vec=star_vec, star_mag=star_mag,
+                      star_row=star_row, camera=camera, false_capacity=false_capacity,
+                      max_missing=max_missing, false_disk=false_disk, merge=merge)
     k_keep = min(capacity, det.mag.shape[0])
     return _keep_brightest(seed, noise, att, det, _brightest(det, k_keep), capacity=capacity,
                            n_cand=idx.shape[0])
@@ -560,7 +602,8 @@ class _Detections(NamedTuple):
         detected: (n,) bool.
         truth: (n,) catalog rows, −1 for false stars.
         n_detected: int32 scalar.
-        false_overflow: bool scalar, false stars beyond the buffer.
+        false_overflow: bool scalar, false stars beyond the buffer (or blends beyond their window).
+        sigma_px: (n,) position noise σ of each true star (px).
     """
 
     xy: jax.Array
@@ -569,10 +612,11 @@ class _Detections(NamedTuple):
     truth: jax.Array
     n_detected: jax.Array
     false_overflow: jax.Array
+    sigma_px: jax.Array
 
 
-def _detections(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, false_capacity,
-                max_missing, false_disk):
+def _detections(seed, noise, model, att, idx, *, star_vec, star_mag, star_row, camera, false_capacity,
+                max_missing, false_disk, merge=False):
     """Steps 2–6 for one scene (arguments as :func:`_scene_from_attitude`)."""
     n_cand = idx.shape[0]
 
@@ -585,8 +629,14 @@ def _detections(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, 
     xy = jnp.stack([x, y], -1)
 
     # 3. magnitude noise before the detection limit; the star is in the field by its true position
-    obs_mag = star_mag[idx] + noise.magnitude_sigma * streams.normals(seed, streams.MAG, n_cand)
-    detected = in_field & (obs_mag <= camera.mag_limit) & jnp.isfinite(obs_mag)
+    if model is None:
+        obs_mag = star_mag[idx] + noise.magnitude_sigma * streams.normals(seed, streams.MAG, n_cand)
+        detected = in_field & (obs_mag <= camera.mag_limit) & jnp.isfinite(obs_mag)
+        sigma = jnp.broadcast_to(noise.position_sigma_px, (n_cand,))
+        blend_overflow = jnp.bool_(False)
+    else:  # photometry, completeness and blends by magnitude (jstarid.detection_model)
+        obs_mag, detected, sigma, xy, blend_overflow = observe(
+            seed, model, noise, star_mag[idx], xy, in_field, camera=camera, merge=merge)
 
     # 5. missing stars
     if max_missing > 0:
@@ -605,11 +655,12 @@ def _detections(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, 
         obs_mag = jnp.concatenate([obs_mag, f_mag])
         detected = jnp.concatenate([detected, f_on])
         truth = jnp.concatenate([truth, jnp.full((false_capacity,), -1, jnp.int32)])
+        sigma = jnp.concatenate([sigma, jnp.zeros((false_capacity,), sigma.dtype)])
     else:
         false_overflow = jnp.bool_(False)
 
     return _Detections(xy, obs_mag, detected, truth, jnp.sum(detected, dtype=jnp.int32),
-                       false_overflow)
+                       false_overflow | blend_overflow, sigma)
 
 
 def _brightest(det, k):
@@ -633,7 +684,7 @@ def _keep_brightest(seed, noise, att, det, keep, *, capacity, n_cand):
     #    The (k, 2) draws come straight from 2-d counters and the positions from one gather of (x, y)
     #    rows: fused with a stack of separate x and y columns, the draws were recomputed per output
     #    element and not vectorised.
-    jitter = noise.position_sigma_px * streams.normals(seed, streams.POSITION, (k, 2))
+    jitter = det.sigma_px[keep][:, None] * streams.normals(seed, streams.POSITION, (k, 2))
     jitter = jnp.where((keep < n_cand)[:, None], jitter, 0.0)
     out_xy = jnp.where(valid[:, None], det.xy[keep] + jitter, 0.0)
     out_mag = jnp.where(valid, det.mag[keep], jnp.inf)

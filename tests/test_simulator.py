@@ -275,9 +275,10 @@ def test_keep_brightest_same_for_every_selection_size():
         det = sim_module._Detections(
             xy=jnp.asarray(rng.uniform(0, 1000, (n, 2)), jnp.float32), mag=jnp.asarray(mag, jnp.float32),
             detected=jnp.asarray(detected), truth=jnp.arange(n, dtype=jnp.int32),
-            n_detected=jnp.int32(detected.sum()), false_overflow=jnp.bool_(False))
+            n_detected=jnp.int32(detected.sum()), false_overflow=jnp.bool_(False),
+            sigma_px=jnp.ones((n,), jnp.float32))
         seed = jnp.asarray([trial, 7], jnp.uint32)
-        noise = js.NoiseConfig(position_sigma_px=1.0)
+        noise = js.NoiseConfig()
         scenes = [sim_module._keep_brightest(seed, noise, jnp.eye(3), det, sim_module._brightest(det, k),
                                              capacity=capacity, n_cand=n) for k in (16, 32, 64)]
         expect = np.argsort(np.where(detected, mag, np.inf), kind="stable")[:detected.sum()]

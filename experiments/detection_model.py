@@ -1,0 +1,200 @@
+"""The detection model beside rendered and real frames: completeness, magnitude and position residuals by
+magnitude, and detections per frame, for the ``tetra3_test`` camera.
+
+Three sources, measured the same way (every catalog star in the field, V ≤ 10, is a star that could be
+detected; a detection within 1.5 px of one is that star):
+
+- ``model``: ``js.simulate(..., detection=js.DetectionModel.from_sensor(camera))``, centroids drawn
+  straight from the model (no pixels);
+- ``rendered``: the same attitudes rendered (``js.render``, ``js.sensor_for_camera``) and extracted
+  (``js.extract_centroids``);
+- ``real``: the four frames of ``shared/data/real`` (when present), at the attitudes fitted to their
+  reference solutions' matched stars, extracted the same way.
+
+Usage::
+
+    python experiments/detection_model.py               # 200 frames per source, ≈ 2 min on 2 cores
+
+Writes results/detection_model/{config.json, results.json, table.md, curves.png}.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import jstarid as js
+from jstarid import experiment as ex
+from jstarid.engine.pixels import detect_scenes
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+IMAGE_EPOCH = 2019.57  # the real frames' date (Julian years)
+DEEP = 10.0  # V: catalog stars to this depth are the stars that could be detected
+BINS = np.arange(3.0, 10.01, 0.5)
+MATCH_PX = 1.5
+
+
+def parse_args(argv=None):
+    p = ex.parser(__doc__.splitlines()[0], out="results/detection_model")
+    p.add_argument("--frames", type=int, default=200, help="simulated and rendered frames")
+    p.add_argument("--data", type=Path, default=DATA, help="folder of real frames + reference.json")
+    return p.parse_args(argv)
+
+
+def matched(det_xy, det_mag, star_xy, star_v):
+    """Per star of one frame: detected?, measured − catalog magnitude, position residual (2,) (px)."""
+    found = np.zeros(len(star_xy), bool)
+    dmag = np.full(len(star_xy), np.nan)
+    dxy = np.full((len(star_xy), 2), np.nan)
+    if len(det_xy) and len(star_xy):
+        d = np.linalg.norm(det_xy[:, None] - star_xy[None], axis=-1)
+        j = np.argmin(d, axis=1)
+        for i in np.argsort(det_mag):  # brightest detection first claims its star
+            if d[i, j[i]] < MATCH_PX and not found[j[i]]:
+                found[j[i]] = True
+                dmag[j[i]] = det_mag[i] - star_v[j[i]]
+                dxy[j[i]] = det_xy[i] - star_xy[j[i]]
+    return found, dmag, dxy
+
+
+def curves(frames) -> dict:
+    """Binned curves from ``[(found, dmag, dxy, star_v, n_detections), …]`` (one per frame)."""
+    found = np.concatenate([f[0] for f in frames])
+    dmag = np.concatenate([f[1] for f in frames])
+    dxy = np.concatenate([f[2] for f in frames])
+    v = np.concatenate([f[3] for f in frames])
+    out = {"completeness": [], "mag_bias": [], "mag_sigma": [], "position_sigma_px": [], "stars": []}
+    for lo in BINS[:-1]:
+        sel = (v >= lo) & (v < lo + 0.5)
+        hit = sel & found
+        out["stars"].append(int(sel.sum()))
+        out["completeness"].append(float(found[sel].mean()) if sel.sum() >= 5 else None)
+        if hit.sum() >= 5:
+            r = dmag[hit]
+            out["mag_bias"].append(float(np.median(r)))
+            out["mag_sigma"].append(float(1.4826 * np.median(np.abs(r - np.median(r)))))
+            p = dxy[hit] - np.median(dxy[hit], axis=0)
+            out["position_sigma_px"].append(float(1.4826 * np.median(np.abs(p))))
+        else:
+            for k in ("mag_bias", "mag_sigma", "position_sigma_px"):
+                out[k].append(None)
+    out["detections_per_frame"] = float(np.median([f[4] for f in frames]))
+    return out
+
+
+def simulated_sources(args, camera, sensor, model) -> dict:
+    """Model and rendered frames at the same random attitudes."""
+    catalog = js.load_catalog(DEEP, sim_margin=0.5)
+    deep = dataclasses.replace(camera, mag_limit=DEEP)
+    key = jax.random.key(args.seed)
+    sky = js.simulate(key, catalog, deep, batch_size=args.frames, capacity=1024)
+    drawn = js.simulate(key, catalog, camera, js.NoiseConfig(), batch_size=args.frames, capacity=512,
+                        detection=model)
+    frame_keys = jax.random.split(jax.random.key(args.seed + 1), args.frames)
+    rendered, _ = detect_scenes(frame_keys, sky, deep, sensor, js.CentroidConfig(), capacity=512)
+    out = {}
+    for name, scenes in (("model", drawn), ("rendered", rendered)):
+        frames = []
+        for b in range(args.frames):
+            sv = np.asarray(sky.valid[b])
+            star_xy, star_v = np.asarray(sky.xy[b])[sv], np.asarray(sky.mag[b])[sv]
+            dv = np.asarray(scenes.valid[b])
+            det_xy, det_mag = np.asarray(scenes.xy[b])[dv], np.asarray(scenes.mag[b])[dv]
+            frames.append((*matched(det_xy, det_mag, star_xy, star_v), star_v, int(dv.sum())))
+        out[name] = curves(frames)
+        out[name]["overflow_frames"] = int(np.asarray(scenes.overflow).sum())
+    return out
+
+
+def real_source(args, camera, sensor) -> dict | None:
+    """The shared real frames at their reference attitudes, extracted as the rendered ones."""
+    if not (args.data / "reference.json").exists():
+        return None
+    catalog = js.load_catalog(DEEP, epoch=IMAGE_EPOCH)
+    ref = json.loads((args.data / "reference.json").read_text())
+    centroid = js.CentroidConfig(zero_point=sensor.zero_point())
+    frames = []
+    for name, r in sorted(ref.items()):
+        image = js.read_image(args.data / name).astype(np.float32)
+        rows = catalog.row_of_hip([m["hip"] for m in r["matches"]])
+        ref_xy = np.array([[m["x"], m["y"]] for m in r["matches"]]) - 0.5  # corner → centre origin
+        keep = rows >= 0
+        body = np.asarray(camera.unproject(ref_xy[keep]))
+        c = np.asarray(js.solve_wahba(body, catalog.unit_vectors[rows[keep]], np.ones(int(keep.sum()))))
+        proj, front = (np.asarray(a) for a in camera.project(np.einsum("ij,nj->ni", c, catalog.unit_vectors)))
+        inside = front & np.asarray(camera.contains(proj))
+        found = js.extract_centroids(image[None], centroid, capacity=512)
+        dv = np.asarray(found.valid[0])
+        det_xy, det_mag = np.asarray(found.xy[0])[dv], np.asarray(found.mag[0])[dv]
+        star_v = catalog.mag[inside]
+        frames.append((*matched(det_xy, det_mag, proj[inside], star_v), star_v, int(dv.sum())))
+    return curves(frames) | {"frames": len(frames)}
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    js.use_cpu_cores()
+    camera = js.camera_preset("tetra3_test")
+    sensor = js.sensor_for_camera(camera)
+    model = js.DetectionModel.from_sensor(camera, sensor)
+    results = simulated_sources(args, camera, sensor, model)
+    real = real_source(args, camera, sensor)
+    if real is not None:
+        results["real"] = real
+    results["model_fields"] = dataclasses.asdict(model)
+    results["bins_v"] = BINS.tolist()
+    ex.write(args.out, config=vars(args), results=results, table=format_table(results),
+             figures={"curves.png": draw})
+    print(format_table(results))
+
+
+def _cell(x, fmt):
+    return "–" if x is None else format(x, fmt)
+
+
+def format_table(results) -> str:
+    """table.md: one row per magnitude bin, the three sources side by side."""
+    sources = [s for s in ("model", "rendered", "real") if s in results]
+    head = ["V"] + [f"{q} {s}" for q in ("complete", "Δm", "σm", "σxy px") for s in sources]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for i, lo in enumerate(results["bins_v"][:-1]):
+        row = [f"{lo:.1f}–{lo + 0.5:.1f}"]
+        for q, fmt in (("completeness", ".2f"), ("mag_bias", "+.2f"), ("mag_sigma", ".2f"),
+                       ("position_sigma_px", ".3f")):
+            row += [_cell(results[s][q][i], fmt) for s in sources]
+        lines.append("| " + " | ".join(row) + " |")
+    lines.append("")
+    lines.append("Detections per frame (median): " + ", ".join(
+        f"{s} {results[s]['detections_per_frame']:.0f}" for s in sources))
+    return "\n".join(lines) + "\n"
+
+
+def draw(results, path):
+    import matplotlib.pyplot as plt
+
+    mid = np.asarray(results["bins_v"][:-1]) + 0.25
+    panels = (("completeness", "completeness"), ("mag_bias", "measured − catalog V (mag)"),
+              ("mag_sigma", "magnitude σ (mag)"), ("position_sigma_px", "position σ per axis (px)"))
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3.8))
+    for ax, (key, label) in zip(axes, panels, strict=True):
+        for source, style in (("model", "-o"), ("rendered", "--s"), ("real", ":^")):
+            if source in results:
+                y = np.array([np.nan if v is None else v for v in results[source][key]])
+                ax.plot(mid, y, style, label=source, ms=4)
+        ax.set_xlabel("catalog V (mag)")
+        ax.set_ylabel(label)
+        if key == "position_sigma_px":
+            ax.set_yscale("log")
+    axes[0].legend()
+    fig.suptitle("tetra3_test: the detection model beside rendered and real frames")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
