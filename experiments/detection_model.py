@@ -9,7 +9,9 @@ detected; a detection within 1.5 px of one is that star):
 - ``rendered``: the same attitudes rendered (``js.render``, ``js.sensor_for_camera``) and extracted
   (``js.extract_centroids``);
 - ``real``: the four frames of ``shared/data/real`` (when present), at the attitudes fitted to their
-  reference solutions' matched stars, extracted the same way.
+  reference solutions' matched stars, extracted the same way;
+- ``fitted``: ``js.DetectionModel.fit`` to the real frames' stars, simulated at the model's attitudes
+  (with the fit's floors as ``NoiseConfig``).
 
 Usage::
 
@@ -46,19 +48,21 @@ def parse_args(argv=None):
 
 
 def matched(det_xy, det_mag, star_xy, star_v):
-    """Per star of one frame: detected?, measured − catalog magnitude, position residual (2,) (px)."""
+    """Per star of one frame: detected?, measured − catalog magnitude, position residual (2,) (px);
+    and the magnitudes of the detections that are no star."""
     found = np.zeros(len(star_xy), bool)
     dmag = np.full(len(star_xy), np.nan)
     dxy = np.full((len(star_xy), 2), np.nan)
+    claimed = np.zeros(len(det_xy), bool)
     if len(det_xy) and len(star_xy):
         d = np.linalg.norm(det_xy[:, None] - star_xy[None], axis=-1)
         j = np.argmin(d, axis=1)
         for i in np.argsort(det_mag):  # brightest detection first claims its star
             if d[i, j[i]] < MATCH_PX and not found[j[i]]:
-                found[j[i]] = True
+                found[j[i]] = claimed[i] = True
                 dmag[j[i]] = det_mag[i] - star_v[j[i]]
                 dxy[j[i]] = det_xy[i] - star_xy[j[i]]
-    return found, dmag, dxy
+    return found, dmag, dxy, det_mag[~claimed]
 
 
 def curves(frames) -> dict:
@@ -86,8 +90,8 @@ def curves(frames) -> dict:
     return out
 
 
-def simulated_sources(args, camera, sensor, model) -> dict:
-    """Model and rendered frames at the same random attitudes."""
+def simulated_sources(args, camera, sensor, model, fitted=None) -> dict:
+    """Model and rendered frames (and the fitted model's) at the same random attitudes."""
     catalog = js.load_catalog(DEEP, sim_margin=0.5)
     deep = dataclasses.replace(camera, mag_limit=DEEP)
     key = jax.random.key(args.seed)
@@ -96,28 +100,33 @@ def simulated_sources(args, camera, sensor, model) -> dict:
                         detection=model)
     frame_keys = jax.random.split(jax.random.key(args.seed + 1), args.frames)
     rendered, _ = detect_scenes(frame_keys, sky, deep, sensor, js.CentroidConfig(), capacity=512)
+    sources = [("model", drawn), ("rendered", rendered)]
+    if fitted is not None:
+        sources.append(("fitted", js.simulate(key, catalog, camera, fitted.noise(), batch_size=args.frames,
+                                              capacity=512, detection=fitted.model)))
     out = {}
-    for name, scenes in (("model", drawn), ("rendered", rendered)):
+    for name, scenes in sources:
         frames = []
         for b in range(args.frames):
             sv = np.asarray(sky.valid[b])
             star_xy, star_v = np.asarray(sky.xy[b])[sv], np.asarray(sky.mag[b])[sv]
             dv = np.asarray(scenes.valid[b])
             det_xy, det_mag = np.asarray(scenes.xy[b])[dv], np.asarray(scenes.mag[b])[dv]
-            frames.append((*matched(det_xy, det_mag, star_xy, star_v), star_v, int(dv.sum())))
+            frames.append((*matched(det_xy, det_mag, star_xy, star_v)[:3], star_v, int(dv.sum())))
         out[name] = curves(frames)
         out[name]["overflow_frames"] = int(np.asarray(scenes.overflow).sum())
     return out
 
 
-def real_source(args, camera, sensor) -> dict | None:
-    """The shared real frames at their reference attitudes, extracted as the rendered ones."""
+def real_source(args, camera, sensor):
+    """The shared real frames at their reference attitudes, extracted as the rendered ones: their
+    curves and the fitted model (``None`` without the frames)."""
     if not (args.data / "reference.json").exists():
         return None
     catalog = js.load_catalog(DEEP, epoch=IMAGE_EPOCH)
     ref = json.loads((args.data / "reference.json").read_text())
     centroid = js.CentroidConfig(zero_point=sensor.zero_point())
-    frames = []
+    frames, loose = [], []
     for name, r in sorted(ref.items()):
         image = js.read_image(args.data / name).astype(np.float32)
         rows = catalog.row_of_hip([m["hip"] for m in r["matches"]])
@@ -131,8 +140,15 @@ def real_source(args, camera, sensor) -> dict | None:
         dv = np.asarray(found.valid[0])
         det_xy, det_mag = np.asarray(found.xy[0])[dv], np.asarray(found.mag[0])[dv]
         star_v = catalog.mag[inside]
-        frames.append((*matched(det_xy, det_mag, proj[inside], star_v), star_v, int(dv.sum())))
-    return curves(frames) | {"frames": len(frames)}
+        found, dmag, dxy, unmatched = matched(det_xy, det_mag, proj[inside], star_v)
+        frames.append((found, dmag, dxy, star_v, int(dv.sum())))
+        loose.append(unmatched)
+    v, found, dmag, dxy = (np.concatenate([f[i] for f in frames]) for i in (3, 0, 1, 2))
+    # the sensor's zero point sets the electrons' unit: the frames' magnitude scatter is dominated by
+    # the floors (vignetting, colour), which leave the shot-noise term that would fix it unmeasured
+    fitted = js.DetectionModel.fit(v, found, v + dmag, dxy, zero_point_e=sensor.star_electrons(0.0),
+                                   unmatched_mag=np.concatenate(loose), frames=len(frames))
+    return curves(frames) | {"frames": len(frames)}, fitted
 
 
 def main(argv=None):
@@ -141,10 +157,15 @@ def main(argv=None):
     camera = js.camera_preset("tetra3_test")
     sensor = js.sensor_for_camera(camera)
     model = js.DetectionModel.from_sensor(camera, sensor)
-    results = simulated_sources(args, camera, sensor, model)
-    real = real_source(args, camera, sensor)
+    real, fitted = real_source(args, camera, sensor) or (None, None)
+    results = simulated_sources(args, camera, sensor, model, fitted)
     if real is not None:
         results["real"] = real
+        results["fitted_fields"] = {**dataclasses.asdict(fitted.model),
+                                    "magnitude_sigma": fitted.magnitude_sigma,
+                                    "position_sigma_px": fitted.position_sigma_px,
+                                    "magnitude_offset": fitted.magnitude_offset, "stars": fitted.stars,
+                                    **fitted.clutter}
     results["model_fields"] = dataclasses.asdict(model)
     results["bins_v"] = BINS.tolist()
     ex.write(args.out, config=vars(args), results=results, table=format_table(results),
@@ -158,7 +179,7 @@ def _cell(x, fmt):
 
 def format_table(results) -> str:
     """table.md: one row per magnitude bin, the three sources side by side."""
-    sources = [s for s in ("model", "rendered", "real") if s in results]
+    sources = [s for s in ("model", "rendered", "real", "fitted") if s in results]
     head = ["V"] + [f"{q} {s}" for q in ("complete", "Δm", "σm", "σxy px") for s in sources]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for i, lo in enumerate(results["bins_v"][:-1]):
@@ -181,7 +202,7 @@ def draw(results, path):
               ("mag_sigma", "magnitude σ (mag)"), ("position_sigma_px", "position σ per axis (px)"))
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.8))
     for ax, (key, label) in zip(axes, panels, strict=True):
-        for source, style in (("model", "-o"), ("rendered", "--s"), ("real", ":^")):
+        for source, style in (("model", "-o"), ("rendered", "--s"), ("real", ":^"), ("fitted", "-.v")):
             if source in results:
                 y = np.array([np.nan if v is None else v for v in results[source][key]])
                 ax.plot(mid, y, style, label=source, ms=4)
@@ -190,7 +211,8 @@ def draw(results, path):
         if key == "position_sigma_px":
             ax.set_yscale("log")
     axes[0].legend()
-    fig.suptitle("tetra3_test: the detection model beside rendered and real frames")
+    fig.suptitle("tetra3_test: the sensor's detection model beside rendered frames; real frames and "
+                 "the model fitted to them")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

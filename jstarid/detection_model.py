@@ -136,6 +136,19 @@ class DetectionModel:
                    vignetting=sensor.vignetting,
                    sky_fraction=sensor.sky_e_per_s * sensor.exposure_s / per_pixel)
 
+    @classmethod
+    def fit(cls, true_mag, detected, measured_mag=None, position_error_px=None, **options):
+        """A model fitted to labelled real data: one record per catalog star that could have been
+        detected (:func:`jstarid.detection_fit.fit_detection`, which documents the arguments).
+
+        Returns:
+            :class:`~jstarid.detection_fit.DetectionFit`: the model, the noise floors for
+            :class:`~jstarid.NoiseConfig` (``fit.noise()``) and the magnitudes' zero-point offset.
+        """
+        from jstarid.detection_fit import fit_detection
+
+        return fit_detection(true_mag, detected, measured_mag, position_error_px, **options)
+
     def replace(self, **changes) -> DetectionModel:
         """A copy with some fields changed."""
         return dataclasses.replace(self, **changes)
@@ -157,7 +170,7 @@ class DetectionModel:
             "background_e2": (lambda a: np.isfinite(a) & (a >= 0), "≥ 0 e⁻² and finite"),
             "threshold_e": (lambda a: np.isfinite(a) & (a >= 0), "≥ 0 e⁻ and finite"),
             "detection_background_e2": (lambda a: np.isfinite(a) & (a >= 0), "≥ 0 e⁻² and finite"),
-            "position_scale_px": (lambda a: np.isfinite(a) & (a >= 0) & (a <= 100), "in [0, 100] px"),
+            "position_scale_px": (lambda a: np.isfinite(a) & (a >= 0), "≥ 0 px and finite"),
             "position_background_e2": (lambda a: np.isfinite(a) & (a >= 0), "≥ 0 e⁻² and finite"),
             "merge_radius_px": (lambda a: np.isfinite(a) & (a >= 0) & (a <= 50), "in [0, 50] px"),
             "vignetting": (lambda a: (a >= 0) & (a < 1), "in [0, 1)"),

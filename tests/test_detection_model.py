@@ -57,18 +57,17 @@ def stats_scenes(catalog6, sgm_camera):
 
 def _per_star(drawn, sky):
     """Every identification-catalog star in the field: V, detected?, Δm, Δxy (px)."""
-    v, found, dmag, dxy = [], [], [], []
-    for b in range(drawn.batch_size):
-        truth = np.asarray(drawn.truth[b])
-        sv = np.asarray(sky.valid[b]) & (np.asarray(sky.truth[b]) >= 0)
-        for row, xy, m in zip(np.asarray(sky.truth[b])[sv], np.asarray(sky.xy[b])[sv],
-                              np.asarray(sky.mag[b])[sv], strict=True):
-            hit = np.nonzero(truth == row)[0]
-            v.append(m)
-            found.append(hit.size > 0)
-            dmag.append(np.asarray(drawn.mag[b])[hit[0]] - m if hit.size else np.nan)
-            dxy.append(np.asarray(drawn.xy[b])[hit[0]] - xy if hit.size else [np.nan, np.nan])
-    return np.asarray(v), np.asarray(found), np.asarray(dmag), np.asarray(dxy)
+    sky_truth = np.asarray(sky.truth)
+    stars = np.asarray(sky.valid) & (sky_truth >= 0)  # (B, M)
+    same = sky_truth[:, :, None] == np.asarray(drawn.truth)[:, None, :]  # (B, M, N)
+    same &= stars[:, :, None]
+    found = same.any(axis=2)
+    j = np.argmax(same, axis=2)  # (B, M) the detection of each star found
+    det_mag = np.take_along_axis(np.asarray(drawn.mag), j, axis=1)
+    det_xy = np.take_along_axis(np.asarray(drawn.xy), j[..., None], axis=1)
+    dmag = np.where(found, det_mag - np.asarray(sky.mag), np.nan)
+    dxy = np.where(found[..., None], det_xy - np.asarray(sky.xy), np.nan)
+    return np.asarray(sky.mag)[stars], found[stars], dmag[stars], dxy[stars]
 
 
 def _reference_magnitudes(model, mag, n=200_000, seed=0):
@@ -200,7 +199,7 @@ def test_bad_settings_are_refused(catalog6, sgm_camera, changes):
 
 def test_a_model_per_scene_and_a_wrong_type(catalog6, sgm_camera):
     """Fields are per-scene arrays (an exposure sweep is one batch); anything else is refused."""
-    zero = np.array([1e4, 1e4, 3e4, 3e4])
+    zero = np.array([1e4, 1e4, 2e4, 2e4])
     scenes = js.simulate(jax.random.key(3), catalog6, sgm_camera, batch_size=4, capacity=128,
                          detection=STATS_MODEL.replace(zero_point_e=zero))
     n = np.asarray(scenes.n_stars)
@@ -210,3 +209,48 @@ def test_a_model_per_scene_and_a_wrong_type(catalog6, sgm_camera):
                     detection=STATS_MODEL.replace(zero_point_e=zero))
     with pytest.raises(ValueError, match="DetectionModel"):
         js.simulate(jax.random.key(3), catalog6, sgm_camera, batch_size=4, detection={"zero_point_e": 1})
+
+
+def test_a_fit_recovers_the_model_that_drew_the_scenes(catalog6, sgm_camera):
+    """Records from scenes drawn with a known model and floors: the fitted curves match the true ones
+    (completeness to 0.06, magnitude and position σ to 25 %) and the offset is found."""
+    truth = STATS_MODEL.replace(zero_point_e=1.8e4)  # m50 ≈ 5.6: stars past it are in the V ≤ 6 catalog
+    noise = js.NoiseConfig(magnitude_sigma=0.05, position_sigma_px=0.05)
+    key = jax.random.key(21)
+    drawn = js.simulate(key, catalog6, sgm_camera, noise, batch_size=600, capacity=128, detection=truth)
+    sky = js.simulate(key, catalog6, dataclasses.replace(sgm_camera, mag_limit=7.0), batch_size=600,
+                      capacity=256)
+    v, found, dmag, dxy = _per_star(drawn, sky)
+    fit = js.DetectionModel.fit(v, found, v + dmag + 1.3, dxy)
+    assert abs(fit.magnitude_offset - 1.3) < 0.03
+    assert fit.stars == v.size and fit.detected == int(found.sum())
+    mags = np.arange(4.0, 6.01, 0.25)
+    np.testing.assert_allclose(fit.model.completeness(mags, fit.magnitude_sigma),
+                               truth.completeness(mags, 0.05), atol=0.06)
+    bright = mags[mags <= 5.5]
+    np.testing.assert_allclose(fit.model.magnitude_sigma(bright, fit.magnitude_sigma),
+                               truth.magnitude_sigma(bright, 0.05), rtol=0.25)
+    np.testing.assert_allclose(fit.model.position_sigma(bright, fit.position_sigma_px),
+                               truth.position_sigma(bright, 0.05), rtol=0.25)
+    assert fit.noise().magnitude_sigma == fit.magnitude_sigma
+    with pytest.raises(ValueError, match="past the detection limit"):
+        js.DetectionModel.fit(v[found], found[found])
+
+
+def test_unmatched_detections_become_clutter():
+    """Detections that are no catalog star: a Poisson mean per frame and the slope of their magnitudes
+    (drawn here from the simulator's own false-star distribution) come back as NoiseConfig clutter."""
+    from jstarid.simulator import _false_magnitudes
+
+    noise = js.NoiseConfig(false_mag_min=5.0, false_mag_max=9.0, false_mag_slope=js.CATALOG_MAG_SLOPE)
+    loose = np.asarray(_false_magnitudes(jax.random.uniform(jax.random.key(0), (3000,)), noise))
+    rng = np.random.default_rng(0)
+    v = rng.uniform(3, 9, 500)
+    found = v < 7.5
+    fit = js.DetectionModel.fit(v, found, v + 0.4, unmatched_mag=loose + 0.4, frames=150)
+    assert fit.clutter["false_mean"] == 20.0
+    assert abs(fit.clutter["false_mag_slope"] - js.CATALOG_MAG_SLOPE) < 0.05
+    assert 5.0 <= fit.clutter["false_mag_min"] < 5.05 and 8.95 < fit.clutter["false_mag_max"] <= 9.0
+    assert fit.noise().false_mean == 20.0
+    with pytest.raises(ValueError, match="frames"):
+        js.DetectionModel.fit(v, found, unmatched_mag=loose)
