@@ -109,7 +109,7 @@ class DetectionModel:
         * position: c = √2 σ and B_c = b (2 ``window_px`` + 1)², the background of the extractor's
           whole window (the thresholded centre of gravity's error on single rendered stars,
           ``experiments/render_validation.py`` "crb": 1.7–3.7 × σ/SNR from V 2 to 6, which these two
-          numbers reproduce within 10 %);
+          numbers reproduce within 12 %);
         * merge radius: the extractor drops a peak within ``window_px`` of a brighter one, whose window
           then holds both stars.
 
