@@ -252,6 +252,27 @@ def test_sweep_from_pixels_equals_compare_on_its_scenes_and_repeats(pixel_sweep)
     np.testing.assert_array_equal(np.asarray(twice.scenes.xy), np.asarray(scenes.xy))
 
 
+def test_sweep_from_the_sensors_detection_model_follows_the_exposure():
+    """``detection="sensor"``: each exposure's DetectionModel.from_sensor, no rendering — the same
+    verdict as the pixels above, and a fixed model for every scene."""
+    result = js.sweep(["oracle"], PIXEL_CAMERA, axes={"exposure_s": [0.0003, 0.1]}, scenes=6, seed=2,
+                      detection="sensor", progress=False)
+    rows = result.rows()
+    assert [r["exposure_s"] for r in rows] == [0.0003, 0.1]
+    assert rows[1]["identification_rate"] == 1.0
+    assert rows[0]["identification_rate"] < rows[1]["identification_rate"]
+    s = result.settings
+    assert s["detection"] == "sensor"
+    assert s["models"][0]["zero_point_e"] < s["models"][1]["zero_point_e"]
+    drawn = js.engine.simulate_levels(PIXEL_CAMERA, axes={"position": [0.0]}, scenes=4, seed=1,
+                                      detection=js.DetectionModel.from_sensor(PIXEL_CAMERA))
+    assert drawn.settings["detection"]["threshold_e"] > 0 and int(drawn.scenes.n_stars.sum()) > 0
+    with pytest.raises(ValueError, match="drop detection"):
+        js.sweep(["oracle"], PIXEL_CAMERA, scenes=2, pixels=True, detection="sensor", progress=False)
+    with pytest.raises(ValueError, match="'sensor'"):
+        js.sweep(["oracle"], PIXEL_CAMERA, scenes=2, detection="pixels", progress=False)
+
+
 def test_sensor_settings_need_a_sweep_from_pixels():
     with pytest.raises(ValueError, match="sensor axis needs a sweep from pixels"):
         js.sweep(["oracle"], PIXEL_CAMERA, axes={"exposure": [0.1]}, scenes=2, progress=False)

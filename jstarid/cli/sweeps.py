@@ -57,7 +57,8 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
                    help="noise axis: position (px), magnitude (mag), missing, false (stars per "
                         "scene), false-ratio, false-per-true (false stars per true star) or "
                         "false-mean (Poisson mean); clutter as bright as stars: --fixed "
-                        "false_mag_slope=0.47; with --pixels also a sensor axis: exposure (s), "
+                        "false_mag_slope=0.47; with --pixels or --detection sensor also a sensor "
+                        "axis: exposure (s), "
                         "read-noise (e⁻), defocus (px), smear (px), psf_sigma_px, sky_e_per_s, "
                         "dark_e_per_s, hot_pixels")
     p.add_argument("--levels", default=levels, help=f"comma-separated levels of --axis (default {levels})")
@@ -69,10 +70,16 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
     g.add_argument("--pixels", action="store_true",
                    help="render every scene into a frame (js.render, the camera's default sensor) and "
                         "identify the centroids extracted from it, instead of simulated centroids")
+    g.add_argument("--detection", choices=("sensor",), default=None,
+                   help="draw centroids from the sensor's detection model (js.DetectionModel.from_sensor: "
+                        "noise, completeness and bias by magnitude, blends) instead of the papers' cut "
+                        "at the camera's limit; sensor axes then run without rendering")
     g.add_argument("--sensor", nargs="*", default=[], metavar="FIELD=VALUE",
-                   help="SensorConfig settings with --pixels, e.g. read_noise_e=20 exposure_s=0.05")
+                   help="SensorConfig settings with --pixels or --detection sensor, e.g. read_noise_e=20 "
+                        "exposure_s=0.05")
     g.add_argument("--centroid", nargs="*", default=[], metavar="FIELD=VALUE",
-                   help="CentroidConfig settings with --pixels, e.g. threshold_sigma=4 window_px=2")
+                   help="CentroidConfig settings with --pixels or --detection sensor, e.g. "
+                        "threshold_sigma=4 window_px=2")
     p.add_argument("--scenes", type=int, default=scenes, help=f"scenes per level (default {scenes})")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed of the scenes (default 0)")
     p.add_argument("--capacity", type=int, default=96,
@@ -182,7 +189,7 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
                       catalog=catalog, capacity=args.capacity, boresight=args.boresight,
                       criterion=args.criterion, chunk_size=args.chunk_size,
                       rpnet_network=args.rpnet_network, progress=not args.quiet,
-                      pixels=args.pixels, sensor=sensor, centroid=centroid)
+                      pixels=args.pixels, sensor=sensor, centroid=centroid, detection=args.detection)
     if jax.process_index() != 0:
         return 0
     out = result.save(args.out, title=f"jstarid {title}")
@@ -193,14 +200,17 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
 
 
 def _pixel_options(args, camera):
-    """``(sensor, centroid)`` of ``--pixels`` from ``--sensor`` / ``--centroid`` (``None``, ``None``
-    without ``--pixels``); bad fields or values fail here, before anything is built."""
+    """``(sensor, centroid)`` of ``--pixels`` or ``--detection sensor`` from ``--sensor`` /
+    ``--centroid`` (``None``, ``None`` without either); bad fields or values fail here, before anything
+    is built."""
     import jstarid as js
     from jstarid.experiment import with_overrides
 
-    if not args.pixels:
+    if args.pixels and args.detection:
+        raise ValueError("--pixels detects in the pixels: drop --detection")
+    if not (args.pixels or args.detection):
         if args.sensor or args.centroid:
-            raise ValueError("--sensor and --centroid need --pixels")
+            raise ValueError("--sensor and --centroid need --pixels or --detection sensor")
         return None, None
     return (with_overrides(js.sensor_for_camera(camera), args.sensor),
             with_overrides(js.CentroidConfig(), args.centroid))

@@ -14,6 +14,7 @@ meets first included; the entry's first call is recorded apart); scenes/s are pe
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -28,8 +29,9 @@ from jstarid.algorithms import get as get_algorithm
 from jstarid.attitude import attitude_errors_arcsec, estimate_attitude
 from jstarid.camera import Camera
 from jstarid.camera_files import load_camera
-from jstarid.catalog import load_catalog
+from jstarid.catalog import FULL_DEPTH, load_catalog
 from jstarid.centroid import CentroidConfig
+from jstarid.detection_model import DetectionModel
 from jstarid.engine import processes
 from jstarid.engine.entries import Entry, check_camera
 from jstarid.engine.entries import entries as make_entries
@@ -64,7 +66,8 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
           scenes: int = 200, seed: int = 0, catalog=None, capacity: int = 64,
           boresight: str = "random", criterion: str = "strict", chunk_size: int = CHUNK_SIZE,
           rpnet_network: str | None = None, progress: bool = True, pixels: bool = False,
-          sensor: SensorConfig | None = None, centroid: CentroidConfig | None = None) -> SweepResult:
+          sensor: SensorConfig | None = None, centroid: CentroidConfig | None = None,
+          detection: DetectionModel | str | None = None) -> SweepResult:
     """Every algorithm × every noise level on one shared, seeded set of simulated scenes.
 
     Args:
@@ -94,6 +97,10 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
             :class:`~jstarid.SensorConfig` fields (``"exposure_s"``, ``"defocus_px"``, …).
         sensor: the sensor of a sweep from pixels (default: :func:`jstarid.sensor_for_camera`).
         centroid: the extractor's settings of a sweep from pixels (default: ``CentroidConfig()``).
+        detection: draw the centroids from a :class:`~jstarid.DetectionModel` (every scene), or
+            ``"sensor"``: from each level's sensor (``DetectionModel.from_sensor`` of ``sensor`` and
+            ``centroid``), so sensor axes run without rendering; the sky then reaches the model's
+            depth and stars past the catalog's limit are labelled −1.
 
     Returns:
         A :class:`~jstarid.engine.result.SweepResult` (rows, per-scene outcomes, settings).
@@ -111,7 +118,8 @@ def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "
     check_camera(entries, camera, catalog)
     drawn = simulate_levels(camera, axes=axes, fixed=fixed, scenes=scenes, seed=seed,
                             catalog=catalog, capacity=capacity, boresight=boresight,
-                            progress=progress, pixels=pixels, sensor=sensor, centroid=centroid)
+                            progress=progress, pixels=pixels, sensor=sensor, centroid=centroid,
+                            detection=detection)
     settings = {**drawn.settings, "criterion": criterion, "chunk_size": chunk_size}
     return compare(drawn.scenes, entries, drawn.catalog, drawn.camera, level_of=drawn.level_of,
                    levels=drawn.levels, criterion=criterion, chunk_size=chunk_size,
@@ -140,7 +148,8 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
                     fixed: Mapping | None = None, scenes: int = 200, seed: int = 0, catalog=None,
                     capacity: int = 64, boresight: str = "random", progress: bool = False,
                     pixels: bool = False, sensor: SensorConfig | None = None,
-                    centroid: CentroidConfig | None = None) -> Levels:
+                    centroid: CentroidConfig | None = None,
+                    detection: DetectionModel | str | None = None) -> Levels:
     """The scenes :func:`sweep` runs on, in one ``simulate`` call (arguments as in :func:`sweep`);
     from pixels, the sky's scenes in that call and each level's frames rendered and extracted in
     batched calls (:func:`~jstarid.engine.pixels.detect_scenes`).
@@ -162,7 +171,11 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
         raise ValueError(f"boresight must be one of {BORESIGHTS} or catalog rows, got {boresight!r}")
     levels = level_grid(axes)
     noise = level_noise(levels, scenes, fixed)
-    sensors = _pixel_settings(levels, camera, pixels, sensor, centroid)
+    if pixels and detection is not None:
+        raise ValueError("a sweep from pixels detects in the pixels: drop detection")
+    if isinstance(detection, str) and detection != "sensor":
+        raise ValueError(f"detection must be a DetectionModel or 'sensor', got {detection!r}")
+    sensors = _pixel_settings(levels, camera, pixels or detection == "sensor", sensor, centroid)
     catalog = load_catalog(camera.mag_limit) if catalog is None else catalog
     candidates = np.arange(len(catalog)) if candidates is None else candidates
     total = len(levels) * scenes
@@ -173,6 +186,9 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
     if pixels:
         batch, pixel_settings = _from_pixels(key_scenes, catalog, camera, noise, rows, levels, sensors,
                                              centroid or CentroidConfig(), scenes, capacity, progress)
+    elif detection is not None:
+        batch, pixel_settings = _from_model(key_scenes, catalog, camera, noise, rows, detection, sensors,
+                                            centroid or CentroidConfig(), scenes, total, capacity)
     else:
         batch = simulate(key_scenes, catalog, camera, noise, batch_size=total, capacity=capacity,
                          boresight_ids=rows, shard=True)
@@ -198,33 +214,63 @@ def _pixel_settings(levels, camera, pixels, sensor, centroid):
     if not pixels:
         if sensor_fields:
             raise ValueError(f"{', '.join(sensor_fields)}: a sensor axis needs a sweep from pixels "
-                             f"(pixels=True; the command line's --pixels)")
+                             f"(pixels=True; the command line's --pixels) or from the sensor's "
+                             f"detection model (detection='sensor')")
         if sensor is not None or centroid is not None:
-            raise ValueError("sensor and centroid settings are for sweeps from pixels (pixels=True)")
+            raise ValueError("sensor and centroid settings are for sweeps from pixels (pixels=True) "
+                             "or from the sensor's detection model (detection='sensor')")
         return None
     return sensor_levels(levels, sensor_for_camera(camera) if sensor is None else sensor)
+
+
+def _deep_sky(key, catalog, camera, noise, rows, total, depth, capacity, detection=None):
+    """One ``simulate`` call from a catalog to V ``depth`` (the identification catalog's other
+    settings), its truth relabelled in the identification catalog's rows (−1: a star it lacks)."""
+    kept = ("double_sep_deg", "double_mode", "sim_margin", "epoch")
+    sky_catalog = load_catalog(depth, **{k: v for k, v in catalog.settings.items() if k in kept})
+    sky_camera = dataclasses.replace(camera, mag_limit=depth) if detection is None else camera
+    if rows is not None:  # the boresight stars, as rows of the deeper catalog
+        rows = _rows_in(sky_catalog, catalog, rows)
+    sky = simulate(key, sky_catalog, sky_camera, noise, batch_size=None if rows is not None else total,
+                   capacity=capacity, boresight_ids=rows, shard=True, detection=detection)
+    sky = jax.device_get(sky)
+    deep = np.asarray(sky.truth)
+    truth = np.where(deep >= 0, catalog.row_of_hip(sky_catalog.hip[np.maximum(deep, 0)]), -1)
+    return dataclasses.replace(sky, truth=truth.astype(np.int32))
+
+
+def _from_model(key, catalog, camera, noise, rows, detection, sensors, centroid, per_level, total, capacity):
+    """The sweep's scenes drawn from a detection model (one for every scene, or each level's
+    sensor's), in one ``simulate`` call from a sky as deep as the model detects."""
+    if isinstance(detection, str):  # "sensor": each level's model, repeated over its scenes
+        models = [DetectionModel.from_sensor(camera, s, centroid) for s in sensors]
+        fields = [f.name for f in dataclasses.fields(DetectionModel)]
+        detection = DetectionModel(**{f: np.repeat([getattr(m, f) for m in models], per_level)
+                                      for f in fields})
+        recorded = {"detection": "sensor", "sensors": [dataclasses.asdict(s) for s in sensors],
+                    "centroid": dataclasses.asdict(centroid),
+                    "models": [dataclasses.asdict(m) for m in models]}
+    elif isinstance(detection, DetectionModel):
+        recorded = {"detection": {f.name: np.asarray(getattr(detection, f.name)).tolist()
+                                  for f in dataclasses.fields(detection)}}
+    else:
+        raise ValueError(f"detection must be a DetectionModel or 'sensor', got {type(detection).__name__}")
+    detection.validate()
+    sim_margin = catalog.settings.get("sim_margin", 1.0)
+    seen = detection.faintest_detectable(float(np.max(np.asarray(noise.magnitude_sigma))), odds=1e-3)
+    depth = min(FULL_DEPTH - sim_margin, max(camera.mag_limit, math.ceil(10.0 * seen) / 10.0 - sim_margin))
+    sky = _deep_sky(key, catalog, camera, noise, rows, total, depth, capacity, detection)
+    return sky, {**recorded, "detection_depth_mag": depth}
 
 
 def _from_pixels(key, catalog, camera, noise, rows, levels, sensors, centroid, per_level, capacity,
                  progress):
     """The sweep's scenes from rendered frames: the sky to the camera's limit + RENDER_DEPTH_MAG
     in one ``simulate`` call, then each level rendered, extracted and labelled (engine.pixels)."""
-    kept = ("double_sep_deg", "double_mode", "sim_margin", "epoch")
-    sky_catalog = load_catalog(camera.mag_limit + RENDER_DEPTH_MAG,
-                               **{k: v for k, v in catalog.settings.items() if k in kept})
-    sky_camera = dataclasses.replace(camera, mag_limit=camera.mag_limit + RENDER_DEPTH_MAG)
     total = len(levels) * per_level
     key_sky, key_frames = jax.random.split(key)
-    if rows is not None:  # the boresight stars, as rows of the deeper catalog
-        rows = _rows_in(sky_catalog, catalog, rows)
-    sky = simulate(key_sky, sky_catalog, sky_camera, noise,
-                   batch_size=None if rows is not None else total, capacity=SKY_CAPACITY,
-                   boresight_ids=rows, shard=True)
-    sky = jax.device_get(sky)
-    # truth in the identification catalog's rows (−1: a star it lacks, e.g. fainter than its limit)
-    deep = np.asarray(sky.truth)
-    truth = np.where(deep >= 0, catalog.row_of_hip(sky_catalog.hip[np.maximum(deep, 0)]), -1)
-    sky = dataclasses.replace(sky, truth=truth.astype(np.int32))
+    sky = _deep_sky(key_sky, catalog, camera, noise, rows, total, camera.mag_limit + RENDER_DEPTH_MAG,
+                    SKY_CAPACITY)
     keys = jax.random.split(key_frames, total)
     parts, seconds = [], 0.0
     for level, sensor in enumerate(sensors):
