@@ -129,11 +129,7 @@ def real_source(args, camera, sensor):
     frames, loose = [], []
     for name, r in sorted(ref.items()):
         image = js.read_image(args.data / name).astype(np.float32)
-        rows = catalog.row_of_hip([m["hip"] for m in r["matches"]])
-        ref_xy = np.array([[m["x"], m["y"]] for m in r["matches"]]) - 0.5  # corner → centre origin
-        keep = rows >= 0
-        body = np.asarray(camera.unproject(ref_xy[keep]))
-        c = np.asarray(js.solve_wahba(body, catalog.unit_vectors[rows[keep]], np.ones(int(keep.sum()))))
+        c, _, _ = ex.reference_attitude(r["matches"], catalog, camera)
         proj, front = (np.asarray(a) for a in camera.project(np.einsum("ij,nj->ni", c, catalog.unit_vectors)))
         inside = front & np.asarray(camera.contains(proj))
         found = js.extract_centroids(image[None], centroid, capacity=512)

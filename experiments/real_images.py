@@ -50,7 +50,6 @@ from jstarid.image_files import read_image
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 IMAGE_EPOCH = 2019.57  # 2019-07-29, the date in the file names (Julian years)
 TRUTH_MAG_LIMIT = 9.0  # truth labels from Hipparcos to V 9 (the images reach V ≈ 7.5–8)
-REFERENCE_ORIGIN_PX = -0.5  # cedar-solve's pixel origin (a corner) → ours (a pixel centre)
 
 
 def parse_args(argv=None):
@@ -84,12 +83,7 @@ def reference_truth(ref, catalog, camera, xy, valid, truth_px):
     ``catalog`` is the deep truth catalog (:data:`TRUTH_MAG_LIMIT`), so a detection of a star fainter
     than the identification catalog is labelled too (any name given to it is wrong).
     """
-    hips = [m["hip"] for m in ref["matches"]]
-    ref_xy = np.array([[m["x"], m["y"]] for m in ref["matches"]]) + REFERENCE_ORIGIN_PX
-    rows = catalog.row_of_hip(hips)
-    keep = rows >= 0
-    body = np.asarray(camera.unproject(ref_xy[keep]))
-    c = np.asarray(js.solve_wahba(body, catalog.unit_vectors[rows[keep]], np.ones(int(keep.sum()))))
+    c, ref_xy, _ = ex.reference_attitude(ref["matches"], catalog, camera)
     proj, in_front = (np.asarray(a) for a in camera.project(catalog.unit_vectors @ c.T))
     cand = np.nonzero(in_front & np.asarray(camera.contains(proj, -truth_px)))[0]
     d = np.linalg.norm(xy[:, None, :] - proj[None, cand, :], axis=-1)

@@ -150,11 +150,7 @@ def real_section(args) -> dict:
     rows = {}
     for i, (name, r) in enumerate(sorted(ref.items())):
         real = js.read_image(args.data / name).astype(np.float32)
-        rr = catalog.row_of_hip([m["hip"] for m in r["matches"]])
-        ref_xy = np.array([[m["x"], m["y"]] for m in r["matches"]]) - 0.5  # corner → centre origin
-        keep = rr >= 0
-        body = np.asarray(camera.unproject(ref_xy[keep]))
-        c = np.asarray(js.solve_wahba(body, catalog.unit_vectors[rr[keep]], np.ones(int(keep.sum()))))
+        c, _, _ = ex.reference_attitude(r["matches"], catalog, camera)
         scene = scene_at(catalog, camera, c)
         # the sky differs between pointings (×2 at Azi −45°): the preset's sky rate scaled to this
         # frame's median background (bias and dark current taken off both)

@@ -131,6 +131,8 @@ def fit_detection(true_mag, detected, measured_mag=None, position_error_px=None,
     found = np.asarray(detected, bool).reshape(-1)
     if found.shape != mag.shape:
         raise ValueError(f"detected has shape {found.shape}, true_mag {mag.shape}")
+    if not np.all(np.isfinite(mag)):
+        raise ValueError("true_mag must be finite catalog magnitudes")
     if found.sum() < 20:
         raise ValueError(f"need at least 20 detected stars to fit, got {int(found.sum())}")
     if found.all():
@@ -194,9 +196,12 @@ def fit_detection(true_mag, detected, measured_mag=None, position_error_px=None,
             design = np.stack([np.ones_like(x), x, x ** 2], 1)
             sigma02, shot, back = _nnls(design, var, np.sqrt(n) / np.maximum(var, 1e-12))
             sigma0 = math.sqrt(sigma02)
-            # shot = c² / S₀, back = c² B_c / S₀²
-            scale = math.sqrt(shot * s0) if shot > 0 else 1.0
-            position_background = back * s0 ** 2 / scale ** 2
+            if shot > 0 or back > 0:
+                # shot = c² / S₀, back = c² B_c / S₀²; a shot term the fit set to 0 is kept a millionth
+                # of the background's at the faintest bin (c² S / S² has no exact zero but c = 0)
+                shot = max(shot, 1e-6 * back * float(x.max()))
+                scale = math.sqrt(shot * s0)
+                position_background = back * s0 ** 2 / scale ** 2
     model = DetectionModel(zero_point_e=s0, background_e2=background, threshold_e=threshold,
                            detection_background_e2=detection_background, position_scale_px=scale,
                            position_background_e2=position_background,

@@ -4,8 +4,9 @@ The four knobs of :class:`~jstarid.NoiseConfig` are constant over magnitude and 
 the camera's limit. A real sensor does not: a star of magnitude m delivers S(m) electrons, its flux is
 measured with the noise of those electrons and of the background, it is detected when the measured flux
 clears a threshold, and its centroid wanders more the fainter it is. :class:`DetectionModel` writes
-that down with five numbers (all per scene: scalars or (B,) arrays, so an exposure sweep is a batch
-axis), and ``js.simulate(..., detection=model)`` draws scenes from it. Per true star (conventions §3):
+that down with a few numbers in electrons (all per scene: scalars or (B,) arrays, so an exposure
+sweep is a batch axis), and ``js.simulate(..., detection=model)`` draws scenes from it. Per true star
+(conventions §3):
 
 1. **Band.** The catalog's V misses the sensor's band by a Gaussian σ_m (``NoiseConfig.magnitude_sigma``,
    the floor): m' = m + σ_m z₁ (the papers' magnitude noise, drawn from the same stream).
@@ -48,12 +49,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid import random_streams as streams
+from jstarid.render import vignette as vignetting
 
 __all__ = ["DetectionModel", "merge_close", "observe", "MERGE_WINDOW"]
-
-_FIELDS = ("zero_point_e", "background_e2", "threshold_e", "detection_background_e2", "position_scale_px",
-           "position_background_e2", "merge_radius_px", "vignetting", "sky_fraction")
-
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -108,7 +106,7 @@ class DetectionModel:
           √b / f₉ and B_d = 9 b / f₉²;
         * position: c = √2 σ and B_c = b (2 ``window_px`` + 1)², the background of the extractor's
           whole window (the thresholded centre of gravity's error on single rendered stars,
-          ``experiments/render_validation.py`` "crb": 1.7–3.7 × σ/SNR from V 2 to 6, which these two
+          ``experiments/render_validation.py`` "crb": 1.7–3.7 × σ/SNR from V 2 to 7, which these two
           numbers reproduce within 12 %);
         * merge radius: the extractor drops a peak within ``window_px`` of a brighter one, whose window
           then holds both stars.
@@ -161,7 +159,7 @@ class DetectionModel:
                 raise ValueError(f"DetectionModel.{name} must be a scalar or have shape ({batch_size},), "
                                  f"got {arr.shape}")
             return jnp.broadcast_to(arr, (batch_size,))
-        return DetectionModel(**{name: cast(name) for name in _FIELDS})
+        return DetectionModel(**{f.name: cast(f.name) for f in dataclasses.fields(self)})
 
     def validate(self) -> None:
         """Raise ``ValueError`` on out-of-range settings (host side; values must be concrete)."""
@@ -332,11 +330,9 @@ def observe(seed, model: DetectionModel, noise, true_mag, xy, in_field, *, camer
     k = true_mag.shape[0]
     band = true_mag + noise.magnitude_sigma * streams.normals(seed, streams.MAG, k)  # step 1
     ideal = jnp.isinf(model.zero_point_e)
-    # step 2: relative flux (V = 0 units), vignetted
-    corner2 = max((u - camera.cx) ** 2 + (v - camera.cy) ** 2
-                  for u in (-0.5, camera.width - 0.5) for v in (-0.5, camera.height - 0.5))
-    r2 = (xy[:, 0] - camera.cx) ** 2 + (xy[:, 1] - camera.cy) ** 2
-    vignette = 1.0 - model.vignetting * r2 / np.float32(corner2)
+    # step 2: relative flux (V = 0 units), vignetted as js.render does
+    vignette = vignetting(xy[:, 0], xy[:, 1], model.vignetting, height=camera.height, width=camera.width,
+                          cx=camera.cx, cy=camera.cy)
     own = jnp.where(jnp.isfinite(band), 10.0 ** (-0.4 * band), 0.0) * vignette
     if merge:
         xy, lit, absorbed, overflow = merge_close(xy, own, in_field & (own > 0), model.merge_radius_px)

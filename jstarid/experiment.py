@@ -48,6 +48,7 @@ import numpy as np
 from jstarid.serialization import to_json
 
 __all__ = ["Stopwatch", "dump_json", "load", "machine", "markdown_table", "parser", "peak_rss_mb",
+           "reference_attitude",
            "provenance", "time_call", "to_json", "with_overrides", "write"]
 
 
@@ -256,3 +257,25 @@ def markdown_table(rows: Sequence[Mapping], columns: Sequence[tuple[str, str, st
     if note:
         lines += ["", note]
     return "\n".join(lines) + "\n"
+
+
+REFERENCE_ORIGIN_PX = -0.5  # a reference solution's pixel origin (a corner) → jstarid's (a pixel centre)
+
+
+def reference_attitude(matches, catalog, camera):
+    """The attitude of a frame from its reference solution's matched stars (``shared/data/real``'s
+    ``reference.json``: ``[{"hip", "x", "y"}, …]``, pixel origin at a corner).
+
+    Returns:
+        ``(C (3, 3), xy (n, 2), rows (n,))``: the attitude fitted to the matches ``catalog`` holds
+        (Wahba, equal weights), the matches' centroids in jstarid's pixels and their catalog rows (−1
+        where the catalog lacks the star).
+    """
+    from jstarid.attitude import solve_wahba
+
+    rows = catalog.row_of_hip([m["hip"] for m in matches])
+    xy = np.array([[m["x"], m["y"]] for m in matches], np.float64).reshape(-1, 2) + REFERENCE_ORIGIN_PX
+    keep = rows >= 0
+    body = np.asarray(camera.unproject(xy[keep]))
+    c = np.asarray(solve_wahba(body, catalog.unit_vectors[rows[keep]], np.ones(int(keep.sum()))))
+    return c, xy, rows

@@ -175,7 +175,7 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         :class:`Finished`.
     """
     b = scenes.batch_size
-    laddered = searched = search_overflow = np.zeros(b, bool)
+    laddered, searched, search_overflow = (np.zeros(b, bool) for _ in range(3))
     if b and config.hypotheses:
         result, searched, search_overflow = _search(result, scenes, config, camera, star_vectors)
         if search_overflow.any():

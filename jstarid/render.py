@@ -53,7 +53,7 @@ from jstarid.runtime import map_batch
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene
 
-__all__ = ["SensorConfig", "mean_electrons", "psf_offsets", "render", "sensor_for_camera"]
+__all__ = ["SensorConfig", "mean_electrons", "psf_offsets", "render", "sensor_for_camera", "vignette"]
 
 PIXEL_NOISE_STREAM = 101  # the frame's counter stream for pixel noise (random_streams: scene draws < 100)
 LIEBE_PHOTONS_V0 = 1.91e10  # photons/s/m² from a V = 0 star, visible band (Liebe 2002, §2)
@@ -311,12 +311,20 @@ def _pixel_fractions(centre, lo, n: int, sigma: float):
     return cdf[..., 1:] - cdf[..., :-1]
 
 
+def vignette(x, y, fraction, *, height: int, width: int, cx: float, cy: float):
+    """Fraction of the light reaching pixel position (x, y): 1 − v (r / r_corner)², v = ``fraction``
+    lost at the frame's farthest corner (a scalar; traceable), r from the principal point (cx, cy)."""
+    corner2 = max((u - cx) ** 2 + (w - cy) ** 2 for u in (-0.5, width - 0.5) for w in (-0.5, height - 0.5))
+    per_r2 = fraction / corner2
+    per_r2 = np.float32(per_r2) if isinstance(per_r2, float) else per_r2  # a sensor's: float32 once
+    return 1.0 - per_r2 * ((x - cx) ** 2 + (y - cy) ** 2)
+
+
 def _vignette(x, y, *, sensor: SensorConfig, height: int, width: int, cx: float, cy: float):
-    """Fraction of the light reaching pixel position (x, y): 1 − v (r / r_corner)²."""
+    """:func:`vignette` of the sensor's vignetting (ones when it has none)."""
     if sensor.vignetting == 0:
         return jnp.ones_like(x)
-    corner2 = max((u - cx) ** 2 + (w - cy) ** 2 for u in (-0.5, width - 0.5) for w in (-0.5, height - 0.5))
-    return 1.0 - np.float32(sensor.vignetting / corner2) * ((x - cx) ** 2 + (y - cy) ** 2)
+    return vignette(x, y, float(sensor.vignetting), height=height, width=width, cx=cx, cy=cy)
 
 
 def _mean_electrons(xy, mag, valid, hot_rows, hot_cols, *, sensor: SensorConfig, height: int,

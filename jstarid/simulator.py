@@ -10,7 +10,9 @@ Per scene:
 2. the K simulation stars of the boresight's sky-index cell are rotated into the camera frame and
    projected (pinhole);
 3. magnitude noise (Gaussian σ_m) is added to V *before* the detection limit, using the deeper
-   simulation list, so dim stars can appear and stars near the limit vanish;
+   simulation list, so dim stars can appear and stars near the limit vanish; under a
+   :class:`~jstarid.DetectionModel` (``detection=``) the sensor's photometry decides instead: flux
+   noise, a detection threshold, blends and each star's position σ (:func:`jstarid.detection_model.observe`);
 4. a star is in the field when its true position is (conventions §1); position noise (Gaussian σ px
    per axis) is added to the kept detections' centroids, so a centroid near the border may fall just
    outside ``[0, W−1] × [0, H−1]``, as in the papers' simulations;

@@ -145,6 +145,7 @@ def test_blended_scenes_have_no_two_detections_within_the_radius(catalog6, sgm_c
     plain = js.simulate(jax.random.key(2), catalog6, sgm_camera, batch_size=50, capacity=96,
                         detection=model.replace(merge_radius_px=0.0))
     assert not np.asarray(plain.overflow).any()
+    assert int(np.asarray(scenes.overflow).sum()) <= 10  # the check below reads ≥ 40 scenes
     # blends carry their members' light: stars too faint alone are detected together
     assert not np.array_equal(np.asarray(scenes.truth), np.asarray(plain.truth))
     # no two detections' stars lie within the radius (their blends' centroids may: a star between two
@@ -235,6 +236,11 @@ def test_a_fit_recovers_the_model_that_drew_the_scenes(catalog6, sgm_camera):
     assert fit.noise().magnitude_sigma == fit.magnitude_sigma
     with pytest.raises(ValueError, match="past the detection limit"):
         js.DetectionModel.fit(v[found], found[found])
+    with pytest.raises(ValueError, match="finite"):
+        js.DetectionModel.fit(np.where(np.arange(v.size) == 3, np.nan, v), found)
+    # positions without scatter: no photon term, not a made-up one
+    exact = js.DetectionModel.fit(v, found, position_error_px=np.zeros((v.size, 2)))
+    assert exact.model.position_scale_px == 0.0 and exact.position_sigma_px == 0.0
 
 
 def test_unmatched_detections_become_clutter():
@@ -254,3 +260,16 @@ def test_unmatched_detections_become_clutter():
     assert fit.noise().false_mean == 20.0
     with pytest.raises(ValueError, match="frames"):
         js.DetectionModel.fit(v, found, unmatched_mag=loose)
+
+
+def test_sharded_draws_equal_one_device(catalog6, sgm_camera, several_devices):
+    """A physical model with blends: the same scenes whether the batch is split over devices or not."""
+    model = STATS_MODEL.replace(merge_radius_px=5.0, vignetting=0.3, sky_fraction=0.5)
+    noise = js.NoiseConfig(position_sigma_px=0.2, magnitude_sigma=0.1, n_false=2)
+    one = js.simulate(jax.random.key(8), catalog6, sgm_camera, noise, batch_size=10, capacity=96,
+                      detection=model)
+    many = js.simulate(jax.random.key(8), catalog6, sgm_camera, noise, batch_size=10, capacity=96,
+                       detection=model, shard=True)
+    np.testing.assert_array_equal(np.asarray(one.truth), np.asarray(many.truth))
+    np.testing.assert_allclose(np.asarray(one.xy), np.asarray(many.xy), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(one.mag), np.asarray(many.mag), atol=1e-5)

@@ -258,7 +258,9 @@ def _from_model(key, catalog, camera, noise, rows, detection, sensors, centroid,
     detection.validate()
     sim_margin = catalog.settings.get("sim_margin", 1.0)
     seen = detection.faintest_detectable(float(np.max(np.asarray(noise.magnitude_sigma))), odds=1e-3)
-    depth = min(FULL_DEPTH - sim_margin, max(camera.mag_limit, math.ceil(10.0 * seen) / 10.0 - sim_margin))
+    depth = camera.mag_limit  # an ideal model cuts at the camera's limit: no deeper sky
+    if math.isfinite(seen):
+        depth = min(FULL_DEPTH - sim_margin, max(depth, math.ceil(10.0 * seen) / 10.0 - sim_margin))
     sky = _deep_sky(key, catalog, camera, noise, rows, total, depth, capacity, detection)
     return sky, {**recorded, "detection_depth_mag": depth}
 
