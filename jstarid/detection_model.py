@@ -244,8 +244,8 @@ class DetectionModel:
 
 
 # Pixels whose background a flux from jstarid.extract_centroids carries: its window's pixels above 2 σ
-# are the PSF's core and a few noise pixels (fitted to the magnitude scatter of rendered tetra3_test
-# frames at V 7–8.5, experiments/detection_model.py).
+# are the PSF's core and a few noise pixels (chosen among 15, 25 and 40 by the magnitude scatter of
+# rendered tetra3_test frames at V 7–8.5; experiments/detection_model.py compares the curves).
 FLUX_PIXELS = 25.0
 
 MERGE_WINDOW = 16  # neighbours in x order each star is compared with for blends (merge_close)
