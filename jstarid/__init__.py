@@ -1,6 +1,6 @@
 """jstarid: lost-in-space star identification in JAX (public API, docs/conventions.md §9)."""
 
-from jstarid import algorithms, engine, experiment, plotting, runtime, sky_depth, wcs
+from jstarid import algorithms, engine, experiment, plotting, runtime, sky_depth, twin, wcs
 from jstarid.attitude import (
     attitude_errors_arcsec,
     estimate_attitude,
@@ -45,7 +45,7 @@ __all__ = [
     "NoiseConfig", "Scene",
     "SensorConfig", "mean_electrons", "render", "sensor_for_camera",
     "SweepResult", "algorithms", "compare", "engine", "experiment", "grid", "load_sweep", "sweep",
-    "plotting", "runtime", "sky_depth", "wcs", "attitude_errors_arcsec", "camera_preset",
+    "plotting", "runtime", "sky_depth", "twin", "wcs", "attitude_errors_arcsec", "camera_preset",
     "enable_compilation_cache",
     "estimate_attitude", "evaluate", "extract_centroids", "load_camera", "load_catalog", "name_from_attitude",
     "noise_grid", "pad_with_empty", "preset_names", "quaternion_from_rotation", "random_rotation",

@@ -51,7 +51,7 @@ import numpy as np
 from jstarid import random_streams as streams
 from jstarid.render import vignette as vignetting
 
-__all__ = ["DetectionModel", "merge_close", "observe", "MERGE_WINDOW"]
+__all__ = ["DetectionModel", "merge_close", "merge_window", "observe", "MERGE_WINDOW"]
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -248,7 +248,19 @@ class DetectionModel:
 # rendered tetra3_test frames at V 7–8.5; experiments/detection_model.py compares the curves).
 FLUX_PIXELS = 25.0
 
-MERGE_WINDOW = 16  # neighbours in x order each star is compared with for blends (merge_close)
+MERGE_WINDOW = 16  # fewest neighbours in x order each star is compared with for blends (merge_close)
+
+
+def merge_window(candidates: int, radius_px: float, width_px: int) -> int:
+    """The x-order window of :func:`merge_close` for scenes of up to ``candidates`` stars (static).
+
+    A deep sky in a wide field puts many stars in a 2·radius column (thousands of V ≤ 9 stars in 25°
+    of the Milky Way: 16 in 3 px of x): the window covers the mean count of a column with the candidates
+    spread over the frame's width, plus 6 σ of a Poisson spread and 8 (≥ :data:`MERGE_WINDOW`); a frame
+    that still needs more is flagged, never cut silently.
+    """
+    mean = candidates * 2.0 * radius_px / max(width_px, 1)
+    return int(max(MERGE_WINDOW, math.ceil(mean + 6.0 * math.sqrt(mean) + 8.0)))
 
 
 def _box_fraction(sigma: float) -> float:
@@ -308,7 +320,7 @@ def merge_close(xy, flux, live, radius_px, window: int = MERGE_WINDOW):
     return out_xy, out_flux, absorbed, overflow
 
 
-def observe(seed, model: DetectionModel, noise, true_mag, xy, in_field, *, camera, merge: bool):
+def observe(seed, model: DetectionModel, noise, true_mag, xy, in_field, *, camera, merge: int):
     """Steps 1–6 of the module docstring for one scene's K candidate stars.
 
     Args:
@@ -320,7 +332,8 @@ def observe(seed, model: DetectionModel, noise, true_mag, xy, in_field, *, camer
         xy: (K, 2) true positions (px).
         in_field: (K,) bool.
         camera: the :class:`~jstarid.Camera` (static).
-        merge: static; False when no scene of the batch blends (``merge_radius_px`` 0 everywhere).
+        merge: static; the blends' x-order window (:func:`merge_window`), 0 when no scene of the
+            batch blends (``merge_radius_px`` 0 everywhere).
 
     Returns:
         ``(mag (K,), detected (K,) bool, sigma_px (K,), xy (K, 2), overflow)``: the measured magnitudes,
@@ -335,7 +348,8 @@ def observe(seed, model: DetectionModel, noise, true_mag, xy, in_field, *, camer
                           cx=camera.cx, cy=camera.cy)
     own = jnp.where(jnp.isfinite(band), 10.0 ** (-0.4 * band), 0.0) * vignette
     if merge:
-        xy, lit, absorbed, overflow = merge_close(xy, own, in_field & (own > 0), model.merge_radius_px)
+        xy, lit, absorbed, overflow = merge_close(xy, own, in_field & (own > 0), model.merge_radius_px,
+                                                  window=int(merge))
         blend = jnp.where(own > 0, lit / jnp.where(own > 0, own, 1.0), 1.0)
     else:
         lit, absorbed, overflow, blend = own, jnp.zeros((k,), bool), jnp.bool_(False), 1.0

@@ -48,7 +48,7 @@ import numpy as np
 
 from jstarid import random_streams as streams
 from jstarid.attitude import random_rotation, rotation_from_boresight
-from jstarid.detection_model import DetectionModel, observe
+from jstarid.detection_model import DetectionModel, merge_window, observe
 from jstarid.runtime import device_cache, map_batch, map_by_width, on_every_device
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene
@@ -199,7 +199,7 @@ def check_key(key) -> None:
 
 def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_size: int | None = None,
              capacity: int = 64, boresight_ids=None, shard: bool = False,
-             detection: DetectionModel | None = None) -> Scene:
+             detection: DetectionModel | None = None, attitudes=None) -> Scene:
     """Simulate a batch of scenes (conventions §3). A pure function of ``key`` and the settings.
 
     Args:
@@ -217,6 +217,8 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
             noise, completeness, bias and blends by magnitude, with ``noise``'s position and magnitude
             σ as its floors. ``None`` (or :meth:`~jstarid.DetectionModel.ideal`): the papers' hard cut
             at the camera's limit.
+        attitudes: (B, 3, 3) rotations ICRS → camera, the scenes' attitudes as given (mode c: a real
+            set's pointings); the key then draws everything but the attitude.
 
     Returns:
         A :class:`~jstarid.scene.Scene` of B scenes.
@@ -227,6 +229,16 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
     """
     noise = _checked(noise, capacity)
     detection = _checked_model(detection)
+    if attitudes is not None:
+        given = np.asarray(attitudes, np.float64)
+        if boresight_ids is not None or given.ndim != 3 or given.shape[1:] != (3, 3):
+            raise ValueError("attitudes must be (B, 3, 3) rotations, without boresight_ids")
+        if not np.all(np.isfinite(given)) or not np.allclose(
+                np.einsum("bij,bkj->bik", given, given), np.eye(3), atol=1e-4):
+            raise ValueError("attitudes must be finite rotation matrices")
+        if batch_size is not None and batch_size != given.shape[0]:
+            raise ValueError("batch_size disagrees with len(attitudes)")
+        batch_size = given.shape[0]
     if boresight_ids is not None:
         rows = np.asarray(boresight_ids)
         if rows.ndim != 1 or not np.issubdtype(rows.dtype, np.integer):
@@ -237,7 +249,7 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
             raise ValueError("batch_size disagrees with len(boresight_ids)")
         batch_size = rows.shape[0]
     elif batch_size is None:
-        raise ValueError("give batch_size (random attitudes) or boresight_ids (mode b)")
+        raise ValueError("give batch_size (random attitudes), boresight_ids (mode b) or attitudes")
     if not isinstance(batch_size, int | np.integer) or batch_size < 1:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     check_key(key)
@@ -245,6 +257,15 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
                  mode_b=boresight_ids is not None, detection=detection)
     rows = (jnp.zeros((batch_size,), jnp.int32) if boresight_ids is None
             else jnp.asarray(boresight_ids, jnp.int32))
+    if attitudes is not None:  # mode c: stage 1 is the given attitudes and their sky cells
+        att = jnp.asarray(attitudes, jnp.float32)
+        first = _given_attitudes(_scene_keys(key, batch_size), att, grid=plan.stage1["grid"])
+        if shard and jax.local_device_count() > 1:
+            replicated = (*on_every_device(plan.index, "device_arrays", plan.index.device_arrays),
+                          *on_every_device(catalog, "simulator_stars", lambda: _device_tables(catalog)[:3]))
+            return map_batch(_stage2, (*first, *plan.arrays[:2]), replicated, static=plan.statics)
+        noise_b, model_b, index_arrays, star_tables, _ = plan.arrays
+        return _stage2(*first, noise_b, model_b, *index_arrays, *star_tables, **plan.statics)
     if shard and jax.local_device_count() > 1:
         # both stages split over the devices, the tables placed on each device once (they are
         # long-lived: the index is memoised, the tables kept on the catalog)
@@ -388,7 +409,8 @@ def _plan(catalog, camera, noise: NoiseConfig, *, batch_size: int, capacity: int
         max_missing=int(np.max(np.asarray(noise.n_missing))),
         false_disk=bool(np.any(np.isfinite(np.asarray(noise.false_radius_px)))),
         n_candidates=index.capacity,
-        merge=detection is not None and bool(np.any(np.asarray(detection.merge_radius_px) > 0)),
+        merge=(0 if detection is None or not np.any(np.asarray(detection.merge_radius_px) > 0) else
+               merge_window(index.capacity, float(np.max(detection.merge_radius_px)), camera.width)),
     )
     model_b = None if detection is None else detection.broadcast(batch_size)
     arrays = (noise.broadcast(batch_size), model_b, tuple(index.device_arrays()), tuple(tables[:3]),
@@ -425,7 +447,7 @@ def _candidate_widths(k: int) -> tuple[int, ...]:
 @functools.partial(stored_jit, static_argnames=(
     "camera", "capacity", "false_capacity", "max_missing", "false_disk", "merge", "widths"))
 def _scenes_chunked(seeds, noise, model, att, cell, cells, counts, star_vec, star_mag, star_row, *,
-                    camera, capacity, false_capacity, max_missing, false_disk, merge=False, widths):
+                    camera, capacity, false_capacity, max_missing, false_disk, merge=0, widths):
     """Steps 2–7 for a large batch, in chunks sorted by candidate count, each with the narrowest
     candidate list that holds it (:func:`jstarid.runtime.map_by_width`)."""
     def run(width):
@@ -471,6 +493,12 @@ def _attitudes(key, rows, cat_vec, *, grid, mode_b):
     return _attitudes_of(jax.random.split(key, rows.shape[0]), rows, cat_vec, grid=grid, mode_b=mode_b)
 
 
+@functools.partial(jax.jit, static_argnames=("grid",))
+def _given_attitudes(keys, att, *, grid):
+    """Stage 1 of mode c: the scene seeds of ``keys``, the given attitudes and their sky cells."""
+    return jax.vmap(streams.scene_seed)(keys), att, cell_of(att[:, 2], grid)
+
+
 @functools.partial(jax.jit, static_argnums=1)
 def _scene_keys(key, batch_size):
     """The B scene keys of a batch key (the sharded path splits the batch after this)."""
@@ -489,7 +517,7 @@ def _attitudes_of(keys, rows, cat_vec, *, grid, mode_b):
     "camera", "capacity", "false_capacity", "max_missing", "false_disk", "merge", "n_candidates",
     "adaptive"))
 def _scenes_batch(seeds, noise, model, att, cell, cells, star_vec, star_mag, star_row, *, camera,
-                  capacity, false_capacity, max_missing, false_disk, n_candidates, merge=False,
+                  capacity, false_capacity, max_missing, false_disk, n_candidates, merge=0,
                   adaptive=False):
     """Steps 2–7 for a batch, given attitudes and sky cells; ``cells[:, :n_candidates]`` is used.
 
@@ -534,7 +562,7 @@ def _keep_sizes(k_max: int) -> tuple[int, ...]:
 
 
 def _simulate_one(key, noise, row, *, cells, star_vec, star_mag, star_row, cat_vec, camera, capacity,
-                  grid, false_capacity, max_missing, mode_b, false_disk=True, model=None, merge=False):
+                  grid, false_capacity, max_missing, mode_b, false_disk=True, model=None, merge=0):
     """One whole scene (steps 1–7) with the full candidate list: the per-scene reference."""
     att = _attitude_one(key, row, cat_vec, mode_b)
     return _scene_from_attitude(
@@ -573,7 +601,7 @@ def _drop_missing(seed, detected, n_missing, max_missing):
 
 
 def _scene_from_attitude(seed, noise, att, idx, *, star_vec, star_mag, star_row, camera, capacity,
-                         false_capacity, max_missing, false_disk=True, model=None, merge=False):
+                         false_capacity, max_missing, false_disk=True, model=None, merge=0):
     """Steps 2–7 for one scene (module docstring); ``noise`` fields are scalars here.
 
     Args:
@@ -585,7 +613,8 @@ def _scene_from_attitude(seed, noise, att, idx, *, star_vec, star_mag, star_row,
             sentinel row); the draws of candidate i do not depend on K.
         false_disk: static; False when no scene has a finite ``false_radius_px`` (disk draws skipped).
         model: the scene's :class:`~jstarid.DetectionModel` or ``None`` (the camera's cut).
-        merge: static; blends are drawn (some scene's ``merge_radius_px`` > 0).
+        merge: static; the blends' window (:func:`~jstarid.detection_model.merge_window`), 0 when no
+            scene blends.
     """
     det = _detections(seed, noise, model, att, idx, star_vec=star_vec, star_mag=star_mag,
                       star_row=star_row, camera=camera, false_capacity=false_capacity,
@@ -618,7 +647,7 @@ class _Detections(NamedTuple):
 
 
 def _detections(seed, noise, model, att, idx, *, star_vec, star_mag, star_row, camera, false_capacity,
-                max_missing, false_disk, merge=False):
+                max_missing, false_disk, merge=0):
     """Steps 2–6 for one scene (arguments as :func:`_scene_from_attitude`)."""
     n_cand = idx.shape[0]
 

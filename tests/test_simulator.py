@@ -406,3 +406,28 @@ def test_second_call_with_new_key_does_not_recompile(catalog6, sgm_camera):
     js.simulate(jax.random.key(2), catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=0.9),
                 batch_size=8)
     assert (sim_module._scenes_batch._cache_size(), sim_module._attitudes._cache_size()) == sizes
+
+
+def test_given_attitudes_are_the_scenes_attitudes(catalog6, sgm_camera, several_devices):
+    """Mode c: SciPy's random rotations as the attitudes; the noise-free stars are where they put them
+    (the reference projection), sharded and not, and bad rotations are refused."""
+    given = Rotation.random(12, random_state=5).as_matrix()
+    scenes = js.simulate(jax.random.key(3), catalog6, sgm_camera, attitudes=given, capacity=128)
+    many = js.simulate(jax.random.key(3), catalog6, sgm_camera, attitudes=given, capacity=128, shard=True)
+    for a, b in zip(jax.tree.leaves(scenes), jax.tree.leaves(many), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(scenes.attitude), given, atol=1e-6)
+    sim_of_row = np.full(len(catalog6), -1)
+    sim_of_row[catalog6.sim_row[catalog6.sim_row >= 0]] = np.nonzero(catalog6.sim_row >= 0)[0]
+    for b in range(12):
+        vis, edge, xy_ref = _reference_visible(catalog6, sgm_camera, given[b])
+        valid = np.asarray(scenes.valid[b])
+        truth = np.asarray(scenes.truth[b])[valid]
+        rows = sim_of_row[truth[truth >= 0]]
+        ambiguous = set(np.nonzero(edge)[0].tolist())
+        assert set(rows.tolist()) - ambiguous == set(np.nonzero(vis)[0].tolist()) - ambiguous
+        np.testing.assert_allclose(np.asarray(scenes.xy[b])[valid][truth >= 0], xy_ref[rows], atol=1e-3)
+    with pytest.raises(ValueError, match="finite rotation"):
+        js.simulate(jax.random.key(3), catalog6, sgm_camera, attitudes=2 * given)
+    with pytest.raises(ValueError, match="without boresight_ids"):
+        js.simulate(jax.random.key(3), catalog6, sgm_camera, attitudes=given, boresight_ids=np.arange(12))

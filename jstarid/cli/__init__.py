@@ -3,7 +3,8 @@
 Commands: ``demo`` (every algorithm on a position-noise sweep), ``sweep`` (any axis, camera or
 parameter grid), ``reproduce`` (the papers' experiments), ``report`` (one markdown page of saved
 results), ``identify`` (centroid files → names and attitude), ``score`` (labelled centroid files
-→ names scored against the true stars), ``solve`` (raw images → names and attitude), ``calibrate``
+→ names scored against the true stars), ``twin`` (labelled centroid files against their simulated
+twin), ``solve`` (raw images → names and attitude), ``calibrate``
 (frames → a fitted camera file), ``train`` (a
 database or network built ahead of time), ``list`` and ``catalog``. Bad arguments print one line
 and exit with status 2.
@@ -14,7 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from jstarid.cli import build, calibrate, frames, info, papers, score, sweeps
+from jstarid.cli import build, calibrate, frames, info, papers, score, sweeps, twin
 
 __all__ = ["build_parser", "main"]
 
@@ -37,6 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     papers.add_commands(sub)
     frames.add_commands(sub)
     score.add_commands(sub)
+    twin.add_commands(sub)
     calibrate.add_commands(sub)
     build.add_commands(sub)
     info.add_commands(sub)

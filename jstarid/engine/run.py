@@ -149,10 +149,13 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
                     capacity: int = 64, boresight: str = "random", progress: bool = False,
                     pixels: bool = False, sensor: SensorConfig | None = None,
                     centroid: CentroidConfig | None = None,
-                    detection: DetectionModel | str | None = None) -> Levels:
+                    detection: DetectionModel | str | None = None, attitudes=None) -> Levels:
     """The scenes :func:`sweep` runs on, in one ``simulate`` call (arguments as in :func:`sweep`);
     from pixels, the sky's scenes in that call and each level's frames rendered and extracted in
     batched calls (:func:`~jstarid.engine.pixels.detect_scenes`).
+
+    ``attitudes``: (L · scenes, 3, 3) rotations ICRS → camera of every scene, level-major, instead of
+    drawn ones (``boresight="random"`` only; :func:`jstarid.simulate`'s mode c).
 
     A script that measures more than the engine does (a network's top-1 accuracy, a naming
     ceiling) draws the scenes here and passes them to :func:`compare` and to its own code.
@@ -170,6 +173,9 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
     if boresight not in BORESIGHTS:
         raise ValueError(f"boresight must be one of {BORESIGHTS} or catalog rows, got {boresight!r}")
     levels = level_grid(axes)
+    if attitudes is not None and (boresight != "random" or np.shape(attitudes)[0] != len(levels) * scenes):
+        raise ValueError(f"attitudes must hold one rotation per scene ({len(levels) * scenes}) and "
+                         f"come with boresight='random'")
     noise = level_noise(levels, scenes, fixed)
     if pixels and detection is not None:
         raise ValueError("a sweep from pixels detects in the pixels: drop detection")
@@ -183,6 +189,8 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
     rows = (candidates[np.asarray(jax.random.randint(key_rows, (total,), 0, candidates.size))]
             if boresight == "stars" else None)
     t0 = time.perf_counter()
+    if attitudes is not None:
+        rows = np.asarray(attitudes, np.float64)  # _deep_sky's rows: the scenes' attitudes
     if pixels:
         batch, pixel_settings = _from_pixels(key_scenes, catalog, camera, noise, rows, levels, sensors,
                                              centroid or CentroidConfig(), scenes, capacity, progress)
@@ -190,8 +198,8 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
         batch, pixel_settings = _from_model(key_scenes, catalog, camera, noise, rows, detection, sensors,
                                             centroid or CentroidConfig(), scenes, total, capacity)
     else:
-        batch = simulate(key_scenes, catalog, camera, noise, batch_size=total, capacity=capacity,
-                         boresight_ids=rows, shard=True)
+        batch = simulate(key_scenes, catalog, camera, noise, capacity=capacity, shard=True,
+                         **_where(rows, total))
         pixel_settings = {}
     jax.block_until_ready(batch)
     _say(progress, f"simulated {total:,} scenes ({len(levels)} levels × {scenes}) in "
@@ -202,7 +210,8 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
                 "axes": {k: sorted({lv[k] for lv in levels}, key=[lv[k] for lv in levels].index)
                          for k in levels[0]}, "levels": levels,
                 "fixed": dict(fixed or {}), "scenes_per_level": scenes, "seed": seed,
-                "capacity": capacity, "boresight": boresight,
+                "capacity": capacity,
+                "boresight": boresight if attitudes is None else "given attitudes",
                 "simulate_seconds": time.perf_counter() - t0, "pixels": bool(pixels), **pixel_settings}
     return Levels(batch, np.repeat(np.arange(len(levels)), scenes).astype(np.int32), levels,
                   catalog, camera, settings)
@@ -229,10 +238,10 @@ def _deep_sky(key, catalog, camera, noise, rows, total, depth, capacity, detecti
     kept = ("double_sep_deg", "double_mode", "sim_margin", "epoch")
     sky_catalog = load_catalog(depth, **{k: v for k, v in catalog.settings.items() if k in kept})
     sky_camera = dataclasses.replace(camera, mag_limit=depth) if detection is None else camera
-    if rows is not None:  # the boresight stars, as rows of the deeper catalog
+    if rows is not None and rows.ndim == 1:  # the boresight stars, as rows of the deeper catalog
         rows = _rows_in(sky_catalog, catalog, rows)
-    sky = simulate(key, sky_catalog, sky_camera, noise, batch_size=None if rows is not None else total,
-                   capacity=capacity, boresight_ids=rows, shard=True, detection=detection)
+    sky = simulate(key, sky_catalog, sky_camera, noise, capacity=capacity, shard=True,
+                   detection=detection, **_where(rows, total))
     sky = jax.device_get(sky)
     deep = np.asarray(sky.truth)
     truth = np.where(deep >= 0, catalog.row_of_hip(sky_catalog.hip[np.maximum(deep, 0)]), -1)
@@ -288,6 +297,14 @@ def _from_pixels(key, catalog, camera, noise, rows, levels, sensors, centroid, p
                     "centroid": dataclasses.asdict(centroid), "render_depth_mag": RENDER_DEPTH_MAG,
                     "sky_capacity": SKY_CAPACITY, "render_extract_seconds": seconds,
                     "sky_overflow": int(np.asarray(sky.overflow).sum())}
+
+
+def _where(rows, total) -> dict:
+    """``simulate``'s pointing arguments: ``total`` random attitudes (``rows`` None), boresight stars
+    (``rows`` (S,) catalog rows) or the given attitudes (``rows`` (S, 3, 3))."""
+    if rows is None:
+        return {"batch_size": total}
+    return {"attitudes": rows} if np.ndim(rows) == 3 else {"boresight_ids": rows}
 
 
 def _rows_in(other, catalog, rows) -> np.ndarray:
