@@ -23,7 +23,10 @@ inverse of a star's relative flux; module :mod:`jstarid.detection_model`):
 4. **Unmatched detections** (optional: the measured magnitudes of detections that are no catalog star,
    and the number of frames): their mean count per frame and their brightness distribution, density
    ∝ 10^(s m) between the faintest and brightest (maximum likelihood), as ``NoiseConfig``'s clutter —
-   hot pixels, cosmic rays, and real stars past the catalog's depth.
+   hot pixels, cosmic rays, and real stars past the catalog's depth. An extractor's noise peaks pile
+   up just above its threshold under a sparse bright tail, which one slope cannot follow (it would put
+   three times too many of them among the brightest detections): a knee with a second slope fainter
+   than it is fitted too, and kept when it gains more than :data:`KNEE_GAIN` in log-likelihood.
 
 Vignetting and blends are not fitted (a fitted model has none: their effect on the scatter lands in
 the floors); give ``merge_radius_px`` when it is known.
@@ -52,8 +55,9 @@ class DetectionFit(NamedTuple):
         magnitude_offset: median measured − catalog magnitude (mag) of the detected stars.
         stars: records fitted; detected: how many of them were detected.
         clutter: :class:`~jstarid.NoiseConfig` clutter fields (``false_mean``, ``false_mag_min``,
-            ``false_mag_max``, ``false_mag_slope``) of the unmatched detections, in catalog V; empty
-            when none were given.
+            ``false_mag_max``, ``false_mag_slope``, and ``false_mag_knee`` and
+            ``false_mag_slope_faint`` where a knee was fitted) of the unmatched detections, in
+            catalog V; empty when none were given.
     """
 
     model: object
@@ -214,8 +218,9 @@ def fit_detection(true_mag, detected, measured_mag=None, position_error_px=None,
 
 def _clutter(mags, frames) -> dict:
     """NoiseConfig clutter fields for unmatched detections of magnitudes ``mags`` (catalog V) over
-    ``frames`` frames: a Poisson count and a truncated-exponential brightness distribution."""
-    from scipy.optimize import minimize_scalar
+    ``frames`` frames: a Poisson count and a truncated-exponential brightness distribution, with a knee
+    (two slopes) where that is likelier by more than :data:`KNEE_GAIN` in log-likelihood."""
+    from scipy.optimize import minimize, minimize_scalar
 
     if not frames or frames < 1:
         raise ValueError("give frames (how many frames the unmatched detections come from)")
@@ -223,15 +228,42 @@ def _clutter(mags, frames) -> dict:
     if mags.size < 2:
         return {"false_mean": mags.size / frames}
     lo, hi = float(mags.min()), float(mags.max())
-    span = max(hi - lo, 1e-3)
+    slope = float(minimize_scalar(lambda s: _knee_nll(mags, lo, hi, s, s, hi), bounds=(-5.0, 5.0),
+                                  method="bounded").x)
+    out = {"false_mean": mags.size / frames, "false_mag_min": lo, "false_mag_max": hi,
+           "false_mag_slope": slope}
+    if mags.size < KNEE_MIN_COUNT:
+        return out
+    single = _knee_nll(mags, lo, hi, slope, slope, hi)
 
-    def nll(slope):  # density 10^(s m) normalised on [lo, hi]; log-likelihood per detection
-        a = slope * math.log(10.0)
-        if abs(a * span) < 1e-9:
-            return math.log(span)
-        norm = math.log(abs(math.expm1(a * span)) / abs(a))
-        return -(a * float(np.mean(mags - lo)) - norm)
+    def loss(p):
+        s1, s2, knee = p
+        if not (abs(s1) <= 5 and abs(s2) <= 5 and lo < knee < hi):
+            return np.inf
+        return _knee_nll(mags, lo, hi, s1, s2, knee)
 
-    slope = float(minimize_scalar(nll, bounds=(-5.0, 5.0), method="bounded").x)
-    return {"false_mean": mags.size / frames, "false_mag_min": lo, "false_mag_max": hi,
-            "false_mag_slope": slope}
+    best = min((minimize(loss, [slope, slope, float(np.quantile(mags, q))], method="Nelder-Mead",
+                         options={"xatol": 1e-4, "fatol": 1e-4, "maxiter": 4000})
+                for q in (0.05, 0.25, 0.5, 0.75)), key=lambda r: r.fun)
+    if mags.size * (single - best.fun) > KNEE_GAIN:
+        s1, s2, knee = (float(v) for v in best.x)
+        out.update(false_mag_slope=s1, false_mag_knee=knee, false_mag_slope_faint=s2)
+    return out
+
+
+KNEE_MIN_COUNT = 50  # unmatched detections before a knee is tried
+KNEE_GAIN = 3.0  # log-likelihood a knee (two more parameters) must gain
+
+
+def _mass(b, length):
+    """∫₀^length e^(b t) dt."""
+    return length if abs(b * length) < 1e-9 else math.expm1(b * length) / b
+
+
+def _knee_nll(mags, lo, hi, s1, s2, knee) -> float:
+    """Mean negative log-likelihood of ``mags`` under density 10^(s₁ (m − k)) brighter than the knee
+    k, 10^(s₂ (m − k)) fainter, on [lo, hi] (the simulator's ``_false_magnitudes``)."""
+    a1, a2 = s1 * math.log(10.0), s2 * math.log(10.0)
+    total = _mass(-a1, knee - lo) + _mass(a2, hi - knee)
+    log_density = np.where(mags < knee, a1 * (mags - knee), a2 * (mags - knee))
+    return float(math.log(total) - np.mean(log_density))

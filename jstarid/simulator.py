@@ -81,6 +81,10 @@ class NoiseConfig:
         false_mag_slope: false-star magnitudes have density ∝ 10^(slope · m) on ``[false_mag_min,
             false_mag_max]`` (1/mag); 0 is uniform (the papers'), :data:`CATALOG_MAG_SLOPE` draws
             them as the catalog's stars are distributed, so "the brightest" are not a defence.
+        false_mag_knee: brighter than this magnitude the density has ``false_mag_slope``, fainter
+            ``false_mag_slope_faint`` (continuous at the knee): a real extractor's noise peaks pile
+            up just above its threshold under a sparse bright tail. ``inf`` (default): one slope.
+        false_mag_slope_faint: the density's slope fainter than ``false_mag_knee`` (1/mag).
     """
 
     position_sigma_px: float = 0.0
@@ -95,6 +99,8 @@ class NoiseConfig:
     false_mean: float = 0.0
     false_per_true: float = 0.0
     false_mag_slope: float = 0.0
+    false_mag_knee: float = math.inf
+    false_mag_slope_faint: float = 0.0
 
     def broadcast(self, batch_size: int) -> NoiseConfig:
         """Every field as a (B,) array with the simulator's dtypes."""
@@ -129,6 +135,8 @@ class NoiseConfig:
             "false_mean": lambda a: np.all((a >= 0) & (a <= 1_000)),
             "false_per_true": lambda a: np.all((a >= 0) & (a <= 100)),
             "false_mag_slope": lambda a: np.all(np.abs(a) <= 5),
+            "false_mag_knee": lambda a: np.all(a > -100),
+            "false_mag_slope_faint": lambda a: np.all(np.abs(a) <= 5),
         }
         rules = {
             "position_sigma_px": "in [0, 1000] px", "magnitude_sigma": "in [0, 10] mag",
@@ -137,6 +145,7 @@ class NoiseConfig:
             "false_radius_px": "> 0 (inf for the whole frame)",
             "n_false_max": "an integer in [0, 10000]", "false_mean": "in [0, 1000]",
             "false_per_true": "in [0, 100]", "false_mag_slope": "in [-5, 5] per mag",
+            "false_mag_knee": "a magnitude (inf: no knee)", "false_mag_slope_faint": "in [-5, 5] per mag",
         }
         for name, ok in checks.items():
             a = arr(name)
@@ -756,14 +765,38 @@ def _false_count(seed, noise, n_true, bound):
 
 def _false_magnitudes(u, noise):
     """Magnitudes (n,) on ``[false_mag_min, false_mag_max]`` with density ∝ 10^(slope · m), by
-    inverting the truncated exponential's CDF at uniforms ``u`` (n,); slope 0 is uniform."""
+    inverting the truncated exponential's CDF at uniforms ``u`` (n,); slope 0 is uniform. With a knee
+    inside the range, the density is 10^(s₁ (m − k)) brighter than it and 10^(s₂ (m − k)) fainter."""
     lo, hi = noise.false_mag_min, noise.false_mag_max
     a = noise.false_mag_slope * math.log(10.0)
     span = hi - lo
     flat = jnp.abs(a * span) < 1e-6
     a_safe = jnp.where(flat, 1.0, a)
     tilted = jnp.log1p(u * jnp.expm1(a_safe * span)) / a_safe
-    return lo + jnp.where(flat, u * span, tilted)
+    one_slope = lo + jnp.where(flat, u * span, tilted)
+    knee = jnp.clip(noise.false_mag_knee, lo, hi)
+    # masses either side of the knee, in units of the density there: ∫₀ᴸ e^(b t) dt = expm1(bL)/b
+    bright = _exp_mass(-a, knee - lo)  # t = k − m, density e^(−a t)
+    faint = _exp_mass(noise.false_mag_slope_faint * math.log(10.0), hi - knee)
+    v = u * (bright + faint)
+    from_knee_bright = _exp_mass_inverse(-a, bright - v)  # k − m where the mass brighter than m is v
+    from_knee_faint = _exp_mass_inverse(noise.false_mag_slope_faint * math.log(10.0), v - bright)
+    two_slopes = jnp.where(v < bright, knee - from_knee_bright, knee + from_knee_faint)
+    return jnp.where(noise.false_mag_knee < hi, two_slopes, one_slope)
+
+
+def _exp_mass(b, length):
+    """∫₀^length e^(b t) dt (length ≥ 0), exact at b = 0."""
+    flat = jnp.abs(b * length) < 1e-6
+    return jnp.where(flat, length, jnp.expm1(b * length) / jnp.where(flat, 1.0, b))
+
+
+def _exp_mass_inverse(b, mass):
+    """The length whose :func:`_exp_mass` is ``mass`` (≥ 0)."""
+    mass = jnp.maximum(mass, 0.0)
+    flat = jnp.abs(b * mass) < 1e-6
+    # b < 0: the mass stays below 1/|b|; rounding at u → 1 must not take the log past −1
+    return jnp.where(flat, mass, jnp.log1p(jnp.maximum(b * mass, -0.999999)) / jnp.where(flat, 1.0, b))
 
 
 def _false_positions(seed, n, radius_px, camera, *, disk: bool, tries: int = 8):

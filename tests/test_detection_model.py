@@ -260,6 +260,27 @@ def test_unmatched_detections_become_clutter():
     assert fit.noise().false_mean == 20.0
     with pytest.raises(ValueError, match="frames"):
         js.DetectionModel.fit(v, found, unmatched_mag=loose)
+    assert "false_mag_knee" not in fit.clutter  # one slope drew them: no knee gains enough
+
+
+def test_clutter_piling_up_at_the_threshold_gets_a_knee():
+    """A sparse bright tail over noise peaks just above the threshold (as OreSat's extractor finds):
+    the fitted knee and slopes, drawn back through the simulator, put as many clutter detections
+    brighter than each magnitude as the sample has."""
+    from jstarid.simulator import _false_magnitudes
+
+    truth = js.NoiseConfig(false_mag_min=2.0, false_mag_max=7.3, false_mag_slope=2.0, false_mag_knee=6.5,
+                           false_mag_slope_faint=-0.3)
+    loose = np.asarray(_false_magnitudes(jax.random.uniform(jax.random.key(1), (6000,)), truth))
+    rng = np.random.default_rng(1)
+    v = rng.uniform(3, 9, 500)
+    fit = js.DetectionModel.fit(v, v < 7.0, v, unmatched_mag=loose, frames=20)
+    clutter = fit.clutter
+    assert abs(clutter["false_mag_knee"] - 6.5) < 0.1
+    assert abs(clutter["false_mag_slope"] - 2.0) < 0.2 and abs(clutter["false_mag_slope_faint"] + 0.3) < 0.2
+    redrawn = np.asarray(_false_magnitudes(jax.random.uniform(jax.random.key(2), (6000,)), fit.noise()))
+    for m in (5.5, 6.0, 6.5):
+        assert abs(np.mean(redrawn < m) - np.mean(loose < m)) < 0.02
 
 
 def test_sharded_draws_equal_one_device(catalog6, sgm_camera, several_devices):

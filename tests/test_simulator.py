@@ -180,6 +180,27 @@ def test_clutter_counts_and_magnitudes_follow_their_distributions(catalog6, sgm_
     assert np.median(tilted) > 6.5  # mostly faint, as stars are
 
 
+@pytest.mark.parametrize("knee, slope, faint", [(6.0, 0.3, 2.0), (4.0, -0.5, 0.0), (9.0, 1.0, 3.0)])
+def test_clutter_with_a_knee_follows_its_density(catalog6, sgm_camera, knee, slope, faint):
+    """Two slopes meeting at a knee (a knee past the faint end: the one-slope draws, unchanged):
+    against the CDF integrated numerically from the density."""
+    from scipy import stats
+
+    one = js.NoiseConfig(false_mean=20.0, false_mag_min=3.0, false_mag_max=8.0, false_mag_slope=slope)
+    noise = dataclasses.replace(one, false_mag_knee=knee, false_mag_slope_faint=faint)
+    scenes = js.simulate(jax.random.key(4), catalog6, sgm_camera, noise, batch_size=300, capacity=256)
+    false = np.asarray(scenes.valid) & (np.asarray(scenes.truth) < 0)
+    mags = np.asarray(scenes.mag)[false]
+    grid = np.linspace(3.0, 8.0, 20001)
+    density = np.where(grid < knee, 10.0 ** (slope * (grid - knee)), 10.0 ** (faint * (grid - knee)))
+    cdf = np.concatenate([[0.0], np.cumsum((density[1:] + density[:-1]) / 2 * np.diff(grid))])
+    cdf /= cdf[-1]
+    assert stats.kstest(mags, lambda m: np.interp(m, grid, cdf)).pvalue > 1e-3
+    if knee >= 8.0:
+        plain = js.simulate(jax.random.key(4), catalog6, sgm_camera, one, batch_size=300, capacity=256)
+        np.testing.assert_array_equal(np.asarray(plain.mag), np.asarray(scenes.mag))
+
+
 def test_catalog_mag_slope_is_the_catalogs(catalog6):
     """The constant is the slope of log10 N(≤ V) over V 4–8 of the full Hipparcos catalog."""
     stars = js.catalog.load_every_star(2000.0)

@@ -1,0 +1,143 @@
+"""The twin check on real frames: OreSat's detections, labelled by an independent plate solution, against
+their simulated twin, algorithm by algorithm.
+
+The OreSat frames (``shared/data/oresat``, sets ``exp1000`` and ``exp2500``: 15 frames of one camera,
+1280×960 px, 17.06° × 12.8°, each solved by astrometry.net) become a labelled centroid file:
+
+- detections: :func:`jstarid.extract_centroids` on each frame (the settings ``jstarid solve`` names
+  stars with), magnitudes instrumental (−2.5 log10 flux);
+- labels: every Hipparcos star (V ≤ 10, epoch 2018.3) put in the frame by the plate solver's TAN-SIP
+  header (astropy) claims the nearest detection within ``--match-px``, brightest star first; a
+  detection no star claims is −1 (a false star, or a star past Hipparcos).
+
+No jstarid solution enters the labels. Then ``js.twin.twin_check`` — what ``jstarid twin
+FILE --camera …`` runs — fits the detection model to the file, simulates the twin near the frames'
+pointings and runs each algorithm with its defaults for the camera on both.
+
+Usage::
+
+    python experiments/twin_check.py                       # MLV, SGM, RpNet; 1000 twin scenes
+    python experiments/twin_check.py --algorithms mlv --scenes 200
+
+Writes results/twin_check/{oresat_labelled.csv, twin.json, table.md, config.json, results.json}.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+import jstarid as js
+from jstarid import experiment as ex
+from jstarid.centroid_files import read_centroid_set
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "oresat"
+SETS = ("exp1000", "exp2500")  # one camera (downsample/ is these frames binned: another camera)
+EPOCH = 2018.3
+SIZE, FOV_DEG = (1280, 960), 17.06
+LABEL_DEPTH = 10.0  # V: the Hipparcos stars that may claim a detection
+
+
+def parse_args(argv=None):
+    p = ex.parser(__doc__.splitlines()[0], out="results/twin_check", quick="200 twin scenes, MLV")
+    p.add_argument("--data", type=Path, default=DATA, help="the oresat folder")
+    p.add_argument("--algorithms", default="mlv,sgm,rpnet")
+    p.add_argument("--scenes", type=int, default=1000, help="twin scenes (default 1000)")
+    p.add_argument("--match-px", type=float, default=2.0,
+                   help="farthest a detection may lie from the star the plate solution puts there")
+    return p.parse_args(argv)
+
+
+def plate_solution(wcs_path: Path):
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    with fits.open(wcs_path) as hdus:
+        return WCS(hdus[0].header)
+
+
+def label(xy, mag, star_xy, star_hip, match_px):
+    """HIP of each detection: every star, brightest first, claims its nearest unclaimed detection
+    within ``match_px``; −1 where none does."""
+    hip = np.full(len(xy), -1, np.int64)
+    if not len(xy):
+        return hip
+    for sxy, h in zip(star_xy, star_hip, strict=True):
+        d = np.hypot(*(xy - sxy).T)
+        d[hip >= 0] = np.inf
+        j = int(np.argmin(d))
+        if d[j] <= match_px:
+            hip[j] = h
+    return hip
+
+
+def labelled_file(args, out: Path) -> Path:
+    """The frames' detections and labels as one CSV (module docstring)."""
+    from jstarid.solution import NAMING_CAPACITY, NAMING_CENTROIDS
+
+    catalog = js.load_catalog(LABEL_DEPTH, epoch=EPOCH, double_sep_deg=0.0)
+    v = catalog.unit_vectors
+    ra = np.degrees(np.arctan2(v[:, 1], v[:, 0])) % 360.0
+    dec = np.degrees(np.arcsin(np.clip(v[:, 2], -1, 1)))
+    rows = [("scene", "x", "y", "mag", "hip")]
+    for name in SETS:
+        folder = args.data / name
+        with open(folder / "truth" / "frames.csv") as f:
+            frames = {row["image"]: row for row in csv.DictReader(f)}
+        for path in sorted(folder.glob("images/*.png"), key=lambda p: int(p.stem)):
+            image = js.read_image(path).astype(np.float32)
+            found = js.extract_centroids(image[None], NAMING_CENTROIDS, capacity=NAMING_CAPACITY)
+            valid = np.asarray(found.valid[0])
+            xy, mag = np.asarray(found.xy[0], np.float64)[valid], np.asarray(found.mag[0], np.float64)[valid]
+            wcs = plate_solution(folder / frames[path.name]["wcs_file"])
+            # the stars within the field's diagonal of the reference point (SIP diverges far out)
+            near = np.nonzero(np.einsum("nj,j->n", v, _axis(wcs)) > np.cos(np.radians(FOV_DEG)))[0]
+            px = wcs.all_world2pix(np.column_stack([ra[near], dec[near]]), 0)
+            inside = (px[:, 0] > -1) & (px[:, 0] < SIZE[0]) & (px[:, 1] > -1) & (px[:, 1] < SIZE[1])
+            hip = label(xy, mag, px[inside], catalog.hip[near[inside]], args.match_px)
+            rows += [(f"{name}/{path.name}", f"{x:.3f}", f"{y:.3f}", f"{m:.3f}", int(h))
+                     for (x, y), m, h in zip(xy, mag, hip, strict=True)]
+            print(f"{name}/{path.name}: {len(xy)} detections, {int((hip >= 0).sum())} labelled", flush=True)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "oresat_labelled.csv"
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    return path
+
+
+def _axis(wcs) -> np.ndarray:
+    """The unit vector of the plate solution's reference point (stars behind it are not projected)."""
+    ra, dec = np.radians(wcs.wcs.crval)
+    return np.array([np.cos(ra) * np.cos(dec), np.sin(ra) * np.cos(dec), np.sin(dec)])
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    js.use_cpu_cores()
+    if not (args.data / SETS[0]).exists():
+        raise SystemExit(f"no OreSat frames at {args.data}")
+    algorithms = "mlv" if args.quick else args.algorithms
+    scenes = 200 if args.quick else args.scenes
+    path = labelled_file(args, args.out)
+    camera = js.load_camera("tetra3_test", size=SIZE, fov_deg=FOV_DEG)
+    check = js.twin.twin_check(read_centroid_set(path), camera, algorithms, scenes=scenes, seed=args.seed,
+                               epoch=EPOCH)
+    fit = check.labelled.fit
+    results = {"rows": check.rows(), "detections_per_scene": check.detections,
+               "fitted": {"model": dataclasses.asdict(fit.model),
+                          "magnitude_sigma": fit.magnitude_sigma, "position_sigma_px": fit.position_sigma_px,
+                          "magnitude_offset": fit.magnitude_offset, "clutter": fit.clutter,
+                          "stars": fit.stars, "detected": fit.detected,
+                          "depth_mag": check.labelled.depth_mag,
+                          "residual_px_median": float(np.nanmedian(check.labelled.residual_px))}}
+    ex.write(args.out, config={**vars(args), "camera": camera}, results=results, table=check.table())
+    check.result.save(args.out / "sweep", title="twin check: OreSat (twin=0) and its twin (twin=1)",
+                      figure=False)
+    print(check.table())
+
+
+if __name__ == "__main__":
+    main()
