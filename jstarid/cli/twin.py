@@ -22,7 +22,7 @@ def add_commands(sub) -> None:
                     "is fitted to its labelled stars), simulate the set's twin from that model, run "
                     "every algorithm on both through the sweep engine and print real and twin "
                     "identification and mis-identification rates side by side (strict criterion, "
-                    "95 %% Wilson intervals; a twin rate agrees when it lies inside the real "
+                    "95 % Wilson intervals; a twin rate agrees when it lies inside the real "
                     "interval). Writes --out: twin.json (the fitted model, the rows) and the sweep's "
                     "files (level twin=0: the labelled set, twin=1: its twin).")
     p.add_argument("files", nargs="+", type=Path, help="labelled centroid files (.csv, .tsv, .txt, .json)")
