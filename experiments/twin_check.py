@@ -114,6 +114,24 @@ def _axis(wcs) -> np.ndarray:
     return np.array([np.cos(ra) * np.cos(dec), np.sin(ra) * np.cos(dec), np.sin(dec)])
 
 
+def clutter_radii(found, camera, capacity: int = 64) -> dict:
+    """Where the brightest ``capacity`` detections that are no catalog star lie: percentiles (10, 25,
+    50, 75) of their distance from the principal point (px), beside those of points uniform over the
+    frame (the twin's clutter)."""
+    radii = []
+    for xy, mag, hip in zip(found.xy, found.mag, found.hip, strict=True):
+        top = np.argsort(mag, kind="stable")[:capacity]
+        loose = top[hip[top] < 0]
+        radii.append(np.hypot(xy[loose, 0] - camera.cx, xy[loose, 1] - camera.cy))
+    rng = np.random.default_rng(0)
+    uniform = np.hypot(rng.uniform(0, camera.width - 1, 100_000) - camera.cx,
+                       rng.uniform(0, camera.height - 1, 100_000) - camera.cy)
+    q = [10, 25, 50, 75]
+    return {"per_frame": float(np.mean([r.size for r in radii])),
+            "real_px": np.percentile(np.concatenate(radii), q).round(0).tolist(),
+            "uniform_px": np.percentile(uniform, q).round(0).tolist(), "percentiles": q}
+
+
 def main(argv=None):
     args = parse_args(argv)
     js.use_cpu_cores()
@@ -126,7 +144,8 @@ def main(argv=None):
     check = js.twin.twin_check(read_centroid_set(path), camera, algorithms, scenes=scenes, seed=args.seed,
                                epoch=EPOCH)
     fit = check.labelled.fit
-    results = {"rows": check.rows(), "detections_per_scene": check.detections,
+    radii = clutter_radii(read_centroid_set(path), camera)
+    results = {"rows": check.rows(), "detections_per_scene": check.detections, "clutter_radii": radii,
                "fitted": {"model": dataclasses.asdict(fit.model),
                           "magnitude_sigma": fit.magnitude_sigma, "position_sigma_px": fit.position_sigma_px,
                           "magnitude_offset": fit.magnitude_offset, "clutter": fit.clutter,
@@ -137,6 +156,8 @@ def main(argv=None):
     check.result.save(args.out / "sweep", title="twin check: OreSat (twin=0) and its twin (twin=1)",
                       figure=False)
     print(check.table())
+    print(f"Clutter among the 64 brightest detections: {radii['per_frame']:.1f} per frame; radius "
+          f"percentiles {radii['percentiles']} real {radii['real_px']} px, uniform {radii['uniform_px']} px")
 
 
 if __name__ == "__main__":
