@@ -23,6 +23,16 @@ def read_centroid_files(args) -> list[tuple[str, CentroidSet]]:
     return [(str(path), read_centroid_set(path, ignore=ignore, format=args.format)) for path in args.files]
 
 
+def read_labelled_files(args) -> list[tuple[str, CentroidSet]]:
+    """:func:`read_centroid_files`, refusing a file without true ids."""
+    sets = read_centroid_files(args)
+    for path, found in sets:
+        if not found.labelled:
+            raise ValueError(f"{path} has no true ids (a 'hip' column, a JSON \"hip\" list, or the "
+                             "line layout's id lines)")
+    return sets
+
+
 def combine(sets: list[tuple[str, CentroidSet]]) -> CentroidSet:
     """One set of every file's scenes, brightest first, each labelled ``path`` (a file of one scene)
     or ``path#label``."""

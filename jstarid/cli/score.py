@@ -39,16 +39,12 @@ def add_commands(sub) -> None:
 def run_score(args) -> int:
     import jstarid as js
     from jstarid import scoring
-    from jstarid.cli.centroid_input import combine, named_detections, read_centroid_files
+    from jstarid.cli.centroid_input import combine, named_detections, read_labelled_files
     from jstarid.cli.frames import _epoch_fields, _identify, _note_epoch
     from jstarid.scoring import close_pairs, score_scene, summarize
 
     camera = camera_from_args(args)  # a bad camera fails before any file is read
-    sets = read_centroid_files(args)
-    for path, found in sets:
-        if not found.labelled:
-            raise ValueError(f"{path} has no true ids (a 'hip' column, a JSON \"hip\" list, or the "
-                             "line layout's id lines)")
+    sets = read_labelled_files(args)
     found = combine(sets)
     measured = found.scenes(max(NAMING_CAPACITY, args.capacity))
     _note_epoch(args)

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from jstarid.cli.cameras import FRAME_CAMERA, add_camera_options, camera_from_args
-from jstarid.cli.centroid_input import add_centroid_file_options, combine, read_centroid_files
+from jstarid.cli.centroid_input import add_centroid_file_options, combine, read_labelled_files
 from jstarid.cli.first_use import about
 
 
@@ -62,11 +62,7 @@ def run_twin(args) -> int:
     camera = camera_from_args(args)  # a bad camera fails before any file is read
     if args.scenes < 1 or args.capacity < 1:
         raise ValueError("--scenes and --capacity must be ≥ 1")
-    sets = read_centroid_files(args)
-    for path, found in sets:
-        if not found.labelled:
-            raise ValueError(f"{path} has no true ids (a 'hip' column, a JSON \"hip\" list, or the "
-                             "line layout's id lines)")
+    sets = read_labelled_files(args)
     found = combine(sets)
     names = args.algorithms or ",".join(js.algorithms.seed_names())
     entries = _with_overrides(js.engine.entries(names, rpnet_network=args.rpnet_network, camera=camera),
