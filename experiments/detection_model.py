@@ -49,19 +49,18 @@ def parse_args(argv=None):
 
 def matched(det_xy, det_mag, star_xy, star_v):
     """Per star of one frame: detected?, measured − catalog magnitude, position residual (2,) (px);
-    and the magnitudes of the detections that are no star."""
+    and the magnitudes of the detections that are no star (``ex.claim_detections``, brightest star
+    first)."""
+    order = np.argsort(star_v, kind="stable")
+    star_of = ex.claim_detections(det_xy, star_xy[order], MATCH_PX)
+    claimed = star_of >= 0
+    stars = order[star_of[claimed]]
     found = np.zeros(len(star_xy), bool)
     dmag = np.full(len(star_xy), np.nan)
     dxy = np.full((len(star_xy), 2), np.nan)
-    claimed = np.zeros(len(det_xy), bool)
-    if len(det_xy) and len(star_xy):
-        d = np.linalg.norm(det_xy[:, None] - star_xy[None], axis=-1)
-        j = np.argmin(d, axis=1)
-        for i in np.argsort(det_mag):  # brightest detection first claims its star
-            if d[i, j[i]] < MATCH_PX and not found[j[i]]:
-                found[j[i]] = claimed[i] = True
-                dmag[j[i]] = det_mag[i] - star_v[j[i]]
-                dxy[j[i]] = det_xy[i] - star_xy[j[i]]
+    found[stars] = True
+    dmag[stars] = det_mag[claimed] - star_v[stars]
+    dxy[stars] = det_xy[claimed] - star_xy[stars]
     return found, dmag, dxy, det_mag[~claimed]
 
 

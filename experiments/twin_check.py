@@ -59,21 +59,6 @@ def plate_solution(wcs_path: Path):
         return WCS(hdus[0].header)
 
 
-def label(xy, mag, star_xy, star_hip, match_px):
-    """HIP of each detection: every star, brightest first, claims its nearest unclaimed detection
-    within ``match_px``; −1 where none does."""
-    hip = np.full(len(xy), -1, np.int64)
-    if not len(xy):
-        return hip
-    for sxy, h in zip(star_xy, star_hip, strict=True):
-        d = np.hypot(*(xy - sxy).T)
-        d[hip >= 0] = np.inf
-        j = int(np.argmin(d))
-        if d[j] <= match_px:
-            hip[j] = h
-    return hip
-
-
 def labelled_file(args, out: Path) -> Path:
     """The frames' detections and labels as one CSV (module docstring)."""
     from jstarid.solution import NAMING_CAPACITY, NAMING_CENTROIDS
@@ -97,7 +82,8 @@ def labelled_file(args, out: Path) -> Path:
             near = np.nonzero(np.einsum("nj,j->n", v, _axis(wcs)) > np.cos(np.radians(FOV_DEG)))[0]
             px = wcs.all_world2pix(np.column_stack([ra[near], dec[near]]), 0)
             inside = (px[:, 0] > -1) & (px[:, 0] < SIZE[0]) & (px[:, 1] > -1) & (px[:, 1] < SIZE[1])
-            hip = label(xy, mag, px[inside], catalog.hip[near[inside]], args.match_px)
+            star = ex.claim_detections(xy, px[inside], args.match_px)  # the catalog's order: brightest first
+            hip = np.where(star >= 0, catalog.hip[near[inside]][np.maximum(star, 0)], -1)
             rows += [(f"{name}/{path.name}", f"{x:.3f}", f"{y:.3f}", f"{m:.3f}", int(h))
                      for (x, y), m, h in zip(xy, mag, hip, strict=True)]
             print(f"{name}/{path.name}: {len(xy)} detections, {int((hip >= 0).sum())} labelled", flush=True)

@@ -279,3 +279,28 @@ def reference_attitude(matches, catalog, camera):
     body = np.asarray(camera.unproject(xy[keep]))
     c = np.asarray(solve_wahba(body, catalog.unit_vectors[rows[keep]], np.ones(int(keep.sum()))))
     return c, xy, rows
+
+
+def claim_detections(det_xy, star_xy, match_px: float) -> np.ndarray:
+    """One-to-one labels of a frame's detections by where its stars are predicted: each star, in the
+    order given (brightest first), claims the nearest detection no brighter star claimed, within
+    ``match_px``.
+
+    Args:
+        det_xy: (N, 2) detections (px). star_xy: (M, 2) predicted star positions (px).
+        match_px: farthest claim (px).
+
+    Returns:
+        (N,) int64 index into the stars of each detection's star, −1 where none claimed it.
+    """
+    star_of = np.full(len(det_xy), -1, np.int64)
+    if not len(det_xy):
+        return star_of
+    det_xy = np.asarray(det_xy, np.float64)
+    for s, xy in enumerate(np.asarray(star_xy, np.float64).reshape(-1, 2)):
+        d = np.hypot(det_xy[:, 0] - xy[0], det_xy[:, 1] - xy[1])
+        d[star_of >= 0] = np.inf
+        j = int(np.argmin(d))
+        if d[j] <= match_px:
+            star_of[j] = s
+    return star_of

@@ -266,27 +266,26 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
                  mode_b=boresight_ids is not None, detection=detection)
     rows = (jnp.zeros((batch_size,), jnp.int32) if boresight_ids is None
             else jnp.asarray(boresight_ids, jnp.int32))
+    sharded = shard and jax.local_device_count() > 1
     if attitudes is not None:  # mode c: stage 1 is the given attitudes and their sky cells
-        att = jnp.asarray(attitudes, jnp.float32)
-        first = _given_attitudes(_scene_keys(key, batch_size), att, grid=plan.stage1["grid"])
-        if shard and jax.local_device_count() > 1:
-            replicated = (*on_every_device(plan.index, "device_arrays", plan.index.device_arrays),
-                          *on_every_device(catalog, "simulator_stars", lambda: _device_tables(catalog)[:3]))
-            return map_batch(_stage2, (*first, *plan.arrays[:2]), replicated, static=plan.statics)
-        noise_b, model_b, index_arrays, star_tables, _ = plan.arrays
-        return _stage2(*first, noise_b, model_b, *index_arrays, *star_tables, **plan.statics)
-    if shard and jax.local_device_count() > 1:
-        # both stages split over the devices, the tables placed on each device once (they are
-        # long-lived: the index is memoised, the tables kept on the catalog)
-        tables = _device_tables(catalog)
+        first = _given_attitudes(_scene_keys(key, batch_size), jnp.asarray(attitudes, jnp.float32),
+                                 grid=plan.stage1["grid"])
+        if not sharded:
+            noise_b, model_b, index_arrays, star_tables, _ = plan.arrays
+            return _stage2(*first, noise_b, model_b, *index_arrays, *star_tables, **plan.statics)
+    elif not sharded:
+        return _draw(plan.arrays, key, rows, batch_size=int(batch_size), stage1=plan.stage1,
+                     statics=plan.statics)
+    # both stages split over the devices, the tables placed on each device once (they are
+    # long-lived: the index is memoised, the tables kept on the catalog)
+    tables = _device_tables(catalog)
+    replicated = (*on_every_device(plan.index, "device_arrays", plan.index.device_arrays),
+                  *on_every_device(catalog, "simulator_stars", lambda: tables[:3]))
+    if attitudes is None:
         cat_vec = on_every_device(catalog, "simulator_catalog", lambda: tables[3])
-        replicated = (*on_every_device(plan.index, "device_arrays", plan.index.device_arrays),
-                      *on_every_device(catalog, "simulator_stars", lambda: tables[:3]))
         first = map_batch(_attitudes_of, (_scene_keys(key, batch_size), rows), (cat_vec,),
                           static=plan.stage1)
-        return map_batch(_stage2, (*first, *plan.arrays[:2]), replicated, static=plan.statics)
-    return _draw(plan.arrays, key, rows, batch_size=int(batch_size), stage1=plan.stage1,
-                 statics=plan.statics)
+    return map_batch(_stage2, (*first, *plan.arrays[:2]), replicated, static=plan.statics)
 
 
 class SceneSampler(NamedTuple):

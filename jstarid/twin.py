@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.catalog import FULL_DEPTH, load_catalog
-from jstarid.scene import Scene
+from jstarid.scene import brightest
 
 __all__ = ["LabelledFit", "TwinCheck", "fit_labelled", "near_attitudes", "twin_check", "twin_scenes"]
 
@@ -183,9 +183,7 @@ def twin_scenes(labelled: LabelledFit, camera, catalog, *, scenes: int, seed: in
                             capacity=max(capacity, DRAW_CAPACITY), attitudes=attitudes,
                             progress=progress, detection=fit.model)
     every = drawn.scenes
-    twin = Scene(xy=every.xy[:, :capacity], mag=every.mag[:, :capacity],
-                 truth=every.truth[:, :capacity], valid=every.valid[:, :capacity],
-                 attitude=every.attitude, overflow=every.overflow | (every.n_stars > capacity))
+    twin = brightest(every, capacity)
     # the set's zero point: measured = catalog V + offset (the clutter was fitted in catalog V)
     mag = jnp.where(twin.valid, twin.mag + np.float32(fit.magnitude_offset), twin.mag)
     return dataclasses.replace(twin, mag=mag), np.asarray(every.n_stars), drawn.settings

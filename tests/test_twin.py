@@ -64,6 +64,16 @@ def test_fit_recovers_the_attitudes_and_the_model(labelled, fitted):
     # ‖R − I‖_F = 2√2 sin(θ/2) ≈ √2 θ (arccos of the trace loses float32's last digits: ~100″)
     angle = np.degrees(np.linalg.norm(turn - np.eye(3), axis=(1, 2)) / np.sqrt(2)) * 3600
     assert angle.max() < 60.0 and np.median(angle) < 25.0, angle
+    # and it is the least-squares attitude of those labels: SciPy's Wahba solution (align_vectors)
+    camera, catalog = js.camera_preset(CAMERA), js.load_catalog(12.5, sim_margin=0.0)
+    found = read_centroid_set(labelled[0])
+    for i in range(0, SCENES, 7):
+        rows = catalog.row_of_hip(found.hip[i])
+        star = rows >= 0
+        body = np.asarray(camera.unproject(found.xy[i][star]), np.float64)
+        reference, _ = Rotation.align_vectors(body, catalog.unit_vectors[rows[star]])
+        gap = np.linalg.norm(fitted.attitudes[i] - reference.as_matrix()) / np.sqrt(2)
+        assert np.degrees(gap) * 3600 < 1.0
     fit = fitted.fit
     assert abs(fit.magnitude_offset - ZERO_POINT) < 0.05
     truth_half = model.faintest_detectable(NOISE.magnitude_sigma, odds=0.5)

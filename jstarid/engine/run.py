@@ -186,20 +186,20 @@ def simulate_levels(camera: str | Camera = "sgm2022", *,
     candidates = np.arange(len(catalog)) if candidates is None else candidates
     total = len(levels) * scenes
     key_scenes, key_rows = jax.random.split(jax.random.key(seed))
-    rows = (candidates[np.asarray(jax.random.randint(key_rows, (total,), 0, candidates.size))]
+    pointing = (candidates[np.asarray(jax.random.randint(key_rows, (total,), 0, candidates.size))]
             if boresight == "stars" else None)
     t0 = time.perf_counter()
     if attitudes is not None:
-        rows = np.asarray(attitudes, np.float64)  # _deep_sky's rows: the scenes' attitudes
+        pointing = np.asarray(attitudes, np.float64)
     if pixels:
-        batch, pixel_settings = _from_pixels(key_scenes, catalog, camera, noise, rows, levels, sensors,
+        batch, pixel_settings = _from_pixels(key_scenes, catalog, camera, noise, pointing, levels, sensors,
                                              centroid or CentroidConfig(), scenes, capacity, progress)
     elif detection is not None:
-        batch, pixel_settings = _from_model(key_scenes, catalog, camera, noise, rows, detection, sensors,
+        batch, pixel_settings = _from_model(key_scenes, catalog, camera, noise, pointing, detection, sensors,
                                             centroid or CentroidConfig(), scenes, total, capacity)
     else:
         batch = simulate(key_scenes, catalog, camera, noise, capacity=capacity, shard=True,
-                         **_where(rows, total))
+                         **_pointing_arguments(pointing, total))
         pixel_settings = {}
     jax.block_until_ready(batch)
     _say(progress, f"simulated {total:,} scenes ({len(levels)} levels × {scenes}) in "
@@ -232,23 +232,24 @@ def _pixel_settings(levels, camera, pixels, sensor, centroid):
     return sensor_levels(levels, sensor_for_camera(camera) if sensor is None else sensor)
 
 
-def _deep_sky(key, catalog, camera, noise, rows, total, depth, capacity, detection=None):
+def _deep_sky(key, catalog, camera, noise, pointing, total, depth, capacity, detection=None):
     """One ``simulate`` call from a catalog to V ``depth`` (the identification catalog's other
     settings), its truth relabelled in the identification catalog's rows (−1: a star it lacks)."""
     kept = ("double_sep_deg", "double_mode", "sim_margin", "epoch")
     sky_catalog = load_catalog(depth, **{k: v for k, v in catalog.settings.items() if k in kept})
     sky_camera = dataclasses.replace(camera, mag_limit=depth) if detection is None else camera
-    if rows is not None and rows.ndim == 1:  # the boresight stars, as rows of the deeper catalog
-        rows = _rows_in(sky_catalog, catalog, rows)
+    if pointing is not None and pointing.ndim == 1:  # the boresight stars, as rows of the deeper catalog
+        pointing = _rows_in(sky_catalog, catalog, pointing)
     sky = simulate(key, sky_catalog, sky_camera, noise, capacity=capacity, shard=True,
-                   detection=detection, **_where(rows, total))
+                   detection=detection, **_pointing_arguments(pointing, total))
     sky = jax.device_get(sky)
     deep = np.asarray(sky.truth)
     truth = np.where(deep >= 0, catalog.row_of_hip(sky_catalog.hip[np.maximum(deep, 0)]), -1)
     return dataclasses.replace(sky, truth=truth.astype(np.int32))
 
 
-def _from_model(key, catalog, camera, noise, rows, detection, sensors, centroid, per_level, total, capacity):
+def _from_model(key, catalog, camera, noise, pointing, detection, sensors, centroid, per_level, total,
+                capacity):
     """The sweep's scenes drawn from a detection model (one for every scene, or each level's
     sensor's), in one ``simulate`` call from a sky as deep as the model detects."""
     if isinstance(detection, str):  # "sensor": each level's model, repeated over its scenes
@@ -270,17 +271,17 @@ def _from_model(key, catalog, camera, noise, rows, detection, sensors, centroid,
     depth = camera.mag_limit  # an ideal model cuts at the camera's limit: no deeper sky
     if math.isfinite(seen):
         depth = min(FULL_DEPTH - sim_margin, max(depth, math.ceil(10.0 * seen) / 10.0 - sim_margin))
-    sky = _deep_sky(key, catalog, camera, noise, rows, total, depth, capacity, detection)
+    sky = _deep_sky(key, catalog, camera, noise, pointing, total, depth, capacity, detection)
     return sky, {**recorded, "detection_depth_mag": depth}
 
 
-def _from_pixels(key, catalog, camera, noise, rows, levels, sensors, centroid, per_level, capacity,
+def _from_pixels(key, catalog, camera, noise, pointing, levels, sensors, centroid, per_level, capacity,
                  progress):
     """The sweep's scenes from rendered frames: the sky to the camera's limit + RENDER_DEPTH_MAG
     in one ``simulate`` call, then each level rendered, extracted and labelled (engine.pixels)."""
     total = len(levels) * per_level
     key_sky, key_frames = jax.random.split(key)
-    sky = _deep_sky(key_sky, catalog, camera, noise, rows, total, camera.mag_limit + RENDER_DEPTH_MAG,
+    sky = _deep_sky(key_sky, catalog, camera, noise, pointing, total, camera.mag_limit + RENDER_DEPTH_MAG,
                     SKY_CAPACITY)
     keys = jax.random.split(key_frames, total)
     parts, seconds = [], 0.0
@@ -299,12 +300,12 @@ def _from_pixels(key, catalog, camera, noise, rows, levels, sensors, centroid, p
                     "sky_overflow": int(np.asarray(sky.overflow).sum())}
 
 
-def _where(rows, total) -> dict:
-    """``simulate``'s pointing arguments: ``total`` random attitudes (``rows`` None), boresight stars
-    (``rows`` (S,) catalog rows) or the given attitudes (``rows`` (S, 3, 3))."""
-    if rows is None:
+def _pointing_arguments(pointing, total) -> dict:
+    """``simulate``'s pointing arguments: ``total`` random attitudes (``pointing`` None), boresight
+    stars (``pointing`` (S,) catalog rows) or the given attitudes (``pointing`` (S, 3, 3))."""
+    if pointing is None:
         return {"batch_size": total}
-    return {"attitudes": rows} if np.ndim(rows) == 3 else {"boresight_ids": rows}
+    return {"attitudes": pointing} if np.ndim(pointing) == 3 else {"boresight_ids": pointing}
 
 
 def _rows_in(other, catalog, rows) -> np.ndarray:
