@@ -18,6 +18,7 @@ Usage::
 
     python experiments/twin_check.py                       # MLV, SGM, RpNet; 1000 twin scenes
     python experiments/twin_check.py --algorithms mlv --scenes 200
+    python experiments/twin_check.py --sky exact --scenes 300   # each frame's own attitude, 20 twins each
 
 Writes results/twin_check/{oresat_labelled.csv, twin.json, table.md, config.json, results.json}.
 """
@@ -46,6 +47,8 @@ def parse_args(argv=None):
     p.add_argument("--data", type=Path, default=DATA, help="the oresat folder")
     p.add_argument("--algorithms", default="mlv,sgm,rpnet")
     p.add_argument("--scenes", type=int, default=1000, help="twin scenes (default 1000)")
+    p.add_argument("--sky", choices=js.twin.SKIES, default="real",
+                   help="the twin's pointings (js.twin.twin_scenes; default real: near the frames')")
     p.add_argument("--match-px", type=float, default=2.0,
                    help="farthest a detection may lie from the star the plate solution puts there")
     return p.parse_args(argv)
@@ -118,6 +121,20 @@ def clutter_radii(found, camera, capacity: int = 64) -> dict:
             "uniform_px": np.percentile(uniform, q).round(0).tolist(), "percentiles": q}
 
 
+def scene_table(check) -> str:
+    """Markdown: each frame's outcome beside the share of its twin scenes identified, per algorithm."""
+    rows = check.scene_rows()
+    if not rows:
+        return ""
+    labels = [e["label"] for e in check.result.entries]
+    lines = ["| frame | twins | " + " | ".join(f"{a} real | {a} twin" for a in labels) + " |",
+             "|---|---:|" + "---|---:|" * len(labels)]
+    for r in rows:
+        cells = " | ".join(f"{r[a + '_real']} | {100 * r[a + '_twin']:.0f} %" for a in labels)
+        lines.append(f"| {r['scene']} | {r['twin_scenes']} | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None):
     args = parse_args(argv)
     js.use_cpu_cores()
@@ -128,10 +145,11 @@ def main(argv=None):
     path = labelled_file(args, args.out)
     camera = js.load_camera("tetra3_test", size=SIZE, fov_deg=FOV_DEG)
     check = js.twin.twin_check(read_centroid_set(path), camera, algorithms, scenes=scenes, seed=args.seed,
-                               epoch=EPOCH)
+                               epoch=EPOCH, sky=args.sky)
     fit = check.labelled.fit
     radii = clutter_radii(read_centroid_set(path), camera)
-    results = {"rows": check.rows(), "detections_per_scene": check.detections, "clutter_radii": radii,
+    results = {"rows": check.rows(), "scenes": check.scene_rows(), "detections_per_scene": check.detections,
+               "clutter_radii": radii,
                "fitted": {"model": dataclasses.asdict(fit.model),
                           "magnitude_sigma": fit.magnitude_sigma, "position_sigma_px": fit.position_sigma_px,
                           "magnitude_offset": fit.magnitude_offset, "clutter": fit.clutter,
@@ -142,6 +160,7 @@ def main(argv=None):
     check.result.save(args.out / "sweep", title="twin check: OreSat (twin=0) and its twin (twin=1)",
                       figure=False)
     print(check.table())
+    print(scene_table(check))
     print(f"Clutter among the 64 brightest detections: {radii['per_frame']:.1f} per frame; radius "
           f"percentiles {radii['percentiles']} real {radii['real_px']} px, uniform {radii['uniform_px']} px")
 

@@ -11,10 +11,14 @@ A sweep is worth trusting when the simulator predicts the user's real detections
    :meth:`jstarid.DetectionModel.fit`; the detections that are no catalog star become the clutter.
 2. **Twin** (:func:`twin_scenes`). As many simulated scenes as asked, drawn from the fitted model and
    noise by the sweep engine (:func:`jstarid.engine.simulate_levels`), on the real set's sky
-   (:func:`near_attitudes`) or anywhere; their magnitudes carry the set's zero point.
+   (:func:`near_attitudes`), at its scenes' attitudes exactly, or anywhere; their magnitudes carry
+   the set's zero point.
 3. **Compare** (:func:`twin_check`). Every algorithm runs on both through
    :func:`jstarid.engine.compare`, scored strictly; a rate's twin value agrees when it lies within the
-   real set's 95 % Wilson interval.
+   real set's 95 % Wilson interval. Where the twin's scenes are drawn from the real ones (sky
+   ``"real"`` or ``"exact"``), :meth:`TwinCheck.scene_rows` sets each real scene's outcome beside the
+   twin's rate on the scenes drawn from it: a gap the twin's sampling of the sky cannot explain shows
+   in scenes the twin finds hard and the real set solved (or the reverse).
 
 ``jstarid twin LABELLED --camera …`` is the command line.
 """
@@ -29,13 +33,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.catalog import FULL_DEPTH, load_catalog
+from jstarid.metrics import CORRECT, FAIL, INCOMPLETE, WRONG
 from jstarid.scene import brightest
 
 __all__ = ["LabelledFit", "TwinCheck", "fit_labelled", "near_attitudes", "twin_check", "twin_scenes"]
 
 MIN_LABELLED = 3  # labelled catalog stars that fix a scene's attitude
 DEPTH_PAST_LABELS_MAG = 1.0  # records reach this far past the faintest labelled star (completeness)
-SKIES = ("real", "random")
+SKIES = ("real", "exact", "random")  # twin_scenes' sky
 DRAW_CAPACITY = 1024  # detections a twin scene is drawn with before the algorithms' cut
 LEVELS = ({"twin": 0}, {"twin": 1})  # the engine's levels: the labelled set, its twin
 
@@ -160,8 +165,10 @@ def twin_scenes(labelled: LabelledFit, camera, catalog, *, scenes: int, seed: in
         labelled: :func:`fit_labelled`'s result.
         camera, catalog: the camera and the identification catalog (truth in its rows).
         scenes: how many twin scenes. seed: their PRNG seed. capacity: detections kept per scene.
-        sky: ``"real"`` (:func:`near_attitudes` of the solved real scenes) or ``"random"`` (uniform
-            attitudes, as a sweep draws them).
+        sky: ``"real"`` (:func:`near_attitudes` of the solved real scenes), ``"exact"`` (their
+            attitudes themselves, in turn: the same stars in the same places, new detections) or
+            ``"random"`` (uniform attitudes, as a sweep draws them). Twin scene j is drawn from
+            solved real scene j mod R with the first two.
 
     Returns:
         ``(scenes, detections, settings)``: a :class:`~jstarid.Scene` batch of ``capacity``, (S,)
@@ -174,8 +181,12 @@ def twin_scenes(labelled: LabelledFit, camera, catalog, *, scenes: int, seed: in
         raise ValueError(f"sky must be one of {SKIES}, got {sky!r}")
     fit = labelled.fit
     fixed = {"magnitude_sigma": fit.magnitude_sigma, **fit.clutter}
-    attitudes = None if sky == "random" else near_attitudes(labelled.attitudes[labelled.solved], camera,
-                                                              scenes, seed)
+    solved = labelled.attitudes[labelled.solved]
+    attitudes = None  # sky "random": the engine draws them
+    if sky == "real":
+        attitudes = near_attitudes(solved, camera, scenes, seed)
+    elif sky == "exact":
+        attitudes = solved[np.arange(scenes) % len(solved)]
     # drawn at a capacity that holds every detection (their count is compared), then cut to the
     # algorithms' brightest ``capacity`` as a file's scenes are (overflow flagged)
     drawn = simulate_levels(camera, axes={"position_sigma_px": [fit.position_sigma_px]},
@@ -222,11 +233,37 @@ class TwinCheck(NamedTuple):
         result: :class:`~jstarid.SweepResult` with two levels, ``{"twin": 0}`` (the labelled set)
             and ``{"twin": 1}`` (its twin).
         detections: ``{"real": …, "twin": …}`` median detections per scene.
+        labels: the labelled set's scene labels (its file order).
     """
 
     labelled: LabelledFit
     result: object
     detections: dict
+    labels: tuple = ()
+
+    def scene_rows(self) -> list[dict]:
+        """Per solved real scene, with sky ``"real"`` or ``"exact"`` (else none): its label, the twin
+        scenes drawn from it, and per entry the real scene's outcome (``correct``, ``wrong``,
+        ``failed``, ``incomplete``) beside the share of those twin scenes identified."""
+        settings = self.result.settings
+        if settings.get("sky") not in ("real", "exact"):
+            return []
+        outcome = np.asarray(self.result.scenes["outcome"])
+        n_real = settings["real_scenes"]
+        real, twin = outcome[:n_real], outcome[n_real:]
+        solved = np.nonzero(self.labelled.solved)[0]
+        source = solved[np.arange(len(twin)) % len(solved)]  # twin_scenes: scene j from solved j mod R
+        names = {CORRECT: "correct", WRONG: "wrong", FAIL: "failed", INCOMPLETE: "incomplete"}
+        rows = []
+        for i in solved:
+            drawn = twin[source == i]
+            row = {"scene": self.labels[i] if self.labels else str(i), "twin_scenes": len(drawn)}
+            for e, entry in enumerate(self.result.entries):
+                row[f"{entry['label']}_real"] = names[int(real[i, e])]
+                right = drawn[:, e] == CORRECT
+                row[f"{entry['label']}_twin"] = float(right.mean()) if right.size else float("nan")
+            rows.append(row)
+        return rows
 
     def rows(self) -> list[dict]:
         """Per entry: real and twin identification and mis-identification rates with their 95 %
@@ -313,4 +350,4 @@ def twin_check(found, camera, algorithms="sgm,mlv,rpnet", *, scenes: int = 1000,
                      criterion="strict", progress=progress, settings=settings)
     detections = {"real": float(np.median(labelled.detections)),
                   "twin": float(np.median(twin_detections))}
-    return TwinCheck(labelled, result, detections)
+    return TwinCheck(labelled, result, detections, tuple(found.labels))

@@ -112,6 +112,34 @@ def test_twin_check_scores_both_sets_as_the_engine_does(labelled, fitted):
     # the real scenes carry the fitted attitudes: MLV's boresight errors are arcseconds
     err = check.result.scenes["boresight_err_arcsec"][check.result.level_of == 0, 1]
     assert np.nanmedian(err) < 30.0
+    # scene by scene: twin scene j was drawn from real scene j mod 40; the shares add up to the rate
+    scene_rows = check.scene_rows()
+    assert [r["scene"] for r in scene_rows] == [f"s{b}" for b in range(SCENES)]
+    counts = np.array([r["twin_scenes"] for r in scene_rows])
+    assert counts.sum() == 60 and set(counts.tolist()) == {1, 2}
+    real_codes = outcome[check.result.level_of == 0, 1]
+    assert [r["mlv_real"] == "correct" for r in scene_rows] == (real_codes == CORRECT).tolist()
+    mlv = check.rows()[1]
+    share = np.array([r["mlv_twin"] for r in scene_rows])
+    assert np.isclose(np.sum(share * counts) / 60, mlv["twin_identification"])
+    assert all(r["oracle_real"] == "correct" and r["oracle_twin"] == 1.0 for r in scene_rows)
+
+
+def test_exact_sky_draws_the_labelled_attitudes(labelled, fitted):
+    """sky="exact": twin scene j at real scene j mod R's attitude, its stars those the real scene
+    labelled (new detections of the same sky)."""
+    camera, catalog = js.camera_preset(CAMERA), js.load_catalog(5.5)
+    scenes, _, _ = twin.twin_scenes(fitted, camera, catalog, scenes=SCENES + 2, seed=3, capacity=64,
+                                    sky="exact")
+    source = np.arange(SCENES + 2) % SCENES
+    np.testing.assert_allclose(np.asarray(scenes.attitude), fitted.attitudes[source], atol=1e-6)
+    found = read_centroid_set(labelled[0])
+    for j in (0, SCENES + 1):
+        truth = np.asarray(scenes.truth[j])[np.asarray(scenes.valid[j])]
+        named = set(catalog.hip[truth[truth >= 0]].tolist())
+        assert len(named) >= 5 and len(named & set(found.hip[source[j]].tolist())) >= 0.8 * len(named)
+    with pytest.raises(ValueError, match="sky must be one of"):
+        twin.twin_scenes(fitted, camera, catalog, scenes=2, sky="nearby")
 
 
 def test_twin_refuses_sets_it_cannot_fit(tmp_path):

@@ -32,9 +32,10 @@ def add_commands(sub) -> None:
                    help="comma-separated registry names (default: the three papers' algorithms)")
     p.add_argument("--scenes", type=int, default=1000, help="twin scenes (default 1000)")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed of the twin (default 0)")
-    p.add_argument("--sky", choices=("real", "random"), default="real",
+    p.add_argument("--sky", choices=("real", "exact", "random"), default="real",
                    help="the twin's pointings: real (boresight near a labelled scene's, roll at "
-                        "random; default) or random (anywhere: what a sweep draws)")
+                        "random; default), exact (each labelled scene's own attitude: the twin's "
+                        "rate scene by scene in twin.json) or random (anywhere: what a sweep draws)")
     p.add_argument("--capacity", type=int, default=64,
                    help="brightest detections the algorithms use per scene, real and twin (default 64)")
     p.add_argument("--mag-limit", type=float, default=None,
@@ -88,7 +89,8 @@ def run_twin(args) -> int:
         "model": dataclasses.asdict(fit.model), "noise": dataclasses.asdict(fit.noise()),
         "magnitude_offset": fit.magnitude_offset, "stars": fit.stars, "detected": fit.detected,
         "depth_mag": check.labelled.depth_mag, "scenes_fitted": int(check.labelled.solved.sum()),
-        "detections_per_scene": check.detections, "sky": args.sky, "rows": check.rows()}), indent=1))
+        "detections_per_scene": check.detections, "sky": args.sky, "rows": check.rows(),
+        "scenes": check.scene_rows()}), indent=1))
     (out / "table.md").write_text(check.table())
     print(check.table(), flush=True)
     print(f"wrote {out}/ (twin.json, table.md, results.json, config.json, scenes.npz) in "
