@@ -164,7 +164,7 @@ def test_cli_twin(labelled, tmp_path, capsys):
     assert "| oracle | 100.0 % [91.2–100.0] of 40 |" in printed
     saved = json.loads((out / "twin.json").read_text())
     assert saved["scenes_fitted"] == SCENES and saved["sky"] == "random"
-    assert saved["rows"][0]["twin_scenes"] == 30
+    assert saved["rows"][0]["twin_scenes"] == 30 and saved["scenes"] == []  # scene by scene: real, exact
     assert (out / "table.md").read_text().startswith("| algorithm | real identified")
     # an unlabelled file: one line, status 2
     (tmp_path / "bare.csv").write_text("x,y,mag\n1,2,3\n")
