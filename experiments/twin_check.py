@@ -132,6 +132,13 @@ def scene_table(check) -> str:
     for r in rows:
         cells = " | ".join(f"{r[a + '_real']} | {100 * r[a + '_twin']:.0f} %" for a in labels)
         lines.append(f"| {r['scene']} | {r['twin_scenes']} | {cells} |")
+    # were each frame solved with its twins' rate p_i: Σ p_i frames expected, variance Σ p_i (1 − p_i)
+    lines.append("")
+    for a in labels:
+        p = np.array([r[a + "_twin"] for r in rows])
+        solved = sum(r[a + "_real"] == "correct" for r in rows)
+        lines.append(f"{a}: the twins expect {p.sum():.1f} ± {np.sqrt(np.sum(p * (1 - p))):.1f} of the "
+                     f"{len(rows)} frames identified; the frames gave {solved}")
     return "\n".join(lines) + "\n"
 
 

@@ -34,11 +34,13 @@ from jstarid.attitude import attitude_errors_arcsec
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 
-__all__ = ["CORRECT", "WRONG", "FAIL", "INCOMPLETE", "CRITERIA", "scene_outcomes", "evaluate",
-           "main_star_index", "nearest_to_principal_point", "in_neighbor_circle", "sgm_required",
+__all__ = ["CORRECT", "WRONG", "FAIL", "INCOMPLETE", "OUTCOME_NAMES", "CRITERIA", "scene_outcomes",
+           "evaluate", "main_star_index", "nearest_to_principal_point", "in_neighbor_circle", "sgm_required",
            "wilson_interval"]
 
 CORRECT, WRONG, FAIL, INCOMPLETE = 0, 1, 2, 3
+#: Each outcome code's name, as tables and result files spell it.
+OUTCOME_NAMES = {CORRECT: "correct", WRONG: "wrong", FAIL: "fail", INCOMPLETE: "incomplete"}
 CRITERIA = ("strict", "mlv", "sgm", "rpnet")
 
 

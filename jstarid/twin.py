@@ -33,10 +33,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.catalog import FULL_DEPTH, load_catalog
-from jstarid.metrics import CORRECT, FAIL, INCOMPLETE, WRONG
+from jstarid.metrics import CORRECT, OUTCOME_NAMES
 from jstarid.scene import brightest
 
-__all__ = ["LabelledFit", "TwinCheck", "fit_labelled", "near_attitudes", "twin_check", "twin_scenes"]
+__all__ = ["LabelledFit", "TwinCheck", "fit_labelled", "near_attitudes", "source_scenes", "twin_check",
+           "twin_scenes"]
 
 MIN_LABELLED = 3  # labelled catalog stars that fix a scene's attitude
 DEPTH_PAST_LABELS_MAG = 1.0  # records reach this far past the faintest labelled star (completeness)
@@ -186,7 +187,7 @@ def twin_scenes(labelled: LabelledFit, camera, catalog, *, scenes: int, seed: in
     if sky == "real":
         attitudes = near_attitudes(solved, camera, scenes, seed)
     elif sky == "exact":
-        attitudes = solved[np.arange(scenes) % len(solved)]
+        attitudes = solved[source_scenes(scenes, len(solved))]
     # drawn at a capacity that holds every detection (their count is compared), then cut to the
     # algorithms' brightest ``capacity`` as a file's scenes are (overflow flagged)
     drawn = simulate_levels(camera, axes={"position_sigma_px": [fit.position_sigma_px]},
@@ -198,6 +199,12 @@ def twin_scenes(labelled: LabelledFit, camera, catalog, *, scenes: int, seed: in
     # the set's zero point: measured = catalog V + offset (the clutter was fitted in catalog V)
     mag = jnp.where(twin.valid, twin.mag + np.float32(fit.magnitude_offset), twin.mag)
     return dataclasses.replace(twin, mag=mag), np.asarray(every.n_stars), drawn.settings
+
+
+def source_scenes(count: int, solved: int) -> np.ndarray:
+    """(count,) int: the solved real scene each twin scene is drawn from with sky ``"real"`` or
+    ``"exact"`` — each in turn (twin j from solved scene j mod ``solved``)."""
+    return np.arange(count) % solved
 
 
 def near_attitudes(attitudes, camera, count: int, seed: int = 0) -> np.ndarray:
@@ -220,7 +227,7 @@ def near_attitudes(attitudes, camera, count: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     tilt = np.radians(camera.fov_y_deg / 4.0)
     turn = np.column_stack([rng.uniform(-tilt, tilt, (count, 2)), rng.uniform(-np.pi, np.pi, count)])
-    base = np.asarray(attitudes, np.float64)[np.arange(count) % len(attitudes)]
+    base = np.asarray(attitudes, np.float64)[source_scenes(count, len(attitudes))]
     # camera-frame turns applied after the real attitude: C' = R C
     return np.einsum("bij,bjk->bik", Rotation.from_rotvec(turn).as_matrix(), base)
 
@@ -243,8 +250,8 @@ class TwinCheck(NamedTuple):
 
     def scene_rows(self) -> list[dict]:
         """Per solved real scene, with sky ``"real"`` or ``"exact"`` (else none): its label, the twin
-        scenes drawn from it, and per entry the real scene's outcome (``correct``, ``wrong``,
-        ``failed``, ``incomplete``) beside the share of those twin scenes identified."""
+        scenes drawn from it, and per entry the real scene's outcome (a name of
+        :data:`jstarid.metrics.OUTCOME_NAMES`) beside the share of those twin scenes identified."""
         settings = self.result.settings
         if settings.get("sky") not in ("real", "exact"):
             return []
@@ -252,14 +259,13 @@ class TwinCheck(NamedTuple):
         n_real = settings["real_scenes"]
         real, twin = outcome[:n_real], outcome[n_real:]
         solved = np.nonzero(self.labelled.solved)[0]
-        source = solved[np.arange(len(twin)) % len(solved)]  # twin_scenes: scene j from solved j mod R
-        names = {CORRECT: "correct", WRONG: "wrong", FAIL: "failed", INCOMPLETE: "incomplete"}
+        source = solved[source_scenes(len(twin), len(solved))]
         rows = []
         for i in solved:
             drawn = twin[source == i]
             row = {"scene": self.labels[i] if self.labels else str(i), "twin_scenes": len(drawn)}
             for e, entry in enumerate(self.result.entries):
-                row[f"{entry['label']}_real"] = names[int(real[i, e])]
+                row[f"{entry['label']}_real"] = OUTCOME_NAMES[int(real[i, e])]
                 right = drawn[:, e] == CORRECT
                 row[f"{entry['label']}_twin"] = float(right.mean()) if right.size else float("nan")
             rows.append(row)

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 import jstarid as js
 from jstarid import cli, twin
 from jstarid.centroid_files import read_centroid_set
-from jstarid.metrics import CORRECT, WRONG, wilson_interval
+from jstarid.metrics import CORRECT, OUTCOME_NAMES, WRONG, wilson_interval
 
 CAMERA = "mlv2021"  # 25°, V ≤ 5.5: a small database
 ZERO_POINT = 14.0  # the file's magnitudes: catalog V + this (an instrumental scale)
@@ -118,7 +118,7 @@ def test_twin_check_scores_both_sets_as_the_engine_does(labelled, fitted):
     counts = np.array([r["twin_scenes"] for r in scene_rows])
     assert counts.sum() == 60 and set(counts.tolist()) == {1, 2}
     real_codes = outcome[check.result.level_of == 0, 1]
-    assert [r["mlv_real"] == "correct" for r in scene_rows] == (real_codes == CORRECT).tolist()
+    assert [r["mlv_real"] for r in scene_rows] == [OUTCOME_NAMES[int(c)] for c in real_codes]
     mlv = check.rows()[1]
     share = np.array([r["mlv_twin"] for r in scene_rows])
     assert np.isclose(np.sum(share * counts) / 60, mlv["twin_identification"])

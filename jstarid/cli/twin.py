@@ -10,6 +10,7 @@ from pathlib import Path
 from jstarid.cli.cameras import FRAME_CAMERA, add_camera_options, camera_from_args
 from jstarid.cli.centroid_input import add_centroid_file_options, combine, read_labelled_files
 from jstarid.cli.first_use import about
+from jstarid.twin import SKIES
 
 
 def add_commands(sub) -> None:
@@ -32,7 +33,7 @@ def add_commands(sub) -> None:
                    help="comma-separated registry names (default: the three papers' algorithms)")
     p.add_argument("--scenes", type=int, default=1000, help="twin scenes (default 1000)")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed of the twin (default 0)")
-    p.add_argument("--sky", choices=("real", "exact", "random"), default="real",
+    p.add_argument("--sky", choices=SKIES, default="real",
                    help="the twin's pointings: real (boresight near a labelled scene's, roll at "
                         "random; default), exact (each labelled scene's own attitude: the twin's "
                         "rate scene by scene in twin.json) or random (anywhere: what a sweep draws)")

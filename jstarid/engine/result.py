@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from jstarid import experiment
-from jstarid.metrics import CORRECT, FAIL, INCOMPLETE, WRONG, wilson_interval
+from jstarid.metrics import CORRECT, OUTCOME_NAMES, wilson_interval
 
 __all__ = ["SweepResult", "load", "COLUMNS"]
 
@@ -95,9 +95,7 @@ class SweepResult:
                 take = self.level_of == lv
                 code = codes[take, e]
                 n = int(code.size)
-                counts = {name: int(np.sum(code == c)) for name, c in
-                          (("correct", CORRECT), ("wrong", WRONG), ("fail", FAIL),
-                           ("incomplete", INCOMPLETE))}
+                counts = {name: int(np.sum(code == c)) for c, name in OUTCOME_NAMES.items()}
                 row = {"label": entry["label"], "algorithm": entry["algorithm"],
                        **entry.get("setting", {}), **level,
                        "scenes": n, **{f"n_{k}": v for k, v in counts.items()}}
