@@ -250,6 +250,16 @@ def test_next_power_of_two_is_the_smallest_above_n_and_floor(floor):
         assert next_power_of_two(n, floor) == want, n
 
 
+@pytest.mark.parametrize("n, chunk, size", [(0, 100, 16), (1, 1024, 16), (12, 100, 16), (16, 100, 16),
+                                             (17, 100, 32), (100, 100, 100), (5000, 1024, 1024),
+                                             (5, 8, 8), (3, 1, 1)])
+def test_call_size_is_a_power_of_two_from_sixteen_up_to_the_chunk(n, chunk, size):
+    """Batches of 1 to 16 scenes share one call size (one compilation); the chunk caps it."""
+    from jstarid.runtime import call_size
+
+    assert call_size(n, chunk) == size
+
+
 def test_padded_indices_repeat_the_first_row_up_to_a_power_of_two():
     from jstarid.runtime import padded_indices
     np.testing.assert_array_equal(padded_indices(np.array([5, 2, 9])), [5, 2, 9, 5])

@@ -6,7 +6,8 @@
   ``run_calls``), retry flagged rows with a larger buffer (``grow_until``), and inside one compiled
   call run rows of different sizes in chunks of the narrowest width that holds them
   (``map_by_width``);
-- :mod:`.padding`: the padding rules (``pad_rows``, ``next_power_of_two``, ``padded_indices``);
+- :mod:`.padding`: the padding rules (``pad_rows``, ``next_power_of_two``, ``padded_indices``,
+  ``call_size``);
 - :mod:`.pairs`: one kernel over many (scene, candidate) pairs, grouped by static size, cut to a
   memory budget and split over the devices (``run_pairs``), padding pairs skipped inside a call
   (``skip_padding``);
@@ -27,12 +28,13 @@ from jstarid.runtime.cache import DeviceCache, device_cache, on_every_device
 from jstarid.runtime.compilations import CountCompilations
 from jstarid.runtime.devices import batch_mesh, map_batch, replicate, shard_batch, use_cpu_cores
 from jstarid.runtime.memory_maps import relieve
-from jstarid.runtime.padding import next_power_of_two, pad_rows, padded_indices
+from jstarid.runtime.padding import call_size, next_power_of_two, pad_rows, padded_indices
 from jstarid.runtime.pairs import run_pairs, skip_padding
 from jstarid.runtime.staging_memory import release_staging
 from jstarid.runtime.static import static_config
 
-__all__ = ["batch_mesh", "Call", "chunk_calls", "CountCompilations", "device_cache", "DeviceCache",
-           "grow_until", "map_batch", "map_by_width", "next_power_of_two", "on_every_device", "pad_rows",
-           "padded_indices", "program_store", "release_staging", "relieve", "replicate", "run_calls",
-           "run_pairs", "shard_batch", "skip_padding", "static_config", "take_rows", "use_cpu_cores"]
+__all__ = ["batch_mesh", "Call", "call_size", "chunk_calls", "CountCompilations", "device_cache",
+           "DeviceCache", "grow_until", "map_batch", "map_by_width", "next_power_of_two", "on_every_device",
+           "pad_rows", "padded_indices", "program_store", "release_staging", "relieve", "replicate",
+           "run_calls", "run_pairs", "shard_batch", "skip_padding", "static_config", "take_rows",
+           "use_cpu_cores"]

@@ -8,9 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["next_power_of_two", "pad_rows", "padded_indices", "power_of_two_chunks"]
+__all__ = ["call_size", "next_power_of_two", "pad_rows", "padded_indices", "power_of_two_chunks"]
 
 MAX_PADDING = 0.25  # power_of_two_chunks: most padding of a last chunk, as a share of its rows
+MIN_CALL_SIZE = 16  # call_size: the smallest call of a batched kernel (rows)
 
 
 def pad_rows(tree, size: int, *, mode: str = "zeros"):
@@ -52,6 +53,20 @@ def next_power_of_two(n: float, floor: int = 1) -> int:
         floor: the smallest size returned (a power of two).
     """
     return max(int(floor), 1 << max(math.ceil(n) - 1, 0).bit_length())
+
+
+def call_size(n: int, chunk: int) -> int:
+    """Rows per kernel call for a batch of ``n`` rows run in calls of at most ``chunk`` rows.
+
+    A power of two ≥ :data:`MIN_CALL_SIZE` (and ≤ ``chunk``): batches of 1, 3 or 12 scenes all run
+    in calls of 16 and share one compilation, where a call of exactly ``n`` rows would compile a
+    program per batch size (a small call's padding costs microseconds; a compilation, seconds).
+
+    Args:
+        n: rows of the batch (≥ 0).
+        chunk: the most rows per call (``Config.batch_chunk``).
+    """
+    return max(1, min(int(chunk), next_power_of_two(n, floor=MIN_CALL_SIZE)))
 
 
 def padded_indices(rows: np.ndarray, floor: int = 1) -> np.ndarray:

@@ -65,7 +65,10 @@ def test_grid_result_layout_and_learning(setup):
     assert kernel.shape == (3, cfg.clf_width, len(rows))
 
 
-def test_member_database_identifies_and_wrong_shapes_are_refused(setup):
+# Slow: it compiles the whole identification for this grid's network (≈ 35 s on 2 cores); the fast
+# suite checks that a member is the single training run (above), whose databases identify elsewhere.
+@pytest.mark.slow
+def test_member_database_identifies(setup):
     cat, cam, cfg, rows, grid = setup
     db = rpnet.database_from_variables(cat, cam, cfg, rpnet.member_variables(grid, 1))
     scenes = js.simulate(jax.random.key(4), cat, cam, js.NoiseConfig(), capacity=48,
@@ -73,6 +76,10 @@ def test_member_database_identifies_and_wrong_shapes_are_refused(setup):
     result = rpnet.identify(db, scenes)
     report = js.evaluate(scenes, result, "rpnet", camera=cam)
     assert report["misid_rate"] == 0.0
+
+
+def test_member_database_refuses_wrong_shapes(setup):
+    cat, cam, cfg, rows, grid = setup
     with pytest.raises(ValueError, match="shapes"):
         rpnet.database_from_variables(cat, cam, dataclasses.replace(cfg, clf_width=32),
                                       rpnet.member_variables(grid, 0))

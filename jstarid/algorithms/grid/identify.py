@@ -31,7 +31,7 @@ from jstarid.attitude import solve_wahba
 from jstarid.completion import first_argmax
 from jstarid.geometry.angles import pairwise_angles
 from jstarid.geometry.consistency import most_consistent
-from jstarid.runtime import chunk_calls, on_every_device, run_calls, take_rows
+from jstarid.runtime import call_size, chunk_calls, on_every_device, run_calls, take_rows
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 
@@ -145,7 +145,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
                   if jax.local_device_count() > 1 else stripped)
         batched = (np.asarray(scenes.xy, np.float32), np.asarray(scenes.valid), np.asarray(scenes.overflow),
                    eps_rad)
-        run_calls(_identify_chunk, chunk_calls(np.arange(b), min(config.batch_chunk, b)),
+        run_calls(_identify_chunk, chunk_calls(np.arange(b), call_size(b, config.batch_chunk)),
                   lambda c: take_rows(batched, c), (tables,),
                   static=dict(config=dataclasses.replace(config, eps_px=Config().eps_px, batch_chunk=1)),
                   n_rows=b, tails=[], fills=[], out=out)

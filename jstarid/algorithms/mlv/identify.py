@@ -55,6 +55,7 @@ from jstarid.algorithms.mlv.voting import (
 )
 from jstarid.finishing import finish
 from jstarid.runtime import (
+    call_size,
     chunk_calls,
     device_cache,
     grow_until,
@@ -443,7 +444,7 @@ def _identify(database: Database, scenes: Scene, config: Config, *, diagnostics:
         all_xy, all_valid = xy, valid
     batched = jax.tree.map(np.asarray, (xy, valid, all_xy, all_valid, tuning))
     t = math.comb(config.n_stars, 3)
-    chunk = min(config.batch_chunk, b)
+    chunk = call_size(b, config.batch_chunk)
     static = dict(config=static_config(config, _NOT_COMPILED), th1_max=th1_max)
     per_scene = dict(ids=(config.n_stars,), attitude=(3, 3), n_candidates=(t,),
                      candidates=(config.n_stars,), votes=(config.n_stars,))  # the rest are scalars

@@ -40,7 +40,15 @@ from jstarid.attitude import solve_wahba, triad
 from jstarid.geometry import precise
 from jstarid.geometry.angles import pairwise_angles, turn_sign
 from jstarid.geometry.kvector import range_search
-from jstarid.runtime import chunk_calls, grow_until, on_every_device, run_calls, static_config, take_rows
+from jstarid.runtime import (
+    call_size,
+    chunk_calls,
+    grow_until,
+    on_every_device,
+    run_calls,
+    static_config,
+    take_rows,
+)
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import local_stars
@@ -314,7 +322,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
             window, capacity = levels[level]
             kernel_config = dataclasses.replace(static_config(config, _NOT_COMPILED),
                                                 triangle_capacity=capacity)
-            run_calls(_identify_chunk, chunk_calls(rows, min(config.batch_chunk, rows.size)),
+            run_calls(_identify_chunk, chunk_calls(rows, call_size(rows.size, config.batch_chunk)),
                       lambda c: take_rows(batched, c), (tables,),
                       static=dict(config=kernel_config, window=window), n_rows=b, tails=[], fills=[], out=out)
             return out[-1][rows]

@@ -62,7 +62,7 @@ from jstarid.finishing import finish
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
-from jstarid.runtime import chunk_calls, next_power_of_two, on_every_device, run_calls, take_rows
+from jstarid.runtime import call_size, chunk_calls, on_every_device, run_calls, take_rows
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
@@ -531,8 +531,9 @@ def _local_index(database, config: Config):
 
 
 def _pass_chunk(n_scenes: int, config: Config) -> int:
-    """Chunk size of a later pass over ``n_scenes`` unconfirmed scenes: a power of two ≥ 16."""
-    return min(config.batch_chunk, next_power_of_two(n_scenes, floor=16))
+    """Chunk size of a pass over ``n_scenes`` scenes: a power of two ≥ 16 (at most ``batch_chunk``),
+    so that batches of different sizes share their compilations."""
+    return call_size(n_scenes, config.batch_chunk)
 
 
 class Diagnostics(NamedTuple):
@@ -600,7 +601,11 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
     overflow_all = np.asarray(scenes.overflow)
     mag_all = np.asarray(scenes.mag, np.float32)
     last = np.where(valid_all.any(1), n - np.argmax(valid_all[:, ::-1], axis=1), 0)
-    ids_out = np.full((b, n), -1, np.int32)
+    if n < WIDTH_STEP:  # narrower scenes get empty columns: one compiled width serves every small scene
+        xy_all, valid_all, mag_all = (np.pad(a, [(0, 0), (0, WIDTH_STEP - n)] + [(0, 0)] * (a.ndim - 2))
+                                      for a in (xy_all, valid_all, mag_all))
+    n_cols = xy_all.shape[1]
+    ids_out = np.full((b, n_cols), -1, np.int32)
     ok_out = np.zeros((b,), bool)
     att_out = np.full((b, 3, 3), np.nan, np.float32)
     n_pairs = np.zeros((b,), np.int32)
@@ -621,7 +626,7 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
 
     def args(call):
         # the chunk's columns cut to its widest scene, rounded up to a multiple of WIDTH_STEP
-        width = int(min(n, max(WIDTH_STEP, -(-int(last[call.rows].max()) // WIDTH_STEP) * WIDTH_STEP)))
+        width = int(min(n_cols, max(WIDTH_STEP, -(-int(last[call.rows].max()) // WIDTH_STEP) * WIDTH_STEP)))
         return take_rows((xy_all[:, :width], valid_all[:, :width], overflow_all, mag_all[:, :width]), call)
 
     def run(subset, trials, chunk, triple=0, pool=False):
@@ -633,9 +638,9 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
                                  (_identify_chunk, (jnp.int32(triple),),
                                   dict(common, config=_triple_kernel_config(kernel_config), trials=trials)))
         run_calls(kernel, calls, args, (*replicated, *extra), static=static, n_rows=b,
-                  tails=[(n,), (), (3, 3)], fills=[-1, False, np.nan], out=out)
+                  tails=[(n_cols,), (), (3, 3)], fills=[-1, False, np.nan], out=out)
 
-    run(np.arange(b), (0, 1), max(1, min(config.batch_chunk, b)))
+    run(np.arange(b), (0, 1), _pass_chunk(b, config))
     n_valid = valid_all.sum(1)
     for triple in range(config.n_guide_triples):
         # Later passes, only on the scenes still unconfirmed: the same outcome as trying everything
@@ -652,5 +657,6 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
     failed = np.nonzero(~ok_out & (n_valid >= 2))[0]
     if config.n_pool_pairs and failed.size:  # last: pairs across the triples (_name_pool)
         run(failed, None, _pass_chunk(failed.size, config), pool=True)
-    result = Identification(ids=jnp.asarray(ids_out), ok=jnp.asarray(ok_out), attitude=jnp.asarray(att_out))
+    result = Identification(ids=jnp.asarray(ids_out[:, :n]), ok=jnp.asarray(ok_out),
+                            attitude=jnp.asarray(att_out))
     return result, Diagnostics(n_candidates=n_pairs, overflow=overflow_all.copy(), n_passes=n_passes)

@@ -40,7 +40,7 @@ from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between, pairwise_angles
 from jstarid.geometry.consistency import most_consistent
 from jstarid.geometry.kvector import range_search
-from jstarid.runtime import chunk_calls, on_every_device, run_calls, static_config, take_rows
+from jstarid.runtime import call_size, chunk_calls, on_every_device, run_calls, static_config, take_rows
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 
@@ -212,7 +212,7 @@ def identify(database: Database, scenes: Scene, config: Config | None = None, *,
                   if jax.local_device_count() > 1 else stripped)
         batched = (np.asarray(scenes.xy, np.float32), np.asarray(scenes.valid),
                    np.asarray(scenes.mag, np.float32), np.asarray(scenes.overflow), eps_rad)
-        chunk = min(config.batch_chunk, b)
+        chunk = call_size(b, config.batch_chunk)
         ids, ok, att, n_cand, over, n_ver = run_calls(
             _identify_chunk, chunk_calls(np.arange(b), chunk), lambda c: take_rows(batched, c), (tables,),
             static=dict(camera=camera, config=static_config(config, _NOT_COMPILED), window=window), n_rows=b,
