@@ -530,12 +530,6 @@ def _local_index(database, config: Config):
                            margin_rad=float(margin), key=f"rpnet-{database.catalog_fingerprint}")
 
 
-def _pass_chunk(n_scenes: int, config: Config) -> int:
-    """Chunk size of a pass over ``n_scenes`` scenes: a power of two ≥ 16 (at most ``batch_chunk``),
-    so that batches of different sizes share their compilations."""
-    return call_size(n_scenes, config.batch_chunk)
-
-
 class Diagnostics(NamedTuple):
     """Per-scene internals of :func:`identify` (host NumPy arrays, batch axis first).
 
@@ -629,18 +623,20 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
         width = int(min(n_cols, max(WIDTH_STEP, -(-int(last[call.rows].max()) // WIDTH_STEP) * WIDTH_STEP)))
         return take_rows((xy_all[:, :width], valid_all[:, :width], overflow_all, mag_all[:, :width]), call)
 
-    def run(subset, trials, chunk, triple=0, pool=False):
+    def run(subset, trials, triple=0, pool=False):
         n_pairs[subset] += config.n_pool_pairs if pool else trials[1] - trials[0]
         n_passes[subset] += 1
-        # scenes sorted by their last valid detection, so each chunk's width fits its scenes
-        calls = chunk_calls(subset[np.argsort(last[subset], kind="stable")], chunk)
+        # scenes sorted by their last valid detection, so each chunk's width fits its scenes; every
+        # pass over 1–16 scenes runs in calls of 16 (runtime.call_size: one compilation)
+        calls = chunk_calls(subset[np.argsort(last[subset], kind="stable")],
+                            call_size(subset.size, config.batch_chunk))
         kernel, extra, static = ((_identify_pool_chunk, (), common) if pool else
                                  (_identify_chunk, (jnp.int32(triple),),
                                   dict(common, config=_triple_kernel_config(kernel_config), trials=trials)))
         run_calls(kernel, calls, args, (*replicated, *extra), static=static, n_rows=b,
                   tails=[(n_cols,), (), (3, 3)], fills=[-1, False, np.nan], out=out)
 
-    run(np.arange(b), (0, 1), _pass_chunk(b, config))
+    run(np.arange(b), (0, 1))
     n_valid = valid_all.sum(1)
     for triple in range(config.n_guide_triples):
         # Later passes, only on the scenes still unconfirmed: the same outcome as trying everything
@@ -653,10 +649,10 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
             continue
         failed = np.nonzero(~ok_out & (n_valid >= 3 * triple + 2))[0]
         if failed.size:
-            run(failed, (0, config.n_pair_trials), _pass_chunk(failed.size, config), triple)
+            run(failed, (0, config.n_pair_trials), triple)
     failed = np.nonzero(~ok_out & (n_valid >= 2))[0]
     if config.n_pool_pairs and failed.size:  # last: pairs across the triples (_name_pool)
-        run(failed, None, _pass_chunk(failed.size, config), pool=True)
+        run(failed, None, pool=True)
     result = Identification(ids=jnp.asarray(ids_out[:, :n]), ok=jnp.asarray(ok_out),
                             attitude=jnp.asarray(att_out))
     return result, Diagnostics(n_candidates=n_pairs, overflow=overflow_all.copy(), n_passes=n_passes)
