@@ -106,6 +106,30 @@ class Camera:
         """This camera with an ideal lens (the frame scenes and algorithms work in)."""
         return dataclasses.replace(self, distortion=()) if self.distortion else self
 
+    def pinhole_numbers(self) -> jnp.ndarray:
+        """(5,) float32 ``(width, height, f_px, cx, cy)`` (px): the pinhole model as an array, which a
+        kernel takes as a traced argument (:meth:`traced`) so that one compiled program serves every
+        camera of the same shapes. The lens distortion is not part of it."""
+        return jnp.asarray([self.width, self.height, self.f_px, self.cx, self.cy], jnp.float32)
+
+    @classmethod
+    def traced(cls, numbers) -> Camera:
+        """The pinhole camera of :meth:`pinhole_numbers` inside a traced function.
+
+        Its fields are traced scalars, so its array methods (:meth:`project`, :meth:`unproject`,
+        :meth:`contains`) work, while what needs Python numbers does not (the float-valued
+        properties, validation, hashing). An ideal lens.
+
+        Args:
+            numbers: (5,) float32 ``(width, height, f_px, cx, cy)``.
+        """
+        camera = object.__new__(cls)
+        fields = ("width", "height", "f_px", "cx", "cy")
+        values = {name: numbers[i] for i, name in enumerate(fields)}
+        for name, value in {**values, "mag_limit": math.nan, "name": "traced", "distortion": ()}.items():
+            object.__setattr__(camera, name, value)
+        return camera
+
     @property
     def fov_x_deg(self) -> float:
         """Horizontal field of view (deg), edge to edge."""

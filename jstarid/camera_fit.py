@@ -58,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.attitude import solve_wahba
+from jstarid.camera import Camera
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.geometry.small_linalg import cholesky_solve
@@ -267,7 +268,7 @@ def fit_distorted(xy, ref, weights, camera, *, start, iterations: int = DISTORTI
     reach = jnp.sqrt(jnp.max(jnp.where(weights > 0, radius2, 0.0))) / f
     use_scale = (n >= MIN_SCALE_STARS) & (lever > MIN_LEVER * f)
     use_k1 = ((n >= DISTORTION_MIN_STARS)
-              & (reach >= DISTORTION_MIN_REACH * math.tan(camera.half_diagonal_rad)))
+              & (reach >= DISTORTION_MIN_REACH * _tan_half_diagonal(camera)))
 
     def linearize(c, scale, k1):  # normal equations of the pixel residuals, (5, 5) and (5,)
         v = precise.small_matmul(ref, c.T)
@@ -314,6 +315,14 @@ def fit_distorted(xy, ref, weights, camera, *, start, iterations: int = DISTORTI
     k1_se = jnp.sqrt(jnp.maximum(n_inv_44 * sigma2, 0.0))
     significant = use_k1 & (jnp.abs(k1) >= K1_SIGNIFICANCE * k1_se)
     return c, scale, k1, jnp.where(front, r, jnp.inf), significant
+
+
+def _tan_half_diagonal(camera):
+    """tan of :attr:`~jstarid.camera.Camera.half_diagonal_rad`, written with array operations so that
+    it holds for a :meth:`~jstarid.camera.Camera.traced` camera too."""
+    dx = jnp.maximum(camera.cx, camera.width - 1 - camera.cx)
+    dy = jnp.maximum(camera.cy, camera.height - 1 - camera.cy)
+    return jnp.hypot(dx, dy) / camera.f_px
 
 
 def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_scale=True,
@@ -542,15 +551,19 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     tol = np.full(b, np.nan, np.float32)
     k1 = np.zeros(b, np.float32)
     vectors = jnp.asarray(star_vectors, jnp.float32)
+    # the camera travels as traced numbers and the names' vectors are gathered here: one program
+    # serves every camera and catalog of the same shapes (compiling one took ≈ 4 s on 2 cores)
+    optics = camera.pinhole_numbers()
+    ref = star_vectors.astype(np.float32)[np.clip(ids, 0, len(star_vectors) - 1)]
     one = batch_mesh(jax.devices()[:1])
-    static = dict(camera=camera, fit_scale=bool(fit_scale),
+    static = dict(fit_scale=bool(fit_scale),
                   fit_distortion=bool(fit_scale and fit_distortion), studentized=bool(studentized))
     # each scene's names packed first, and each call cut to the columns its names need (a power
     # of two, at most FEW_NAMES for the few-names group): the fits' work follows the names, not
     # the scenes' capacity
     order = np.argsort(~named, axis=1, kind="stable")
     packed = tuple(np.take_along_axis(a, order if a.ndim == 2 else order[..., None], axis=1)
-                   for a in (xy, named, ids))
+                   for a in (xy, named, ref))
 
     def columns(call, few):
         need = max(int(count[call.rows].max()), 1)
@@ -569,7 +582,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
         # on one device: split over several CPU devices (shard_map around these loops) the
         # kernels stalled now and then, every device idle (seen in SGM's benchmark)
         fit = CameraFit(*run_calls(
-            _fit_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size), args, (vectors, *limits), n_rows=b,
+            _fit_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size), args, (optics, *limits), n_rows=b,
             tails=[(3, 3), (), (n,), (n,), (), (), ()],
             fills=[np.nan, 1.0, np.nan, False, np.nan, np.nan, 0.0], static=dict(static, few=few), mesh=one))
         attitude[rows], scale[rows] = fit.attitude[rows], fit.scale[rows]
@@ -587,9 +600,9 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
         if not rows.size:
             break
         seen, = run_calls(_field_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size),
-                          functools.partial(take_rows, fitted), (vectors, jnp.float32(max_scale_error)),
-                          n_rows=b, tails=[()], fills=[False],
-                          static=dict(camera=camera, n_scales=n_scales), mesh=one)
+                          functools.partial(take_rows, fitted),
+                          (vectors, optics, jnp.float32(max_scale_error)),
+                          n_rows=b, tails=[()], fills=[False], static=dict(n_scales=n_scales), mesh=one)
         rows = rows[~seen[rows]]
     solved[rows] = False
     kept = np.where(solved[:, None] & inlier, ids, -1).astype(np.int32)
@@ -600,24 +613,28 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     return jnp.asarray(kept), jnp.asarray(solved), fit
 
 
-@functools.partial(stored_jit,
-                   static_argnames=("camera", "fit_scale", "few", "fit_distortion", "studentized"))
-def _fit_kernel(xy, named, ids, star_vectors, k_sigma, min_tol_px, max_tol_px, *, camera, fit_scale, few,
-                fit_distortion, studentized):
-    """:func:`fit_named` of each scene (B, N) of :func:`verify_names` (``few``: its static branch)."""
-    def one(xy_i, named_i, ids_i):
-        ref = star_vectors[jnp.clip(ids_i, 0, star_vectors.shape[0] - 1)]
-        return fit_named(xy_i, ref, named_i, camera, k_sigma=k_sigma, min_tol_px=min_tol_px,
+@functools.partial(stored_jit, static_argnames=("fit_scale", "few", "fit_distortion", "studentized"))
+def _fit_kernel(xy, named, ref, optics, k_sigma, min_tol_px, max_tol_px, *, fit_scale, few, fit_distortion,
+                studentized):
+    """:func:`fit_named` of each scene (B, N) of :func:`verify_names` (``few``: its static branch);
+    ``ref`` (B, N, 3) the names' ICRS vectors, ``optics`` the camera's
+    :meth:`~jstarid.camera.Camera.pinhole_numbers`."""
+    camera = Camera.traced(optics)
+
+    def one(xy_i, named_i, ref_i):
+        return fit_named(xy_i, ref_i, named_i, camera, k_sigma=k_sigma, min_tol_px=min_tol_px,
                          max_tol_px=max_tol_px, fit_scale=fit_scale, few=few,
                          fit_distortion=fit_distortion and not few, studentized=studentized)
 
-    return jax.vmap(one)(xy, named, ids)
+    return jax.vmap(one)(xy, named, ref)
 
 
-@functools.partial(stored_jit, static_argnames=("camera", "n_scales"))
-def _field_kernel(xy, valid, ids, attitude, scale, tol, star_vectors, span, *, camera, n_scales):
+@functools.partial(stored_jit, static_argnames=("n_scales",))
+def _field_kernel(xy, valid, ids, attitude, scale, tol, star_vectors, optics, span, *, n_scales):
     """(B,) bool: :func:`field_seen` of each scene, in :data:`FIELD_GROUP`-scene groups (each
-    projects the whole catalog)."""
+    projects the whole catalog); ``optics`` the camera's :meth:`~jstarid.camera.Camera.pinhole_numbers`."""
+    camera = Camera.traced(optics)
+
     def one(a):
         xy_i, valid_i, ids_i, att_i, scale_i, tol_i = a
         fit = CameraFit(att_i, scale_i, None, None, None, tol_i)

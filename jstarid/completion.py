@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.attitude import solve_wahba
+from jstarid.camera import Camera
 from jstarid.camera_fit import check_claims, unproject_scaled, verify_names
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
@@ -156,7 +157,7 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
                       scenes.valid, det_mag, ids,
                       jnp.clip(k_sigma * fit.sigma_px, min(1.0, tol_px), tol_px),
                       jnp.float32(isolation), jnp.float32(mag_tol), jnp.float32(max_scale_error),
-                      camera=camera, grid=index.grid,
+                      camera.pinhole_numbers(), grid=index.grid,
                       scan=SCALE_SCAN if (k == 0 and fit_scale and max_scale_error > 0) else 0)
         kept, solved, fit = verify_names(vectors, camera, scenes.xy, scenes.valid, ids, use, **fitted)
         ids = jnp.where(use[:, None], kept, ids)  # a name the refitted camera cannot explain goes
@@ -185,16 +186,19 @@ def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
     return candidate & ((count < 4) | (jnp.abs(offset) <= jnp.maximum(mag_tol, 3.0 * spread)))
 
 
-@functools.partial(stored_jit, static_argnames=("camera", "grid", "scan"))
+@functools.partial(stored_jit, static_argnames=("grid", "scan"))
 def _extend(star_vec, star_mag, cells, att, scale, k1, use, xy, valid, mag, ids, tol_px, isolation, mag_tol,
-            span, *, camera, grid, scan):
-    """(B, N) ids with the new names (vmapped over scenes); the tolerances are traced (no recompile).
+            span, optics, *, grid, scan):
+    """(B, N) ids with the new names (vmapped over scenes); the tolerances and the camera
+    (``optics``: :meth:`~jstarid.camera.Camera.pinhole_numbers`) are traced (no recompile).
 
     ``scan`` > 0 (static): the focal scale is first chosen among ``scan`` values evenly over
     ``1 ± span`` as the one under which the given names' attitude names the most detections (ties:
     the one nearest 1). Three names cannot fit a scale, and a wrong one puts the frame's edge
     pixels off; the right one names the frame.
     """
+    camera = Camera.traced(optics)
+
     def one(c, s, k1_i, use_i, xy_i, valid_i, mag_i, ids_i, tol_i):
         rows, vectors, _ = local_stars(cells, star_vec, c[2], grid)  # c[2] = Cᵀ ẑ, the boresight
         have = ids_i >= 0

@@ -73,6 +73,42 @@ def test_verify_names_takes_back_wrong_names_and_keeps_right_ones(world):
         np.testing.assert_allclose(np.asarray(fit.scale), scale, atol=2e-3)
 
 
+def test_a_traced_camera_projects_as_the_camera_does(world):
+    _, nominal = world
+    cam = dataclasses.replace(nominal, cx=nominal.cx + 3.5, cy=nominal.cy - 2.0)
+    xy = jnp.asarray([[0.0, 0.0], [cam.cx, cam.cy], [1000.5, 17.25], [cam.width + 2.0, 4.0]], jnp.float32)
+
+    @jax.jit
+    def traced(numbers):
+        moved = js.Camera.traced(numbers)
+        v = moved.unproject(xy)
+        return v, moved.project(v)[0], moved.contains(xy)
+
+    v, back, inside = traced(cam.pinhole_numbers())
+    np.testing.assert_allclose(v, cam.unproject(xy), atol=1e-7)
+    np.testing.assert_allclose(back, cam.project(cam.unproject(xy))[0], atol=1e-3)
+    np.testing.assert_array_equal(inside, cam.contains(xy))
+
+
+def test_another_camera_of_the_same_shapes_compiles_nothing(world):
+    """The check's kernels take the camera as traced numbers: one program serves every camera."""
+    from jstarid.runtime import CountCompilations
+
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=4, seed=2)
+    ok = np.ones(4, bool)
+    first = cf.verify_names(cat.unit_vectors, nominal, scenes.xy, scenes.valid, truth, ok)
+    jax.block_until_ready(first)
+    other = dataclasses.replace(nominal, f_px=nominal.f_px * 1.02, cx=nominal.cx + 4.0, cy=nominal.cy - 3.0)
+    with CountCompilations() as count:
+        kept, solved, fit = cf.verify_names(cat.unit_vectors, other, scenes.xy, scenes.valid, truth, ok)
+        jax.block_until_ready((kept, solved, fit))
+    assert count.programs == 0, f"{count.programs} programs compiled for another camera"
+    assert np.all(np.asarray(first[1]))
+    np.testing.assert_allclose(np.asarray(first[2].scale), 1.0, atol=2e-3)
+    np.testing.assert_allclose(np.asarray(fit.scale)[np.asarray(solved)], 1 / 1.02, atol=4e-3)
+
+
 def test_a_wrong_sky_fails_the_field_check(world):
     """Four names that fit a wrong attitude exactly (their detections moved to where that attitude
     puts them): every name fits, but the frame's other bright stars are missing."""
