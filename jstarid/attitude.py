@@ -17,9 +17,12 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from jstarid.camera import Camera
 from jstarid.geometry import precise
 from jstarid.geometry.small_linalg import nearest_rotation
+from jstarid.runtime.padding import MIN_CALL_SIZE, pad_rows, power_of_two_chunks
 from jstarid.runtime.program_store import stored_jit
 
 __all__ = [
@@ -219,15 +222,26 @@ def estimate_attitude(catalog, camera, scenes, result, *, min_stars: int = 2):
         ``(C, residual_arcsec, have)``: (B, 3, 3) float32 attitudes (NaN where ``have`` is False),
         (B,) RMS angle between measured and rotated catalog vectors (arcsec), (B,) bool.
     """
-    ref_table = jnp.asarray(catalog.unit_vectors, jnp.float32)
-    return _estimate(ref_table, scenes.xy, scenes.valid, result.ids, camera, min_stars)
-
-
-@functools.partial(stored_jit, static_argnames=("camera", "min_stars"))
-def _estimate(ref_table, xy, valid, ids, camera, min_stars):
+    # host arrays in calls of power-of-two sizes, the names' vectors gathered here and the camera as
+    # traced numbers: a few programs serve every batch size, camera and catalog
+    xy, valid, ids = (np.asarray(a) for a in (scenes.xy, scenes.valid, result.ids))
+    vectors = np.asarray(catalog.unit_vectors, np.float32)
+    ref = vectors[np.clip(ids, 0, len(vectors) - 1)]
     use = valid & (ids >= 0)
-    body = camera.unproject(xy)
-    ref = ref_table[jnp.clip(ids, 0, ref_table.shape[0] - 1)]
+    chunks = power_of_two_chunks(ids.shape[0], MIN_CALL_SIZE)
+    parts = [[np.asarray(a)[:hi - lo] for a in _estimate(
+        *pad_rows((xy[lo:hi].astype(np.float32), use[lo:hi], ref[lo:hi]), size), camera.pinhole_numbers(),
+        min_stars=int(min_stars))] for lo, hi, size in chunks]
+    empty = (np.zeros((0, 3, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, bool))
+    return tuple(jax.device_put(np.concatenate([p[k] for p in parts]) if parts else empty[k])
+                 for k in range(3))
+
+
+@functools.partial(stored_jit, static_argnames=("min_stars",))
+def _estimate(xy, use, ref, optics, *, min_stars):
+    """:func:`estimate_attitude` of a call: xy (B, N, 2) px, use (B, N) bool, ref (B, N, 3) the
+    names' ICRS vectors, optics the camera's :meth:`~jstarid.camera.Camera.pinhole_numbers`."""
+    body = Camera.traced(optics).unproject(xy)
     w = use.astype(jnp.float32)
     c = solve_wahba(body, ref, w)
     pred = precise.einsum("bij,bnj->bni", c, ref)

@@ -90,6 +90,22 @@ def test_estimate_attitude_from_truth(catalog6, sgm_camera):
     assert np.all(np.asarray(resid)[np.asarray(have)] < 120)
 
 
+def test_estimate_attitude_in_calls_equals_each_scene_alone(catalog6, sgm_camera):
+    """20 scenes run in two padded calls (16 + 4): each scene's attitude is what it gets alone, and
+    an empty batch gives empty arrays."""
+    scenes = js.simulate(jax.random.key(4), catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=1.0),
+                         batch_size=20, capacity=32)
+    result = js.Identification(ids=scenes.truth, ok=np.ones(20, bool), attitude=None)
+    c, resid, have = (np.asarray(a) for a in js.estimate_attitude(catalog6, sgm_camera, scenes, result))
+    assert c.shape == (20, 3, 3) and resid.shape == have.shape == (20,) and have.all()
+    for i in (0, 15, 16, 19):
+        alone = js.estimate_attitude(catalog6, sgm_camera, scenes[i], result[i])
+        np.testing.assert_allclose(np.asarray(alone[0])[0], c[i], atol=1e-6)
+        np.testing.assert_allclose(np.asarray(alone[1])[0], resid[i], rtol=1e-4)
+    empty = js.estimate_attitude(catalog6, sgm_camera, scenes[:0], result[:0])
+    assert [np.shape(a) for a in empty] == [(0, 3, 3), (0,), (0,)]
+
+
 def test_triad_recovers_a_rotation_from_two_pairs_like_scipy():
     """TRIAD on two noise-free vector pairs gives the rotation scipy's ``align_vectors`` finds."""
     from jstarid.attitude import triad
