@@ -593,6 +593,12 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     # the field check only where a handful of names could fit a wrong sky (field_seen)
     rows = np.flatnonzero(solved & (inlier.sum(axis=1) <= FIELD_MAX_NAMES))
     fitted = (xy, valid, np.where(inlier, ids, -1), attitude, scale, tol)
+    filled = np.where(valid.any(axis=1), n - np.argmax(valid[:, ::-1], axis=1), 0)  # columns in use
+
+    def field_args(call):  # each call cut to the columns its detections fill (a power of two)
+        width = min(n, max(CHECK_MIN_WIDTH, next_power_of_two(max(int(filled[call.rows].max()), 1))))
+        xy_c, valid_c, ids_c, *rest = take_rows(fitted, call)
+        return (xy_c[:, :width], valid_c[:, :width], ids_c[:, :width], *rest)
     # first under the fitted focal length alone, then, for the scenes that fail there, under the
     # FIELD_SCALES others too: the same answer (a pass under one scale passes the maximum), and most
     # right skies pass at once (the scale search was 2/3 of MLV's identify time)
@@ -600,8 +606,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
         if not rows.size:
             break
         seen, = run_calls(_field_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size),
-                          functools.partial(take_rows, fitted),
-                          (vectors, optics, jnp.float32(max_scale_error)),
+                          field_args, (vectors, optics, jnp.float32(max_scale_error)),
                           n_rows=b, tails=[()], fills=[False], static=dict(n_scales=n_scales), mesh=one)
         rows = rows[~seen[rows]]
     solved[rows] = False

@@ -109,6 +109,25 @@ def test_another_camera_of_the_same_shapes_compiles_nothing(world):
     np.testing.assert_allclose(np.asarray(fit.scale)[np.asarray(solved)], 1 / 1.02, atol=4e-3)
 
 
+def test_empty_columns_change_nothing(world):
+    """The check's calls are cut to the columns the detections fill: the same scenes with twice the
+    capacity (empty columns after the detections) give the same names, claims and fits."""
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=4, seed=3)
+    ids = np.where(np.cumsum(truth >= 0, axis=1) <= 6, truth, -1)  # six names: the field check runs
+    ok = np.ones(4, bool)
+    n = scenes.capacity
+    wide = [np.pad(np.asarray(a), [(0, 0), (0, n)] + [(0, 0)] * (np.ndim(a) - 2))
+            for a in (scenes.xy, scenes.valid, ids)]
+    kept, solved, fit = cf.verify_names(cat.unit_vectors, nominal, scenes.xy, scenes.valid, ids, ok)
+    kept_w, solved_w, fit_w = cf.verify_names(cat.unit_vectors, nominal, *wide, ok)
+    assert np.asarray(solved).any()
+    np.testing.assert_array_equal(np.asarray(kept_w)[:, :n], kept)
+    assert np.all(np.asarray(kept_w)[:, n:] == -1)
+    np.testing.assert_array_equal(solved_w, solved)
+    np.testing.assert_allclose(np.asarray(fit_w.attitude), np.asarray(fit.attitude), atol=1e-6)
+
+
 def test_a_wrong_sky_fails_the_field_check(world):
     """Four names that fit a wrong attitude exactly (their detections moved to where that attitude
     puts them): every name fits, but the frame's other bright stars are missing."""
