@@ -37,6 +37,9 @@ from jstarid.camera_fit import check_claims, unproject_scaled, verify_names
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import magnitude_offsets
+from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
+from jstarid.runtime.devices import batch_mesh
+from jstarid.runtime.padding import next_power_of_two
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
@@ -45,6 +48,7 @@ __all__ = ["first_argmax", "magnitude_agrees", "name_from_attitude", "name_stars
 
 EXTEND_ROUNDS = 2  # naming rounds of name_from_attitude, each with the camera refitted to all names
 SCALE_SCAN = 81  # focal scales tried by the first round (0.25 % apart at max_scale_error = 0.1)
+EXTEND_CHUNK = 256  # scenes per call of the naming rounds (padded to a power of two)
 SCAN_BATCH = 9  # of them evaluated together (memory: SCAN_BATCH × detections × local stars per scene)
 
 
@@ -151,14 +155,21 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     fitted = dict(max_scale_error=max_scale_error, min_named=2, fit_scale=fit_scale)
     # rounds of naming and refitting: the first names come from the algorithm's stars (often
     # central ones, a weak lever on the focal length); every round's names reach further out
+    shared = (vectors, star_mag, cells, jnp.float32(isolation), jnp.float32(mag_tol),
+              jnp.float32(max_scale_error), camera.pinhole_numbers())
+    one = batch_mesh(jax.devices()[:1])
     for k in range(EXTEND_ROUNDS):
-        ids = _extend(vectors, star_mag, cells, jnp.where(use[:, None, None], fit.attitude, 0.0),
-                      jnp.where(use, fit.scale, 1.0), jnp.where(use, fit.k1, 0.0), use, scenes.xy,
-                      scenes.valid, det_mag, ids,
-                      jnp.clip(k_sigma * fit.sigma_px, min(1.0, tol_px), tol_px),
-                      jnp.float32(isolation), jnp.float32(mag_tol), jnp.float32(max_scale_error),
-                      camera.pinhole_numbers(), grid=index.grid,
-                      scan=SCALE_SCAN if (k == 0 and fit_scale and max_scale_error > 0) else 0)
+        # only the scenes in use, in calls of power-of-two sizes: a batch of any size, most of it
+        # unsolved or not, meets a few programs, and the first round's scale scan runs where it counts
+        per_scene = tuple(np.asarray(a) for a in (
+            fit.attitude, fit.scale, fit.k1, scenes.xy, scenes.valid, det_mag, ids,
+            np.clip(k_sigma * np.asarray(fit.sigma_px), min(1.0, tol_px), tol_px)))
+        scan = SCALE_SCAN if (k == 0 and fit_scale and max_scale_error > 0) else 0
+        rows = np.flatnonzero(np.asarray(use))
+        ids, = run_calls(_extend, chunk_calls(rows, EXTEND_CHUNK, size=next_power_of_two),
+                         functools.partial(take_rows, per_scene, mode="edge"), shared,
+                         n_rows=scenes.batch_size, tails=[(scenes.capacity,)], fills=[-1],
+                         out=[np.array(ids, np.int32)], static=dict(grid=index.grid, scan=scan), mesh=one)
         kept, solved, fit = verify_names(vectors, camera, scenes.xy, scenes.valid, ids, use, **fitted)
         ids = jnp.where(use[:, None], kept, ids)  # a name the refitted camera cannot explain goes
         ok = jnp.where(use, solved, ok)
@@ -187,10 +198,10 @@ def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
 
 
 @functools.partial(stored_jit, static_argnames=("grid", "scan"))
-def _extend(star_vec, star_mag, cells, att, scale, k1, use, xy, valid, mag, ids, tol_px, isolation, mag_tol,
-            span, optics, *, grid, scan):
-    """(B, N) ids with the new names (vmapped over scenes); the tolerances and the camera
-    (``optics``: :meth:`~jstarid.camera.Camera.pinhole_numbers`) are traced (no recompile).
+def _extend(att, scale, k1, xy, valid, mag, ids, tol_px, star_vec, star_mag, cells, isolation, mag_tol, span,
+            optics, *, grid, scan):
+    """(B, N) ids with the new names of B scenes in use (vmapped over scenes); the tolerances and the
+    camera (``optics``: :meth:`~jstarid.camera.Camera.pinhole_numbers`) are traced (no recompile).
 
     ``scan`` > 0 (static): the focal scale is first chosen among ``scan`` values evenly over
     ``1 ± span`` as the one under which the given names' attitude names the most detections (ties:
@@ -199,7 +210,7 @@ def _extend(star_vec, star_mag, cells, att, scale, k1, use, xy, valid, mag, ids,
     """
     camera = Camera.traced(optics)
 
-    def one(c, s, k1_i, use_i, xy_i, valid_i, mag_i, ids_i, tol_i):
+    def one(c, s, k1_i, xy_i, valid_i, mag_i, ids_i, tol_i):
         rows, vectors, _ = local_stars(cells, star_vec, c[2], grid)  # c[2] = Cᵀ ẑ, the boresight
         have = ids_i >= 0
 
@@ -208,7 +219,7 @@ def _extend(star_vec, star_mag, cells, att, scale, k1, use, xy, valid, mag, ids,
             local, named = name_stars(c_s, body, valid_i, vectors, tol_i / (camera.f_px * s_s), isolation)
             row = rows[local]
             taken = jnp.any((ids_i[None, :] == row[:, None]) & have[None, :], axis=1)
-            new = use_i & ~have & named & ~taken
+            new = ~have & named & ~taken
             star_mag_i = star_mag[jnp.where(have, ids_i, row).clip(0, star_mag.shape[0] - 1)]
             return row, magnitude_agrees(mag_i, star_mag_i, have, new, mag_tol)
 
@@ -229,4 +240,4 @@ def _extend(star_vec, star_mag, cells, att, scale, k1, use, xy, valid, mag, ids,
         row, new = names(c, s)
         return jnp.where(new, row, ids_i).astype(jnp.int32)
 
-    return jax.vmap(one)(att, scale, k1, use, xy, valid, mag, ids, tol_px)
+    return jax.vmap(one)(att, scale, k1, xy, valid, mag, ids, tol_px)

@@ -75,6 +75,24 @@ def test_matches_reference_and_truth(setup):
     assert np.all(err < 20)
 
 
+def test_naming_rounds_run_in_calls_of_a_few_sizes(setup):
+    """Only the solved scenes are named, in calls of power-of-two sizes: 5 and 6 scenes meet the same
+    programs, and each scene's names are those it gets in the whole batch."""
+    from jstarid import completion
+
+    cat, cam, scenes, truth, partial, ok = setup
+
+    def name(rows):
+        return np.asarray(name_from_attitude(cat, cam, scenes[rows], js.Identification(
+            ids=partial[rows], ok=ok[rows]), **PLAIN).ids)
+
+    whole = name(slice(0, 48))
+    np.testing.assert_array_equal(name(slice(3, 8)), whole[3:8])
+    programs = completion._extend._cache_size()
+    np.testing.assert_array_equal(name(slice(8, 14)), whole[8:14])
+    assert completion._extend._cache_size() == programs
+
+
 def test_too_few_names_and_conflicts_are_left_alone(setup):
     cat, cam, scenes, truth, partial, ok = setup
     two = truth.copy()
