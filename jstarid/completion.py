@@ -151,7 +151,7 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     cells, _ = index.device_arrays()
     use = ok & enough
     star_mag = jnp.asarray(catalog.mag, jnp.float32)
-    det_mag = jnp.asarray(scenes.mag, jnp.float32)
+    det_mag = np.asarray(scenes.mag, np.float32)
     fitted = dict(max_scale_error=max_scale_error, min_named=2, fit_scale=fit_scale)
     # rounds of naming and refitting: the first names come from the algorithm's stars (often
     # central ones, a weak lever on the focal length); every round's names reach further out
