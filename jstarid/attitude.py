@@ -22,7 +22,9 @@ import numpy as np
 from jstarid.camera import Camera
 from jstarid.geometry import precise
 from jstarid.geometry.small_linalg import nearest_rotation
-from jstarid.runtime.padding import MIN_CALL_SIZE, pad_rows, power_of_two_chunks
+from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
+from jstarid.runtime.devices import batch_mesh
+from jstarid.runtime.padding import call_size
 from jstarid.runtime.program_store import stored_jit
 
 __all__ = [
@@ -32,6 +34,7 @@ __all__ = [
 ]
 
 _RAD_TO_ARCSEC = 180.0 / jnp.pi * 3600.0
+ESTIMATE_CHUNK = 1024  # scenes per call of estimate_attitude (padded to a power of two ≥ 16)
 
 
 def rotation_from_quaternion(q):
@@ -222,19 +225,18 @@ def estimate_attitude(catalog, camera, scenes, result, *, min_stars: int = 2):
         ``(C, residual_arcsec, have)``: (B, 3, 3) float32 attitudes (NaN where ``have`` is False),
         (B,) RMS angle between measured and rotated catalog vectors (arcsec), (B,) bool.
     """
-    # host arrays in calls of power-of-two sizes, the names' vectors gathered here and the camera as
-    # traced numbers: a few programs serve every batch size, camera and catalog
+    # host arrays in calls of power-of-two sizes (the algorithms' call plan), the names' vectors
+    # gathered here and the camera as traced numbers: a few programs serve every batch size, camera
+    # and catalog
     xy, valid, ids = (np.asarray(a) for a in (scenes.xy, scenes.valid, result.ids))
     vectors = np.asarray(catalog.unit_vectors, np.float32)
-    ref = vectors[np.clip(ids, 0, len(vectors) - 1)]
-    use = valid & (ids >= 0)
-    chunks = power_of_two_chunks(ids.shape[0], MIN_CALL_SIZE)
-    parts = [[np.asarray(a)[:hi - lo] for a in _estimate(
-        *pad_rows((xy[lo:hi].astype(np.float32), use[lo:hi], ref[lo:hi]), size), camera.pinhole_numbers(),
-        min_stars=int(min_stars))] for lo, hi, size in chunks]
-    empty = (np.zeros((0, 3, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, bool))
-    return tuple(jax.device_put(np.concatenate([p[k] for p in parts]) if parts else empty[k])
-                 for k in range(3))
+    batched = (xy.astype(np.float32), valid & (ids >= 0), vectors[np.clip(ids, 0, len(vectors) - 1)])
+    calls = chunk_calls(np.arange(ids.shape[0]), ESTIMATE_CHUNK, size=lambda n: call_size(n, ESTIMATE_CHUNK))
+    out = run_calls(_estimate, calls, functools.partial(take_rows, batched), (camera.pinhole_numbers(),),
+                    n_rows=ids.shape[0], tails=[(3, 3), (), ()],
+                    fills=[np.float32(np.nan), np.float32(np.nan), False],
+                    static=dict(min_stars=int(min_stars)), mesh=batch_mesh(jax.devices()[:1]))
+    return tuple(jax.device_put(a) for a in out)
 
 
 @functools.partial(stored_jit, static_argnames=("min_stars",))

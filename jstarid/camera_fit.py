@@ -565,9 +565,11 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     packed = tuple(np.take_along_axis(a, order if a.ndim == 2 else order[..., None], axis=1)
                    for a in (xy, named, ref))
 
+    def width(call, filled):  # the columns a call needs, as a power of two ≥ CHECK_MIN_WIDTH
+        return min(n, next_power_of_two(int(filled[call.rows].max()), floor=CHECK_MIN_WIDTH))
+
     def columns(call, few):
-        need = max(int(count[call.rows].max()), 1)
-        return min(FEW_NAMES, n) if few else min(n, max(CHECK_MIN_WIDTH, next_power_of_two(need)))
+        return min(FEW_NAMES, n) if few else width(call, count)
 
     for few in (True, False):
         rows = np.flatnonzero(ok & ((count <= FEW_NAMES) == few))
@@ -576,8 +578,8 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
         rows = rows[np.argsort(count[rows], kind="stable")]  # calls of similar widths
 
         def args(call, few=few):
-            width = columns(call, few)
-            return tuple(a[:, :width] for a in take_rows(packed, call))
+            cut = columns(call, few)
+            return tuple(a[:, :cut] for a in take_rows(packed, call))
 
         # on one device: split over several CPU devices (shard_map around these loops) the
         # kernels stalled now and then, every device idle (seen in SGM's benchmark)
@@ -595,10 +597,10 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     fitted = (xy, valid, np.where(inlier, ids, -1), attitude, scale, tol)
     filled = np.where(valid.any(axis=1), n - np.argmax(valid[:, ::-1], axis=1), 0)  # columns in use
 
-    def field_args(call):  # each call cut to the columns its detections fill (a power of two)
-        width = min(n, max(CHECK_MIN_WIDTH, next_power_of_two(max(int(filled[call.rows].max()), 1))))
+    def field_args(call):  # each call cut to the columns its detections fill, as the fits' are
+        cut = width(call, filled)
         xy_c, valid_c, ids_c, *rest = take_rows(fitted, call)
-        return (xy_c[:, :width], valid_c[:, :width], ids_c[:, :width], *rest)
+        return (xy_c[:, :cut], valid_c[:, :cut], ids_c[:, :cut], *rest)
     # first under the fitted focal length alone, then, for the scenes that fail there, under the
     # FIELD_SCALES others too: the same answer (a pass under one scale passes the maximum), and most
     # right skies pass at once (the scale search was 2/3 of MLV's identify time)

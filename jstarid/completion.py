@@ -160,7 +160,8 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     one = batch_mesh(jax.devices()[:1])
     for k in range(EXTEND_ROUNDS):
         # only the scenes in use, in calls of power-of-two sizes: a batch of any size, most of it
-        # unsolved or not, meets a few programs, and the first round's scale scan runs where it counts
+        # unsolved or not, meets a few programs, and the first round's scale scan runs where it counts.
+        # No floor of 16 (runtime.call_size): each padding row would repeat the 81-scale scan
         per_scene = tuple(np.asarray(a) for a in (
             fit.attitude, fit.scale, fit.k1, scenes.xy, scenes.valid, det_mag, ids,
             np.clip(k_sigma * np.asarray(fit.sigma_px), min(1.0, tol_px), tol_px)))

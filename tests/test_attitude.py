@@ -90,9 +90,12 @@ def test_estimate_attitude_from_truth(catalog6, sgm_camera):
     assert np.all(np.asarray(resid)[np.asarray(have)] < 120)
 
 
-def test_estimate_attitude_in_calls_equals_each_scene_alone(catalog6, sgm_camera):
-    """20 scenes run in two padded calls (16 + 4): each scene's attitude is what it gets alone, and
-    an empty batch gives empty arrays."""
+def test_estimate_attitude_in_calls_equals_each_scene_alone(catalog6, sgm_camera, monkeypatch):
+    """20 scenes in calls of at most 16 (16 + 4, each padded to 16): each scene's attitude is what
+    it gets alone, and an empty batch gives empty arrays."""
+    from jstarid import attitude
+
+    monkeypatch.setattr(attitude, "ESTIMATE_CHUNK", 16)
     scenes = js.simulate(jax.random.key(4), catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=1.0),
                          batch_size=20, capacity=32)
     result = js.Identification(ids=scenes.truth, ok=np.ones(20, bool), attitude=None)
@@ -104,6 +107,7 @@ def test_estimate_attitude_in_calls_equals_each_scene_alone(catalog6, sgm_camera
         np.testing.assert_allclose(np.asarray(alone[1])[0], resid[i], rtol=1e-4)
     empty = js.estimate_attitude(catalog6, sgm_camera, scenes[:0], result[:0])
     assert [np.shape(a) for a in empty] == [(0, 3, 3), (0,), (0,)]
+    assert [np.asarray(a).dtype for a in empty] == [np.float32, np.float32, bool]
 
 
 def test_triad_recovers_a_rotation_from_two_pairs_like_scipy():

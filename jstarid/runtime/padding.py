@@ -58,7 +58,7 @@ def next_power_of_two(n: float, floor: int = 1) -> int:
 def call_size(n: int, chunk: int) -> int:
     """Rows per kernel call for a batch of ``n`` rows run in calls of at most ``chunk`` rows.
 
-    A power of two ≥ :data:`MIN_CALL_SIZE` (and ≤ ``chunk``): batches of 1, 3 or 12 scenes all run
+    The next power of two ≥ :data:`MIN_CALL_SIZE`, capped at ``chunk``: batches of 1, 3 or 12 scenes all run
     in calls of 16 and share one compilation, where a call of exactly ``n`` rows would compile a
     program per batch size (a small call's padding costs microseconds; a compilation, seconds).
 
