@@ -51,6 +51,8 @@ def parse_args(argv=None):
                    help="the twin's pointings (js.twin.twin_scenes; default real: near the frames')")
     p.add_argument("--match-px", type=float, default=2.0,
                    help="farthest a detection may lie from the star the plate solution puts there")
+    p.add_argument("--train-on-fit", action="store_true",
+                   help="RpNet trains on the detection model fitted to the frames")
     return p.parse_args(argv)
 
 
@@ -152,7 +154,7 @@ def main(argv=None):
     path = labelled_file(args, args.out)
     camera = js.load_camera("tetra3_test", size=SIZE, fov_deg=FOV_DEG)
     check = js.twin.twin_check(read_centroid_set(path), camera, algorithms, scenes=scenes, seed=args.seed,
-                               epoch=EPOCH, sky=args.sky)
+                               epoch=EPOCH, sky=args.sky, train_on_fit=args.train_on_fit)
     fit = check.labelled.fit
     radii = clutter_radii(read_centroid_set(path), camera)
     results = {"rows": check.rows(), "scenes": check.scene_rows(), "detections_per_scene": check.detections,

@@ -284,6 +284,18 @@ DOUBLE_SEP_DEG = 0.05  # load_catalog's default close-pair separation (deg)
 FULL_DEPTH = 12.5  # V: every Hipparcos star but the 130 (of 117,955) fainter
 
 
+def with_simulation_depth(catalog: Catalog, depth: float) -> Catalog:
+    """``catalog`` with a simulation list to V ``depth`` at least (capped at :data:`FULL_DEPTH`):
+    itself when its list reaches that deep, else the same catalog reloaded with a larger
+    ``sim_margin`` — the same rows in the same order (they do not depend on the margin), so the
+    truth of scenes drawn from either names the same stars."""
+    depth = min(float(depth), FULL_DEPTH)
+    settings = {k: v for k, v in catalog.settings.items() if k != "version"}
+    if settings["mag_limit"] + settings["sim_margin"] >= depth - 1e-6:
+        return catalog
+    return load_catalog(**{**settings, "sim_margin": depth - settings["mag_limit"]})
+
+
 def load_every_star(epoch: float | None = None) -> Catalog:
     """All of Hipparcos to V :data:`FULL_DEPTH`, close pairs kept apart, no simulation list: the
     reference that naming depths, blends, scores and calibration look stars up in."""

@@ -237,6 +237,13 @@ class DetectionModel:
         s = np.maximum(q * q - back, 1e-30)
         return float(np.max(-2.5 * np.log10(s / zero))) + z * float(magnitude_sigma)
 
+    def simulation_depth(self, magnitude_sigma: float = 0.0) -> float:
+        """How deep (V) a catalog's simulation list must reach for :func:`jstarid.simulate` to miss
+        none of the stars this model detects more than 0.1 % of (rounded up to 0.1 mag, the cut the
+        simulator itself checks); ``inf`` for the ideal model."""
+        seen = self.faintest_detectable(magnitude_sigma, odds=1e-3)
+        return math.ceil(10.0 * seen) / 10.0 if math.isfinite(seen) else math.inf
+
     def _electrons(self, mag):
         s0 = float(self.zero_point_e)
         with np.errstate(over="ignore"):

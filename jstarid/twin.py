@@ -320,9 +320,17 @@ class TwinCheck(NamedTuple):
         return "\n".join(lines) + "\n"
 
 
+def _trained_on(entry, model):
+    """``entry`` with its config training on ``model`` where it trains on simulated scenes."""
+    if "train_detection" not in {f.name for f in dataclasses.fields(entry.config)}:
+        return entry
+    return entry._replace(config=dataclasses.replace(entry.config, train_detection=model))
+
+
 def twin_check(found, camera, algorithms="sgm,mlv,rpnet", *, scenes: int = 1000, seed: int = 0,
                capacity: int = 64, epoch: float | None = None, catalog=None, sky: str = "real",
-               rpnet_network: str | None = None, progress: bool = True) -> TwinCheck:
+               rpnet_network: str | None = None, train_on_fit: bool = False,
+               progress: bool = True) -> TwinCheck:
     """A labelled set against its simulated twin, every algorithm on both (module docstring).
 
     Args:
@@ -333,6 +341,9 @@ def twin_check(found, camera, algorithms="sgm,mlv,rpnet", *, scenes: int = 1000,
         epoch: Julian year of the observations. catalog: the identification catalog (default:
             Hipparcos to the camera's limit at ``epoch``). sky: :func:`twin_scenes`.
         rpnet_network, progress: as in :func:`jstarid.sweep`.
+        train_on_fit: the algorithms that train on simulated scenes (a ``train_detection`` config
+            field: RpNet) train on the model fitted to ``found`` instead of their default — the
+            network of a camera whose real frames were measured.
 
     Returns:
         :class:`TwinCheck`.
@@ -345,6 +356,8 @@ def twin_check(found, camera, algorithms="sgm,mlv,rpnet", *, scenes: int = 1000,
     entries = make_entries(algorithms, rpnet_network=rpnet_network, camera=camera)
     check_camera(entries, camera, catalog)  # before anything is fitted
     labelled = fit_labelled(found, camera, epoch=epoch, catalog=catalog)
+    if train_on_fit:
+        entries = [_trained_on(e, labelled.fit.model) for e in entries]
     real = real_scenes(found, labelled, camera, catalog, capacity)
     twin, twin_detections, drawn = twin_scenes(labelled, camera, catalog, scenes=scenes, seed=seed,
                                                capacity=capacity, sky=sky, progress=progress)

@@ -63,6 +63,16 @@ def test_rows_consistent(catalog6):
     assert c.row_of_hip(999_999_999)[0] == -1
 
 
+def test_a_deeper_simulation_list_keeps_the_rows(catalog6):
+    assert catalog_module.with_simulation_depth(catalog6, 6.5) is catalog6  # V 7.0 reaches it
+    deep = catalog_module.with_simulation_depth(catalog6, 8.0)
+    for name in ("hip", "mag", "unit_vectors"):
+        np.testing.assert_array_equal(getattr(deep, name), getattr(catalog6, name))
+    assert deep.sim_mag.max() <= 8.0 < deep.sim_mag.max() + 0.05 and len(deep.sim_mag) > len(catalog6.sim_mag)
+    full = catalog_module.with_simulation_depth(catalog6, 20.0)  # capped at Hipparcos's depth
+    assert full.settings["mag_limit"] + full.settings["sim_margin"] == catalog_module.FULL_DEPTH
+
+
 def test_cache_written_and_invalidated(tmp_path, monkeypatch):
     monkeypatch.setenv("JSTARID_CACHE", str(tmp_path))
     a = js.load_catalog(4.0)

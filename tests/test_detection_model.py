@@ -184,6 +184,12 @@ def test_a_model_deeper_than_the_simulation_list_warns(catalog6, sgm_camera):
     deep = js.DetectionModel(zero_point_e=1e7, threshold_e=100.0, detection_background_e2=100.0)
     with pytest.warns(UserWarning, match="simulation list"):
         js.simulate(jax.random.key(0), catalog6, sgm_camera, batch_size=4, detection=deep)
+    # a model of a few electrons (a fit to a shallow frame): its noise alone clears the threshold
+    few = js.DetectionModel(zero_point_e=1390.0, background_e2=4.7, threshold_e=2.84,
+                            detection_background_e2=0.89)
+    assert few.faintest_detectable(odds=1e-3) > 30.0
+    with pytest.warns(UserWarning, match="at any depth"):
+        js.simulate(jax.random.key(0), catalog6, sgm_camera, batch_size=4, detection=few)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         js.simulate(jax.random.key(0), catalog6, sgm_camera, batch_size=4, detection=STATS_MODEL)

@@ -188,3 +188,15 @@ def test_near_attitudes_stay_near_and_roll_freely():
                                  np.einsum("bi,bi->b", near[:, 0], mine[:, 0])))
     assert np.histogram(roll, bins=4, range=(-180, 180))[0].min() > 40
     np.testing.assert_array_equal(near, twin.near_attitudes(base, camera, 300, seed=1))
+
+
+def test_train_on_fit_trains_what_trains_on_the_fitted_model(fitted):
+    """``train_on_fit``: RpNet's config trains on the fitted model (its own network); an algorithm
+    that trains nothing keeps its config."""
+    camera = js.camera_preset("tetra3_test")
+    entries = js.engine.entries("rpnet,mlv", camera=camera)
+    model = fitted.fit.model
+    rpnet_entry, mlv_entry = (twin._trained_on(e, model) for e in entries)
+    assert rpnet_entry.config.train_detection == model and rpnet_entry.label == entries[0].label
+    assert rpnet_entry.config.fingerprint() != entries[0].config.fingerprint()  # a network of its own
+    assert mlv_entry == entries[1]

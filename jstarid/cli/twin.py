@@ -45,6 +45,9 @@ def add_commands(sub) -> None:
                    help="Julian year of the observations, for proper motion (default J1991.25)")
     p.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet's network, trained for the camera on first use (default quick)")
+    p.add_argument("--train-on-fit", action="store_true",
+                   help="RpNet trains its network on the detection model fitted to the labelled set "
+                        "(a network of its own for this set; default: its network for the camera)")
     p.add_argument("--set", nargs="*", default=[], metavar="[ALGORITHM.]FIELD=VALUE",
                    help="algorithm Config overrides, VALUE in JSON (as in `jstarid sweep`)")
     p.add_argument("--out", type=Path, default=Path("results/twin"),
@@ -81,7 +84,8 @@ def run_twin(args) -> int:
     t0 = time.perf_counter()
     check = twin_check(found, camera, entries, scenes=args.scenes, seed=args.seed,
                        capacity=args.capacity, epoch=args.epoch, catalog=catalog, sky=args.sky,
-                       rpnet_network=args.rpnet_network, progress=not args.quiet)
+                       rpnet_network=args.rpnet_network, train_on_fit=args.train_on_fit,
+                       progress=not args.quiet)
     out = check.result.save(args.out, title="jstarid twin (level twin=0: the labelled set, "
                                              "twin=1: its twin)", figure=False)
     fit = check.labelled.fit

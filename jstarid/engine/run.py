@@ -267,10 +267,10 @@ def _from_model(key, catalog, camera, noise, pointing, detection, sensors, centr
         raise ValueError(f"detection must be a DetectionModel or 'sensor', got {type(detection).__name__}")
     detection.validate()
     sim_margin = catalog.settings.get("sim_margin", 1.0)
-    seen = detection.faintest_detectable(float(np.max(np.asarray(noise.magnitude_sigma))), odds=1e-3)
+    seen = detection.simulation_depth(float(np.max(np.asarray(noise.magnitude_sigma))))
     depth = camera.mag_limit  # an ideal model cuts at the camera's limit: no deeper sky
     if math.isfinite(seen):
-        depth = min(FULL_DEPTH - sim_margin, max(depth, math.ceil(10.0 * seen) / 10.0 - sim_margin))
+        depth = min(FULL_DEPTH - sim_margin, max(depth, seen - sim_margin))
     sky = _deep_sky(key, catalog, camera, noise, pointing, total, depth, capacity, detection)
     return sky, {**recorded, "detection_depth_mag": depth}
 

@@ -1027,3 +1027,31 @@ def test_robust_refit_leaves_clean_noise_alone(tiny):
     assert np.sum(np.any(np.asarray(forced.ids) != np.asarray(plain.ids), axis=1)) > 20
     with pytest.raises(ValueError, match="outlier_ratio"):
         dataclasses.replace(cfg, outlier_ratio=0.5)
+
+
+def test_training_on_a_detection_model(tiny):
+    """``train_detection``: the ideal model draws the paper's batch for the same key; the sensor's
+    model, which detects past the camera's limit, keeps as many detections as the paper's scenes
+    but others; pure in the key."""
+    cat, cam, cfg, _, tables = tiny
+    quiet = dataclasses.replace(cfg.training, position_sigmas_px=(0.0,), magnitude_sigmas=(0.0,))
+    plain_cfg = dataclasses.replace(cfg, training=quiet)
+    plain = data.make_batch(jax.random.key(5), cat, cam, plain_cfg, tables, 128)
+    ideal = data.make_batch(jax.random.key(5), cat, cam, dataclasses.replace(
+        plain_cfg, train_detection=js.DetectionModel.ideal()), tables, 128)
+    np.testing.assert_array_equal(np.asarray(ideal.noisy), np.asarray(plain.noisy))
+    sensor_cfg = dataclasses.replace(plain_cfg, train_detection="sensor")
+    assert sensor_cfg.training_detection(cam) == js.DetectionModel.from_sensor(cam)
+    deep = data.make_batch(jax.random.key(5), cat, cam, sensor_cfg, tables, 128)
+    np.testing.assert_array_equal(np.asarray(deep.label), np.asarray(plain.label))
+    n_sn = lambda b: np.asarray(b.noisy)[:, :cfg.n_bins].sum(1)  # neighbours in the pattern  # noqa: E731
+    # as many detections as the paper's scenes keep, but others: fainter stars, noisier order
+    assert abs(n_sn(deep).mean() - n_sn(plain).mean()) < 0.1 * n_sn(plain).mean()
+    assert np.mean(np.any(np.asarray(deep.noisy) != np.asarray(plain.noisy), axis=1)) > 0.5
+    again = data.make_batch(jax.random.key(5), cat, cam, sensor_cfg, tables, 128)
+    np.testing.assert_array_equal(np.asarray(again.noisy), np.asarray(deep.noisy))
+    # the model shapes the network: it enters the checkpoint's key, not the compiled identification
+    assert sensor_cfg.fingerprint() != plain_cfg.fingerprint()
+    assert sensor_cfg.compiled() == plain_cfg.compiled()
+    with pytest.raises(ValueError, match="train_detection"):
+        rpnet.Config(train_detection="rendered")

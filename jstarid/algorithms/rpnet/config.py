@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from jstarid.camera import radius_that_fits, tolerance_scales
+from jstarid.detection_model import DetectionModel
 from jstarid.finishing import Finishing
 from jstarid.runtime.static import static_config
 
@@ -81,7 +82,7 @@ class Tuning(NamedTuple):
 
 # Config fields that compiled identification never reads as compile-time constants: the traced
 # thresholds, and the host loop's chunking and pass counts (passed to the kernels separately).
-_NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk")
+_NOT_COMPILED = (*Tuning._fields, "n_pair_trials", "batch_chunk", "train_detection")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,6 +200,17 @@ class Config:
         clf_width: classifier hidden width (512): FC3 1024→512, BN, ReLU, FC4 512→K.
 
     Training: :class:`Training` (Table 3), ``Training.paper()`` or ``Training.quick()``.
+        train_detection: (extension) how the training scenes detect their stars. ``None``: the
+            paper's hard cut at the camera's ``mag_limit``, the four families' knobs alone (§II-C).
+            ``"sensor"``: the camera's :meth:`~jstarid.DetectionModel.from_sensor` model, or a given
+            :class:`~jstarid.DetectionModel` (e.g. one fitted to the camera's real frames): every
+            family's scene is drawn from it — completeness falling off past the threshold, noise and
+            bias growing with magnitude (no blends) — with the family's knob on top (position σ and
+            magnitude σ as floors, the missing and false stars as they are), keeping as many of its
+            brightest detections as the paper's scene of the same key holds (:mod:`.data`). Why: a
+            real frame's patterns hold stars fainter than the catalog and lose some near the
+            threshold. Off by default: on the frames measured it gained nothing
+            (docs/design/rpnet.md).
 
     Identification (§II-E, eqs. 9–11, Table 5):
         n_candidates: candidates per guide (3 in the paper: 27 candidate pairs).
@@ -278,6 +290,7 @@ class Config:
     gen_widths: tuple[int, int] = (512, 1024)
     clf_width: int = 512
     training: Training = Training()
+    train_detection: DetectionModel | str | None = None
     n_candidates: int = 3
     position_weights: tuple[float, float, float] = (0.45, 0.30, 0.25)
     probability_weights: tuple[float, float, float] = (0.60, 0.25, 0.15)
@@ -324,6 +337,12 @@ class Config:
         if self.guides_per_cell < 0 or (self.guides_per_cell > 0) != (self.guide_cell_grid > 0):
             raise ValueError("guides_per_cell and guide_cell_grid must both be > 0 (thinning per cell) "
                              f"or both 0, got {self.guides_per_cell} and {self.guide_cell_grid}")
+        if not (self.train_detection is None or self.train_detection == "sensor"
+                or isinstance(self.train_detection, DetectionModel)):
+            raise ValueError("train_detection must be None, 'sensor' or a DetectionModel, got "
+                             f"{self.train_detection!r}")
+        if isinstance(self.train_detection, DetectionModel):
+            self.train_detection.validate()
         if self.n_candidates != 3 or len(self.position_weights) != 3 or len(self.probability_weights) != 3:
             raise ValueError("the weight search uses three detections and three candidates (Table 5)")
 
@@ -436,7 +455,17 @@ class Config:
             if getattr(self, name):
                 out[name] = getattr(self, name)
         out["training"] = dataclasses.asdict(self.training)
+        if self.train_detection is not None:  # the camera is in the checkpoint's key already
+            model = (self.train_detection if isinstance(self.train_detection, str)
+                     else dataclasses.asdict(self.train_detection))
+            out["train_detection"] = {"model": model, "kept": "the paper's count"}  # data.py's rule
         return out
+
+    def training_detection(self, camera) -> DetectionModel | None:
+        """The detection model the training scenes are drawn from on ``camera`` (``None``: the paper's)."""
+        if self.train_detection == "sensor":
+            return DetectionModel.from_sensor(camera)
+        return self.train_detection
 
     def fingerprint(self) -> str:
         """Short hash of :meth:`database_fields` (recorded in checkpoints, to refuse a mismatch)."""
