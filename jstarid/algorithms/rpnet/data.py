@@ -30,10 +30,9 @@ false stars as they are — from a simulation list as deep as the model detects,
 paper's scene of the same key holds (the catalog's stars to the camera's limit, the family's knob
 applied): the model decides which stars a pattern holds — noisy magnitudes reorder them, stars
 near the threshold go missing, fainter ones and false stars take their places — but not how many.
-Why: identification patterns are read from the brightest detections a scene keeps (24 in
-``experiments/real_images.py``); a network trained on the 96 brightest of a model that detects
-2.7 mag past the catalog (``tetra3_test``) read its neighbours among far fainter stars and solved
-none of the four real frames (docs/design/rpnet.md). The clean target stays the catalog's stars
+Why: identification reads its patterns from the brightest detections a scene keeps, and a
+network trained on every detection of a model that sees far past the catalog reads its
+neighbours among fainter stars (docs/design/rpnet.md). The clean target stays the catalog's stars
 within the camera's limit.
 
 The clean input (the DAE target) is built once per catalog from catalog vectors: the stars within ρ
