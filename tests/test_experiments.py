@@ -5,6 +5,7 @@ import ast
 import dataclasses
 import importlib.util
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -245,3 +246,12 @@ def test_camera_range_measures_a_build_in_its_own_process(tmp_path):
     assert "| built |" in (tmp_path / "table.md").read_text()
     assert not (tmp_path / "cache").exists()  # the build cache is the run's own, and goes
     assert mod.cameras(mod.parse_args(["--only", "40deg_4096"]))[0][1].width == 4096
+
+
+def test_design_notes_name_no_commits():
+    """docs/design records why, not when: figures with their commits live in experiments/RESULTS.md
+    (a hex word of 7+ characters with a digit and a letter reads as a commit)."""
+    commit = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+    design = Path(__file__).resolve().parents[1] / "docs" / "design"
+    found = {p.name: commit.findall(p.read_text()) for p in sorted(design.glob("*.md"))}
+    assert found and not any(found.values()), {k: v for k, v in found.items() if v}
