@@ -36,7 +36,11 @@ from the better half, and a σ̂ taken from them alone can settle at a fraction 
 back; a scene keeps its claim only with ``min_named`` names left, a fitted focal length within
 ``max_scale_error`` of the nominal one (``--fov-max-error`` in tetra3's terms), and a field that
 looks like the fitted sky (:func:`field_seen`, for fits of at most ten names: most of the brightest
-stars it puts in the frame were detected). A failure is always better than a wrong name.
+stars it puts in the frame were detected). In a fit of at most :data:`FEW_NAMES` names, a name
+whose star has a second detection within the radius is taken back too (:func:`_rivalled`): a
+false detection a few pixels from a star whose own detection the algorithm never saw (it voted
+with its brightest detections) bends a few names' fit towards itself, to within the radius,
+while the star's own detection stays there. A failure is always better than a wrong name.
 
 **Brightness** (:func:`check_claims` with the catalog magnitudes). Before the fit, a name whose
 detection is far brighter than its star — beyond the scene's zero point by :data:`BRIGHTER_MAG`,
@@ -591,6 +595,12 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
         sigma[rows], tol[rows], k1[rows] = fit.sigma_px[rows], fit.tol_px[rows], fit.k1[rows]
         residual[rows[:, None], order[rows]] = fit.residual_px[rows]
         inlier[rows[:, None], order[rows]] = fit.inlier[rows]
+    # a few names' fit bends towards a wrong one (a false detection beside its star, whose own
+    # detection the algorithm never saw): a name whose star has a second detection within the
+    # radius is one the fit cannot decide between, and is taken back
+    few = np.flatnonzero(ok & (inlier.sum(axis=1) <= FEW_NAMES))
+    inlier[few] &= ~_rivalled(camera, xy[few], valid[few], ref[few], inlier[few], attitude[few],
+                              scale[few], k1[few], tol[few])
     solved = (ok & (inlier.sum(axis=1) >= min_named) & (np.abs(scale - 1.0) <= max_scale_error))
     # the field check only where a handful of names could fit a wrong sky (field_seen)
     rows = np.flatnonzero(solved & (inlier.sum(axis=1) <= FIELD_MAX_NAMES))
@@ -618,6 +628,42 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
                     inlier=jnp.asarray(inlier & solved[:, None]), sigma_px=jnp.asarray(sigma),
                     tol_px=jnp.asarray(tol), k1=jnp.asarray(k1))
     return jnp.asarray(kept), jnp.asarray(solved), fit
+
+
+def _rivalled(camera, xy, valid, ref, inlier, attitude, scale, k1, tol, *, chunk: int = 256):
+    """(B, N) bool: the inlier names whose star, under the fit, has another valid detection within
+    the fit's radius (host side, NumPy, ``chunk`` scenes at a time; scenes of at most
+    :data:`FEW_NAMES` names).
+
+    Distances are measured as the fit's residuals are: the angle between the detection's ray
+    (:func:`unproject_scaled` with the fitted scale and k1) and the star, times the fitted focal
+    length.
+    """
+    out = np.zeros(inlier.shape, bool)
+    width = min(FEW_NAMES, inlier.shape[1])
+    for lo in range(0, inlier.shape[0], chunk):
+        at = slice(lo, lo + chunk)
+        slots = np.argsort(~inlier[at], axis=1, kind="stable")[:, :width]  # the names first
+        names = np.take_along_axis(inlier[at], slots, axis=1)
+        if not names.any():
+            continue
+        f = camera.f_px * scale[at].astype(np.float64)[:, None]
+        u = (xy[at, :, 0].astype(np.float64) - camera.cx) / f
+        v = (xy[at, :, 1].astype(np.float64) - camera.cy) / f
+        u_d, v_d, k = u, v, k1[at].astype(np.float64)[:, None]
+        for _ in range(UNDISTORT_ITERATIONS):
+            d = 1.0 + k * (u**2 + v**2)
+            u, v = u_d / d, v_d / d
+        ray = np.stack([u, v, np.ones_like(u)], axis=-1)
+        ray /= np.linalg.norm(ray, axis=-1, keepdims=True)  # (b, N, 3) the detections
+        stars = np.take_along_axis(ref[at].astype(np.float64), slots[..., None], axis=1)
+        stars = np.einsum("bij,bnj->bni", attitude[at].astype(np.float64), stars)  # (b, names, 3)
+        chord = np.linalg.norm(stars[:, :, None, :] - ray[:, None, :, :], axis=-1)  # (b, names, N)
+        dist = 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)) * f[..., None]
+        others = valid[at][:, None, :] & (np.arange(xy.shape[1])[None, None, :] != slots[..., None])
+        rival = names & (others & (dist <= tol[at, None, None])).any(axis=2)
+        np.put_along_axis(out[at], slots, rival, axis=1)
+    return out
 
 
 @functools.partial(stored_jit, static_argnames=("fit_scale", "few", "fit_distortion", "studentized"))

@@ -397,7 +397,8 @@ def _plan(catalog, camera, noise: NoiseConfig, *, batch_size: int, capacity: int
         seen = detection.faintest_detectable(max_msig, odds=1e-3)
         if seen > sim_limit + 1e-6:
             # past V 30 the model's noise alone clears its threshold (a fit to few electrons)
-            where = f"at V {seen:.1f}" if seen < 30.0 else "at any depth (its noise alone clears the threshold)"
+            where = (f"at V {seen:.1f}" if seen < 30.0
+                     else "at any depth (its noise alone clears the threshold)")
             warnings.warn(f"the detection model still detects 0.1 % of the stars {where}, "
                           f"deeper than the catalog's simulation list (V ≤ {sim_limit}): the fainter "
                           f"stars are missing from the scenes (load_catalog(sim_margin=…) reaches "

@@ -24,8 +24,9 @@ of the frame and the neighbours that position puts outside the frame are dropped
 input, as for a guide anywhere in a real frame; the clean target keeps the whole circle.
 
 Extension (``Config.train_detection``, off by default): every family's scenes are drawn from a
-detection model (:class:`jstarid.DetectionModel`: the camera's sensor's, or a fitted one) with the family's knob on top — position and magnitude σ as the model's floors, the missing and
-false stars as they are — from a simulation list as deep as the model detects, without blends
+detection model (:class:`jstarid.DetectionModel`: the camera's sensor's, or a fitted one) with
+the family's knob on top — position and magnitude σ as the model's floors, the missing and false
+stars as they are — from a simulation list as deep as the model detects, without blends
 (their cost, in :func:`_batch_drawer`). Each scene keeps its brightest detections, as many as the
 paper's scene of the same key holds (the catalog's stars to the camera's limit, the family's knob
 applied): the model decides which stars a pattern holds — noisy magnitudes reorder them, stars
