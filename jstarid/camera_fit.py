@@ -37,7 +37,7 @@ back; a scene keeps its claim only with ``min_named`` names left, a fitted focal
 ``max_scale_error`` of the nominal one (``--fov-max-error`` in tetra3's terms), and a field that
 looks like the fitted sky (:func:`field_seen`, for fits of at most ten names: most of the brightest
 stars it puts in the frame were detected). In a fit of at most :data:`FEW_NAMES` names, a name
-whose star has a second detection within the radius is taken back too (:func:`_rivalled`): a
+whose star has a second detection within the radius is taken back too (:func:`_rival_kernel`): a
 false detection a few pixels from a star whose own detection the algorithm never saw (it voted
 with its brightest detections) bends a few names' fit towards itself, to within the radius,
 while the star's own detection stays there. A failure is always better than a wrong name.
@@ -595,17 +595,29 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
         sigma[rows], tol[rows], k1[rows] = fit.sigma_px[rows], fit.tol_px[rows], fit.k1[rows]
         residual[rows[:, None], order[rows]] = fit.residual_px[rows]
         inlier[rows[:, None], order[rows]] = fit.inlier[rows]
+    filled = np.where(valid.any(axis=1), n - np.argmax(valid[:, ::-1], axis=1), 0)  # columns in use
     # a few names' fit bends towards a wrong one (a false detection beside its star, whose own
     # detection the algorithm never saw): a name whose star has a second detection within the
     # radius is one the fit cannot decide between, and is taken back
-    few = np.flatnonzero(ok & (inlier.sum(axis=1) <= FEW_NAMES))
-    inlier[few] &= ~_rivalled(camera, xy[few], valid[few], ref[few], inlier[few], attitude[few],
-                              scale[few], k1[few], tol[few])
+    rows = np.flatnonzero(ok & (count <= FEW_NAMES))
+    if rows.size:
+        width_few = min(FEW_NAMES, n)
+        own = order[:, :width_few].astype(np.int32)  # the names' columns (names packed first)
+        names = (packed[2][:, :width_few], np.take_along_axis(inlier, own, axis=1), own, xy, valid,
+                 attitude, scale, k1, tol)
+
+        def rival_args(call):  # the detections cut to the columns they fill
+            ref_c, named_c, own_c, xy_c, valid_c, *rest = take_rows(names, call)
+            cut = width(call, filled)
+            return (ref_c, named_c, own_c, xy_c[:, :cut], valid_c[:, :cut], *rest)
+
+        rival, = run_calls(_rival_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size), rival_args,
+                           (optics,), n_rows=b, tails=[(width_few,)], fills=[False], mesh=one)
+        inlier[rows[:, None], own[rows]] &= ~rival[rows]
     solved = (ok & (inlier.sum(axis=1) >= min_named) & (np.abs(scale - 1.0) <= max_scale_error))
     # the field check only where a handful of names could fit a wrong sky (field_seen)
     rows = np.flatnonzero(solved & (inlier.sum(axis=1) <= FIELD_MAX_NAMES))
     fitted = (xy, valid, np.where(inlier, ids, -1), attitude, scale, tol)
-    filled = np.where(valid.any(axis=1), n - np.argmax(valid[:, ::-1], axis=1), 0)  # columns in use
 
     def field_args(call):  # each call cut to the columns its detections fill, as the fits' are
         cut = width(call, filled)
@@ -628,42 +640,6 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
                     inlier=jnp.asarray(inlier & solved[:, None]), sigma_px=jnp.asarray(sigma),
                     tol_px=jnp.asarray(tol), k1=jnp.asarray(k1))
     return jnp.asarray(kept), jnp.asarray(solved), fit
-
-
-def _rivalled(camera, xy, valid, ref, inlier, attitude, scale, k1, tol, *, chunk: int = 256):
-    """(B, N) bool: the inlier names whose star, under the fit, has another valid detection within
-    the fit's radius (host side, NumPy, ``chunk`` scenes at a time; scenes of at most
-    :data:`FEW_NAMES` names).
-
-    Distances are measured as the fit's residuals are: the angle between the detection's ray
-    (:func:`unproject_scaled` with the fitted scale and k1) and the star, times the fitted focal
-    length.
-    """
-    out = np.zeros(inlier.shape, bool)
-    width = min(FEW_NAMES, inlier.shape[1])
-    for lo in range(0, inlier.shape[0], chunk):
-        at = slice(lo, lo + chunk)
-        slots = np.argsort(~inlier[at], axis=1, kind="stable")[:, :width]  # the names first
-        names = np.take_along_axis(inlier[at], slots, axis=1)
-        if not names.any():
-            continue
-        f = camera.f_px * scale[at].astype(np.float64)[:, None]
-        u = (xy[at, :, 0].astype(np.float64) - camera.cx) / f
-        v = (xy[at, :, 1].astype(np.float64) - camera.cy) / f
-        u_d, v_d, k = u, v, k1[at].astype(np.float64)[:, None]
-        for _ in range(UNDISTORT_ITERATIONS):
-            d = 1.0 + k * (u**2 + v**2)
-            u, v = u_d / d, v_d / d
-        ray = np.stack([u, v, np.ones_like(u)], axis=-1)
-        ray /= np.linalg.norm(ray, axis=-1, keepdims=True)  # (b, N, 3) the detections
-        stars = np.take_along_axis(ref[at].astype(np.float64), slots[..., None], axis=1)
-        stars = np.einsum("bij,bnj->bni", attitude[at].astype(np.float64), stars)  # (b, names, 3)
-        chord = np.linalg.norm(stars[:, :, None, :] - ray[:, None, :, :], axis=-1)  # (b, names, N)
-        dist = 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)) * f[..., None]
-        others = valid[at][:, None, :] & (np.arange(xy.shape[1])[None, None, :] != slots[..., None])
-        rival = names & (others & (dist <= tol[at, None, None])).any(axis=2)
-        np.put_along_axis(out[at], slots, rival, axis=1)
-    return out
 
 
 @functools.partial(stored_jit, static_argnames=("fit_scale", "few", "fit_distortion", "studentized"))
@@ -694,6 +670,21 @@ def _field_kernel(xy, valid, ids, attitude, scale, tol, star_vectors, optics, sp
         return field_seen(star_vectors, camera, xy_i, valid_i, ids_i, fit, span, n_scales=n_scales)
 
     return jax.lax.map(one, (xy, valid, ids, attitude, scale, tol), batch_size=min(FIELD_GROUP, xy.shape[0]))
+
+
+@stored_jit
+def _rival_kernel(ref, named, own, xy, valid, attitude, scale, k1, tol, optics):
+    """(B, K) bool: the names (``ref`` (B, K, 3) their stars, ``named`` (B, K), ``own`` (B, K) int32
+    their detections' columns) whose star, under the fit, has another valid detection of ``xy``
+    (B, N, 2) within the radius ``tol`` (B,) px. Distances as the fit's residuals: the angle between
+    the detection's ray (:func:`unproject_scaled`, fitted scale and k1) and the star, times the
+    fitted focal length."""
+    camera = Camera.traced(optics)
+    rays = unproject_scaled(camera, xy, scale[:, None], k1[:, None])  # (B, N, 3)
+    stars = precise.einsum("bij,bkj->bki", attitude, ref)  # (B, K, 3) camera frame
+    dist = angle_between(stars[:, :, None, :], rays[:, None, :, :]) * (camera.f_px * scale)[:, None, None]
+    others = valid[:, None, :] & (jnp.arange(xy.shape[1])[None, None, :] != own[..., None])
+    return named & jnp.any(others & (dist <= tol[:, None, None]), axis=2)
 
 
 def field_seen(star_vectors, camera, xy, valid, ids, fit: CameraFit, span=0.0, *,

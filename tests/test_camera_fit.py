@@ -566,17 +566,19 @@ def test_a_false_detection_beside_a_named_star_loses_the_name(world):
     kept_right, ok_right, _ = cf.verify_names(cat.unit_vectors, nominal, jnp.asarray(xy, jnp.float32), clean,
                                               names_right, np.ones(len(rows), bool))
     assert np.asarray(ok_right).all() and (np.asarray(kept_right) == names_right).all()
-    # the rule's distances against a plain projection through the fitted camera
-    ids = np.where(np.asarray(fit.inlier), names, -1)
-    for b in rows[:4]:
+    # the kernel against a plain projection through the fitted camera, on the names given (the
+    # false one among them: rivalled by the star's own detection)
+    own = np.argsort(names < 0, axis=1, kind="stable")[:, :6].astype(np.int32)  # the six names' columns
+    got = np.asarray(cf._rival_kernel(
+        jnp.asarray(cat.unit_vectors[np.take_along_axis(names, own, axis=1)], jnp.float32),
+        jnp.ones(own.shape, bool), jnp.asarray(own), jnp.asarray(xy, jnp.float32), jnp.asarray(valid),
+        fit.attitude, fit.scale, fit.k1, fit.tol_px, nominal.pinhole_numbers()))
+    for b in rows:
         cam = dataclasses.replace(nominal, f_px=nominal.f_px * float(fit.scale[b]))
-        v = cat.unit_vectors[np.maximum(ids[b], 0)] @ np.asarray(fit.attitude[b], np.float64).T
-        p = np.asarray(cam.project(jnp.asarray(v, jnp.float32))[0])
-        d = np.linalg.norm(xy[b][None, :, :] - p[:, None, :], axis=-1)
-        others = valid[b][None, :] & ~np.eye(len(ids[b]), dtype=bool)
-        want = (ids[b] >= 0) & (others & (d <= float(fit.tol_px[b]))).any(axis=1)
-        one = slice(b, b + 1)
-        got = cf._rivalled(nominal, xy[one], valid[one], cat.unit_vectors[np.maximum(ids[one], 0)],
-                           ids[one] >= 0, *(np.asarray(a[one]) for a in (fit.attitude, fit.scale, fit.k1,
-                                                                           fit.tol_px)))[0]
-        np.testing.assert_array_equal(got, want)
+        v = cat.unit_vectors[names[b, own[b]]] @ np.asarray(fit.attitude[b], np.float64).T
+        p = np.asarray(cam.project(jnp.asarray(v, jnp.float32))[0])  # (6, 2)
+        d = np.linalg.norm(xy[b][None, :, :] - p[:, None, :], axis=-1)  # (6, N)
+        others = valid[b][None, :] & (np.arange(xy.shape[1])[None, :] != own[b][:, None])
+        want = (others & (d <= float(fit.tol_px[b]))).any(axis=1)
+        np.testing.assert_array_equal(got[b], want)
+    assert got[rows, np.argmax(own == spare, axis=1)].all()  # the false name: always rivalled
