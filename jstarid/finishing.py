@@ -22,29 +22,42 @@ and configured by one nested config, :class:`Finishing` (``Config.finishing`` of
    the attitude and the focal length (:func:`jstarid.camera_fit.check_identification`); names the
    fit cannot explain are taken back, a scene whose fit fails is unclaimed, and the fitted
    ``focal_scale`` (and ``distortion_k1``) is reported.
+3. **Few names confirmed by the frame** (``confirm_names``, ``confirm_false_match``): a claim of at
+   most ``confirm_names`` names stands only where the whole frame, named from its attitude, makes a
+   coincidence unlikely (:func:`confirmed_by_the_frame`). Three or four points fit some catalog
+   pattern within the tolerances wherever the catalog is dense enough; a right attitude predicts the
+   frame's other stars, a wrong one confirms only what chance puts near a catalog star.
 
 An algorithm calls :func:`finish` with a ``rerun`` function (its own identification on moved
 centroids) and its catalog's rows; its own steps after the stage (SGM names the scenes the ladder
-solved again under the fitted focal length) read :attr:`Finished.laddered`.
+solved again under the fitted focal length) read :attr:`Finished.laddered`; one whose own steps after
+the stage change the names (SGM) passes ``confirm=False`` and calls :func:`confirmed_by_the_frame`
+after them.
 ``Finishing.off()`` is the papers' algorithms: none of the steps.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import warnings
 from collections.abc import Callable, Mapping
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
+from jstarid.attitude import estimate_attitude
 from jstarid.camera_fit import MAX_TOL_PX, check_identification, search_focal
+from jstarid.completion import name_from_attitude
+from jstarid.false_match import false_match_probability
 from jstarid.hypotheses import SearchOutcome, solve_unsolved
+from jstarid.runtime import padded_indices
 from jstarid.scene import Identification, Scene
 from jstarid.triangle_index import TooManyTriangles
 
-__all__ = ["Finished", "Finishing", "finish"]
+__all__ = ["Finished", "Finishing", "StarTable", "confirmed_by_the_frame", "failed", "finish"]
 
 LADDER_STEP = 0.01  # the ladder's step: MLV's features tolerate about 1 % of focal length
 
@@ -70,6 +83,14 @@ class Finishing:
             Stricter than a single pattern's 1e-3: the search picks the best of thousands of
             hypotheses, and a probe found one wrong six-name claim at P = 1.5e-4
             (docs/design/hypotheses.md).
+        confirm_names: a claim of at most this many names stands only where the frame confirms it
+            (step 3); 0 turns the step off.
+        confirm_false_match: the largest false-match probability
+            (:func:`jstarid.false_match.false_match_probability`) of the frame's names, named from
+            the claim's attitude, at which such a claim stands. A right three-name claim in a frame
+            of three or four stars comes out at 2–7e-3 on a 10° camera, every wrong one measured at 1
+            (docs/design/false_match.md); SGM, whose circle of few names meets random points more
+            often, keeps 1e-3.
     """
 
     focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
@@ -79,6 +100,8 @@ class Finishing:
     hypotheses: int = 48
     hypothesis_eps_px: float = 3.0
     hypothesis_false_match: float = 1e-5
+    confirm_names: int = 4
+    confirm_false_match: float = 1e-2
 
     def __post_init__(self):
         object.__setattr__(self, "focal_search", tuple(float(f) for f in self.focal_search))
@@ -92,6 +115,10 @@ class Finishing:
             raise ValueError(f"hypothesis_eps_px must be in (0, 10] px, got {self.hypothesis_eps_px}")
         if not 0 < self.hypothesis_false_match <= 0.1:
             raise ValueError(f"hypothesis_false_match must be in (0, 0.1], got {self.hypothesis_false_match}")
+        if not (isinstance(self.confirm_names, int) and self.confirm_names >= 0):
+            raise ValueError(f"confirm_names must be an integer ≥ 0, got {self.confirm_names}")
+        if not 0 < self.confirm_false_match <= 1:
+            raise ValueError(f"confirm_false_match must be in (0, 1], got {self.confirm_false_match}")
 
     @classmethod
     def coerce(cls, value: Finishing | Mapping) -> Finishing:
@@ -129,8 +156,9 @@ class Finishing:
 
     @classmethod
     def off(cls, **overrides) -> Finishing:
-        """No hypothesis search, ladder or check: the papers' algorithms."""
-        return cls(**{"focal_search": (), "fit_focal": False, "hypotheses": 0, **overrides})
+        """No hypothesis search, ladder, check or confirmation: the papers' algorithms."""
+        return cls(**{"focal_search": (), "fit_focal": False, "hypotheses": 0, "confirm_names": 0,
+                      **overrides})
 
 
 class Finished(NamedTuple):
@@ -154,7 +182,7 @@ class Finished(NamedTuple):
 
 def finish(result: Identification, scenes: Scene, config: Finishing, *,
            rerun: Callable[[Scene, np.ndarray], Identification], camera, star_vectors, star_mags=None,
-           max_tol_px: float = MAX_TOL_PX) -> Finished:
+           max_tol_px: float = MAX_TOL_PX, confirm: bool = True) -> Finished:
     """Run the finishing stage on an algorithm's first answer.
 
     Args:
@@ -169,7 +197,9 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         star_mags: (M,) their V magnitudes (mag); given, the check first takes back names far
             brighter than their star.
         max_tol_px: the check's largest radius (px); an algorithm whose own verification accepts
-            larger residuals passes its cap (SGM).
+            larger residuals passes its cap (SGM); also step 3's naming radius.
+        confirm: run step 3 here (False: the caller runs :func:`confirmed_by_the_frame` itself,
+            after steps of its own).
 
     Returns:
         :class:`Finished`.
@@ -190,6 +220,9 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         result = check_identification(star_vectors, camera, scenes, result,
                                       max_scale_error=config.max_focal_error, max_tol_px=max_tol_px,
                                       star_mags=star_mags, studentized=config.studentized)
+    if b and config.confirm_names and confirm:
+        result = confirmed_by_the_frame(result, scenes, config, stars=StarTable.of(star_vectors, star_mags),
+                                        camera=camera, tol_px=max_tol_px)
     return Finished(result=result, laddered=laddered, searched=searched, search_overflow=search_overflow)
 
 
@@ -204,3 +237,76 @@ def _search(result, scenes, config: Finishing, camera, star_vectors) -> SearchOu
     except TooManyTriangles:
         nothing = np.zeros(scenes.batch_size, bool)
         return SearchOutcome(result, nothing, nothing)
+
+
+class StarTable(NamedTuple):
+    """The catalog rows an algorithm names, as :func:`jstarid.completion.name_from_attitude` reads a
+    :class:`~jstarid.catalog.Catalog`: unit vectors, magnitudes and a fingerprint (the key of its sky
+    index)."""
+
+    unit_vectors: np.ndarray
+    mag: np.ndarray
+    fingerprint: str
+
+    @classmethod
+    def of(cls, star_vectors, star_mags=None) -> StarTable:
+        """The table of (M, 3) ICRS unit vectors and (M,) V magnitudes (``None``: unknown, 0; the
+        brightness test then never takes a name back)."""
+        vectors = np.ascontiguousarray(star_vectors, np.float32)
+        mags = np.zeros(len(vectors), np.float32) if star_mags is None else np.asarray(star_mags, np.float32)
+        digest = hashlib.sha1(vectors.tobytes() + np.ascontiguousarray(mags).tobytes()).hexdigest()[:20]
+        return cls(vectors, mags, f"stars-{digest}")
+
+
+def confirmed_by_the_frame(result: Identification, scenes: Scene, config: Finishing, *, stars, camera,
+                           tol_px: float) -> Identification:
+    """Step 3: ``result`` with the claims of at most ``config.confirm_names`` names failed unless the
+    whole frame confirms their attitude.
+
+    The frame is named from the claim's attitude (:func:`jstarid.completion.name_from_attitude`,
+    within ``tol_px``) and the false-match probability of those names
+    (:func:`jstarid.false_match.false_match_probability`: could a wrong attitude confirm as many of
+    the frame's detections?) must be at most ``config.confirm_false_match``. The scene keeps its
+    own names; the frame's only decide.
+
+    Args:
+        result: (B, N) :class:`~jstarid.scene.Identification` (``attitude`` may be ``None``: the
+            names' Wahba attitude is used).
+        scenes: (B, N) :class:`~jstarid.scene.Scene` from ``camera``.
+        config: the :class:`Finishing` settings.
+        stars: the catalog rows ``result.ids`` names: a :class:`~jstarid.catalog.Catalog` or a
+            :class:`StarTable`.
+        camera: the nominal :class:`~jstarid.camera.Camera`.
+        tol_px: the naming radius (px).
+
+    Returns:
+        ``result``, the doubtful claims failed (ids −1, ``ok`` False, NaN attitude and fits).
+    """
+    if not config.confirm_names or not scenes.batch_size:
+        return result
+    n_named = np.sum(np.asarray(result.ids) >= 0, axis=1)
+    rows = np.flatnonzero(np.asarray(result.ok) & (n_named <= config.confirm_names))
+    if not rows.size:
+        return result
+    padded = padded_indices(rows)
+    given = result[padded]
+    if given.attitude is None:
+        attitude, _, have = estimate_attitude(stars, camera, scenes[padded], given)
+        given = Identification(ids=given.ids, ok=given.ok,
+                               attitude=jnp.where((have & given.ok)[:, None, None], attitude, jnp.nan))
+    framed = name_from_attitude(stars, camera, scenes[padded], given, tol_px=tol_px,
+                                max_scale_error=config.max_focal_error)
+    p = false_match_probability(scenes[padded], framed, stars.unit_vectors, camera)[:rows.size]
+    doubtful = rows[~(np.asarray(framed.ok)[:rows.size] & (p <= config.confirm_false_match))]
+    return failed(result, doubtful) if doubtful.size else result
+
+
+def failed(result: Identification, rows: np.ndarray) -> Identification:
+    """``result`` with the scenes ``rows`` failed: ids −1, ``ok`` False, NaN attitude and fits."""
+    def cleared(x, value):
+        return None if x is None else jnp.asarray(x).at[rows].set(value)
+
+    return Identification(ids=cleared(result.ids, -1), ok=cleared(result.ok, False),
+                          attitude=cleared(result.attitude, jnp.nan),
+                          focal_scale=cleared(result.focal_scale, jnp.nan),
+                          distortion_k1=cleared(result.distortion_k1, jnp.nan))

@@ -122,3 +122,41 @@ def test_wrong_attitudes_claimed_by_the_papers_mlv_are_not_called_certain(mlv_wo
     print(f"right claims {right.size}, below 1e-3: {np.mean(right < 1e-3):.2f}, wrong {wrong.sum()}")
     # an upper bound, loose among 40 false detections: still a third of the right claims are ≤ 1e-3
     assert right.size >= 50 and np.mean(right < 1e-3) >= 0.3
+
+
+def test_few_names_stand_only_where_the_frame_confirms_them(mlv_world):
+    """The finishing stage's step 3 on MLV's catalog rows: the published MLV's claim of three names on
+    256 frames of 8 random points fails; the four brightest true names of simulated scenes under their
+    true attitude all stand, ids as given; claims of more names and ``Finishing.off()`` are left
+    alone."""
+    from jstarid.camera_fit import MAX_TOL_PX
+    from jstarid.finishing import Finishing, StarTable, confirmed_by_the_frame
+
+    cat, cam, mlv, db, _ = mlv_world
+    paper = mlv.Config.paper()
+    rng = np.random.default_rng(0)
+    size = np.array([cam.width - 1, cam.height - 1])
+    points = js.scenes_from_centroids([rng.uniform(0, 1, (8, 2)) * size for _ in range(256)],
+                                      [np.sort(rng.uniform(1.0, 5.5, 8)) for _ in range(256)], capacity=64)
+    claims = mlv.identify(mlv.build_database(cat, cam, paper), points, paper)
+    ok, n_named = np.asarray(claims.ok), np.sum(np.asarray(claims.ids) >= 0, axis=1)
+    few = ok & (n_named <= 4)
+    assert few.sum() >= 1, (ok.sum(), n_named[ok])
+    stars = StarTable.of(db.catalog_vectors, db.catalog_mags)
+    confirm = dict(stars=stars, camera=cam, tol_px=MAX_TOL_PX)
+    out = confirmed_by_the_frame(claims, points, Finishing(), **confirm)
+    assert not np.any(np.asarray(out.ok)[few]) and np.all(np.asarray(out.ids)[few] == -1)
+    assert np.array_equal(np.asarray(out.ok)[~few], ok[~few])
+    off = confirmed_by_the_frame(claims, points, Finishing.off(), **confirm)
+    assert np.array_equal(np.asarray(off.ok), ok)
+
+    scenes = js.simulate(jax.random.key(5), cat, cam, js.NoiseConfig(position_sigma_px=0.5),
+                         batch_size=16, capacity=64)
+    truth, valid = np.asarray(scenes.truth), np.asarray(scenes.valid)
+    first_four = np.cumsum(valid & (truth >= 0), axis=1) <= 4
+    ids = np.where(valid & (truth >= 0) & first_four, truth, -1).astype(np.int32)
+    assert np.all(np.sum(ids >= 0, axis=1) == 4)
+    right = js.Identification(ids=jax.numpy.asarray(ids), ok=jax.numpy.ones(16, bool),
+                              attitude=scenes.attitude)
+    kept = confirmed_by_the_frame(right, scenes, Finishing(), **confirm)
+    assert np.all(np.asarray(kept.ok)) and np.array_equal(np.asarray(kept.ids), ids)

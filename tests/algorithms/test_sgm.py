@@ -989,7 +989,7 @@ def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
 
 
 def test_few_names_stay_solved_only_where_the_frame_confirms_them(setup):
-    """``Config.confirm_names``: a claim of at most four names stands only where the frame, named
+    """``Config.finishing.confirm_names``: a claim of at most four names stands only where the frame, named
     from its attitude, confirms it. Each scene holds the four brightest stars of the next scene
     (placed exactly, so four names that fit an attitude perfectly) among its own detections: named
     after the next scene's stars under its attitude the claim is wrong and fails; the scene's own

@@ -158,7 +158,12 @@ class Config:
             is studentized for SGM (``studentized=True``: 6 σ̂ becomes 10.0 σ̂ over 12 names; the
             plain radius took back right names 3–4 px out at σ = 1 px, where σ̂ of a dozen names
             came out at half σ) and capped at ``verify_cap_deg``
-            (:func:`~jstarid.algorithms.sgm.extensions.camera_check_cap_px`).
+            (:func:`~jstarid.algorithms.sgm.extensions.camera_check_cap_px`); a claim of at most
+            four names stands only where the frame confirms it at false-match probability ≤ 1e-3
+            (stricter than MLV's and RpNet's 1e-2: three or four points fit some catalog graph
+            within SGM's tolerances, and its circle is all it looks at; a 10° camera with five or
+            six stars per frame claimed 22 of 300 frames of random points without it;
+            :func:`~jstarid.algorithms.sgm.extensions.confirmed_by_the_frame`).
         focal_search_dw_max_deg: Δw_max of those searches (deg; ``None``: ``dw_max_deg``). Why:
             a scene the rescaled camera explains is found at small Δw, and the scenes left are
             mostly ones no focal length solves, which would search every level four more times
@@ -171,14 +176,6 @@ class Config:
             whole circle answers a scene the paper's criterion counts as not identified, and
             answered it lowers eq. 9's accuracy (lost stars, σ = 3 px: 152 of the ladder's 169
             answers, 71.30 → 69.09 %).
-        confirm_names: extension, 4 (0 = off, as in :meth:`paper`): a solved scene that names at
-            most this many stars stays solved only where the whole frame, named from its attitude,
-            confirms it (:func:`~jstarid.algorithms.sgm.extensions.confirmed_by_the_frame`). Why:
-            three or four points fit some catalog graph by chance (a 10° camera with five or six
-            stars per frame claimed 22 of 300 frames of random points).
-        confirm_false_match: the largest false-match probability
-            (:func:`jstarid.false_match.false_match_probability`) of the frame's names that confirms
-            such a scene.
     """
 
     # what :func:`jstarid.engine.default_config` sets for detections from real frames, which do not
@@ -228,11 +225,9 @@ class Config:
     verify_rename: bool = True
     verify_retries: int = 3
     verify_min_coverage: float = 0.4
-    finishing: Finishing = Finishing(studentized=True)
+    finishing: Finishing = Finishing(studentized=True, confirm_false_match=1e-3)
     focal_search_dw_max_deg: float | None = 1.0
     focal_search_whole_circle: bool = True
-    confirm_names: int = 4
-    confirm_false_match: float = 1e-3
 
     def __post_init__(self):
         if not 0 < self.radius_deg < 90:
@@ -263,9 +258,6 @@ class Config:
         if self.focal_search_dw_max_deg is not None and not self.focal_search_dw_max_deg >= self.dw0_deg:
             raise ValueError(f"focal_search_dw_max_deg must be ≥ dw0_deg or None, got "
                              f"{self.focal_search_dw_max_deg}")
-        if self.confirm_names < 0 or not 0 < self.confirm_false_match <= 1:
-            raise ValueError(f"need confirm_names ≥ 0 and confirm_false_match in (0, 1], got "
-                             f"{self.confirm_names}, {self.confirm_false_match}")
         if self.verify_retries < 0:
             raise ValueError(f"verify_retries must be ≥ 0, got {self.verify_retries}")
         if (self.verify_k <= 0 or not 0 < self.verify_floor_deg <= self.verify_cap_deg
@@ -301,7 +293,7 @@ class Config:
         :mod:`~jstarid.algorithms.sgm.reference` returns.
         """
         return cls(**{"verify": False, "leftover_tol_deg": None, "screen": False, "subgraph": False,
-                      "finishing": Finishing.off(), "main_stars": 1, "confirm_names": 0, **overrides})
+                      "finishing": Finishing.off(), "main_stars": 1, **overrides})
 
     @classmethod
     def for_camera(cls, camera, **overrides) -> Config:

@@ -12,8 +12,8 @@ In the order they run, each a ``Config`` field and off in ``Config.paper()``:
    ladder solved are named again under the focal length the camera check fitted.
 4. :func:`whole_circles_only` (``focal_search_whole_circle``): of those, only the scenes whose
    whole circle is named stay solved.
-5. :func:`confirmed_by_the_frame` (``confirm_names``, ``confirm_false_match``): a scene that names
-   few stars stays solved only where the rest of the frame confirms its attitude.
+5. :func:`confirmed_by_the_frame` (``finishing.confirm_names``, ``confirm_false_match``): a scene
+   that names few stars stays solved only where the rest of the frame confirms its attitude.
 
 Each step takes the pass it may run again as ``search(scenes, config, main_rank=0) ->
 Identification``: Algorithm 1 with names and verification (``identify``'s first step).
@@ -28,13 +28,12 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid import finishing
 from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import ImageGraph, searchable_graphs
-from jstarid.algorithms.sgm.naming import attitude_from_names, name_leftovers, rename_and_reverify
+from jstarid.algorithms.sgm.naming import name_leftovers, rename_and_reverify
 from jstarid.camera_fit import MAX_TOL_PX, check_identification, rescale_scenes
-from jstarid.completion import name_from_attitude
-from jstarid.false_match import false_match_probability
-from jstarid.finishing import finish
+from jstarid.finishing import failed, finish
 from jstarid.runtime import padded_indices
 from jstarid.scene import Identification, Scene
 
@@ -90,7 +89,7 @@ def finishing_stage(db, scenes: Scene, result: Identification, config: Config, s
     finished = finish(
         result, scenes, config.finishing, rerun=lambda moved, rows: search(moved, retry),
         camera=db.camera, star_vectors=jnp.asarray(db.catalog.unit_vectors, jnp.float32),
-        star_mags=db.catalog.mag, max_tol_px=camera_check_cap_px(config, db.camera))
+        star_mags=db.catalog.mag, max_tol_px=camera_check_cap_px(config, db.camera), confirm=False)
     result, laddered = finished.result, finished.laddered
     if scenes.batch_size and config.finishing.fit_focal and not with_attitude:
         result = dataclasses.replace(result, attitude=None)
@@ -231,49 +230,20 @@ def whole_circles_only(db, scenes: Scene, result: Identification, laddered: np.n
     # catalog star within tol of its direction
     nameable = name_leftovers(db, moved, given, g, dataclasses.replace(config, leftover_tol_deg=tol))
     partial = rows[np.any(nameable != np.asarray(given.ids), axis=1)[:rows.size]]
-    return _failed(result, partial) if partial.size else result
+    return failed(result, partial) if partial.size else result
 
 
 def confirmed_by_the_frame(db, scenes: Scene, result: Identification, config: Config) -> Identification:
-    """``result`` with the solved scenes that name at most ``config.confirm_names`` stars failed unless
-    the whole frame confirms their attitude: the frame is named from the attitude
-    (:func:`jstarid.completion.name_from_attitude`, within :func:`camera_check_cap_px`) and the
-    false-match probability of those names (:func:`jstarid.false_match.false_match_probability`:
-    could a wrong attitude confirm as many of the frame's detections?) must be at most
-    ``config.confirm_false_match``. The scene keeps its own names (the circle's); the frame's names
-    only decide. Off with ``confirm_names = 0`` (``Config.paper()``).
+    """The finishing stage's confirmation of few names (:func:`jstarid.finishing.confirmed_by_the_frame`,
+    ``Finishing.confirm_names``, ``confirm_false_match``), run after SGM's own steps, which change the
+    names: a claim of at most four names stands only where the whole frame, named from its attitude
+    within :func:`camera_check_cap_px`, confirms it.
 
-    Why: three or four points fit some catalog graph within SGM's tolerances wherever the catalog is
-    dense enough, and a circle that holds only three or four detections is all SGM looks at. On a
-    10° × 7.5° camera with stars to V 5.7 (five or six per frame) the defaults claimed 22 of 300
-    frames of 8 random points, and 14 of 21 claims with 10 false detections per scene were wrong
-    (docs/design/sgm.md, ``confirm_names``). A right attitude predicts the frame's other stars; a wrong
-    one confirms only what chance puts near a catalog star.
+    Why (SGM): three or four points fit some catalog graph within SGM's tolerances wherever the
+    catalog is dense enough, and a circle that holds only three or four detections is all SGM looks
+    at. On a 10° × 7.5° camera with stars to V 5.7 (five or six per frame) the defaults claimed 22 of
+    300 frames of 8 random points, and 14 of 21 claims with 10 false detections per scene were wrong
+    (docs/design/sgm.md, ``confirm_names``).
     """
-    if not config.confirm_names or not scenes.batch_size:
-        return result
-    n_named = np.sum(np.asarray(result.ids) >= 0, axis=1)
-    rows = np.flatnonzero(np.asarray(result.ok) & (n_named <= config.confirm_names))
-    if not rows.size:
-        return result
-    padded = padded_indices(rows)
-    given = result[padded]
-    if given.attitude is None:
-        given = attitude_from_names(db, scenes[padded], given)
-    framed = name_from_attitude(db.catalog, db.camera, scenes[padded], given,
-                                tol_px=camera_check_cap_px(config, db.camera),
-                                max_scale_error=config.finishing.max_focal_error)
-    p = false_match_probability(scenes[padded], framed, db.catalog.unit_vectors, db.camera)[:rows.size]
-    doubtful = rows[~(np.asarray(framed.ok)[:rows.size] & (p <= config.confirm_false_match))]
-    return _failed(result, doubtful) if doubtful.size else result
-
-
-def _failed(result: Identification, rows: np.ndarray) -> Identification:
-    """``result`` with the scenes ``rows`` failed: ids −1, ``ok`` False, NaN attitude and fits."""
-    def cleared(x, value):
-        return None if x is None else jnp.asarray(x).at[rows].set(value)
-
-    return Identification(ids=cleared(result.ids, -1), ok=cleared(result.ok, False),
-                          attitude=cleared(result.attitude, jnp.nan),
-                          focal_scale=cleared(result.focal_scale, jnp.nan),
-                          distortion_k1=cleared(result.distortion_k1, jnp.nan))
+    return finishing.confirmed_by_the_frame(result, scenes, config.finishing, stars=db.catalog,
+                                            camera=db.camera, tol_px=camera_check_cap_px(config, db.camera))
