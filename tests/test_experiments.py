@@ -18,13 +18,15 @@ from jstarid import Finishing
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 
 
-SCRIPTS = sorted(p.stem for p in EXPERIMENTS.glob("*.py"))
+# the scripts and the one-off probes (experiments/probes/), by path without ".py"
+SCRIPTS = sorted(str(p.relative_to(EXPERIMENTS).with_suffix("")) for p in EXPERIMENTS.rglob("*.py"))
 
 
 def _load(name):
-    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
+    """The script ``experiments/<name>.py`` as a module named after its file."""
+    spec = importlib.util.spec_from_file_location(Path(name).name, EXPERIMENTS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up while the class is created
+    sys.modules[Path(name).name] = module  # dataclasses look their module up while the class is created
     spec.loader.exec_module(module)
     return module
 
@@ -34,7 +36,7 @@ def test_scripts_never_import_each_other():
         for node in ast.walk(ast.parse((EXPERIMENTS / f"{name}.py").read_text())):
             if isinstance(node, ast.Import | ast.ImportFrom):
                 names = [a.name for a in node.names] + [getattr(node, "module", None) or ""]
-                assert not set(names) & set(SCRIPTS), (name, names)
+                assert not set(names) & {Path(n).name for n in SCRIPTS}, (name, names)
                 assert "importlib" not in names, name
 
 
@@ -124,7 +126,7 @@ def test_sgm_code_never_imports_the_fingerprint_s_left_out_algorithms():
 @pytest.mark.slow
 def test_diagnose_sgm_tiny(tmp_path):
     """The diagnosis sees the reproduction's scenes and accounts for every one of them."""
-    out = _load("diagnose_sgm").main(["--experiment", "lost", "--sigma", "3", "--n-stars", "6",
+    out = _load("probes/diagnose_sgm").main(["--experiment", "lost", "--sigma", "3", "--n-stars", "6",
                                       "--out", str(tmp_path)])
     assert sum(out["outcomes"].values()) == 6
     assert sum(out["failure_causes"].values()) == out["outcomes"].get("fail", 0)
@@ -133,7 +135,8 @@ def test_diagnose_sgm_tiny(tmp_path):
 
 def test_program_memory_tiny(tmp_path):
     """Calling every shape again after the release stages nothing: the executables are reused."""
-    row = _load("program_memory").main(["--sizes", "16", "--pairs", "64", "128", "--out", str(tmp_path)])
+    row = _load("probes/program_memory").main(["--sizes", "16", "--pairs", "64", "128",
+                                               "--out", str(tmp_path)])
     assert row["programs"] == 2 and row["staged_on_rerun"] == 0
     assert (tmp_path / "table.md").exists()
 

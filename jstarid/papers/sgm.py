@@ -5,7 +5,7 @@ Scenes in mode (b): each selected database star is the boresight ("main star") w
 the ``sgm2022`` camera (1024², 20°×20°, V ≤ 6). Experiments: position noise σ = 0 … 3 px (step
 0.5); the same plus 1 lost star; the same plus 1 fake star (uniform over the image). The scenes of a
 level depend on (seed, experiment, σ) alone (:func:`level_key`), so any subset of levels, run in any
-order, resumed, or looked at scene by scene (``experiments/diagnose_sgm.py``), draws the same scenes.
+order, resumed, or looked at scene by scene (``experiments/probes/diagnose_sgm.py``), draws the same scenes.
 """
 
 from __future__ import annotations

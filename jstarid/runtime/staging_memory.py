@@ -2,7 +2,7 @@
 
 JAX keeps, besides each compiled executable, the Python-side artefacts of staging it: the traced
 jaxpr and the lowered StableHLO module, and the heap they leave behind stays resident until glibc
-is asked to trim it. ``python experiments/program_memory.py`` (SGM's screen kernel at 15 shapes on
+is asked to trim it. ``python experiments/probes/program_memory.py`` (SGM's screen kernel at 15 shapes on
 2 CPU devices) measures 6.5 MB resident per compiled program, of which the release below frees
 2.9 MB and dropping the executable 2.1 MB. SGM compiles over a hundred programs for a batch of
 1,000 noisy scenes (kernel × graph-size bucket × pair count); with the release in its search its

@@ -4,7 +4,7 @@
 Scenes are simulated with the focal length scaled by 0.98 … 1.05, or the principal point moved by
 20 px; every algorithm (in the contract test's small worlds) and ``name_from_attitude`` work with
 the nominal camera. No claimed scene may carry a wrong name; how many are solved is printed, not
-asserted (``experiments/probe_camera_error.py`` measures it at size, RESULTS.md).
+asserted (``experiments/probes/probe_camera_error.py`` measures it at size, RESULTS.md).
 """
 
 from __future__ import annotations

@@ -7,9 +7,9 @@ rejected match (``Config.verify_retries``), each failure's cause, and every mis-
 with its distances (px, through the true attitude) to the star it was named after and to its own
 star::
 
-    python experiments/diagnose_sgm.py --experiment lost --sigma 0 --n-stars 800
-    python experiments/diagnose_sgm.py --experiment lost --sigma 2.5 --batches 3   # full size, rows 768–1023
-    python experiments/diagnose_sgm.py --experiment lost --sigma 0 --n-stars 800 --set verify_retries=0
+    python experiments/probes/diagnose_sgm.py --experiment lost --sigma 0 --n-stars 800
+    python experiments/probes/diagnose_sgm.py --experiment lost --sigma 2.5 --batches 3  # rows 768–1023
+    python experiments/probes/diagnose_sgm.py --experiment lost --sigma 0 --n-stars 800 --set verify_retries=0
 
 Failure causes (from ``identify(..., diagnostics=True)``): ``unusable`` (too few stars, or overflow),
 ``no δ ≤ ε_δ`` (Algorithm 1 found no match), ``main star contested`` (the match passed every test but

@@ -8,8 +8,8 @@ every shape again (must not stage anything: the executables are reused), and aft
 ``jax.clear_caches()`` (executables dropped too). Per program: staging MB = what the release
 freed, executable MB = what ``clear_caches`` freed after it.
 
-    python experiments/program_memory.py
-    python experiments/program_memory.py --sizes 16 --pairs 64 128
+    python experiments/probes/program_memory.py
+    python experiments/probes/program_memory.py --sizes 16 --pairs 64 128
 """
 
 from __future__ import annotations

@@ -11,8 +11,8 @@ distortion ``k1``.
 
 Usage::
 
-    python experiments/probe_camera_error.py --quick          # 100 scenes per setting
-    python experiments/probe_camera_error.py --scenes 1000
+    python experiments/probes/probe_camera_error.py --quick          # 100 scenes per setting
+    python experiments/probes/probe_camera_error.py --scenes 1000
 
 Writes results/probe_camera_error/{config.json, results.json, table.md}.
 """
