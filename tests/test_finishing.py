@@ -125,8 +125,25 @@ def test_every_seed_config_holds_one_finishing_config(module):
     assert module.Config().finishing.fit_focal and module.Config().finishing.focal_search
     assert module.Config.paper().finishing == Finishing.off()
     assert module.Config(finishing={"fit_focal": False}).finishing == Finishing(fit_focal=False)
-    flat = {"fit_focal", "focal_search", "max_focal_error", "fit_focal_studentized"}
+    flat = {"fit_focal", "focal_search", "max_focal_error", "fit_focal_studentized", "confirm_names",
+            "confirm_false_match"}
     assert not flat & {f.name for f in dataclasses.fields(module.Config)}  # no copies of the stage's fields
+
+
+@pytest.mark.parametrize("field, value", [("confirm_names", -1), ("confirm_names", 2.5),
+                                          ("confirm_false_match", 0.0), ("confirm_false_match", 1.5)])
+def test_finishing_rejects_a_bad_confirmation(field, value):
+    with pytest.raises(ValueError, match=field):
+        Finishing(**{field: value})
+
+
+def test_few_names_are_confirmed_at_1e_2_and_at_1e_3_for_sgm():
+    """Every seed algorithm confirms claims of at most four names (SGM the strictest); the papers
+    do not."""
+    assert mlv.Config().finishing.confirm_names == rpnet.Config().finishing.confirm_names == 4
+    assert sgm.Config().finishing.confirm_names == 4 and Finishing.off().confirm_names == 0
+    assert mlv.Config().finishing.confirm_false_match == rpnet.Config().finishing.confirm_false_match == 1e-2
+    assert sgm.Config().finishing.confirm_false_match == 1e-3
 
 
 def test_sgm_studentizes_its_check_mlv_and_rpnet_do_not():
@@ -136,7 +153,8 @@ def test_sgm_studentizes_its_check_mlv_and_rpnet_do_not():
 
 def test_overrides_reach_the_nested_config():
     config = with_overrides(sgm.Config(), ["finishing.focal_search=[]", "finishing.fit_focal=false"])
-    assert config.finishing == Finishing(focal_search=(), fit_focal=False, studentized=True)
+    assert config.finishing == Finishing(focal_search=(), fit_focal=False, studentized=True,
+                                         confirm_false_match=1e-3)
     with pytest.raises(ValueError, match="no field 'fit_focus'"):
         with_overrides(sgm.Config(), ["finishing.fit_focus=false"])
     with pytest.raises(ValueError, match="not a nested config"):
