@@ -87,10 +87,10 @@ class Finishing:
             (step 3); 0 turns the step off.
         confirm_false_match: the largest false-match probability
             (:func:`jstarid.false_match.false_match_probability`) of the frame's names, named from
-            the claim's attitude, at which such a claim stands. A right three-name claim in a frame
-            of three or four stars comes out at 2–7e-3 on a 10° camera, every wrong one measured at 1
-            (docs/design/false_match.md); SGM, whose circle of few names meets random points more
-            often, keeps 1e-3.
+            the claim's attitude, at which such a claim stands: loose enough for a right claim in a
+            frame of only three or four stars, where P cannot get small, strict enough for a
+            coincidence, which the frame leaves near 1 (docs/design/false_match.md). SGM, whose
+            circle of few names meets random points more often, keeps 1e-3.
     """
 
     focal_search: tuple[float, ...] = (0.99, 1.01, 0.98, 1.02)
@@ -195,7 +195,7 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         camera: the nominal :class:`~jstarid.camera.Camera`.
         star_vectors: (M, 3) ICRS unit vectors of the catalog rows the ids name.
         star_mags: (M,) their V magnitudes (mag); given, the check first takes back names far
-            brighter than their star.
+            brighter than their star. Step 3 needs them (new names must agree in brightness).
         max_tol_px: the check's largest radius (px); an algorithm whose own verification accepts
             larger residuals passes its cap (SGM); also step 3's naming radius.
         confirm: run step 3 here (False: the caller runs :func:`confirmed_by_the_frame` itself,
@@ -205,6 +205,8 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         :class:`Finished`.
     """
     b = scenes.batch_size
+    if config.confirm_names and confirm and star_mags is None:
+        raise ValueError("the confirmation of few names (Finishing.confirm_names) needs star_mags")
     laddered, searched, search_overflow = (np.zeros(b, bool) for _ in range(3))
     if b and config.hypotheses:
         result, searched, search_overflow = _search(result, scenes, config, camera, star_vectors)
@@ -249,11 +251,10 @@ class StarTable(NamedTuple):
     fingerprint: str
 
     @classmethod
-    def of(cls, star_vectors, star_mags=None) -> StarTable:
-        """The table of (M, 3) ICRS unit vectors and (M,) V magnitudes (``None``: unknown, 0; the
-        brightness test then never takes a name back)."""
+    def of(cls, star_vectors, star_mags) -> StarTable:
+        """The table of (M, 3) ICRS unit vectors and their (M,) V magnitudes (mag)."""
         vectors = np.ascontiguousarray(star_vectors, np.float32)
-        mags = np.zeros(len(vectors), np.float32) if star_mags is None else np.asarray(star_mags, np.float32)
+        mags = np.asarray(star_mags, np.float32)
         digest = hashlib.sha1(vectors.tobytes() + np.ascontiguousarray(mags).tobytes()).hexdigest()[:20]
         return cls(vectors, mags, f"stars-{digest}")
 

@@ -88,7 +88,7 @@ def test_check_alone_sets_focal_scale_and_leaves_failures(world):
     catalog, camera, scenes, truth = world
     first = _first_pass(truth)
     calls = []
-    got, laddered, *_ = finish(first, scenes, Finishing(focal_search=(), hypotheses=0),
+    got, laddered, *_ = finish(first, scenes, Finishing(focal_search=(), hypotheses=0, confirm_names=0),
                               rerun=_rerun_naming(truth, calls), camera=camera,
                               star_vectors=catalog.unit_vectors)
     assert not calls and not laddered.any()
@@ -128,6 +128,13 @@ def test_every_seed_config_holds_one_finishing_config(module):
     flat = {"fit_focal", "focal_search", "max_focal_error", "fit_focal_studentized", "confirm_names",
             "confirm_false_match"}
     assert not flat & {f.name for f in dataclasses.fields(module.Config)}  # no copies of the stage's fields
+
+
+def test_the_confirmation_needs_the_magnitudes(world):
+    catalog, camera, scenes, truth = world
+    with pytest.raises(ValueError, match="needs star_mags"):
+        finish(_first_pass(truth), scenes, Finishing(focal_search=(), hypotheses=0), rerun=None,
+               camera=camera, star_vectors=catalog.unit_vectors)
 
 
 @pytest.mark.parametrize("field, value", [("confirm_names", -1), ("confirm_names", 2.5),

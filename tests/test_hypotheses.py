@@ -70,8 +70,8 @@ def test_a_catalog_too_deep_for_the_frame_is_named_and_refused(catalog6):
     # the finishing stage then leaves the scenes as the algorithm left them
     scenes = js.simulate(jax.random.key(2), catalog6, cam, js.NoiseConfig(), batch_size=2, capacity=16)
     failed = Identification(ids=np.full((2, 16), -1, np.int32), ok=np.zeros(2, bool), attitude=None)
-    finished = finish(failed, scenes, Finishing(focal_search=(), fit_focal=False), rerun=None, camera=cam,
-                      star_vectors=catalog6.unit_vectors)
+    finished = finish(failed, scenes, Finishing(focal_search=(), fit_focal=False, confirm_names=0),
+                      rerun=None, camera=cam, star_vectors=catalog6.unit_vectors)
     assert finished.result is failed and not finished.searched.any()
 
 
