@@ -23,7 +23,6 @@ Writes results/false_match/{config.json, results.json, table.md}.
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 
 import jstarid as js
@@ -31,22 +30,6 @@ from jstarid import experiment as ex
 from jstarid.false_match import false_match_probability
 
 THRESHOLDS = (1e-9, 1e-6, 1e-3, 1e-2, 0.1)
-
-
-def _sets(cat, cam, args):
-    """(name, scenes, truth_known) for every clutter level and the random points."""
-    key = jax.random.key(args.seed)
-    for level, n_false in enumerate(args.false):
-        noise = js.NoiseConfig(position_sigma_px=0.5, n_false=n_false, false_mag_min=1.0,
-                               false_mag_max=cam.mag_limit, false_mag_slope=js.CATALOG_MAG_SLOPE)
-        yield (f"{n_false} false", js.simulate(jax.random.fold_in(key, level), cat, cam, noise,
-                                               batch_size=args.scenes, capacity=64), True)
-    rng = np.random.default_rng(args.seed)
-    size = np.array([cam.width - 1, cam.height - 1])
-    for n_points in args.points:
-        xy = [rng.uniform(0, 1, (n_points, 2)) * size for _ in range(args.scenes)]
-        mag = [np.sort(rng.uniform(1.0, cam.mag_limit, n_points)) for _ in range(args.scenes)]
-        yield f"{n_points} random points", js.scenes_from_centroids(xy, mag, capacity=64), False
 
 
 def _row(name, config_name, scenes, truth_known, result, p, wrong_arcsec):
@@ -95,7 +78,9 @@ def main(argv=None):
                 print(f"{config_name}: skipped: {problem}")
                 continue
             db = algo.build_database(cat, cam, config)
-            for name, scenes, truth_known in _sets(cat, cam, args):
+            sets = ex.clutter_and_random_sets(cat, cam, seed=args.seed, scenes=args.scenes,
+                                              false_counts=args.false, points=args.points)
+            for name, scenes, truth_known in sets:
                 result = algo.identify(db, scenes, config)
                 p = false_match_probability(scenes, result, cat.unit_vectors, cam)
                 rows.append(_row(name, config_name, scenes, truth_known, result, p,

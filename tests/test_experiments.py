@@ -258,3 +258,24 @@ def test_design_notes_name_no_commits():
     design = Path(__file__).resolve().parents[1] / "docs" / "design"
     found = {p.name: commit.findall(p.read_text()) for p in sorted(design.glob("*.md"))}
     assert found and not any(found.values()), {k: v for k, v in found.items() if v}
+
+
+def test_clutter_and_random_sets_hold_what_they_name():
+    """The false-match experiments' sets: each clutter level has that many false detections (truth −1)
+    beside the stars; random points hold no star and no truth; the same seed draws the same sets."""
+    from jstarid import experiment as ex
+
+    cat, cam = js.load_catalog(5.5), js.camera_preset("mlv2021")
+
+    def draw():
+        return list(ex.clutter_and_random_sets(cat, cam, seed=3, scenes=4, false_counts=[0, 10], points=[8]))
+
+    sets = draw()
+    assert [name for name, _, _ in sets] == ["0 false", "10 false", "8 random points"]
+    assert [known for *_, known in sets] == [True, True, False]
+    false_counts = [np.sum(np.asarray(s.valid) & (np.asarray(s.truth) < 0), axis=1) for _, s, _ in sets]
+    cut = np.asarray(sets[1][1].overflow)  # a full scene keeps its brightest 64 detections
+    assert np.all(false_counts[0] == 0) and np.all(false_counts[1] <= 10)
+    assert np.all(false_counts[1][~cut] == 10) and cut.sum() < 4
+    assert np.all(np.asarray(sets[2][1].valid).sum(axis=1) == 8) and np.all(false_counts[2] == 8)
+    assert np.array_equal(np.asarray(draw()[1][1].xy), np.asarray(sets[1][1].xy))

@@ -1,6 +1,7 @@
 """Claims of few names and what their frame says: the measurement behind ``Finishing.confirm_false_match``.
 
-For one algorithm and camera (the sets of ``experiments/false_match.py``: a few clutter levels and
+For one algorithm and camera (the sets of ``experiments/false_match.py``,
+:func:`jstarid.experiment.clutter_and_random_sets`: a few clutter levels and
 scenes of random points), the algorithm's claims of at most ``--names`` names are each given the
 false-match probability of their whole frame, named from the claim's attitude
 (:func:`jstarid.completion.name_from_attitude` within the camera check's largest radius), as the
@@ -20,7 +21,6 @@ Writes results/few_names/{config.json, results.json, table.md}.
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 
 import jstarid as js
@@ -46,22 +46,6 @@ def parse_args(argv=None):
     return parser.parse_args(argv)
 
 
-def _sets(catalog, camera, args):
-    """(name, scenes, truth_known): false_match.py's clutter levels and random points."""
-    key = jax.random.key(args.seed)
-    for level, n_false in enumerate(args.false):
-        noise = js.NoiseConfig(position_sigma_px=0.5, n_false=n_false, false_mag_min=1.0,
-                               false_mag_max=camera.mag_limit, false_mag_slope=js.CATALOG_MAG_SLOPE)
-        yield (f"{n_false} false", js.simulate(jax.random.fold_in(key, level), catalog, camera, noise,
-                                               batch_size=args.scenes, capacity=64), True)
-    rng = np.random.default_rng(args.seed)
-    size = np.array([camera.width - 1, camera.height - 1])
-    for n_points in args.points:
-        xy = [rng.uniform(0, 1, (n_points, 2)) * size for _ in range(args.scenes)]
-        mag = [np.sort(rng.uniform(1.0, camera.mag_limit, n_points)) for _ in range(args.scenes)]
-        yield f"{n_points} random points", js.scenes_from_centroids(xy, mag, capacity=64), False
-
-
 def _frame_p(catalog, camera, scenes, result, rows):
     """(R,) log10 P of each claim's frame (−inf where P underflows; 0 where the frame fails)."""
     padded = padded_indices(rows)
@@ -84,8 +68,10 @@ def main(argv=None):
     config = ex.with_overrides(js.engine.default_config(args.algorithm, camera=camera), args.set)
     database = algo.build_database(catalog, camera, config)
     rows = []
+    sets = ex.clutter_and_random_sets(catalog, camera, seed=args.seed, scenes=args.scenes,
+                                      false_counts=args.false, points=args.points)
     with ex.Stopwatch() as clock:
-        for name, scenes, truth_known in _sets(catalog, camera, args):
+        for name, scenes, truth_known in sets:
             result = algo.identify(database, scenes, config)
             ok = np.asarray(result.ok)
             if truth_known:
