@@ -2,8 +2,8 @@
 the camera check.
 
 An algorithm names stars under the nominal camera from the pattern of its brightest detections.
-Three steps after it make the answer hold on a cluttered frame and on a camera whose focal length is
-not quite the datasheet's; all three are the same for every algorithm, so they are written once here
+The steps after it make the answer hold on a cluttered frame and on a camera whose focal length is
+not quite the datasheet's; they are the same for every algorithm, so they are written once here
 and configured by one nested config, :class:`Finishing` (``Config.finishing`` of MLV, RpNet and SGM):
 
 0. **Hypothesis search** (``hypotheses``): the scenes the algorithm left unsolved are searched over
@@ -22,6 +22,10 @@ and configured by one nested config, :class:`Finishing` (``Config.finishing`` of
    the attitude and the focal length (:func:`jstarid.camera_fit.check_identification`); names the
    fit cannot explain are taken back, a scene whose fit fails is unclaimed, and the fitted
    ``focal_scale`` (and ``distortion_k1``) is reported.
+2b. **Names a neighbour explains as well** (``rival_odds``): after the check, a name stands only
+   where its star explains the detection, in position and brightness, ``rival_odds`` times better
+   than any other catalog star within the check's radius (:mod:`jstarid.rival_stars`): the
+   detection of one star of a close pair lands within the radius of the other.
 3. **Few names confirmed by the frame** (``confirm_names``, ``confirm_false_match``): a claim of at
    most ``confirm_names`` names stands only where the whole frame, named from its attitude, makes a
    coincidence unlikely (:func:`confirmed_by_the_frame`). Three or four points fit some catalog
@@ -53,11 +57,12 @@ from jstarid.camera_fit import MAX_TOL_PX, check_identification, search_focal
 from jstarid.completion import name_from_attitude
 from jstarid.false_match import false_match_probability
 from jstarid.hypotheses import SearchOutcome, solve_unsolved
+from jstarid.rival_stars import without_rivalled_names
 from jstarid.runtime import padded_indices
 from jstarid.scene import Identification, Scene
 from jstarid.triangle_index import TooManyTriangles
 
-__all__ = ["Finished", "Finishing", "StarTable", "confirmed_by_the_frame", "failed", "finish"]
+__all__ = ["Finished", "Finishing", "StarTable", "confirmed_by_the_frame", "finish"]
 
 LADDER_STEP = 0.01  # the ladder's step: MLV's features tolerate about 1 % of focal length
 
@@ -83,6 +88,9 @@ class Finishing:
             Stricter than a single pattern's 1e-3: the search picks the best of thousands of
             hypotheses, and a probe found one wrong six-name claim at P = 1.5e-4
             (docs/design/hypotheses.md).
+        rival_odds: after the check, a name stands only where its star explains the detection at
+            least this many times better than any other catalog star within the check's radius
+            (step 2b, :mod:`jstarid.rival_stars`); 0 turns the step off, else ≥ 1.
         confirm_names: a claim of at most this many names stands only where the frame confirms it
             (step 3); 0 turns the step off.
         confirm_false_match: the largest false-match probability
@@ -100,6 +108,7 @@ class Finishing:
     hypotheses: int = 48
     hypothesis_eps_px: float = 3.0
     hypothesis_false_match: float = 1e-5
+    rival_odds: float = 20.0
     confirm_names: int = 4
     confirm_false_match: float = 1e-2
 
@@ -115,6 +124,8 @@ class Finishing:
             raise ValueError(f"hypothesis_eps_px must be in (0, 10] px, got {self.hypothesis_eps_px}")
         if not 0 < self.hypothesis_false_match <= 0.1:
             raise ValueError(f"hypothesis_false_match must be in (0, 0.1], got {self.hypothesis_false_match}")
+        if not (math.isfinite(self.rival_odds) and (self.rival_odds == 0 or self.rival_odds >= 1)):
+            raise ValueError(f"rival_odds must be 0 (off) or a number ≥ 1, got {self.rival_odds}")
         if not (isinstance(self.confirm_names, int) and self.confirm_names >= 0):
             raise ValueError(f"confirm_names must be an integer ≥ 0, got {self.confirm_names}")
         if not 0 < self.confirm_false_match <= 1:
@@ -157,8 +168,8 @@ class Finishing:
     @classmethod
     def off(cls, **overrides) -> Finishing:
         """No hypothesis search, ladder, check or confirmation: the papers' algorithms."""
-        return cls(**{"focal_search": (), "fit_focal": False, "hypotheses": 0, "confirm_names": 0,
-                      **overrides})
+        return cls(**{"focal_search": (), "fit_focal": False, "hypotheses": 0, "rival_odds": 0.0,
+                      "confirm_names": 0, **overrides})
 
 
 class Finished(NamedTuple):
@@ -195,7 +206,8 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         camera: the nominal :class:`~jstarid.camera.Camera`.
         star_vectors: (M, 3) ICRS unit vectors of the catalog rows the ids name.
         star_mags: (M,) their V magnitudes (mag); given, the check first takes back names far
-            brighter than their star. Step 3 needs them (new names must agree in brightness).
+            brighter than their star, and step 2b weighs brightness. Step 3 needs them (new names
+            must agree in brightness).
         max_tol_px: the check's largest radius (px); an algorithm whose own verification accepts
             larger residuals passes its cap (SGM); also step 3's naming radius.
         confirm: run step 3 here (False: the caller runs :func:`confirmed_by_the_frame` itself,
@@ -208,6 +220,7 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
     if config.confirm_names and confirm and star_mags is None:
         raise ValueError("the confirmation of few names (Finishing.confirm_names) needs star_mags")
     laddered, searched, search_overflow = (np.zeros(b, bool) for _ in range(3))
+    stars = _table(star_vectors, star_mags)
     if b and config.hypotheses:
         result, searched, search_overflow = _search(result, scenes, config, camera, star_vectors)
         if search_overflow.any():
@@ -222,8 +235,12 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         result = check_identification(star_vectors, camera, scenes, result,
                                       max_scale_error=config.max_focal_error, max_tol_px=max_tol_px,
                                       star_mags=star_mags, studentized=config.studentized)
+        if config.rival_odds:
+            result = without_rivalled_names(result, scenes, stars=stars,
+                                            camera=camera, odds=config.rival_odds, max_tol_px=max_tol_px,
+                                            max_scale_error=config.max_focal_error)
     if b and config.confirm_names and confirm:
-        result = confirmed_by_the_frame(result, scenes, config, stars=StarTable.of(star_vectors, star_mags),
+        result = confirmed_by_the_frame(result, scenes, config, stars=stars,
                                         camera=camera, tol_px=max_tol_px)
     return Finished(result=result, laddered=laddered, searched=searched, search_overflow=search_overflow)
 
@@ -257,6 +274,14 @@ class StarTable(NamedTuple):
         mags = np.asarray(star_mags, np.float32)
         digest = hashlib.sha1(vectors.tobytes() + np.ascontiguousarray(mags).tobytes()).hexdigest()[:20]
         return cls(vectors, mags, f"stars-{digest}")
+
+
+def _table(star_vectors, star_mags) -> StarTable:
+    """The :class:`StarTable` of the finishing stage's catalog rows (NaN magnitudes where none are
+    given: brightness then does not count)."""
+    if star_mags is None:
+        star_mags = np.full(np.shape(star_vectors)[0], np.nan, np.float32)
+    return StarTable.of(star_vectors, star_mags)
 
 
 def confirmed_by_the_frame(result: Identification, scenes: Scene, config: Finishing, *, stars, camera,
@@ -299,15 +324,4 @@ def confirmed_by_the_frame(result: Identification, scenes: Scene, config: Finish
                                 max_scale_error=config.max_focal_error)
     p = false_match_probability(scenes[padded], framed, stars.unit_vectors, camera)[:rows.size]
     doubtful = rows[~(np.asarray(framed.ok)[:rows.size] & (p <= config.confirm_false_match))]
-    return failed(result, doubtful) if doubtful.size else result
-
-
-def failed(result: Identification, rows: np.ndarray) -> Identification:
-    """``result`` with the scenes ``rows`` failed: ids −1, ``ok`` False, NaN attitude and fits."""
-    def cleared(x, value):
-        return None if x is None else jnp.asarray(x).at[rows].set(value)
-
-    return Identification(ids=cleared(result.ids, -1), ok=cleared(result.ok, False),
-                          attitude=cleared(result.attitude, jnp.nan),
-                          focal_scale=cleared(result.focal_scale, jnp.nan),
-                          distortion_k1=cleared(result.distortion_k1, jnp.nan))
+    return result.failed(doubtful) if doubtful.size else result

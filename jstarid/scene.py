@@ -86,6 +86,17 @@ class Identification:
             index = slice(int(index), int(index) + 1)
         return jax.tree_util.tree_map(lambda a: a[index], self)
 
+    def failed(self, rows) -> Identification:
+        """These results with the scenes ``rows`` (int indices or a (B,) bool mask) failed: ids −1,
+        ``ok`` False, NaN attitude and fits."""
+        def cleared(x, value):
+            return None if x is None else jnp.asarray(x).at[rows].set(value)
+
+        return Identification(ids=cleared(self.ids, -1), ok=cleared(self.ok, False),
+                              attitude=cleared(self.attitude, jnp.nan),
+                              focal_scale=cleared(self.focal_scale, jnp.nan),
+                              distortion_k1=cleared(self.distortion_k1, jnp.nan))
+
 
 def undistort_scenes(scenes: Scene, camera) -> Scene:
     """Measured centroids moved to the ideal pinhole frame of ``camera`` (its lens distortion undone,

@@ -33,7 +33,7 @@ from jstarid.algorithms.sgm.config import Config
 from jstarid.algorithms.sgm.graph import ImageGraph, searchable_graphs
 from jstarid.algorithms.sgm.naming import name_leftovers, rename_and_reverify
 from jstarid.camera_fit import MAX_TOL_PX, check_identification, rescale_scenes
-from jstarid.finishing import failed, finish
+from jstarid.finishing import finish
 from jstarid.runtime import padded_indices
 from jstarid.scene import Identification, Scene
 
@@ -230,7 +230,7 @@ def whole_circles_only(db, scenes: Scene, result: Identification, laddered: np.n
     # catalog star within tol of its direction
     nameable = name_leftovers(db, moved, given, g, dataclasses.replace(config, leftover_tol_deg=tol))
     partial = rows[np.any(nameable != np.asarray(given.ids), axis=1)[:rows.size]]
-    return failed(result, partial) if partial.size else result
+    return result.failed(partial) if partial.size else result
 
 
 def confirmed_by_the_frame(db, scenes: Scene, result: Identification, config: Config) -> Identification:
