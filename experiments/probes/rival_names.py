@@ -2,7 +2,7 @@
 
 Each seed algorithm runs twice on the same scenes, with ``Finishing.rival_odds`` at its default and
 at 0 (the step off, :mod:`jstarid.rival_stars`): the demo's scenes (``sgm2022``, 0–3 px, 200 a level,
-seed 0: ``jstarid demo``'s), and each algorithm's own camera at 1 px, 0.2 mag and one
+seed 0, capacity 96: ``jstarid demo``'s), and each algorithm's own camera at 1 px, 0.2 mag and one
 false star. Per run: claimed scenes, names, wrong names and the scenes holding one, for both
 settings — the names the step takes back, and whether any was right.
 
@@ -21,6 +21,7 @@ import numpy as np
 import jstarid as js
 from jstarid import experiment as ex
 
+DEMO_CAPACITY = 96  # jstarid demo's --capacity
 OWN_CAMERAS = {"mlv": "mlv2021", "rpnet": "rpnet2019", "sgm": "sgm2022"}
 
 
@@ -42,7 +43,7 @@ def _counts(scenes, result) -> dict:
 def _sets(algorithm: str, args):
     """(name, catalog, camera, scenes) of the demo's levels and the algorithm's own camera."""
     levels = js.engine.simulate_levels("sgm2022", axes={"position_sigma_px": [0.0, 1.0, 2.0, 3.0]},
-                                       scenes=args.scenes, seed=args.seed)
+                                       scenes=args.scenes, seed=args.seed, capacity=DEMO_CAPACITY)
     for level, sigma in enumerate((0, 1, 2, 3)):
         yield (f"sgm2022, {sigma} px (demo)", levels.catalog, levels.camera,
                levels.scenes[np.flatnonzero(levels.level_of == level)])
