@@ -40,7 +40,10 @@ stars it puts in the frame were detected). In a fit of at most :data:`FEW_NAMES`
 whose star has a second detection within the radius is taken back too (:func:`_rival_kernel`): a
 false detection a few pixels from a star whose own detection the algorithm never saw (it voted
 with its brightest detections) bends a few names' fit towards itself, to within the radius,
-while the star's own detection stays there. A failure is always better than a wrong name.
+while the star's own detection stays there. A second detection the fit explains as another
+star's light (named, and nearer its own star) is no rival: SGM names every star of its circle,
+and a neighbour within the radius took right names back. A failure is always better than a
+wrong name.
 
 **Brightness** (:func:`check_claims` with the catalog magnitudes). Before the fit, a name whose
 detection is far brighter than its star — beyond the scene's zero point by :data:`BRIGHTER_MAG`,
@@ -603,13 +606,14 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     if rows.size:
         width_few = min(FEW_NAMES, n)
         own = order[:, :width_few].astype(np.int32)  # the names' columns (names packed first)
-        names = (packed[2][:, :width_few], np.take_along_axis(inlier, own, axis=1), own, xy, valid,
-                 attitude, scale, k1, tol)
+        names = (packed[2][:, :width_few], np.take_along_axis(inlier, own, axis=1), own, xy, valid, ref,
+                 inlier, attitude, scale, k1, tol)
 
         def rival_args(call):  # the detections cut to the columns they fill
-            ref_c, named_c, own_c, xy_c, valid_c, *rest = take_rows(names, call)
+            ref_c, named_c, own_c, xy_c, valid_c, their_ref, theirs, *rest = take_rows(names, call)
             cut = width(call, filled)
-            return (ref_c, named_c, own_c, xy_c[:, :cut], valid_c[:, :cut], *rest)
+            return (ref_c, named_c, own_c, xy_c[:, :cut], valid_c[:, :cut], their_ref[:, :cut],
+                    theirs[:, :cut], *rest)
 
         rival, = run_calls(_rival_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size), rival_args,
                            (optics,), n_rows=b, tails=[(width_few,)], fills=[False], mesh=one)
@@ -673,18 +677,23 @@ def _field_kernel(xy, valid, ids, attitude, scale, tol, star_vectors, optics, sp
 
 
 @stored_jit
-def _rival_kernel(ref, named, own, xy, valid, attitude, scale, k1, tol, optics):
+def _rival_kernel(ref, named, own, xy, valid, their_ref, theirs, attitude, scale, k1, tol, optics):
     """(B, K) bool: the names (``ref`` (B, K, 3) their stars, ``named`` (B, K), ``own`` (B, K) int32
     their detections' columns) whose star, under the fit, has another valid detection of ``xy``
-    (B, N, 2) within the radius ``tol`` (B,) px. Distances as the fit's residuals: the angle between
-    the detection's ray (:func:`unproject_scaled`, fitted scale and k1) and the star, times the
-    fitted focal length."""
+    (B, N, 2) within the radius ``tol`` (B,) px — unless the fit explains that detection as another
+    star's light: it is named (``theirs`` (B, N) bool, ``their_ref`` (B, N, 3) its star) and lies
+    nearer its own star than this one. Distances as the fit's residuals: the angle between the
+    detection's ray (:func:`unproject_scaled`, fitted scale and k1) and the star, times the fitted
+    focal length."""
     camera = Camera.traced(optics)
     rays = unproject_scaled(camera, xy, scale[:, None], k1[:, None])  # (B, N, 3)
     stars = precise.einsum("bij,bkj->bki", attitude, ref)  # (B, K, 3) camera frame
-    dist = angle_between(stars[:, :, None, :], rays[:, None, :, :]) * (camera.f_px * scale)[:, None, None]
-    others = valid[:, None, :] & (jnp.arange(xy.shape[1])[None, None, :] != own[..., None])
-    return named & jnp.any(others & (dist <= tol[:, None, None]), axis=2)
+    dist = angle_between(stars[:, :, None, :], rays[:, None, :, :])  # (B, K, N) rad
+    their_stars = precise.einsum("bij,bnj->bni", attitude, their_ref)  # (B, N, 3)
+    explained = theirs[:, None, :] & (angle_between(their_stars, rays)[:, None, :] < dist)  # (B, K, N)
+    others = valid[:, None, :] & (jnp.arange(xy.shape[1])[None, None, :] != own[..., None]) & ~explained
+    near = dist * (camera.f_px * scale)[:, None, None] <= tol[:, None, None]
+    return named & jnp.any(others & near, axis=2)
 
 
 def field_seen(star_vectors, camera, xy, valid, ids, fit: CameraFit, span=0.0, *,

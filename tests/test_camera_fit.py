@@ -567,18 +567,25 @@ def test_a_false_detection_beside_a_named_star_loses_the_name(world):
                                               names_right, np.ones(len(rows), bool))
     assert np.asarray(ok_right).all() and (np.asarray(kept_right) == names_right).all()
     # the kernel against a plain projection through the fitted camera, on the names given (the
-    # false one among them: rivalled by the star's own detection)
+    # false one among them: rivalled by the star's own detection, which is unnamed; a named
+    # detection nearer its own star is no rival)
     own = np.argsort(names < 0, axis=1, kind="stable")[:, :6].astype(np.int32)  # the six names' columns
+    theirs = names >= 0
+    their_ref = cat.unit_vectors[np.maximum(names, 0)]
     got = np.asarray(cf._rival_kernel(
         jnp.asarray(cat.unit_vectors[np.take_along_axis(names, own, axis=1)], jnp.float32),
         jnp.ones(own.shape, bool), jnp.asarray(own), jnp.asarray(xy, jnp.float32), jnp.asarray(valid),
+        jnp.asarray(their_ref, jnp.float32), jnp.asarray(theirs),
         fit.attitude, fit.scale, fit.k1, fit.tol_px, nominal.pinhole_numbers()))
     for b in rows:
         cam = dataclasses.replace(nominal, f_px=nominal.f_px * float(fit.scale[b]))
-        v = cat.unit_vectors[names[b, own[b]]] @ np.asarray(fit.attitude[b], np.float64).T
-        p = np.asarray(cam.project(jnp.asarray(v, jnp.float32))[0])  # (6, 2)
-        d = np.linalg.norm(xy[b][None, :, :] - p[:, None, :], axis=-1)  # (6, N)
-        others = valid[b][None, :] & (np.arange(xy.shape[1])[None, :] != own[b][:, None])
+        att = np.asarray(fit.attitude[b], np.float64)
+        p = np.asarray(cam.project(jnp.asarray(cat.unit_vectors[names[b, own[b]]] @ att.T, jnp.float32))[0])
+        d = np.linalg.norm(xy[b][None, :, :] - p[:, None, :], axis=-1)  # (6, N) px
+        q = np.asarray(cam.project(jnp.asarray(their_ref[b] @ att.T, jnp.float32))[0])  # (N, 2)
+        d_theirs = np.linalg.norm(xy[b] - q, axis=-1)  # (N,) px from its own star
+        explained = theirs[b][None, :] & (d_theirs[None, :] < d)
+        others = valid[b][None, :] & (np.arange(xy.shape[1])[None, :] != own[b][:, None]) & ~explained
         want = (others & (d <= float(fit.tol_px[b]))).any(axis=1)
         np.testing.assert_array_equal(got[b], want)
     assert got[rows, np.argmax(own == spare, axis=1)].all()  # the false name: always rivalled

@@ -279,3 +279,21 @@ def test_clutter_and_random_sets_hold_what_they_name():
     assert np.all(false_counts[1][~cut] == 10) and cut.sum() < 4
     assert np.all(np.asarray(sets[2][1].valid).sum(axis=1) == 8) and np.all(false_counts[2] == 8)
     assert np.array_equal(np.asarray(draw()[1][1].xy), np.asarray(sets[1][1].xy))
+
+
+def test_own_sky_judges_only_the_plate_solutions_tight_matches():
+    """A matched star the plate solver itself fits worse than ``match_px`` is ``loose``, not judged;
+    the others are right, a blend, wrong or unnamed by the nearest named detection within ``match_px``."""
+    judge = _load("own_sky").judge
+    star = js.solution.Star
+    solution = dataclasses.make_dataclass("Sol", ["stars"])(
+        [star(hip=1, x=10.0, y=10.0, v=5.0, detection=0), star(hip=2, x=50.0, y=50.0, v=5.0, detection=1,
+                                                             blend=(2, 3)),
+         star(hip=4, x=90.0, y=90.0, v=5.0, detection=2)])
+    truth = [(10.5, 10.0, 1, 0.4, 0.0, 0.0),  # right
+             (50.0, 51.0, 3, 0.4, 0.0, 0.0),  # in the blend
+             (90.0, 91.0, 5, 0.4, 0.0, 0.0),  # wrong
+             (200.0, 200.0, 6, 0.4, 0.0, 0.0),  # unnamed
+             (10.0, 10.5, 1, 4.6, 0.0, 0.0),  # the plate solution's own residual 4.6 px: loose
+             (0.0, 0.0, -1, 0.1, 0.0, 0.0)]  # no Hipparcos number: skipped
+    assert judge(solution, truth, 3.0) == {"right": 1, "blend": 1, "wrong": 1, "unnamed": 1, "loose": 1}
