@@ -36,7 +36,7 @@ from jstarid.camera import Camera
 from jstarid.camera_fit import check_claims, unproject_scaled, verify_names
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
-from jstarid.robust import magnitude_offsets
+from jstarid.robust import magnitude_offsets, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.padding import next_power_of_two
@@ -104,7 +104,9 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     New names then use the fitted camera, a radius that follows the fit's centroid noise
     (``k_sigma`` σ̂, at most ``tol_px``), and must agree in brightness: a detection's magnitude
     minus its star's may differ from the median of the named stars' by at most ``mag_tol`` (or 3
-    robust σ of that difference where the magnitudes scatter more), checked from 4 names on.
+    robust σ of that difference where the magnitudes scatter more; on the faint side also by as
+    much as the star is brighter than the names' median V: saturation), checked from 4 names on
+    (:func:`magnitude_agrees`).
 
     Args:
         catalog: :class:`~jstarid.catalog.Catalog` whose rows ``result.ids`` refers to.
@@ -189,13 +191,21 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
 def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
     """(N,) bool: ``candidate`` names whose magnitude difference (detection − catalog) lies within
     ``max(mag_tol, 3 σ̂)`` of the median difference of the ``named`` detections
-    (:func:`jstarid.robust.magnitude_offsets`).
+    (:func:`jstarid.robust.magnitude_offsets`) — and, on the faint side, also within the amount by
+    which the star is brighter than the named stars' median V.
+
+    Why the faint side widens: a saturated star reads fainter than its V, by more the brighter it
+    is (Spica, V 0.89, read 1.3 mag fainter than the zero point of an 8-bit OreSat frame whose named
+    stars have a median V near 5.5). A detection far *brighter* than its star is another object and
+    keeps the plain tolerance, as in the camera check (:func:`jstarid.robust.brighter_than_named`).
 
     Instrumental magnitudes (any zero point) are fine: only differences from the median count.
     Fewer than 4 names: every candidate agrees (no zero point to trust).
     """
     offset, spread, count = magnitude_offsets(det_mag, star_mag, named)
-    return candidate & ((count < 4) | (jnp.abs(offset) <= jnp.maximum(mag_tol, 3.0 * spread)))
+    tol = jnp.maximum(mag_tol, 3.0 * spread)
+    saturation = jnp.maximum(masked_median(star_mag, named) - star_mag, 0.0)  # mag, ≥ 0
+    return candidate & ((count < 4) | ((offset >= -tol) & (offset <= tol + saturation)))
 
 
 @functools.partial(stored_jit, static_argnames=("grid", "scan"))

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import jstarid as js
-from jstarid.completion import first_argmax, name_from_attitude, name_stars
+from jstarid.completion import first_argmax, magnitude_agrees, name_from_attitude, name_stars
 
 
 def reference(cat, cam, xy, valid, ids, ok, tol_px, iso, min_named):
@@ -156,3 +156,19 @@ def test_name_stars():
         _, named = name_stars(f32(c), f32(body), jnp.asarray(valid), f32(stars), math.radians(0.01),
                               max(iso, 1.0))
         assert bool(named[2]) == expect
+
+
+def test_a_saturated_bright_star_may_read_fainter_but_never_far_brighter():
+    """The brightness check of new names: a star brighter than the named stars' median V may read
+    fainter by up to that difference (saturation); on the bright side, and for a faint star, the
+    plain tolerance holds."""
+    star = jnp.array([4.0, 4.5, 5.0, 5.5, 6.0, 6.5, 0.9, 0.9, 7.5, 5.5])  # V of each detection's star
+    det = star + 2.0  # instrumental zero point 2 mag
+    det = det.at[6].add(1.3)  # Spica read 1.3 mag fainter: saturated
+    det = det.at[7].add(-1.3)  # … 1.3 mag brighter: another object
+    det = det.at[8].add(1.3)  # a V 7.5 star 1.3 mag fainter: no saturation there
+    det = det.at[9].add(0.8)  # within the plain tolerance
+    named = jnp.arange(10) < 6
+    candidate = ~named
+    got = np.asarray(magnitude_agrees(det, star, named, candidate, 1.0))
+    np.testing.assert_array_equal(got, [False] * 6 + [True, False, False, True])
