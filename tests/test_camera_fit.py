@@ -589,3 +589,28 @@ def test_a_false_detection_beside_a_named_star_loses_the_name(world):
         want = (others & (d <= float(fit.tol_px[b]))).any(axis=1)
         np.testing.assert_array_equal(got[b], want)
     assert got[rows, np.argmax(own == spare, axis=1)].all()  # the false name: always rivalled
+
+
+def test_a_named_neighbour_within_the_radius_is_no_rival():
+    """Eight right names (a fit of at most ten), two of them a close pair 2 px apart, inside the
+    check's radius (never below 2.5 px): both stay, because each one's neighbour is named and nearer
+    its own star. Without that exemption the kernel takes both back (SGM names every star of its
+    circle, and lost right names this way)."""
+    cam = js.camera_preset("sgm2022")
+    rng = np.random.default_rng(11)
+    pix = rng.uniform(100, 900, (8, 2))
+    pix[7] = pix[0] + np.array([2.0, 0.0])  # the close pair: stars 0 and 7
+    stars = np.asarray(cam.unproject(jnp.asarray(pix, jnp.float32)), np.float64)  # attitude: identity
+    turn = rng.uniform(0, 2 * np.pi, 8)
+    xy = (pix + 0.2 * np.stack([np.cos(turn), np.sin(turn)], 1)).astype(np.float32)[None]
+    valid = np.ones((1, 8), bool)
+    ids = np.arange(8, dtype=np.int32)[None]
+    kept, ok, fit = cf.verify_names(stars, cam, jnp.asarray(xy), valid, ids, np.ones(1, bool))
+    assert bool(ok[0]) and (np.asarray(kept) == ids).all()
+    ref = jnp.asarray(stars[ids], jnp.float32)
+    args = (ref, jnp.ones((1, 8), bool), jnp.asarray(ids), jnp.asarray(xy), jnp.asarray(valid), ref)
+    fitted = (fit.attitude, fit.scale, fit.k1, fit.tol_px, cam.pinhole_numbers())
+    with_exemption = np.asarray(cf._rival_kernel(*args, jnp.ones((1, 8), bool), *fitted))
+    without = np.asarray(cf._rival_kernel(*args, jnp.zeros((1, 8), bool), *fitted))
+    assert not with_exemption.any()
+    np.testing.assert_array_equal(without[0], np.isin(np.arange(8), [0, 7]))
