@@ -73,7 +73,7 @@ from jstarid.robust import brighter_than_named, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
-from jstarid.runtime.padding import next_power_of_two, padded_indices
+from jstarid.runtime.padding import columns_in_use, next_power_of_two, padded_indices
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import pad_with_empty
 
@@ -591,14 +591,15 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
         # on one device: split over several CPU devices (shard_map around these loops) the
         # kernels stalled now and then, every device idle (seen in SGM's benchmark)
         fit = CameraFit(*run_calls(
-            _fit_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size), args, (optics, *limits), n_rows=b,
+            _fit_kernel, chunk_calls(rows, CHECK_CHUNK, size=check_call_size), args, (optics, *limits),
+            n_rows=b,
             tails=[(3, 3), (), (n,), (n,), (), (), ()],
             fills=[np.nan, 1.0, np.nan, False, np.nan, np.nan, 0.0], static=dict(static, few=few), mesh=one))
         attitude[rows], scale[rows] = fit.attitude[rows], fit.scale[rows]
         sigma[rows], tol[rows], k1[rows] = fit.sigma_px[rows], fit.tol_px[rows], fit.k1[rows]
         residual[rows[:, None], order[rows]] = fit.residual_px[rows]
         inlier[rows[:, None], order[rows]] = fit.inlier[rows]
-    filled = np.where(valid.any(axis=1), n - np.argmax(valid[:, ::-1], axis=1), 0)  # columns in use
+    filled = columns_in_use(valid)
     # a few names' fit bends towards a wrong one (a false detection beside its star, whose own
     # detection the algorithm never saw): a name whose star has a second detection within the
     # radius is one the fit cannot decide between, and is taken back
@@ -615,7 +616,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
             return (ref_c, named_c, own_c, xy_c[:, :cut], valid_c[:, :cut], their_ref[:, :cut],
                     theirs[:, :cut], *rest)
 
-        rival, = run_calls(_rival_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size), rival_args,
+        rival, = run_calls(_rival_kernel, chunk_calls(rows, CHECK_CHUNK, size=check_call_size), rival_args,
                            (optics,), n_rows=b, tails=[(width_few,)], fills=[False], mesh=one)
         inlier[rows[:, None], own[rows]] &= ~rival[rows]
     solved = (ok & (inlier.sum(axis=1) >= min_named) & (np.abs(scale - 1.0) <= max_scale_error))
@@ -633,7 +634,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     for n_scales in (0, FIELD_SCALES):
         if not rows.size:
             break
-        seen, = run_calls(_field_kernel, chunk_calls(rows, CHECK_CHUNK, size=_call_size),
+        seen, = run_calls(_field_kernel, chunk_calls(rows, CHECK_CHUNK, size=check_call_size),
                           field_args, (vectors, optics, jnp.float32(max_scale_error)),
                           n_rows=b, tails=[()], fills=[False], static=dict(n_scales=n_scales), mesh=one)
         rows = rows[~seen[rows]]
@@ -869,8 +870,9 @@ def _move_about_centre(scenes, camera, move):
     return dataclasses.replace(scenes, xy=jnp.asarray(moved, jnp.float32))
 
 
-def _call_size(n: int) -> int:
-    """The padded size of a call of :func:`verify_names`'s kernels holding ``n`` scenes."""
+def check_call_size(n: int) -> int:
+    """The padded size of a call of the camera check's kernels holding ``n`` scenes (also
+    :mod:`jstarid.rival_stars`'s, which runs in the same plan)."""
     return next_power_of_two(n, floor=CHECK_MIN_CALL)
 
 

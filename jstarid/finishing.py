@@ -220,7 +220,8 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
     if config.confirm_names and confirm and star_mags is None:
         raise ValueError("the confirmation of few names (Finishing.confirm_names) needs star_mags")
     laddered, searched, search_overflow = (np.zeros(b, bool) for _ in range(3))
-    stars = _table(star_vectors, star_mags)
+    # the rows as steps 2b and 3 read them (hashed once: the key of their sky indexes)
+    stars = _table(star_vectors, star_mags) if b and (config.rival_odds or config.confirm_names) else None
     if b and config.hypotheses:
         result, searched, search_overflow = _search(result, scenes, config, camera, star_vectors)
         if search_overflow.any():
@@ -236,12 +237,11 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
                                       max_scale_error=config.max_focal_error, max_tol_px=max_tol_px,
                                       star_mags=star_mags, studentized=config.studentized)
         if config.rival_odds:
-            result = without_rivalled_names(result, scenes, stars=stars,
-                                            camera=camera, odds=config.rival_odds, max_tol_px=max_tol_px,
+            result = without_rivalled_names(result, scenes, stars=stars, camera=camera,
+                                            odds=config.rival_odds, max_tol_px=max_tol_px,
                                             max_scale_error=config.max_focal_error)
     if b and config.confirm_names and confirm:
-        result = confirmed_by_the_frame(result, scenes, config, stars=stars,
-                                        camera=camera, tol_px=max_tol_px)
+        result = confirmed_by_the_frame(result, scenes, config, stars=stars, camera=camera, tol_px=max_tol_px)
     return Finished(result=result, laddered=laddered, searched=searched, search_overflow=search_overflow)
 
 

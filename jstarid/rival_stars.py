@@ -39,13 +39,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.camera import Camera
-from jstarid.camera_fit import RAYLEIGH_MEDIAN, unproject_scaled
+from jstarid.camera_fit import (
+    CHECK_CHUNK,
+    CHECK_MIN_WIDTH,
+    RAYLEIGH_MEDIAN,
+    check_call_size,
+    unproject_scaled,
+)
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import magnitude_offsets, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
-from jstarid.runtime.padding import next_power_of_two
+from jstarid.runtime.padding import columns_in_use, next_power_of_two
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, cell_of
@@ -57,9 +63,6 @@ MAG_FLOOR = 0.25  # σ̂_m never below this (mag): simulated magnitudes without 
 MAG_OUTLIER_NATS = 8.0  # the brightness term's ceiling (nats): a colour term's 1 mag outlier
 MIN_MAG_NAMES = 4  # fewest names whose offsets set a zero point (as robust.brighter_than_named)
 MIN_NAMES = 3  # a scene left with fewer names is no longer claimed (the camera check's minimum)
-CHUNK = 1024  # scenes per call (padded to a power of two ≥ MIN_CALL)
-MIN_CALL = 64
-MIN_WIDTH = 32  # columns per call: a power of two ≥ this, cut to the detections in use
 
 
 def rivalled_names(xy, valid, mag, ids, attitude, scale, k1, star_vectors, star_mags, cells, optics, *,
@@ -169,20 +172,20 @@ def without_rivalled_names(result: Identification, scenes: Scene, *, stars, came
                             key=f"{stars.fingerprint}-rivals-{radius:.3e}")
     cells, _ = index.device_arrays()
     valid = np.asarray(scenes.valid)
-    filled = np.where(valid.any(axis=1), n - np.argmax(valid[:, ::-1], axis=1), 0)
+    filled = columns_in_use(valid)
     per_scene = (np.asarray(scenes.xy, np.float32), valid, np.asarray(scenes.mag, np.float32), ids, attitude,
                  fitted(result.focal_scale, 1.0), fitted(result.distortion_k1, 0.0))
 
-    def args(call):  # each call cut to the columns its detections fill
-        cut = min(n, next_power_of_two(int(filled[call.rows].max()), floor=MIN_WIDTH))
+    def args(call):  # each call cut to the columns its detections fill (as the camera check's)
+        cut = min(n, next_power_of_two(int(filled[call.rows].max()), floor=CHECK_MIN_WIDTH))
         xy, valid_c, mag, ids_c, *rest = take_rows(per_scene, call)
         return (xy[:, :cut], valid_c[:, :cut], mag[:, :cut], ids_c[:, :cut], *rest)
 
     shared = (jnp.asarray(stars.unit_vectors, jnp.float32), jnp.asarray(stars.mag, jnp.float32), cells,
               camera.pinhole_numbers(), jnp.float32(math.log(odds)), jnp.float32(max_tol_px))
-    rivalled, = run_calls(_rival_kernel, chunk_calls(rows, CHUNK, size=_call_size), args, shared, n_rows=b,
-                          tails=[(n,)], fills=[False], static=dict(grid=index.grid),
-                          mesh=batch_mesh(jax.devices()[:1]))
+    plan = chunk_calls(rows, CHECK_CHUNK, size=check_call_size)  # the camera check's call plan
+    rivalled, = run_calls(_rival_kernel, plan, args, shared, n_rows=b, tails=[(n,)], fills=[False],
+                          static=dict(grid=index.grid), mesh=batch_mesh(jax.devices()[:1]))
     if not rivalled.any():
         return result
     kept = np.where(rivalled, -1, np.asarray(result.ids))
@@ -190,7 +193,3 @@ def without_rivalled_names(result: Identification, scenes: Scene, *, stars, came
     out = Identification(ids=jnp.asarray(kept, jnp.int32), ok=result.ok, attitude=result.attitude,
                          focal_scale=result.focal_scale, distortion_k1=result.distortion_k1)
     return out.failed(lost) if lost.size else out
-
-
-def _call_size(n: int) -> int:
-    return next_power_of_two(n, floor=MIN_CALL)

@@ -20,6 +20,13 @@ SIGMA_PX = 1.5  # centroid noise of the synthetic frames (px per axis)
 ZERO_POINT = 1.7  # instrumental magnitude − V
 
 
+def _sky(xy, attitude, scale=1.0):
+    """(n, 2) px → (n, 3) ICRS unit vectors through the pinhole of focal length ``scale · f_px``."""
+    f = CAMERA.f_px * scale
+    ray = np.stack([(xy[:, 0] - CAMERA.cx) / f, (xy[:, 1] - CAMERA.cy) / f, np.ones(len(xy))], 1)
+    return (ray / np.linalg.norm(ray, axis=1, keepdims=True)) @ attitude  # r = Cᵀ v
+
+
 def _frame(rng, n_stars=40, n_pairs=15, scale=1.0, error_px=None):
     """A synthetic frame: stars at random pixels (a close neighbour 3–10 px from ``n_pairs`` of
     them), each of the first ``n_stars`` detected with SIGMA_PX noise (or exactly ``error_px`` off,
@@ -29,13 +36,8 @@ def _frame(rng, n_stars=40, n_pairs=15, scale=1.0, error_px=None):
     angle = rng.uniform(0, 2 * np.pi, n_pairs)
     apart = rng.uniform(3, 10, n_pairs)[:, None]
     pair_xy = xy[:n_pairs] + apart * np.stack([np.cos(angle), np.sin(angle)], 1)
-    star_xy = np.concatenate([xy, pair_xy])
-    f = CAMERA.f_px * scale
-    ray = np.stack([(star_xy[:, 0] - CAMERA.cx) / f, (star_xy[:, 1] - CAMERA.cy) / f,
-                    np.ones(len(star_xy))], 1)
-    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-    vectors = ray @ attitude  # r = Cᵀ v
-    mags = rng.uniform(3.0, 6.0, len(star_xy))
+    vectors = _sky(np.concatenate([xy, pair_xy]), attitude, scale)
+    mags = rng.uniform(3.0, 6.0, len(vectors))
     if error_px is None:
         det_xy = xy + rng.normal(0, SIGMA_PX, xy.shape)
     else:
@@ -48,8 +50,7 @@ def _frame(rng, n_stars=40, n_pairs=15, scale=1.0, error_px=None):
 def _reference(xy, mag, ids, attitude, scale, vectors, mags, log_odds, max_tol_px):
     """rival_stars.rivalled_names in float64 NumPy, every catalog star a candidate."""
     f = CAMERA.f_px * scale
-    ray = np.stack([(xy[:, 0] - CAMERA.cx) / f, (xy[:, 1] - CAMERA.cy) / f, np.ones(len(xy))], 1)
-    sky = (ray / np.linalg.norm(ray, axis=1, keepdims=True)) @ attitude
+    sky = _sky(xy.astype(np.float64), attitude, scale)
     d = np.arccos(np.clip(sky @ vectors.T, -1, 1)) * f  # (N, M) px
     named = ids >= 0
     d_own = d[np.arange(len(xy)), np.maximum(ids, 0)]
@@ -100,21 +101,12 @@ def _close_pair():
     8 px from its own star (RpNet's close pair on ``sgm2022`` at 3 px)."""
     rng = np.random.default_rng(7)
     attitude, table, xy, mag = _frame(rng, n_stars=12, n_pairs=0, error_px=3.0 * math.sqrt(2 * math.log(2)))
-    vectors, mags = table.unit_vectors.copy(), table.mag.copy()
-    mags[0] = 4.3
+    own = np.array([CAMERA.cx, CAMERA.cy])  # star 0 moved to the centre, its detection 8 px off
+    xy[0] = own + np.array([8.0, 0.0])
+    neighbour = xy[0] + np.array([0.0, 0.6])
+    vectors = np.vstack([_sky(own[None], attitude), table.unit_vectors[1:], _sky(neighbour[None], attitude)])
+    mags = np.concatenate([[4.3], table.mag[1:], [5.6]])
     mag[0] = 4.3 + ZERO_POINT
-    own = np.array([CAMERA.cx, CAMERA.cy]) + 0.0  # star 0 moved to the centre, its detection 8 px off
-    det = own + np.array([8.0, 0.0])
-    neighbour = det + np.array([0.0, 0.6])
-    f = CAMERA.f_px
-    for i, p in ((0, own), (None, neighbour)):
-        ray = np.array([(p[0] - CAMERA.cx) / f, (p[1] - CAMERA.cy) / f, 1.0])
-        v = (ray / np.linalg.norm(ray)) @ attitude
-        if i is None:
-            vectors, mags = np.vstack([vectors, v]), np.append(mags, 5.6)
-        else:
-            vectors[i] = v
-    xy[0] = det
     return attitude, StarTable.of(vectors, mags), xy, mag
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jstarid as js
-from jstarid.runtime import skip_padding
+from jstarid.runtime import columns_in_use, skip_padding
 from jstarid.runtime.pairs import _spread
 
 
@@ -298,3 +298,8 @@ def test_count_compilations_counts_each_new_program_once():
     f(jnp.arange(6.0)).block_until_ready()
     assert (first.programs, again.programs, other.programs) == (1, 0, 1)
     assert first.seconds > 0 and again.seconds == 0
+
+
+def test_columns_in_use_is_one_past_the_last_valid_entry():
+    valid = np.array([[1, 0, 1, 0, 0], [0, 0, 0, 0, 0], [1, 1, 1, 1, 1], [0, 0, 0, 0, 1]], bool)
+    np.testing.assert_array_equal(columns_in_use(valid), [3, 0, 5, 5])

@@ -33,11 +33,11 @@ def parse_args(argv=None):
 
 
 def _counts(scenes, result) -> dict:
-    ids, truth, valid, ok = (np.asarray(a) for a in (result.ids, scenes.truth, scenes.valid, result.ok))
-    named = (ids >= 0) & valid & ok[:, None]
-    wrong = named & (ids != truth)
-    return {"claimed": int(ok.sum()), "names": int(named.sum()), "wrong": int(wrong.sum()),
-            "wrong_scenes": int(wrong.any(axis=1).sum())}
+    """Claimed scenes, names, wrong names and scenes holding one (:func:`jstarid.metrics.scene_outcomes`)."""
+    out = {k: np.asarray(v) for k, v in js.metrics.scene_outcomes(scenes, result).items()}
+    return {"claimed": int(np.asarray(result.ok).sum()), "names": int(out["n_identified"].sum()),
+            "wrong": int(out["n_wrong"].sum()),
+            "wrong_scenes": int((out["outcome"] == js.metrics.WRONG).sum())}
 
 
 def _sets(algorithm: str, args):

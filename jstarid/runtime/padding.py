@@ -8,7 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["call_size", "next_power_of_two", "pad_rows", "padded_indices", "power_of_two_chunks"]
+__all__ = ["call_size", "columns_in_use", "next_power_of_two", "pad_rows", "padded_indices",
+           "power_of_two_chunks"]
 
 MAX_PADDING = 0.25  # power_of_two_chunks: most padding of a last chunk, as a share of its rows
 MIN_CALL_SIZE = 16  # call_size: the smallest call of a batched kernel (rows)
@@ -67,6 +68,13 @@ def call_size(n: int, chunk: int) -> int:
         chunk: the most rows per call (``Config.batch_chunk``).
     """
     return max(1, min(int(chunk), next_power_of_two(n, floor=MIN_CALL_SIZE)))
+
+
+def columns_in_use(valid) -> np.ndarray:
+    """(B,) int: the columns each row of a (B, N) validity mask fills, one past its last valid entry
+    (0 for an empty row): the width a call must keep when it cuts trailing padding columns."""
+    valid = np.asarray(valid, bool)
+    return np.where(valid.any(axis=1), valid.shape[1] - np.argmax(valid[:, ::-1], axis=1), 0)
 
 
 def padded_indices(rows: np.ndarray, floor: int = 1) -> np.ndarray:

@@ -62,7 +62,7 @@ from jstarid.finishing import finish
 from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
-from jstarid.runtime import call_size, chunk_calls, on_every_device, run_calls, take_rows
+from jstarid.runtime import call_size, chunk_calls, columns_in_use, on_every_device, run_calls, take_rows
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
@@ -594,7 +594,7 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
     valid_all, xy_all = np.asarray(scenes.valid), np.asarray(scenes.xy)
     overflow_all = np.asarray(scenes.overflow)
     mag_all = np.asarray(scenes.mag, np.float32)
-    last = np.where(valid_all.any(1), n - np.argmax(valid_all[:, ::-1], axis=1), 0)
+    last = columns_in_use(valid_all)
     if n < WIDTH_STEP:  # narrower scenes get empty columns: one compiled width serves every small scene
         xy_all, valid_all, mag_all = (np.pad(a, [(0, 0), (0, WIDTH_STEP - n)] + [(0, 0)] * (a.ndim - 2))
                                       for a in (xy_all, valid_all, mag_all))
