@@ -5,7 +5,8 @@ at 0 (the step off, :mod:`jstarid.rival_stars`): the demo's scenes (``sgm2022``,
 seed 0, capacity 96: ``jstarid demo``'s), and each algorithm's own camera at 1 px, 0.2 mag and one
 false star. Per run: claimed scenes, names, wrong names and the scenes holding one, for both
 settings — the names the step takes back, and whether any was right; below the table, each name
-taken back (its distance and brightness against the star it was named after and its true star).
+taken back and each wrong name the step leaves (its distance and brightness against the star it
+is named after and its true star).
 
 Usage::
 
@@ -55,20 +56,20 @@ def _sets(algorithm: str, args):
            js.simulate(jax.random.key(args.seed + 7), catalog, camera, noise, batch_size=args.scenes))
 
 
-def _taken_back(scenes, off, on, catalog, camera) -> list[dict]:
-    """Each name the step took back: its scene, whether it was right, and the detection's distance
-    (px, under the scene's true attitude) and magnitude against the star it was named after and the
-    star it truly is (``true_v`` None for a false detection)."""
-    off_ids, on_ids, truth = (np.asarray(a) for a in (off.ids, on.ids, scenes.truth))
+def _names(scenes, result, where, catalog, camera) -> list[dict]:
+    """The names of ``result`` at ``where`` ((B, N) bool): scene, whether right, and the detection's
+    distance (px, under the scene's true attitude) and magnitude against the star it is named after
+    and the star it truly is (``true_v`` None for a false detection)."""
+    ids, truth = np.asarray(result.ids), np.asarray(scenes.truth)
     out = []
-    for b, i in zip(*np.nonzero((off_ids >= 0) & (on_ids < 0) & np.asarray(on.ok)[:, None]), strict=True):
+    for b, i in zip(*np.nonzero(where), strict=True):
         att = np.asarray(scenes.attitude[b], np.float64)
 
         def px_to(row, b=b, i=i, att=att):
             xy, _ = camera.project(np.asarray(catalog.unit_vectors[row], np.float64) @ att.T)
             return round(float(np.hypot(*(np.asarray(xy) - np.asarray(scenes.xy[b, i])))), 2)
 
-        named, true = int(off_ids[b, i]), int(truth[b, i])
+        named, true = int(ids[b, i]), int(truth[b, i])
         out.append({"scene": int(b), "right": named == true, "named_v": round(float(catalog.mag[named]), 2),
                     "px_to_named": px_to(named), "detection_mag": round(float(scenes.mag[b, i]), 2),
                     "true_v": None if true < 0 else round(float(catalog.mag[true]), 2),
@@ -90,7 +91,12 @@ def main(argv=None):
                 with_step, without = (algo.identify(database, scenes, c) for c in (config, off))
                 on_, off_ = _counts(scenes, with_step), _counts(scenes, without)
                 row = {"algorithm": algorithm, "set": name, "odds": config.finishing.rival_odds,
-                       "names_taken_back": _taken_back(scenes, without, with_step, catalog, camera),
+                       "names_taken_back": _names(scenes, without, (np.asarray(without.ids) >= 0)
+                                                  & (np.asarray(with_step.ids) < 0)
+                                                  & np.asarray(with_step.ok)[:, None], catalog, camera),
+                       "wrong_names_left": _names(scenes, with_step, (np.asarray(with_step.ids) >= 0)
+                                                  & (np.asarray(with_step.ids) != np.asarray(scenes.truth))
+                                                  & np.asarray(scenes.valid), catalog, camera),
                        **{f"off_{k}": v for k, v in off_.items()}, **{f"on_{k}": v for k, v in on_.items()},
                        "taken_back": off_["names"] - on_["names"],
                        "right_taken_back": (off_["names"] - off_["wrong"]) - (on_["names"] - on_["wrong"])}
@@ -107,9 +113,10 @@ def main(argv=None):
     note = (f"{args.scenes} scenes per set, seed {args.seed}; `rival_odds` at its default (on) and 0 (off); "
             f"{clock.seconds:.0f} s including compilation and database builds.")
     table = ex.markdown_table(rows, columns, title="Names a neighbouring star explains as well", note=note)
-    for row in rows:  # each name taken back, below the table
-        for item in row["names_taken_back"]:
-            table += f"\n{row['algorithm']}, {row['set']}: {item}"
+    for row in rows:  # each name taken back and each wrong name left, below the table
+        for kind in ("names_taken_back", "wrong_names_left"):
+            for item in row[kind]:
+                table += f"\n{row['algorithm']}, {row['set']}, {kind.replace('_', ' ')}: {item}"
     ex.write(args.out, config={"args": vars(args)}, results={"rows": rows}, table=table)
     print(table)
 
