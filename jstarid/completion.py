@@ -195,9 +195,9 @@ def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
     which the star is brighter than the named stars' median V.
 
     Why the faint side widens: a saturated star reads fainter than its V, by more the brighter it
-    is (Spica, V 0.89, read 1.3 mag fainter than the zero point of an 8-bit OreSat frame whose named
-    stars have a median V near 5.5). A detection far *brighter* than its star is another object and
-    keeps the plain tolerance, as in the camera check (:func:`jstarid.robust.brighter_than_named`).
+    is (Spica on an 8-bit OreSat frame: docs/design/own_sky.md). A detection far *brighter* than its
+    star is another object and keeps the plain tolerance, as in the camera check
+    (:func:`jstarid.robust.brighter_than_named`).
 
     Instrumental magnitudes (any zero point) are fine: only differences from the median count.
     Fewer than 4 names: every candidate agrees (no zero point to trust).

@@ -4,8 +4,8 @@ An algorithm names a detection after the star its pattern or its verification pu
 check (:func:`jstarid.camera_fit.check_identification`) then asks only whether that star lies within
 the fit's radius. Where two catalog stars lie a few σ apart, the detection of one can land within
 the radius of the other, and be named after it: a close pair at σ = 3 px (the brighter star's
-detection 0.65 px from its fainter neighbour, 8 px from its own star, named after the neighbour,
-1.3 mag brighter than it: RpNet, ``sgm2022``, 3 px), or a blend of a pair on a real frame. The
+detection a fraction of a pixel from its fainter neighbour, several σ from its own star, and far
+brighter than the neighbour: docs/design/rival_stars.md), or a blend of a pair on a real frame. The
 radius cannot tell the two apart; the position and the brightness together can.
 
 **The test.** For a named detection ``i`` (star ``s``) and every other catalog star ``t`` within the

@@ -59,7 +59,8 @@ def _sets(algorithm: str, args):
 def _names(scenes, result, where, catalog, camera) -> list[dict]:
     """The names of ``result`` at ``where`` ((B, N) bool): scene, whether right, and the detection's
     distance (px, under the scene's true attitude) and magnitude against the star it is named after
-    and the star it truly is (``true_v`` None for a false detection)."""
+    and the star it truly is (``true_v`` None for a false detection), and whether the named star has
+    a detection of its own in the scene."""
     ids, truth = np.asarray(result.ids), np.asarray(scenes.truth)
     out = []
     for b, i in zip(*np.nonzero(where), strict=True):
@@ -70,7 +71,9 @@ def _names(scenes, result, where, catalog, camera) -> list[dict]:
             return round(float(np.hypot(*(np.asarray(xy) - np.asarray(scenes.xy[b, i])))), 2)
 
         named, true = int(ids[b, i]), int(truth[b, i])
+        detected = bool(np.any((truth[b] == named) & np.asarray(scenes.valid[b])))
         out.append({"scene": int(b), "right": named == true, "named_v": round(float(catalog.mag[named]), 2),
+                    "named_star_detected": detected,
                     "px_to_named": px_to(named), "detection_mag": round(float(scenes.mag[b, i]), 2),
                     "true_v": None if true < 0 else round(float(catalog.mag[true]), 2),
                     "px_to_true": None if true < 0 else px_to(true)})
