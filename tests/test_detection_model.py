@@ -289,6 +289,7 @@ def test_clutter_piling_up_at_the_threshold_gets_a_knee():
         assert abs(np.mean(redrawn < m) - np.mean(loose < m)) < 0.02
 
 
+@pytest.mark.production_numerics
 def test_sharded_draws_equal_one_device(catalog6, sgm_camera, several_devices):
     """A physical model with blends: the same scenes whether the batch is split over devices or not."""
     model = STATS_MODEL.replace(merge_radius_px=5.0, vignetting=0.3, sky_fraction=0.5)

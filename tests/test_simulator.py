@@ -365,6 +365,7 @@ def test_noise_config_is_a_pytree():
     assert len(leaves) == len(dataclasses.fields(noise))
 
 
+@pytest.mark.production_numerics
 def test_chunked_large_batch_equals_direct_path(catalog6, sgm_camera, monkeypatch):
     """Large batches take the sorted, chunked path; it must give exactly the direct path's scenes."""
     noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.1, n_missing=1, n_false=2)

@@ -27,6 +27,7 @@ def setup():
     return cat, cam, cfg, rows, grid
 
 
+@pytest.mark.production_numerics
 def test_a_member_is_the_single_training_run_at_its_rates(setup):
     """Members 0 and 1 share train()'s data seed: each is train() at its own rates (to float32 rounding
     of the batched products; fc3's bias, which BatchNorm cancels, drifts freely and is left out)."""

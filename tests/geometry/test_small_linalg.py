@@ -4,6 +4,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 import jstarid as js
@@ -125,6 +126,7 @@ def test_library_kernels_call_no_lapack():
     assert "custom_call" not in hlo
 
 
+@pytest.mark.production_numerics
 def test_results_do_not_depend_on_the_batch():
     # a grid point run in one batch must equal the same point run alone (tests/test_engine.py): bit
     # for bit, whatever the batch shape, as LAPACK's per-matrix kernels were
