@@ -39,7 +39,7 @@ from jstarid.geometry.angles import angle_between
 from jstarid.robust import magnitude_offsets, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
-from jstarid.runtime.padding import next_power_of_two
+from jstarid.runtime.padding import columns_in_use, next_power_of_two
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
@@ -49,6 +49,9 @@ __all__ = ["first_argmax", "magnitude_agrees", "name_from_attitude", "name_stars
 EXTEND_ROUNDS = 2  # naming rounds of name_from_attitude, each with the camera refitted to all names
 SCALE_SCAN = 81  # focal scales tried by the first round (0.25 % apart at max_scale_error = 0.1)
 EXTEND_CHUNK = 256  # scenes per call of the naming rounds (padded to a power of two)
+# … each cut to the columns its scenes fill, a power of two at least this wide: the scale scan's work
+# grows with the columns, and frames hold far fewer detections than the naming capacity (512)
+EXTEND_MIN_WIDTH = 64
 SCAN_BATCH = 9  # of them evaluated together (memory: SCAN_BATCH × detections × local stars per scene)
 
 
@@ -160,6 +163,7 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
     shared = (vectors, star_mag, cells, jnp.float32(isolation), jnp.float32(mag_tol),
               jnp.float32(max_scale_error), camera.pinhole_numbers())
     one = batch_mesh(jax.devices()[:1])
+    filled = columns_in_use(scenes.valid)
     for k in range(EXTEND_ROUNDS):
         # only the scenes in use, in calls of power-of-two sizes: a batch of any size, most of it
         # unsolved or not, meets a few programs, and the first round's scale scan runs where it counts.
@@ -170,7 +174,7 @@ def name_from_attitude(catalog, camera, scenes: Scene, result: Identification, *
         scan = SCALE_SCAN if (k == 0 and fit_scale and max_scale_error > 0) else 0
         rows = np.flatnonzero(np.asarray(use))
         ids, = run_calls(_extend, chunk_calls(rows, EXTEND_CHUNK, size=next_power_of_two),
-                         functools.partial(take_rows, per_scene, mode="edge"), shared,
+                         functools.partial(_cut_to_filled, per_scene, filled), shared,
                          n_rows=scenes.batch_size, tails=[(scenes.capacity,)], fills=[-1],
                          out=[np.array(ids, np.int32)], static=dict(grid=index.grid, scan=scan), mesh=one)
         kept, solved, fit = verify_names(vectors, camera, scenes.xy, scenes.valid, ids, use, **fitted)
@@ -206,6 +210,15 @@ def magnitude_agrees(det_mag, star_mag, named, candidate, mag_tol):
     tol = jnp.maximum(mag_tol, 3.0 * spread)
     saturation = jnp.maximum(masked_median(star_mag, named) - star_mag, 0.0)  # mag, ≥ 0
     return candidate & ((count < 4) | ((offset >= -tol) & (offset <= tol + saturation)))
+
+
+def _cut_to_filled(per_scene: tuple, filled: np.ndarray, call) -> tuple:
+    """A call's rows of ``per_scene`` (attitude, scale, k1, then the (B, N) detection arrays xy,
+    valid, mag, ids, then the tolerance), the detection arrays cut to the columns its scenes fill
+    (:data:`EXTEND_MIN_WIDTH`); the columns cut hold no detection, so they could take no name."""
+    taken = take_rows(per_scene, call, mode="edge")
+    cut = min(int(taken[3].shape[1]), next_power_of_two(int(filled[call.rows].max()), floor=EXTEND_MIN_WIDTH))
+    return (*taken[:3], *(a[:, :cut] for a in taken[3:7]), *taken[7:])
 
 
 @functools.partial(stored_jit, static_argnames=("grid", "scan"))

@@ -1,5 +1,6 @@
 """name_from_attitude (jstarid.completion) against a NumPy/SciPy reference and the truth."""
 
+import dataclasses
 import functools
 import math
 
@@ -77,7 +78,8 @@ def test_matches_reference_and_truth(setup):
 
 def test_naming_rounds_run_in_calls_of_a_few_sizes(setup):
     """Only the solved scenes are named, in calls of power-of-two sizes: 5 and 6 scenes meet the same
-    programs, and each scene's names are those it gets in the whole batch."""
+    programs (their 48 columns are below the smallest cut, ``EXTEND_MIN_WIDTH``), and each scene's
+    names are those it gets in the whole batch."""
     from jstarid import completion
 
     cat, cam, scenes, truth, partial, ok = setup
@@ -91,6 +93,36 @@ def test_naming_rounds_run_in_calls_of_a_few_sizes(setup):
     programs = completion._extend._cache_size()
     np.testing.assert_array_equal(name(slice(8, 14)), whole[8:14])
     assert completion._extend._cache_size() == programs
+
+
+def test_columns_past_the_detections_change_no_name(setup):
+    """The naming rounds cut each call to the columns its scenes fill: the same scenes padded to the
+    naming capacity (512 columns, as frames read from files are) get the same names, with the scale
+    scan on (the default)."""
+    from jstarid import completion
+
+    cat, cam, scenes, truth, partial, ok = setup
+    rows = slice(0, 8)
+    narrow = name_from_attitude(cat, cam, scenes[rows], js.Identification(ids=partial[rows], ok=ok[rows]))
+    wide_n = 512
+    assert completion.EXTEND_MIN_WIDTH < wide_n
+
+    def widen(a, fill):
+        a = np.asarray(a)
+        pad = np.full((a.shape[0], wide_n - a.shape[1], *a.shape[2:]), fill, a.dtype)
+        return np.concatenate([a, pad], axis=1)
+
+    part = scenes[rows]
+    wide = dataclasses.replace(part, xy=widen(part.xy, 0.0), mag=widen(part.mag, np.inf),
+                               truth=widen(part.truth, -1), valid=widen(part.valid, False))
+    out = name_from_attitude(cat, cam, wide, js.Identification(ids=widen(partial[rows], -1), ok=ok[rows]))
+    ids = np.asarray(out.ids)
+    np.testing.assert_array_equal(ids[:, :48], np.asarray(narrow.ids))
+    assert np.all(ids[:, 48:] == -1)
+    np.testing.assert_array_equal(np.asarray(out.ok), np.asarray(narrow.ok))
+    named = ids[3:, :48] >= 0  # the solved scenes: nearly every star named, none wrongly
+    assert named.sum() >= 0.9 * (truth[3:8] >= 0).sum()
+    assert np.all(ids[3:, :48][named] == truth[3:8][named])
 
 
 def test_too_few_names_and_conflicts_are_left_alone(setup):
