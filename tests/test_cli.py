@@ -88,6 +88,29 @@ def test_reproduce_quick_experiment(tmp_path, capsys):
     assert "Baselines on the same scenes" in out and "| pyramid | voting | grid |" in out
 
 
+def test_reproduce_runs_the_papers_algorithm_with_settings():
+    """``--paper-algorithm`` turns off what ``Config.paper()`` turns off and keeps what the engine
+    chose for the paper's camera and network; ``--set`` applies on top; a bad setting fails before
+    any experiment runs."""
+    from jstarid.cli.papers import _config
+    from jstarid.papers import reproduction as rp
+
+    parser = cli.build_parser()
+    fig8 = next(e for e in rp.experiments("mlv") if e.name == "fig8")
+    assert _config(fig8, parser.parse_args(["reproduce", "mlv"])) is None  # the engine's default
+    default = js.engine.default_config("mlv", camera=fig8.camera)
+    config = _config(fig8, parser.parse_args(["reproduce", "mlv", "--paper-algorithm", "--set", "th1=2"]))
+    paper = js.algorithms.get("mlv").Config.paper()
+    assert config.th1 == 2 and config.finishing == paper.finishing and not config.attitude_check
+    assert config.eps_deg == default.eps_deg  # a setting the paper's algorithm shares is kept
+    fig11 = next(e for e in rp.experiments("rpnet") if e.name == "fig11")
+    network = js.engine.default_config("rpnet", rpnet_network="quick", camera=fig11.camera).training
+    config = _config(fig11, parser.parse_args(["reproduce", "rpnet", "--paper-algorithm"]))
+    assert config.training == network and config.n_pool_pairs == 0  # the quick network, paper's rules
+    with pytest.raises(ValueError, match="no field 'nope'"):
+        cli.main(["reproduce", "mlv", "--set", "nope=1"])
+
+
 @pytest.mark.parametrize("argv, message", [
     (["demo", "--algorithms", "nope"], "unknown algorithm"),
     (["demo", "--peer", "nope"], "invalid choice"),

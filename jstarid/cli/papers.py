@@ -26,6 +26,12 @@ def add_commands(sub) -> None:
                    help="also run the classic baselines (pyramid, voting, grid) on the same scenes")
     r.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
                    help="RpNet's network (default quick)")
+    r.add_argument("--paper-algorithm", action="store_true",
+                   help="the paper's algorithm alone (the settings Config.paper() changes: our "
+                        "extensions off) instead of jstarid's default")
+    r.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="settings of the paper's algorithm, VALUE in JSON (e.g. th1=2 eps_deg=0.3; "
+                        "finishing.fit_focal=false)")
     r.add_argument("--out", type=Path, default=Path("results/reproduce"),
                    help="results directory (default results/reproduce)")
     r.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -58,14 +64,41 @@ def run_reproduce(args: argparse.Namespace) -> int:
     todo = [e for p in papers for e in rp.experiments(p) if chosen is None or e.name in chosen]
     if not todo:
         raise ValueError(f"no experiment named {args.experiments!r} in {', '.join(papers)}")
-    for exp in todo:
+    configs = [_config(exp, args) for exp in todo]  # a bad setting fails before anything runs
+    for exp, config in zip(todo, configs, strict=True):
         print(f"{exp.paper} {exp.name}: {exp.label}, {len(exp.levels)} levels", flush=True)
         result = rp.run(exp, args.out, quick=args.quick, scenes=args.scenes, seed=args.seed,
                         progress=not args.quiet, rpnet_network=args.rpnet_network,
-                        baselines=args.baselines)
+                        baselines=args.baselines, config=config)
         print(rp.comparison(exp, result.rows()), flush=True)
     print(f"saved under {args.out}/; `jstarid report` collects them into one page")
     return 0
+
+
+def _config(experiment, args):
+    """The paper's algorithm's config for ``experiment``: ``None`` (the engine's default for the
+    paper's camera) unless ``--paper-algorithm`` or ``--set`` change it."""
+    if not (args.paper_algorithm or args.set):
+        return None
+    import jstarid as js
+    from jstarid.experiment import with_overrides
+
+    config = js.engine.default_config(experiment.paper, rpnet_network=args.rpnet_network,
+                                      camera=experiment.camera)
+    if args.paper_algorithm:
+        config = paper_algorithm(config)
+    return with_overrides(config, args.set)
+
+
+def paper_algorithm(config):
+    """``config`` with the settings ``Config.paper()`` changes from ``Config()`` (the paper's
+    algorithm, our extensions off); what the camera or the network preset chose is kept."""
+    import dataclasses
+
+    cls = type(config)
+    default, paper = cls(), cls.paper()
+    return dataclasses.replace(config, **{f.name: getattr(paper, f.name) for f in dataclasses.fields(cls)
+                                          if getattr(paper, f.name) != getattr(default, f.name)})
 
 
 def report_text(reproduce: Path, sweeps: list[Path], *, title: bool = True) -> str:
