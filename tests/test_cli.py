@@ -98,17 +98,18 @@ def test_reproduce_runs_the_papers_algorithm_with_settings():
     parser = cli.build_parser()
     fig8 = next(e for e in rp.experiments("mlv") if e.name == "fig8")
     assert _config(fig8, parser.parse_args(["reproduce", "mlv"])) is None  # the engine's default
-    default = js.engine.default_config("mlv", camera=fig8.camera)
+    default = js.engine.default_config("mlv", camera=js.camera_preset(fig8.camera))
     config = _config(fig8, parser.parse_args(["reproduce", "mlv", "--paper-algorithm", "--set", "th1=2"]))
     paper = js.algorithms.get("mlv").Config.paper()
     assert config.th1 == 2 and config.finishing == paper.finishing and not config.attitude_check
     assert config.eps_deg == default.eps_deg  # a setting the paper's algorithm shares is kept
     fig11 = next(e for e in rp.experiments("rpnet") if e.name == "fig11")
-    network = js.engine.default_config("rpnet", rpnet_network="quick", camera=fig11.camera).training
+    network = js.engine.default_config("rpnet", rpnet_network="quick",
+                                      camera=js.camera_preset(fig11.camera)).training
     config = _config(fig11, parser.parse_args(["reproduce", "rpnet", "--paper-algorithm"]))
     assert config.training == network and config.n_pool_pairs == 0  # the quick network, paper's rules
     with pytest.raises(ValueError, match="no field 'nope'"):
-        cli.main(["reproduce", "mlv", "--set", "nope=1"])
+        _config(fig8, parser.parse_args(["reproduce", "mlv", "--set", "nope=1"]))
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -121,6 +122,7 @@ def test_reproduce_runs_the_papers_algorithm_with_settings():
      "does not fit the 4.28° half field"),
     (["identify", "x.csv", "--fov", "-3"], "field of view"),
     (["demo", "--scenes", "0"], "must be ≥ 1"),
+    (["reproduce", "mlv", "--set", "nope=1"], "Config has no field 'nope'"),
     (["demo", "--levels", "-1"], "position_sigma_px"),
     (["demo", "--levels", "a,b"], "comma-separated numbers"),
     (["sweep", "--axis", "wobble"], "unknown axis"),

@@ -84,7 +84,7 @@ def _config(experiment, args):
     from jstarid.experiment import with_overrides
 
     config = js.engine.default_config(experiment.paper, rpnet_network=args.rpnet_network,
-                                      camera=experiment.camera)
+                                      camera=js.camera_preset(experiment.camera))
     if args.paper_algorithm:
         config = paper_algorithm(config)
     return with_overrides(config, args.set)
