@@ -16,6 +16,29 @@ import numpy as np
 __all__ = ["Scene", "Identification", "pad_with_empty", "scenes_from_centroids", "undistort_scenes"]
 
 
+def take_batch_rows(tree, index):
+    """``tree`` (a :class:`Scene` or :class:`Identification`) at ``index`` of its batch axis.
+
+    An int keeps a batch axis of 1. An index array (or mask) is gathered on the host: the host
+    loops of the search and the finishing stage pick sub-batches of every length, and an eager
+    gather on device arrays compiles a program for each new length (dozens per call of fresh
+    scenes); the rows go back to the device as they came (a device array stays one).
+    """
+    if isinstance(index, int | np.integer):
+        index = slice(int(index), int(index) + 1)
+    traced = any(isinstance(x, jax.core.Tracer) for x in (index, *jax.tree_util.tree_leaves(tree)))
+    if isinstance(index, slice) or traced:  # inside a trace: the gather is part of the program
+        return jax.tree_util.tree_map(lambda a: a[index], tree)
+    index = np.asarray(index)
+
+    def take(a):
+        rows = np.asarray(a)[index]
+        # device_put, not jnp.asarray: the latter compiles a staging program per shape
+        return jax.device_put(rows) if isinstance(a, jax.Array) else rows
+
+    return jax.tree_util.tree_map(take, tree)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Scene:
@@ -53,10 +76,9 @@ class Scene:
         return jnp.sum(self.valid, axis=-1, dtype=jnp.int32)
 
     def __getitem__(self, index) -> Scene:
-        """Index or slice the batch axis (``scenes[3]`` keeps a batch axis of 1)."""
-        if isinstance(index, int | np.integer):
-            index = slice(int(index), int(index) + 1)
-        return jax.tree_util.tree_map(lambda a: a[index], self)
+        """Index or slice the batch axis (``scenes[3]`` keeps a batch axis of 1; an index array
+        gathers those scenes, :func:`take_batch_rows`)."""
+        return take_batch_rows(self, index)
 
 
 @jax.tree_util.register_dataclass
@@ -82,9 +104,8 @@ class Identification:
     distortion_k1: jax.Array | None = None
 
     def __getitem__(self, index) -> Identification:
-        if isinstance(index, int | np.integer):
-            index = slice(int(index), int(index) + 1)
-        return jax.tree_util.tree_map(lambda a: a[index], self)
+        """Index or slice the batch axis, as :meth:`Scene.__getitem__`."""
+        return take_batch_rows(self, index)
 
     def failed(self, rows) -> Identification:
         """These results with the scenes ``rows`` (int indices or a (B,) bool mask) failed: ids −1,
@@ -144,8 +165,12 @@ def pad_with_empty(scenes: Scene, size: int) -> Scene:
     empty = Scene(xy=np.zeros((extra, n, 2), np.float32), mag=np.full((extra, n), np.inf, np.float32),
                   truth=np.full((extra, n), -1, np.int32), valid=np.zeros((extra, n), bool),
                   attitude=np.full((extra, 3, 3), np.nan, np.float32), overflow=np.zeros(extra, bool))
-    return jax.tree.map(lambda a, e: jnp.concatenate([jnp.asarray(a), jnp.asarray(e, a.dtype)]),
-                        scenes, empty)
+    # on the host: a device concatenation would compile a program for every batch and pad size
+    def padded(a, e):
+        a = np.asarray(a)
+        return jax.device_put(np.concatenate([a, e.astype(a.dtype)]))  # (take_batch_rows)
+
+    return jax.tree.map(padded, scenes, empty)
 
 
 def scenes_from_centroids(xy_list: Sequence, mag_list: Sequence | None = None, *,

@@ -66,3 +66,28 @@ def test_pad_with_empty_adds_scenes_without_detections():
     assert js.pad_with_empty(scenes, 2) is scenes
     with pytest.raises(ValueError, match="cannot pad"):
         js.pad_with_empty(scenes, 1)
+
+
+def test_gathering_and_padding_sub_batches_compile_nothing():
+    """The host loops pick sub-batches of every length: rows gathered by an index array or a mask,
+    and empty scenes padded on, are the rows NumPy indexing gives, as device arrays, and no row count
+    compiles a program (an eager device gather or concatenation compiles one per new shape)."""
+    import jax
+
+    xy = [np.arange(2 * k, dtype=float).reshape(k, 2) + 10 * k for k in range(1, 10)]
+    scenes = js.scenes_from_centroids(xy, None, capacity=8)
+    ids = js.Identification(ids=jax.device_put(np.arange(72, dtype=np.int32).reshape(9, 8)),
+                            ok=jax.device_put(np.arange(9) % 2 == 0))
+    scenes[np.array([0, 1])], js.pad_with_empty(scenes[np.array([0])], 2)  # warm the indexing path
+    with js.runtime.CountCompilations() as count:
+        for rows in ([3], [1, 4, 2], [0, 2, 4, 6, 8], np.arange(9) % 3 == 0):
+            sub, result = scenes[np.asarray(rows)], ids[np.asarray(rows)]
+            assert isinstance(sub.xy, jax.Array) and isinstance(result.ids, jax.Array)
+            np.testing.assert_array_equal(np.asarray(sub.xy), np.asarray(scenes.xy)[np.asarray(rows)])
+            np.testing.assert_array_equal(np.asarray(result.ok), np.asarray(ids.ok)[np.asarray(rows)])
+            padded = js.pad_with_empty(sub, sub.batch_size + 3)
+            assert padded.batch_size == sub.batch_size + 3 and not np.asarray(padded.valid)[-3:].any()
+    assert count.programs == 0
+    # inside a trace the gather is part of the program
+    traced = jax.jit(lambda s, r: s[r].xy)(scenes, np.array([2, 5]))
+    np.testing.assert_array_equal(np.asarray(traced), np.asarray(scenes.xy)[[2, 5]])

@@ -25,6 +25,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -160,8 +161,12 @@ def name_at_fitted_focal(db, scenes: Scene, result: Identification, laddered: np
         return result
     at, src = rows[better], np.flatnonzero(better)
 
-    def merged(old, new):
-        return None if old is None else jnp.asarray(old).at[at].set(jnp.asarray(new)[src])
+    def merged(old, new):  # on the host: no program per row count
+        if old is None:
+            return None
+        out = np.array(old)
+        out[at] = np.asarray(new)[src]
+        return jax.device_put(out)
 
     return Identification(ids=merged(result.ids, again.ids), ok=result.ok,
                           attitude=merged(result.attitude, again.attitude),

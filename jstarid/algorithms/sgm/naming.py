@@ -134,8 +134,9 @@ def names_from_match(db, scenes: Scene, g: ImageGraph, res: SearchOutcome, confi
 
 def _merge(result: Identification, sub: Identification, rows: np.ndarray) -> Identification:
     """``result`` with the scenes ``rows`` replaced by ``sub``'s (R rows, in that order)."""
-    return Identification(ids=jnp.asarray(result.ids).at[rows].set(sub.ids),
-                          ok=jnp.asarray(result.ok).at[rows].set(sub.ok), attitude=None)
+    ids, ok = np.array(result.ids), np.array(result.ok)  # on the host: no program per row count
+    ids[rows], ok[rows] = np.asarray(sub.ids), np.asarray(sub.ok)
+    return Identification(ids=jax.device_put(ids), ok=jax.device_put(ok), attitude=None)
 
 
 def verify_claims(db, scenes: Scene, result: Identification, main, config: Config):
