@@ -21,13 +21,13 @@ def take_batch_rows(tree, index):
 
     An int keeps a batch axis of 1. An index array (or mask) is gathered on the host: the host
     loops of the search and the finishing stage pick sub-batches of every length, and an eager
-    gather on device arrays compiles a program for each new length (dozens per call of fresh
-    scenes); the rows go back to the device as they came (a device array stays one).
+    gather on device arrays compiles a program for each new length; the rows go back to the device
+    as they came (a device array stays one). Inside a trace the gather is part of the program.
     """
     if isinstance(index, int | np.integer):
         index = slice(int(index), int(index) + 1)
     traced = any(isinstance(x, jax.core.Tracer) for x in (index, *jax.tree_util.tree_leaves(tree)))
-    if isinstance(index, slice) or traced:  # inside a trace: the gather is part of the program
+    if isinstance(index, slice) or traced:
         return jax.tree_util.tree_map(lambda a: a[index], tree)
     index = np.asarray(index)
 

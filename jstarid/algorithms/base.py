@@ -114,7 +114,7 @@ from jstarid.serialization import to_json
 __all__ = ["Algorithm", "DiagnosticsFields", "HOOKS", "Hook", "REQUIRED", "cache_key", "camera_problem",
            "check_algorithm", "check_scenes", "config_for_camera", "database_info", "declares",
            "default_config", "first_compile_seconds", "first_use", "frame_settings", "identify_grid",
-           "presets", "reported", "scoring_radius_deg", "tolerance_rad"]
+           "paper_algorithm", "presets", "reported", "scoring_radius_deg", "tolerance_rad"]
 
 REQUIRED = ("Config", "Tuning", "Database", "Diagnostics", "build_database", "identify")
 
@@ -334,6 +334,16 @@ def default_config(module: ModuleType, camera=None, *, preset: str | None = None
     config = module.Config(**overrides) if camera is None else config_for_camera(module, camera, **overrides)
     settings = frame_settings(module) if frames else {}
     return dataclasses.replace(config, **settings) if settings else config
+
+
+def paper_algorithm(config):
+    """``config`` with the settings ``Config.paper()`` changes from ``Config()`` — the paper's
+    algorithm, our extensions off — and every other field as given (what a camera or a preset
+    chose: tolerances, RpNet's network)."""
+    cls = type(config)
+    default, paper = cls(), cls.paper()
+    return dataclasses.replace(config, **{f.name: getattr(paper, f.name) for f in dataclasses.fields(cls)
+                                          if getattr(paper, f.name) != getattr(default, f.name)})
 
 
 def scoring_radius_deg(config) -> float:

@@ -81,6 +81,7 @@ def _config(experiment, args):
     if not (args.paper_algorithm or args.set):
         return None
     import jstarid as js
+    from jstarid.algorithms.base import paper_algorithm
     from jstarid.experiment import with_overrides
 
     config = js.engine.default_config(experiment.paper, rpnet_network=args.rpnet_network,
@@ -88,17 +89,6 @@ def _config(experiment, args):
     if args.paper_algorithm:
         config = paper_algorithm(config)
     return with_overrides(config, args.set)
-
-
-def paper_algorithm(config):
-    """``config`` with the settings ``Config.paper()`` changes from ``Config()`` (the paper's
-    algorithm, our extensions off); what the camera or the network preset chose is kept."""
-    import dataclasses
-
-    cls = type(config)
-    default, paper = cls(), cls.paper()
-    return dataclasses.replace(config, **{f.name: getattr(paper, f.name) for f in dataclasses.fields(cls)
-                                          if getattr(paper, f.name) != getattr(default, f.name)})
 
 
 def report_text(reproduce: Path, sweeps: list[Path], *, title: bool = True) -> str:

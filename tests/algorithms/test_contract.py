@@ -80,10 +80,7 @@ def world(name: str) -> World:
 
 def _paper(w: World):
     """The world's config with the settings ``Config.paper()`` changes from ``Config()``."""
-    default, paper = w.algo.Config(), w.algo.Config.paper()
-    changed = {f.name: getattr(paper, f.name) for f in dataclasses.fields(paper)
-               if getattr(paper, f.name) != getattr(default, f.name)}
-    return dataclasses.replace(w.config, **changed)
+    return base.paper_algorithm(w.config)
 
 
 def _clean_scenes(w: World, n: int, seed: int):
