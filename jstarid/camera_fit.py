@@ -73,7 +73,7 @@ from jstarid.robust import brighter_than_named, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
-from jstarid.runtime.padding import columns_in_use, next_power_of_two, padded_indices
+from jstarid.runtime.padding import call_width, columns_in_use, next_power_of_two, padded_indices
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import pad_with_empty
 
@@ -573,7 +573,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
                    for a in (xy, named, ref))
 
     def width(call, filled):  # the columns a call needs, as a power of two ≥ CHECK_MIN_WIDTH
-        return min(n, next_power_of_two(int(filled[call.rows].max()), floor=CHECK_MIN_WIDTH))
+        return call_width(filled, call.rows, n, CHECK_MIN_WIDTH)
 
     def columns(call, few):
         return min(FEW_NAMES, n) if few else width(call, count)

@@ -39,7 +39,7 @@ from jstarid.geometry.angles import angle_between
 from jstarid.robust import magnitude_offsets, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
-from jstarid.runtime.padding import columns_in_use, next_power_of_two
+from jstarid.runtime.padding import call_width, columns_in_use, next_power_of_two
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
@@ -217,7 +217,7 @@ def _cut_to_filled(per_scene: tuple, filled: np.ndarray, call) -> tuple:
     valid, mag, ids, then the tolerance), the detection arrays cut to the columns its scenes fill
     (:data:`EXTEND_MIN_WIDTH`); the columns cut hold no detection, so they could take no name."""
     taken = take_rows(per_scene, call, mode="edge")
-    cut = min(int(taken[3].shape[1]), next_power_of_two(int(filled[call.rows].max()), floor=EXTEND_MIN_WIDTH))
+    cut = call_width(filled, call.rows, taken[3].shape[1], EXTEND_MIN_WIDTH)
     return (*taken[:3], *(a[:, :cut] for a in taken[3:7]), *taken[7:])
 
 

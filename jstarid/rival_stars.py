@@ -51,7 +51,7 @@ from jstarid.geometry.angles import angle_between
 from jstarid.robust import magnitude_offsets, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
-from jstarid.runtime.padding import columns_in_use, next_power_of_two
+from jstarid.runtime.padding import call_width, columns_in_use
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, cell_of
@@ -177,7 +177,7 @@ def without_rivalled_names(result: Identification, scenes: Scene, *, stars, came
                  fitted(result.focal_scale, 1.0), fitted(result.distortion_k1, 0.0))
 
     def args(call):  # each call cut to the columns its detections fill (as the camera check's)
-        cut = min(n, next_power_of_two(int(filled[call.rows].max()), floor=CHECK_MIN_WIDTH))
+        cut = call_width(filled, call.rows, n, CHECK_MIN_WIDTH)
         xy, valid_c, mag, ids_c, *rest = take_rows(per_scene, call)
         return (xy[:, :cut], valid_c[:, :cut], mag[:, :cut], ids_c[:, :cut], *rest)
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jstarid as js
-from jstarid.runtime import columns_in_use, skip_padding
+from jstarid.runtime import call_width, columns_in_use, skip_padding
 from jstarid.runtime.pairs import _spread
 
 
@@ -303,3 +303,11 @@ def test_count_compilations_counts_each_new_program_once():
 def test_columns_in_use_is_one_past_the_last_valid_entry():
     valid = np.array([[1, 0, 1, 0, 0], [0, 0, 0, 0, 0], [1, 1, 1, 1, 1], [0, 0, 0, 0, 1]], bool)
     np.testing.assert_array_equal(columns_in_use(valid), [3, 0, 5, 5])
+
+
+def test_call_width_is_a_power_of_two_covering_the_rows_and_at_most_the_columns():
+    filled = np.array([3, 0, 40, 70, 5])
+    assert call_width(filled, np.array([0, 1, 4]), 128, 32) == 32  # the floor
+    assert call_width(filled, np.array([0, 2]), 128, 32) == 64
+    assert call_width(filled, np.array([3]), 128, 32) == 128
+    assert call_width(filled, np.array([3]), 96, 32) == 96  # never past the columns there are

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["call_size", "columns_in_use", "next_power_of_two", "pad_rows", "padded_indices",
+__all__ = ["call_size", "call_width", "columns_in_use", "next_power_of_two", "pad_rows", "padded_indices",
            "power_of_two_chunks"]
 
 MAX_PADDING = 0.25  # power_of_two_chunks: most padding of a last chunk, as a share of its rows
@@ -75,6 +75,13 @@ def columns_in_use(valid) -> np.ndarray:
     (0 for an empty row): the width a call must keep when it cuts trailing padding columns."""
     valid = np.asarray(valid, bool)
     return np.where(valid.any(axis=1), valid.shape[1] - np.argmax(valid[:, ::-1], axis=1), 0)
+
+
+def call_width(filled: np.ndarray, rows: np.ndarray, n: int, floor: int) -> int:
+    """The columns a call of ``rows`` keeps when it cuts trailing padding columns: the most any of
+    them fills (``filled``, :func:`columns_in_use`), as a power of two ≥ ``floor`` (a few widths, so
+    a few programs), at most the ``n`` there are."""
+    return min(int(n), next_power_of_two(int(np.max(filled[rows], initial=0)), floor=floor))
 
 
 def padded_indices(rows: np.ndarray, floor: int = 1) -> np.ndarray:
