@@ -12,8 +12,8 @@ from jstarid import cli
 def test_demo_runs_the_engine_and_writes_results(tmp_path, capsys):
     out = tmp_path / "demo"
     assert cli.main(["demo", "--algorithms", "oracle", "--scenes", "6", "--levels", "0,2",
-                     "--out", str(out), "--quiet"]) == 0
-    for name in ("config.json", "results.json", "table.md", "rates.png", "scenes.npz"):
+                     "--stars", "0-1000", "--out", str(out), "--quiet"]) == 0
+    for name in ("config.json", "results.json", "table.md", "rates.png", "scenes.npz", "table_stars.md"):
         assert (out / name).exists(), name
     rows = json.loads((out / "results.json").read_text())["rows"]
     assert [(r["label"], r["position_sigma_px"], r["scenes"]) for r in rows] == [
@@ -21,6 +21,7 @@ def test_demo_runs_the_engine_and_writes_results(tmp_path, capsys):
     text = capsys.readouterr().out
     assert text.startswith("jstarid demo: oracle on 2 levels × 6 scenes")
     assert "| oracle | 2 | 6 |" in text and "wrote" in text
+    assert "scenes with 0–1000 true stars" in text and "| oracle | 2 | 0–1000 | 6 |" in text
 
 
 @pytest.mark.slow
@@ -132,6 +133,8 @@ def test_reproduce_runs_the_papers_algorithm_with_settings():
     (["sweep", "--pixels", "--sensor", "exposure_s=-1"], "exposure_s must be a positive"),
     (["sweep", "--algorithms", "mlv,sgm", "--grid", "th1=0,1"], "exactly one algorithm"),
     (["sweep", "--set", "no_such_field=1"], "no algorithm in the run has"),
+    (["sweep", "--stars", "6-5"], "--stars takes LO-HI"),
+    (["demo", "--stars", "five"], "--stars takes LO-HI"),
     (["demo", "--bogus"], "unrecognized arguments"),
     (["reproduce", "moon"], "invalid choice"),
     (["report", "--reproduce", "/nonexistent", "--sweeps", "/nonexistent"], "no saved results"),

@@ -14,7 +14,7 @@ from scipy import stats
 
 import jstarid as js
 from jstarid.engine import levels as lv
-from jstarid.metrics import wilson_interval
+from jstarid.metrics import CORRECT, WRONG, wilson_interval
 
 
 def _mlv_entry(**changes):
@@ -99,6 +99,34 @@ def test_sweep_equals_direct_identify_calls(small):
         assert row["misid_rate"] == rep["misid_rate"] and row["failure_rate"] == rep["failure_rate"]
         assert row["identification_low"] <= row["identification_rate"] <= row["identification_high"]
     assert rows[0]["identification_rate"] == 1.0 and rows[0]["boresight_err_arcsec_median"] < 1.0
+
+
+def test_rows_of_the_scenes_with_so_many_true_stars(small, tmp_path):
+    """``rows(stars=(lo, hi))`` scores only the scenes with lo … hi true stars among their detections,
+    counted here from the scenes themselves."""
+    key_scenes, _ = jax.random.split(jax.random.key(4))
+    noise = js.noise_grid(12, position_sigma_px=[0.0, 2.0], magnitude_sigma=0.3)
+    scenes = js.simulate(key_scenes, js.load_catalog(5.5), js.camera_preset("mlv2021"), noise,
+                         batch_size=24, capacity=64)
+    n_true = (np.asarray(scenes.valid) & (np.asarray(scenes.truth) >= 0)).sum(1)
+    np.testing.assert_array_equal(small.stars, n_true)
+    lo, hi = np.percentile(n_true, [25, 75]).astype(int)
+    chosen = (n_true >= lo) & (n_true <= hi)
+    assert 0 < chosen.sum() < 24  # a range that leaves some scenes out
+    rows = small.rows(stars=(lo, hi))
+    for row, level in zip(rows[2:], (0, 1), strict=True):
+        take = chosen & (small.level_of == level)
+        codes = small.scenes["outcome"][take, 1]
+        assert row["stars"] == f"{lo}–{hi}" and row["scenes"] == take.sum()
+        assert row["n_correct"] == np.sum(codes == CORRECT) and row["n_wrong"] == np.sum(codes == WRONG)
+        assert row["scenes_per_second"] == small.rows()[2 + level]["scenes_per_second"]
+    assert f"| {lo}–{hi} |" in small.table(stars=(lo, hi))
+    small.save(tmp_path)
+    assert js.load_sweep(tmp_path).rows(stars=(lo, hi)) == rows
+    with pytest.raises(ValueError, match="lo ≤ hi"):
+        small.rows(stars=(3, 2))
+    with pytest.raises(ValueError, match="no star counts"):
+        dataclasses.replace(small, stars=None).rows(stars=(1, 2))
 
 
 def test_chunking_and_seed(small):

@@ -89,6 +89,10 @@ def _scene_options(p, *, out: str, scenes: int, levels: str) -> None:
     p.add_argument("--criterion", choices=("strict", "mlv", "sgm", "rpnet"), default="strict",
                    help="what counts as identified (docs/conventions.md §5; default strict: ≥ 3 "
                         "correct, none wrong)")
+    p.add_argument("--stars", default=None, metavar="LO-HI",
+                   help="also tabulate only the scenes with LO to HI true stars among their "
+                        "detections (e.g. 5-6: sparse frames; a single number: exactly that many); "
+                        "printed after the full table and written to table_stars.md")
     p.add_argument("--chunk-size", type=int, default=256,
                    help="most scenes per identify call (bounds memory; default 256)")
     p.add_argument("--rpnet-network", choices=("quick", "table3"), default="quick",
@@ -162,6 +166,7 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     sensor, centroid = _pixel_options(args, camera)
     if args.scenes < 1 or args.chunk_size < 1 or args.capacity < 1:
         raise ValueError("--scenes, --chunk-size and --capacity must be ≥ 1")
+    stars = None if args.stars is None else star_range(args.stars)
     catalog = js.load_catalog(camera.mag_limit if args.mag_limit is None else args.mag_limit)
     js.engine.check_camera(algorithms, camera, catalog)  # before anything is built
     store = js.runtime.program_store
@@ -194,9 +199,30 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
         return 0
     out = result.save(args.out, title=f"jstarid {title}")
     print(result.table(), flush=True)
-    print(f"wrote {out}/ (table.md, rates.png, results.json, config.json, scenes.npz) in "
-          f"{time.perf_counter() - t0:.0f} s", flush=True)
+    written = "table.md, rates.png, results.json, config.json, scenes.npz"
+    if stars is not None:
+        sparse = result.table(f"jstarid {title}: scenes with {stars[0]}–{stars[1]} true stars", stars=stars)
+        (out / "table_stars.md").write_text(sparse)
+        print(sparse, flush=True)
+        written += ", table_stars.md"
+    print(f"wrote {out}/ ({written}) in {time.perf_counter() - t0:.0f} s", flush=True)
     return 0
+
+
+def star_range(text: str) -> tuple[int, int]:
+    """``"5-6"`` → (5, 6), ``"5"`` → (5, 5): the --stars option's range of true stars per scene.
+
+    Raises:
+        ValueError: not one or two integers with 0 ≤ LO ≤ HI.
+    """
+    parts = text.split("-")
+    try:
+        lo, hi = (int(parts[0]), int(parts[-1])) if len(parts) <= 2 else (None, None)
+    except ValueError:
+        lo = hi = None
+    if lo is None or not 0 <= lo <= hi:
+        raise ValueError(f"--stars takes LO-HI with 0 ≤ LO ≤ HI (or one number), got {text!r}")
+    return lo, hi
 
 
 def _pixel_options(args, camera):

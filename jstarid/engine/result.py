@@ -56,6 +56,9 @@ class SweepResult:
             mostly compilation on a first run) and ``peak_rss_mb`` (the process's peak after the
             entry ran).
         processes: JAX processes that ran it.
+        stars: (S,) int16 true stars among each scene's detections (valid detections whose truth is
+            a catalog star), or ``None`` for a sweep saved before it was recorded; ``rows(stars=…)``
+            reads it.
     """
 
     settings: dict
@@ -67,10 +70,12 @@ class SweepResult:
     timing: list
     processes: int = 1
     compile_seconds: np.ndarray | None = None
+    stars: np.ndarray | None = None
 
     @classmethod
-    def from_arrays(cls, *, entries, levels, level_of, arrays, timing, settings, processes=1):
-        """Build from the engine's arrays (``arrays["seconds"]`` (E, L), the rest (S, E))."""
+    def from_arrays(cls, *, entries, levels, level_of, arrays, timing, settings, processes=1, stars=None):
+        """Build from the engine's arrays (``arrays["seconds"]`` (E, L), the rest (S, E)) and the
+        scenes' (S,) true-star counts."""
         from jstarid.engine.entries import describe
 
         arrays = dict(arrays)
@@ -80,24 +85,37 @@ class SweepResult:
                    levels=[dict(lv) for lv in levels], level_of=np.asarray(level_of, np.int32),
                    scenes={k: np.asarray(v) for k, v in arrays.items()}, seconds=seconds,
                    timing=experiment.to_json(list(timing)), processes=int(processes),
-                   compile_seconds=None if compiled is None else np.asarray(compiled, np.float64))
+                   compile_seconds=None if compiled is None else np.asarray(compiled, np.float64),
+                   stars=None if stars is None else np.asarray(stars, np.int16))
 
     @property
     def labels(self) -> list[str]:
         return [e["label"] for e in self.entries]
 
-    def rows(self) -> list[dict[str, Any]]:
-        """The tidy table: one dict per (entry, level), entries outer, levels inner."""
+    def rows(self, stars: tuple[int, int] | None = None) -> list[dict[str, Any]]:
+        """The tidy table: one dict per (entry, level), entries outer, levels inner.
+
+        Args:
+            stars: ``(lo, hi)``: only the scenes with ``lo`` … ``hi`` true stars among their
+                detections (:attr:`stars`; each row then says so under ``"stars"``). Rates and
+                errors are over those scenes; ``seconds`` and the rates in scenes/s stay the
+                level's (timed over all its scenes).
+
+        Raises:
+            ValueError: ``stars`` on a result without star counts, or not ``0 ≤ lo ≤ hi``.
+        """
         out = []
         codes = self.scenes["outcome"]
+        chosen = self._with_stars(stars)
         for e, entry in enumerate(self.entries):
             for lv, level in enumerate(self.levels):
-                take = self.level_of == lv
+                take = (self.level_of == lv) & chosen
                 code = codes[take, e]
                 n = int(code.size)
                 counts = {name: int(np.sum(code == c)) for c, name in OUTCOME_NAMES.items()}
                 row = {"label": entry["label"], "algorithm": entry["algorithm"],
                        **entry.get("setting", {}), **level,
+                       **({} if stars is None else {"stars": f"{stars[0]}–{stars[1]}"}),
                        "scenes": n, **{f"n_{k}": v for k, v in counts.items()}}
                 for rate, k in (("identification", "correct"), ("misid", "wrong"),
                                 ("failure", "fail")):
@@ -114,27 +132,41 @@ class SweepResult:
                                                    else None)
                 row["mean_identified"] = float(np.mean(self.scenes["n_identified"][take, e])) if n else None
                 sec = float(self.seconds[e, lv])
+                timed = int(np.sum(self.level_of == lv))  # the level's scenes, all of them timed
                 row["seconds"] = sec
-                row["scenes_per_second"] = n / sec if sec > 0 else None
+                row["scenes_per_second"] = timed / sec if sec > 0 else None
                 compiled = None if self.compile_seconds is None else float(self.compile_seconds[e, lv])
                 row["compile_seconds"] = compiled
                 rest = None if compiled is None else sec - compiled
-                row["scenes_per_second_without_compile"] = n / rest if rest is not None and rest > 0 else None
+                row["scenes_per_second_without_compile"] = (timed / rest if rest is not None and rest > 0
+                                                            else None)
                 row["peak_rss_mb"] = self.timing[e]["peak_rss_mb"]
                 out.append(row)
         return out
 
-    def table(self, title: str | None = None) -> str:
-        """``rows()`` as markdown (rates in %, Wilson intervals in brackets)."""
+    def _with_stars(self, stars) -> np.ndarray:
+        """(S,) bool: the scenes ``rows(stars=…)`` counts."""
+        if stars is None:
+            return np.ones(self.level_of.shape, bool)
+        lo, hi = stars
+        if self.stars is None:
+            raise ValueError("this sweep has no star counts per scene (saved before they were recorded)")
+        if not (0 <= lo <= hi):
+            raise ValueError(f"stars must be (lo, hi) with 0 ≤ lo ≤ hi, got {stars}")
+        return (self.stars >= lo) & (self.stars <= hi)
+
+    def table(self, title: str | None = None, stars: tuple[int, int] | None = None) -> str:
+        """``rows(stars)`` as markdown (rates in %, Wilson intervals in brackets)."""
         axes = list(self.levels[0])
         rows = []
-        for r in self.rows():
+        for r in self.rows(stars):
             r = dict(r)
             for rate in ("identification", "misid"):
                 r[f"{rate}_ci"] = f"{100 * r[f'{rate}_low']:.1f}–{100 * r[f'{rate}_high']:.1f}"
             rows.append(r)
-        columns = [("label", "algorithm", "{}")] + [(a, a, "{:g}") for a in axes] + \
-                  [("scenes", "scenes", "{:,}")] + list(COLUMNS)
+        columns = ([("label", "algorithm", "{}")] + [(a, a, "{:g}") for a in axes]
+                   + ([] if stars is None else [("stars", "true stars", "{}")])
+                   + [("scenes", "scenes", "{:,}")] + list(COLUMNS))
         s = self.settings
         note = (f"Camera {s.get('camera', {}).get('name', '?')}, {s.get('boresight', '?')} boresights, "
                 f"criterion {s.get('criterion', '?')}, seed {s.get('seed', '?')}, fixed "
@@ -143,6 +175,9 @@ class SweepResult:
                 "XLA compile s: the part XLA spent compiling, and the rate without it (tracing "
                 "still included; experiments/bench_compile.py measures fresh-scene rates); peak MB: "
                 "the process's resident peak after the algorithm ran.")
+        if stars is not None:
+            note += (f" Only the scenes with {stars[0]}–{stars[1]} true stars among their detections; "
+                     "scenes/s over all the level's scenes.")
         if s.get("pixels"):
             note += (f" From pixels: frames rendered (sky to the camera's limit + "
                      f"{s.get('render_depth_mag', '?')} mag) and their centroids extracted, "
@@ -160,13 +195,15 @@ class SweepResult:
                    "compile_seconds": self.compile_seconds}
         out = experiment.write(out, config=config, results=results, table=self.table(title),
                                figures={"rates.png": plot_sweep} if figure else None)
-        np.savez_compressed(out / "scenes.npz", level_of=self.level_of, **self.scenes)
+        extra = {} if self.stars is None else {"n_stars": self.stars}
+        np.savez_compressed(out / "scenes.npz", level_of=self.level_of, **extra, **self.scenes)
         return out
 
     def equal_outcomes(self, other: SweepResult) -> bool:
         """Same levels, entries and per-scene outcome arrays (timings aside)."""
         return (self.labels == other.labels and self.levels == other.levels
                 and np.array_equal(self.level_of, other.level_of)
+                and (self.stars is None or other.stars is None or np.array_equal(self.stars, other.stars))
                 and all(np.array_equal(self.scenes[k], other.scenes[k], equal_nan=True)
                         for k in self.scenes))
 
@@ -184,10 +221,12 @@ def load(out: str | Path) -> SweepResult:
     with np.load(out / "scenes.npz") as z:
         arrays = {k: z[k] for k in z.files}
     level_of = arrays.pop("level_of")
+    stars = arrays.pop("n_stars", None)
     return SweepResult(settings=config["settings"], entries=config["entries"],
                        levels=config["levels"], level_of=level_of, scenes=arrays,
                        seconds=np.asarray(results["seconds"], np.float64), timing=results["timing"],
                        processes=config.get("processes", 1),
                        compile_seconds=(None if results.get("compile_seconds") is None
-                                        else np.asarray(results["compile_seconds"], np.float64)))
+                                        else np.asarray(results["compile_seconds"], np.float64)),
+                       stars=stars)
 

@@ -389,9 +389,11 @@ def compare(scenes: Scene, algorithms: Sequence | str, catalog, camera: Camera, 
     # (P, E, L) → (E, L): every process's seconds at each level, added
     spent = processes.gather({"s": seconds[None], "c": compile_seconds[None]}, processes.process_count())
     merged["seconds"], merged["compile_seconds"] = spent["s"].sum(0), spent["c"].sum(0)
+    valid, truth = (np.asarray(a) for a in jax.device_get((scenes.valid, scenes.truth)))
     return SweepResult.from_arrays(entries=entries, levels=levels, level_of=level_of, arrays=merged,
                                    timing=timing, settings=dict(settings or {}),
-                                   processes=processes.process_count())
+                                   processes=processes.process_count(),
+                                   stars=np.sum(valid & (truth >= 0), axis=1))
 
 
 def plan(algorithms: Sequence | str, catalog, camera: Camera, *, rpnet_network: str | None = None,
