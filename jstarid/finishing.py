@@ -10,9 +10,11 @@ and configured by one nested config, :class:`Finishing` (``Config.finishing`` of
    every triangle of their brightest ``hypotheses`` detections, each verified against the frame
    (:mod:`jstarid.hypotheses`); a claim must pass the false-match test. Where false detections as
    bright as the stars outnumber them, the algorithm's pattern is mostly false; five stars anywhere
-   among the detections are enough here. Skipped where the camera's catalog has too many triangles
-   per frame (:func:`jstarid.triangle_index.index_problem`; the papers' wide cameras): such fields
-   hold dozens of stars.
+   among the detections are enough here. A sparse field's deep catalog is searched over its
+   brightest star per sky cell (:func:`jstarid.triangle_index.stars_that_fit`); skipped where a
+   denser field's catalog has too many triangles per frame
+   (:func:`jstarid.triangle_index.index_problem`; the papers' wide cameras): such fields hold dozens
+   of stars.
 1. **Focal-length ladder** (``focal_search``): the scenes the algorithm left unsolved are tried again
    as if the focal length were each factor × the camera's, in order
    (:func:`jstarid.camera_fit.search_focal`). Features that are angles (triangle singular values,
@@ -223,7 +225,7 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
     # the rows as steps 2b and 3 read them (hashed once: the key of their sky indexes)
     stars = _table(star_vectors, star_mags) if b and (config.rival_odds or config.confirm_names) else None
     if b and config.hypotheses:
-        result, searched, search_overflow = _search(result, scenes, config, camera, star_vectors)
+        result, searched, search_overflow = _search(result, scenes, config, camera, star_vectors, star_mags)
         if search_overflow.any():
             warnings.warn(f"{int(search_overflow.sum())} scene(s): the hypothesis search found more "
                           "hypotheses than it verifies and left the rest (Finished.search_overflow; "
@@ -245,14 +247,14 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
     return Finished(result=result, laddered=laddered, searched=searched, search_overflow=search_overflow)
 
 
-def _search(result, scenes, config: Finishing, camera, star_vectors) -> SearchOutcome:
+def _search(result, scenes, config: Finishing, camera, star_vectors, star_mags) -> SearchOutcome:
     """Step 0 (:func:`jstarid.hypotheses.solve_unsolved`), or the result as it is where the catalog has
     too many triangles per frame (a wide or deep field: many stars per frame, which the algorithms'
     own patterns find among clutter)."""
     try:
         return solve_unsolved(result, scenes, star_vectors=star_vectors, camera=camera,
                               n_use=config.hypotheses, eps_px=config.hypothesis_eps_px, min_confirm=1,
-                              max_false_match=config.hypothesis_false_match)
+                              max_false_match=config.hypothesis_false_match, star_mags=star_mags)
     except TooManyTriangles:
         nothing = np.zeros(scenes.batch_size, bool)
         return SearchOutcome(result, nothing, nothing)

@@ -32,7 +32,9 @@ is the host entry the finishing stage calls.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import hashlib
 import itertools
 import math
 from typing import NamedTuple
@@ -49,13 +51,19 @@ from jstarid.runtime import padded_indices
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
-from jstarid.triangle_index import TriangleIndex, build_triangle_index, query
+from jstarid.triangle_index import TriangleIndex, build_triangle_index, query, stars_that_fit
 
 __all__ = ["SearchOutcome", "Searched", "all_triples", "search_scene", "solve_unsolved"]
 
 TRIPLE_CHUNK = 512  # triples vmapped together inside a scene's lax.map
 HYPOTHESIS_CHUNK = 128  # hypotheses verified together
 SCENE_CHUNK = 64  # scenes per compiled call
+# A deep catalog is searched over its brightest star per sky cell only where a frame holds at most
+# this many catalog stars on average: a sparse field, whose few stars a brightest-detections pattern
+# loses among clutter (a 6° field at V 7.2: 13). Denser fields (the papers' cameras: 25–50) hold
+# patterns enough for the algorithms' own steps, and keep their results and cost without the search.
+SPARSE_STARS_PER_FRAME = 20.0
+SKY_DEG2 = 4 * math.pi * (180 / math.pi) ** 2  # the whole sky (deg²)
 
 
 class Searched(NamedTuple):
@@ -183,6 +191,21 @@ def padded_triples(n: int) -> np.ndarray:
     return np.concatenate([triples, np.repeat(triples[:1], extra, 0)])
 
 
+def _search_index(vectors: np.ndarray, star_mags, camera, eps_rad: float) -> TriangleIndex:
+    """The triangle index of the search: of every row, or (a sparse field's deep catalog, ``star_mags``
+    given) of the rows :func:`~jstarid.triangle_index.stars_that_fit` keeps, its stars numbered as
+    rows of ``vectors`` (which verification names from)."""
+    per_frame = vectors.shape[0] * camera.fov_x_deg * camera.fov_y_deg / SKY_DEG2
+    if star_mags is None or per_frame > SPARSE_STARS_PER_FRAME:
+        return build_triangle_index(vectors, camera, eps_rad)
+    kept = stars_that_fit(vectors, star_mags, camera)
+    index = build_triangle_index(vectors[kept], camera, eps_rad)
+    if kept.size == vectors.shape[0]:
+        return index
+    whole = hashlib.sha1(np.ascontiguousarray(vectors).tobytes()).hexdigest()[:16]
+    return dataclasses.replace(index, stars=jnp.asarray(kept)[index.stars], key=f"{index.key}-in-{whole}")
+
+
 def _sky_cells(star_vectors: np.ndarray, index: TriangleIndex, camera, eps_rad: float):
     """The sky index of the catalog for the camera (memoised by :func:`build_sky_index`): the stars any
     boresight can see, out to 4 ε past the field (a TRIAD attitude's error)."""
@@ -210,7 +233,7 @@ class SearchOutcome(NamedTuple):
 
 def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camera, n_use: int,
                    eps_px: float, min_confirm: int, max_false_match: float, capacity: int = 4096,
-                   per_triple: int = 16) -> SearchOutcome:
+                   per_triple: int = 16, star_mags=None) -> SearchOutcome:
     """The search on every scene ``result`` leaves unsolved; claims pass the false-match test.
 
     Args:
@@ -225,12 +248,17 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
         capacity: hypotheses verified per scene. per_triple: matching triangles kept per triple.
             (4,096 and 16: no scene of 128 with 40 false detections on ``challenge10`` overflowed;
             2,048 and 4 left 23 unfinished, and verifying costs ≈ 25 % more at 4,096.)
+        star_mags: (M,) V of the rows (mag). Given, a catalog with too many triangles per frame of
+            a sparse field (at most :data:`SPARSE_STARS_PER_FRAME` stars a frame: a deep catalog on
+            a narrow camera) is searched over the triangles of its brightest star per sky cell
+            (:func:`jstarid.triangle_index.stars_that_fit`), still verified against every row.
 
     Returns:
         :class:`SearchOutcome`.
 
     Raises:
-        jstarid.triangle_index.TooManyTriangles: the catalog has too many triangles per frame.
+        jstarid.triangle_index.TooManyTriangles: the catalog (or, with ``star_mags``, its chosen
+            stars) has too many triangles per frame.
     """
     ok = np.asarray(result.ok)
     b = ok.shape[0]
@@ -238,7 +266,7 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
     solved, overflow = np.zeros(b, bool), np.zeros(b, bool)
     eps_rad = float(eps_px) / camera.f_px
     vectors = np.asarray(star_vectors, np.float32)
-    index = build_triangle_index(vectors, camera, eps_rad) if rows.size else None
+    index = _search_index(vectors, star_mags, camera, eps_rad) if rows.size else None
     if index is None or index.size == 0:  # nothing to search, or no three stars fit in a frame
         return SearchOutcome(result, solved, overflow)
     cells, grid = _sky_cells(vectors, index, camera, eps_rad)

@@ -17,7 +17,7 @@ import numpy as np
 
 from jstarid.runtime import device_cache
 
-__all__ = ["SkyIndex", "build_sky_index", "cell_of", "local_stars"]
+__all__ = ["SkyIndex", "brightest_per_cell", "build_sky_index", "cell_of", "local_stars"]
 
 _MEMO: dict = {}
 
@@ -67,6 +67,28 @@ def cell_of(direction, grid: int):
     iu = jnp.clip(jnp.floor((u + 1.0) * 0.5 * grid), 0, grid - 1).astype(jnp.int32)
     iv = jnp.clip(jnp.floor((v + 1.0) * 0.5 * grid), 0, grid - 1).astype(jnp.int32)
     return (face * grid * grid + iu * grid + iv).astype(jnp.int32)
+
+
+def brightest_per_cell(vectors, grid: int, per_cell: int, rows) -> np.ndarray:
+    """The first ``per_cell`` of ``rows`` (sorted brightest first) in each cube-map sky cell.
+
+    Args:
+        vectors: (R, 3) unit vectors of ``rows``.
+        grid: cells per cube-face side (:func:`jstarid.sky_index.cell_of`; 6·grid² cells).
+        per_cell: stars kept per cell.
+        rows: (R,) catalog rows, brightest first.
+
+    Returns:
+        (≤ R,) int32 the kept rows, in their input order (brightest first).
+    """
+    rows = np.asarray(rows)
+    cell = np.asarray(cell_of(np.asarray(vectors, np.float64), grid))
+    order = np.argsort(cell, kind="stable")  # by cell, brightest first within each cell
+    sorted_cells = cell[order]
+    first = np.searchsorted(sorted_cells, sorted_cells, side="left")
+    rank = np.empty(len(rows), np.int64)
+    rank[order] = np.arange(len(rows)) - first  # brightness rank of each star within its cell
+    return rows[rank < per_cell].astype(np.int32)
 
 
 def local_stars(cells, star_vectors, boresight, grid: int):

@@ -30,10 +30,14 @@ import numpy as np
 from jstarid.geometry.angles import angle_between_host
 from jstarid.geometry.star_pairs import frame_pair_angle, pair_table
 
-__all__ = ["MAX_TRIANGLES", "TooManyTriangles", "TriangleIndex", "build_triangle_index", "expected_triangles",
-           "index_problem", "query"]
+__all__ = ["MAX_TRIANGLES", "SEARCH_TRIANGLES", "TooManyTriangles", "TriangleIndex", "build_triangle_index",
+           "expected_triangles", "index_problem", "query", "stars_that_fit"]
 
 MAX_TRIANGLES = 6_000_000  # ≈ 170 MB of table: beyond it the catalog is too deep for the field
+# the triangles a deep catalog's brightest stars per sky cell are chosen to give (stars_that_fit):
+# three quarters of the cap: the uniform-sky estimate only approximates the count (it overestimated an
+# even selection by a third on challenge6)
+SEARCH_TRIANGLES = MAX_TRIANGLES * 3 // 4
 _MEMO: dict = {}
 
 
@@ -86,6 +90,46 @@ def index_problem(n_stars: int, camera) -> str | None:
         return (f"about {expected:,.0f} catalog triangles fit in a {camera.name} frame (more than "
                 f"{MAX_TRIANGLES:,}); the hypothesis search needs a brighter catalog")
     return None
+
+
+def stars_that_fit(vectors, mags, camera, budget: float | None = None) -> np.ndarray:
+    """The catalog rows whose triangles an index for ``camera`` can hold: every row where the catalog's
+    triangles per frame fit ``budget``, else the brightest few of each sky cell.
+
+    A magnitude cut would leave the sparse parts of the sky with too few stars for a triangle; the
+    brightest star of each sky cell gives every frame about the same number, spread evenly. The
+    cells are the finest whose stars' expected triangles (:func:`expected_triangles`) fit ``budget``.
+
+    Args:
+        vectors: (M, 3) ICRS unit vectors. mags: (M,) their V (mag).
+        camera: the :class:`~jstarid.camera.Camera`.
+        budget: the most triangles per frame wanted (default :data:`SEARCH_TRIANGLES`).
+
+    Returns:
+        (K,) int32 rows, ascending (all M where they fit).
+    """
+    from jstarid.sky_index import brightest_per_cell
+
+    budget = SEARCH_TRIANGLES if budget is None else budget
+    vectors, mags = np.asarray(vectors, np.float64), np.asarray(mags)
+    n = vectors.shape[0]
+    max_side = frame_pair_angle(camera)
+    if expected_triangles(n, max_side) <= budget:
+        return np.arange(n, dtype=np.int32)
+    order = np.argsort(mags, kind="stable")
+    by_brightness = vectors[order]
+
+    def brightest(grid):  # the brightest star of each of the 6 · grid² cells
+        return brightest_per_cell(by_brightness, grid, 1, order)
+
+    lo, hi = 1, 2  # cells per cube-face side: lo fits the budget; hi (once found) does not
+    while expected_triangles(brightest(hi).size, max_side) <= budget:
+        lo, hi = hi, 2 * hi
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if expected_triangles(brightest(mid).size, max_side) <= budget else (lo, mid)
+    kept = brightest(lo)
+    return np.sort(kept).astype(np.int32)
 
 
 def _triangles(vectors: np.ndarray, max_side: float, camera) -> np.ndarray:

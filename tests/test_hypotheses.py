@@ -9,10 +9,19 @@ import numpy as np
 import pytest
 
 import jstarid as js
+from jstarid import triangle_index
 from jstarid.finishing import Finishing, finish
+from jstarid.geometry.star_pairs import frame_pair_angle
 from jstarid.hypotheses import solve_unsolved
 from jstarid.scene import Identification
-from jstarid.triangle_index import TooManyTriangles, build_triangle_index, index_problem, query
+from jstarid.triangle_index import (
+    TooManyTriangles,
+    build_triangle_index,
+    expected_triangles,
+    index_problem,
+    query,
+    stars_that_fit,
+)
 
 
 def _cap_stars(n, radius_deg, seed):
@@ -80,6 +89,52 @@ def clutter_setup(catalog6):
     cam = js.Camera(width=1280, height=960, f_px=1280 / (2 * math.tan(math.radians(4.0))), mag_limit=6.0,
                     name="clutter8")
     return catalog6, cam
+
+
+def test_a_deep_catalogs_search_stars_cover_every_frame_evenly(clutter_setup):
+    """``stars_that_fit``: within the budget, and more frames hold three of them than hold three of a
+    magnitude cut as large (counted over random boresights with NumPy)."""
+    cat, cam = clutter_setup
+    assert np.array_equal(stars_that_fit(cat.unit_vectors, cat.mag, cam, budget=1e12), np.arange(len(cat)))
+    budget = 200_000
+    kept = stars_that_fit(cat.unit_vectors, cat.mag, cam, budget=budget)
+    assert expected_triangles(kept.size, frame_pair_angle(cam)) <= budget < expected_triangles(
+        len(cat), frame_pair_angle(cam))
+    assert np.all(np.diff(kept) > 0)
+    cut = np.argsort(cat.mag, kind="stable")[:kept.size]
+    hemisphere = np.where(np.random.default_rng(8).random(3000) < 0.5, 1, -1)[:, None]
+    boresights = _cap_stars(3000, 90.0, 7) * hemisphere  # uniform over the sky
+    inside = boresights @ np.asarray(cat.unit_vectors).T > math.cos(math.radians(5.0))  # a 10° circle
+
+    def three_or_more(rows):
+        return np.mean(inside[:, rows].sum(1) >= 3)
+
+    assert three_or_more(kept) > three_or_more(cut) + 0.08  # 0.94 against 0.82
+
+
+def test_a_sparse_fields_deep_catalog_is_searched_over_its_brightest_star_per_cell(clutter_setup,
+                                                                                   monkeypatch):
+    """Where the catalog has too many triangles per frame (here: a lowered cap), the search indexes
+    the brightest star of each sky cell and still names every star of the catalog from it."""
+    cat, cam = clutter_setup
+    monkeypatch.setattr(triangle_index, "_MEMO", {})  # no refusal or index left for the other tests
+    monkeypatch.setattr(triangle_index, "MAX_TRIANGLES", 400_000)
+    monkeypatch.setattr(triangle_index, "SEARCH_TRIANGLES", 300_000)
+    kept = stars_that_fit(cat.unit_vectors, cat.mag, cam)
+    assert kept.size < 0.8 * len(cat)
+    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=10, false_mag_min=1.0, false_mag_max=6.0)
+    scenes = js.simulate(jax.random.key(9), cat, cam, noise, batch_size=8, capacity=48)
+    failed = Identification(ids=np.full((8, 48), -1, np.int32), ok=np.zeros(8, bool), attitude=None)
+    search = dict(star_vectors=cat.unit_vectors, camera=cam, n_use=32, eps_px=3.0, min_confirm=1,
+                  max_false_match=1e-3)
+    with pytest.raises(TooManyTriangles):
+        solve_unsolved(failed, scenes, **search)
+    result, solved, _ = solve_unsolved(failed, scenes, **search, star_mags=cat.mag)
+    truth, ids = np.asarray(scenes.truth), np.asarray(result.ids)
+    assert solved.sum() >= 5
+    assert not np.any((ids >= 0) & (ids != truth))  # no wrong name anywhere
+    named = ids[ids >= 0]
+    assert not np.isin(named, kept).all()  # stars outside the index named from the attitude
 
 
 def test_stars_among_many_false_detections_are_found_and_random_points_never_claimed(clutter_setup):

@@ -19,7 +19,7 @@ import pytest
 import jstarid as js
 from jstarid import Finishing
 from jstarid.algorithms import rpnet
-from jstarid.algorithms.rpnet import checkpoint, data, guide_catalog, inference, model, pattern, train
+from jstarid.algorithms.rpnet import checkpoint, data, inference, model, pattern, train
 from jstarid.algorithms.rpnet.identify import (
     PAIRS,
     _identify,
@@ -31,6 +31,7 @@ from jstarid.algorithms.rpnet.identify import (
 )
 from jstarid.algorithms.rpnet.tune import pair_tables, simplex_grid, weight_grid_search
 from jstarid.completion import name_stars
+from jstarid.sky_index import brightest_per_cell
 
 # ---------------------------------------------------------------- NumPy reference of eq. 3
 
@@ -139,7 +140,7 @@ def test_for_camera_gives_a_narrow_field_guides_per_sky_cell():
 def test_brightest_per_cell_matches_a_plain_loop(grid, per_cell):
     cat = js.load_catalog(5.0)
     rows = np.arange(len(cat))  # brightest first
-    kept = guide_catalog.brightest_per_cell(cat.unit_vectors, grid, per_cell, rows)
+    kept = brightest_per_cell(cat.unit_vectors, grid, per_cell, rows)
     # reference: walk the stars brightest first, counting per cell in a dict
     vec = np.asarray(cat.unit_vectors, np.float64)
     count, want = {}, []

@@ -54,12 +54,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import jstarid as js
 from jstarid.algorithms.rpnet.config import Config
 from jstarid.algorithms.rpnet.pattern import config_kwargs, initial_input
 from jstarid.catalog import FULL_DEPTH, with_simulation_depth
 from jstarid.runtime import device_cache
 from jstarid.runtime.program_store import stored_jit
+from jstarid.simulator import NoiseConfig, scene_sampler
 
 __all__ = ["Batch", "Tables", "build_tables", "family_noise", "make_batch", "scene_training_inputs"]
 
@@ -120,7 +120,7 @@ def build_tables(catalog, camera, config: Config, guide_rows) -> Tables:
     return Tables(guide_rows=guide_rows, clean=clean)
 
 
-def family_noise(batch_size: int, camera, config: Config) -> tuple[js.NoiseConfig, np.ndarray]:
+def family_noise(batch_size: int, camera, config: Config) -> tuple[NoiseConfig, np.ndarray]:
     """The fixed noise layout of a batch (module docstring): per-sample NoiseConfig and family codes."""
     t = config.training
     i = np.arange(batch_size)
@@ -129,7 +129,7 @@ def family_noise(batch_size: int, camera, config: Config) -> tuple[js.NoiseConfi
     mag = np.where(fam == 1, np.asarray(t.magnitude_sigmas)[j % len(t.magnitude_sigmas)], 0.0)
     miss = np.where(fam == 2, 1 + j % t.max_missing, 0)
     false = np.where(fam == 3, 1 + j % t.max_false, 0)
-    noise = js.NoiseConfig(
+    noise = NoiseConfig(
         position_sigma_px=pos.astype(np.float32), magnitude_sigma=mag.astype(np.float32),
         n_missing=miss.astype(np.int32), n_false=false.astype(np.int32),
         false_mag_min=float(t.false_mag_range[0]), false_mag_max=float(t.false_mag_range[1]),
@@ -217,11 +217,11 @@ def _batch_drawer(catalog, camera, config: Config, tables: Tables, batch_size: i
     else:
         parts, order = [np.arange(batch_size)], None
     with quiet:
-        samplers = [js.scene_sampler(deep, camera, _noise_subset(noise, idx), batch_size=len(idx),
+        samplers = [scene_sampler(deep, camera, _noise_subset(noise, idx), batch_size=len(idx),
                                      capacity=capacity, mode_b=True, detection=detection) for idx in parts]
     # under a model, the paper's scene of the same key counts the detections a scene keeps
     counters = [] if detection is None else [
-        js.scene_sampler(catalog, camera, _noise_subset(noise, idx), batch_size=len(idx),
+        scene_sampler(catalog, camera, _noise_subset(noise, idx), batch_size=len(idx),
                          capacity=capacity, mode_b=True) for idx in parts]
     arrays = (tuple(s.arrays for s in samplers), tuple(c.arrays for c in counters),
               jnp.asarray(tables.guide_rows, jnp.int32), tables.clean, jnp.asarray(fam))
@@ -259,9 +259,9 @@ def _batch_drawer(catalog, camera, config: Config, tables: Tables, batch_size: i
     return draw, arrays
 
 
-def _noise_subset(noise: js.NoiseConfig, idx) -> js.NoiseConfig:
+def _noise_subset(noise: NoiseConfig, idx) -> NoiseConfig:
     """The per-sample settings of ``noise`` at the batch positions ``idx`` (scalars kept)."""
     if len(idx) == np.size(noise.position_sigma_px):
         return noise
-    return js.NoiseConfig(**{f.name: (np.asarray(v)[idx] if np.ndim(v) == 1 else v)
+    return NoiseConfig(**{f.name: (np.asarray(v)[idx] if np.ndim(v) == 1 else v)
                              for f in dataclasses.fields(noise) for v in [getattr(noise, f.name)]})

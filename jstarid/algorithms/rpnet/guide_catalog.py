@@ -20,25 +20,26 @@ from __future__ import annotations
 
 import numpy as np
 
-import jstarid as js
 from jstarid.algorithms.rpnet.config import Config
+from jstarid.catalog import Catalog, load_catalog
+from jstarid.sky_index import brightest_per_cell
 
-__all__ = ["brightest_per_cell", "guide_rows", "load_guide_catalog"]
+__all__ = ["guide_rows", "load_guide_catalog"]
 
 PAPER_DOUBLE_SEP_DEG = 0.1  # close-pair threshold used for the RpNet catalog (≈ 7 px at f_px ≈ 4106)
 
 
 def load_guide_catalog(config: Config | None = None, *,
-                       double_sep_deg: float = PAPER_DOUBLE_SEP_DEG, **kwargs) -> js.Catalog:
+                       double_sep_deg: float = PAPER_DOUBLE_SEP_DEG, **kwargs) -> Catalog:
     """The Hipparcos catalog RpNet is built on: V ≤ ``guide_mag_limit``, close pairs reduced to one.
 
     The simulation list goes to V 7.0 (``sim_margin = 1``), the paper's magnitude-noise limit (§II-C.2).
     """
     config = Config() if config is None else config
-    return js.load_catalog(config.guide_mag_limit, double_sep_deg=double_sep_deg, **kwargs)
+    return load_catalog(config.guide_mag_limit, double_sep_deg=double_sep_deg, **kwargs)
 
 
-def guide_rows(catalog: js.Catalog, config: Config | None = None) -> np.ndarray:
+def guide_rows(catalog: Catalog, config: Config | None = None) -> np.ndarray:
     """Catalog rows of the guide stars, brightest first.
 
     Args:
@@ -75,27 +76,3 @@ def guide_rows(catalog: js.Catalog, config: Config | None = None) -> np.ndarray:
     if rows.size == 0:
         raise ValueError(f"no catalog star with V ≤ {config.guide_mag_limit}")
     return rows.astype(np.int32)
-
-
-def brightest_per_cell(vectors, grid: int, per_cell: int, rows) -> np.ndarray:
-    """The first ``per_cell`` of ``rows`` (sorted brightest first) in each cube-map sky cell.
-
-    Args:
-        vectors: (R, 3) unit vectors of ``rows``.
-        grid: cells per cube-face side (:func:`jstarid.sky_index.cell_of`; 6·grid² cells).
-        per_cell: stars kept per cell.
-        rows: (R,) catalog rows, brightest first.
-
-    Returns:
-        (≤ R,) int32 the kept rows, in their input order (brightest first).
-    """
-    from jstarid.sky_index import cell_of
-
-    rows = np.asarray(rows)
-    cell = np.asarray(cell_of(np.asarray(vectors, np.float64), grid))
-    order = np.argsort(cell, kind="stable")  # by cell, brightest first within each cell
-    sorted_cells = cell[order]
-    first = np.searchsorted(sorted_cells, sorted_cells, side="left")
-    rank = np.empty(len(rows), np.int64)
-    rank[order] = np.arange(len(rows)) - first  # brightness rank of each star within its cell
-    return rows[rank < per_cell].astype(np.int32)
