@@ -34,11 +34,15 @@ and configured by one nested config, :class:`Finishing` (``Config.finishing`` of
    pattern within the tolerances wherever the catalog is dense enough; a right attitude predicts the
    frame's other stars, a wrong one confirms only what chance puts near a catalog star.
 
+4. **Claims taken back, searched** (``hypotheses``): the scenes the algorithm (or the ladder) claimed
+   and a later step took back are searched as step 0 searches the unsolved ones
+   (:func:`search_lost`); among clutter such a claim was mostly false detections.
+
 An algorithm calls :func:`finish` with a ``rerun`` function (its own identification on moved
 centroids) and its catalog's rows; its own steps after the stage (SGM names the scenes the ladder
 solved again under the fitted focal length) read :attr:`Finished.laddered`; one whose own steps after
 the stage change the names (SGM) passes ``confirm=False`` and calls :func:`confirmed_by_the_frame`
-after them.
+and :func:`search_lost` after them.
 ``Finishing.off()`` is the papers' algorithms: none of the steps.
 """
 
@@ -64,7 +68,7 @@ from jstarid.runtime import padded_indices
 from jstarid.scene import Identification, Scene
 from jstarid.triangle_index import TooManyTriangles
 
-__all__ = ["Finished", "Finishing", "StarTable", "confirmed_by_the_frame", "finish"]
+__all__ = ["Finished", "Finishing", "StarTable", "confirmed_by_the_frame", "finish", "search_lost"]
 
 LADDER_STEP = 0.01  # the ladder's step: MLV's features tolerate about 1 % of focal length
 
@@ -185,12 +189,15 @@ class Finished(NamedTuple):
         searched: (B,) bool NumPy, the scenes the hypothesis search solved (before the check).
         search_overflow: (B,) bool NumPy, scenes the search could not finish: more hypotheses than
             it verifies (:class:`jstarid.hypotheses.SearchOutcome`).
+        claimed: (B,) bool NumPy, the scenes the algorithm or the ladder claimed (before the check):
+            where a later step takes such a claim back, :func:`search_lost` searches the scene.
     """
 
     result: Identification
     laddered: np.ndarray
     searched: np.ndarray
     search_overflow: np.ndarray
+    claimed: np.ndarray
 
 
 def finish(result: Identification, scenes: Scene, config: Finishing, *,
@@ -234,6 +241,7 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
         unsolved = ~np.asarray(result.ok)
         result = search_focal(rerun, result, scenes, camera, config.focal_search)
         laddered = unsolved & np.asarray(result.ok)
+    claimed = np.asarray(result.ok) & ~searched
     if b and config.fit_focal:
         result = check_identification(star_vectors, camera, scenes, result,
                                       max_scale_error=config.max_focal_error, max_tol_px=max_tol_px,
@@ -244,7 +252,82 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
                                             max_scale_error=config.max_focal_error)
     if b and config.confirm_names and confirm:
         result = confirmed_by_the_frame(result, scenes, config, stars=stars, camera=camera, tol_px=max_tol_px)
-    return Finished(result=result, laddered=laddered, searched=searched, search_overflow=search_overflow)
+    if b and confirm:
+        result, again = search_lost(result, scenes, config, claimed, camera=camera, star_vectors=star_vectors,
+                                    star_mags=star_mags, max_tol_px=max_tol_px, stars=stars)
+        searched = searched | again
+    return Finished(result=result, laddered=laddered, searched=searched, search_overflow=search_overflow,
+                    claimed=claimed)
+
+
+def search_lost(result: Identification, scenes: Scene, config: Finishing, claimed, *, camera, star_vectors,
+                star_mags=None, max_tol_px: float = MAX_TOL_PX,
+                stars=None) -> tuple[Identification, np.ndarray]:
+    """Step 4: the scenes whose claim a later step took back, searched as step 0 searches the unsolved.
+
+    An algorithm's claim that the camera check, the rival test or the confirmation takes back was
+    never searched (step 0 searches what the algorithm left unsolved): among clutter, its pattern
+    was mostly false detections — the same frames step 0 solves when the algorithm claims nothing.
+    The search's claims then pass the check, the rival test and the confirmation like any.
+    :func:`finish` runs this step last; an algorithm with steps of its own after the stage (SGM)
+    calls it after them, with :attr:`Finished.claimed`.
+
+    Args:
+        result: (B, N) :class:`~jstarid.scene.Identification` after the stage's other steps.
+        scenes: (B, N) :class:`~jstarid.scene.Scene` from ``camera``.
+        config: the :class:`Finishing` settings (``hypotheses`` 0: nothing is searched).
+        claimed: (B,) bool, the scenes claimed before the check (:attr:`Finished.claimed`).
+        camera, star_vectors, star_mags, max_tol_px: as in :func:`finish`.
+        stars: the rows as a :class:`StarTable` (default: built from ``star_vectors`` and
+            ``star_mags``).
+
+    Returns:
+        ``(result, solved)``: ``result`` with the scenes the search solved filled in, and (B,) bool
+        NumPy, those scenes.
+    """
+    b = scenes.batch_size
+    solved = np.zeros(b, bool)
+    rows = np.flatnonzero(np.asarray(claimed, bool) & ~np.asarray(result.ok))
+    if not (config.hypotheses and rows.size):
+        return result, solved
+    take = padded_indices(rows)
+    part, moved = result[take].failed(np.arange(take.size)), scenes[take]
+    outcome = _search(part, moved, config, camera, star_vectors, star_mags)
+    if not outcome.solved[:rows.size].any():
+        return result, solved
+    stars = stars if stars is not None else (
+        _table(star_vectors, star_mags) if config.rival_odds or config.confirm_names else None)
+    part = outcome.result
+    if config.fit_focal:
+        part = check_identification(star_vectors, camera, moved, part,
+                                    max_scale_error=config.max_focal_error, max_tol_px=max_tol_px,
+                                    star_mags=star_mags, studentized=config.studentized)
+        if config.rival_odds:
+            part = without_rivalled_names(part, moved, stars=stars, camera=camera, odds=config.rival_odds,
+                                          max_tol_px=max_tol_px, max_scale_error=config.max_focal_error)
+    if config.confirm_names and star_mags is not None:
+        part = confirmed_by_the_frame(part, moved, config, stars=stars, camera=camera, tol_px=max_tol_px)
+    won = np.asarray(part.ok)[:rows.size]
+    solved[rows[won]] = True
+    return (_filled(result, rows[won], part[np.flatnonzero(won)]) if won.any() else result), solved
+
+
+def _filled(result: Identification, rows: np.ndarray, part: Identification) -> Identification:
+    """``result`` with its scenes ``rows`` replaced by ``part``'s (R scenes), on the host; a fit
+    ``result`` lacks is NaN elsewhere."""
+    b = np.asarray(result.ok).shape[0]
+
+    def put(old, new, fill, tail=()):
+        if new is None:
+            return None if old is None else old
+        base = np.full((b, *tail), fill, np.float32) if old is None else np.array(old)
+        base[rows] = np.asarray(new)
+        return jnp.asarray(base)
+
+    return Identification(ids=put(result.ids, part.ids, -1), ok=put(result.ok, part.ok, False),
+                          attitude=put(result.attitude, part.attitude, np.nan, (3, 3)),
+                          focal_scale=put(result.focal_scale, part.focal_scale, np.nan),
+                          distortion_k1=put(result.distortion_k1, part.distortion_k1, np.nan))
 
 
 def _search(result, scenes, config: Finishing, camera, star_vectors, star_mags) -> SearchOutcome:

@@ -77,10 +77,11 @@ def test_finishing_off_returns_the_first_answer(world):
     catalog, camera, scenes, truth = world
     first = _first_pass(truth)
     calls = []
-    got, laddered, searched, overflow = finish(first, scenes, Finishing.off(),
-                                               rerun=_rerun_naming(truth, calls), camera=camera,
-                                               star_vectors=catalog.unit_vectors)
+    got, laddered, searched, overflow, claimed = finish(first, scenes, Finishing.off(),
+                                                        rerun=_rerun_naming(truth, calls), camera=camera,
+                                                        star_vectors=catalog.unit_vectors)
     assert got is first and not calls and not laddered.any() and not searched.any() and not overflow.any()
+    np.testing.assert_array_equal(claimed, np.asarray(first.ok))
 
 
 def test_check_alone_sets_focal_scale_and_leaves_failures(world):

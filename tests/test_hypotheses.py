@@ -1,5 +1,6 @@
 """The hypothesis search of the finishing stage: the triangle index against brute force, and clutter."""
 
+import dataclasses
 import itertools
 import math
 
@@ -135,6 +136,29 @@ def test_a_sparse_fields_deep_catalog_is_searched_over_its_brightest_star_per_ce
     assert not np.any((ids >= 0) & (ids != truth))  # no wrong name anywhere
     named = ids[ids >= 0]
     assert not np.isin(named, kept).all()  # stars outside the index named from the attitude
+
+
+def test_a_claim_the_check_takes_back_is_searched_again(clutter_setup):
+    """Step 4 (``finishing.search_lost``): scenes an algorithm claimed with names the camera check
+    cannot fit are searched like the unsolved ones, and named right; without the search they fail."""
+    cat, cam = clutter_setup
+    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=5, false_mag_min=1.0, false_mag_max=6.0)
+    scenes = js.simulate(jax.random.key(12), cat, cam, noise, batch_size=6, capacity=32)
+    truth = np.asarray(scenes.truth)
+    ids = np.full((6, 32), -1, np.int32)
+    ids[:, :4] = np.random.default_rng(4).choice(len(cat), (6, 4))  # four names of random stars
+    claims = Identification(ids=jnp.asarray(ids), ok=jnp.ones(6, bool), attitude=None)
+    stage = dict(rerun=None, camera=cam, star_vectors=cat.unit_vectors, star_mags=cat.mag)
+    # triples of the 16 brightest (a small search: the suite's optimisation level); 2b and 3 apart
+    config = Finishing(focal_search=(), hypotheses=16, rival_odds=0, confirm_names=0)
+    lost = finish(claims, scenes, dataclasses.replace(config, hypotheses=0), **stage)
+    assert not np.asarray(lost.result.ok).any()  # the check takes every claim back
+    found = finish(claims, scenes, config, **stage)
+    ok, got = np.asarray(found.result.ok), np.asarray(found.result.ids)
+    assert found.claimed.all() and ok.sum() >= 4
+    np.testing.assert_array_equal(found.searched, ok)
+    assert np.all(got[ok][got[ok] >= 0] == truth[ok][got[ok] >= 0])  # every name right
+    assert np.all(np.isfinite(np.asarray(found.result.focal_scale)[ok]))  # checked like any claim
 
 
 def test_stars_among_many_false_detections_are_found_and_random_points_never_claimed(clutter_setup):

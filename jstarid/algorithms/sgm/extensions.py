@@ -14,6 +14,8 @@ In the order they run, each a ``Config`` field and off in ``Config.paper()``:
    whole circle is named stay solved.
 5. :func:`confirmed_by_the_frame` (``finishing.confirm_names``, ``confirm_false_match``): a scene
    that names few stars stays solved only where the rest of the frame confirms its attitude.
+6. :func:`search_lost` (``finishing.hypotheses``): the scenes whose claim steps 2–5 took back are
+   searched over their detections' triangles, as step 2 searches the unsolved ones.
 
 Each step takes the pass it may run again as ``search(scenes, config, main_rank=0) ->
 Identification``: Algorithm 1 with names and verification (``identify``'s first step).
@@ -38,7 +40,7 @@ from jstarid.finishing import finish
 from jstarid.runtime import padded_indices
 from jstarid.scene import Identification, Scene
 
-__all__ = ["Search", "camera_check_cap_px", "confirmed_by_the_frame", "finishing_stage",
+__all__ = ["Search", "camera_check_cap_px", "confirmed_by_the_frame", "finishing_stage", "search_lost",
            "name_at_fitted_focal", "next_main_stars", "whole_circles_only", "with_members_of"]
 
 #: One pass of Algorithm 1 with names and verification: ``search(scenes, config, main_rank=0)``.
@@ -74,9 +76,10 @@ def next_main_stars(scenes: Scene, result: Identification, config: Config, searc
 
 
 def finishing_stage(db, scenes: Scene, result: Identification, config: Config, search: Search, *,
-                    with_attitude: bool) -> tuple[Identification, np.ndarray]:
-    """:func:`jstarid.finishing.finish` with SGM's settings → ``(result, laddered)``, ``laddered`` (B,)
-    bool the scenes the focal-length ladder solved.
+                    with_attitude: bool) -> tuple[Identification, np.ndarray, np.ndarray]:
+    """:func:`jstarid.finishing.finish` with SGM's settings → ``(result, laddered, claimed)``: (B,) bool
+    the scenes the focal-length ladder solved, and those SGM or the ladder claimed
+    (:attr:`jstarid.finishing.Finished.claimed`, for :func:`search_lost`).
 
     Why a ladder: the graph's edges are angles, and a scale error of 2 % moves the circle's edge
     stars by 0.1°, past the verification's tolerance. Its searches stop at Δw =
@@ -94,7 +97,7 @@ def finishing_stage(db, scenes: Scene, result: Identification, config: Config, s
     result, laddered = finished.result, finished.laddered
     if scenes.batch_size and config.finishing.fit_focal and not with_attitude:
         result = dataclasses.replace(result, attitude=None)
-    return result, laddered
+    return result, laddered, finished.claimed
 
 
 def camera_check_cap_px(config: Config, camera) -> float:
@@ -252,3 +255,20 @@ def confirmed_by_the_frame(db, scenes: Scene, result: Identification, config: Co
     """
     return finishing.confirmed_by_the_frame(result, scenes, config.finishing, stars=db.catalog,
                                             camera=db.camera, tol_px=camera_check_cap_px(config, db.camera))
+
+
+def search_lost(db, scenes: Scene, result: Identification, claimed: np.ndarray, config: Config, *,
+                with_attitude: bool) -> Identification:
+    """The finishing stage's last step (:func:`jstarid.finishing.search_lost`), run after SGM's own
+    steps: the scenes whose claim the camera check, SGM's steps after it or the confirmation took back
+    (``claimed`` (B,) bool, from :func:`finishing_stage`) searched over their detections' triangles.
+
+    Why: on a sparse field among clutter SGM's main star and its circle are often false detections;
+    a claim that the checks take back leaves the scene as unsolved as one SGM never claimed, which
+    the stage's first step searches. Without ``with_attitude`` the search's attitudes are dropped.
+    """
+    result, _ = finishing.search_lost(result, scenes, config.finishing, claimed, camera=db.camera,
+                                      star_vectors=jnp.asarray(db.catalog.unit_vectors, jnp.float32),
+                                      star_mags=db.catalog.mag, stars=db.catalog,
+                                      max_tol_px=camera_check_cap_px(config, db.camera))
+    return result if with_attitude else dataclasses.replace(result, attitude=None)

@@ -33,6 +33,7 @@ from jstarid.algorithms.sgm.extensions import (
     finishing_stage,
     name_at_fitted_focal,
     next_main_stars,
+    search_lost,
     whole_circles_only,
 )
 from jstarid.algorithms.sgm.graph import searchable_graphs
@@ -52,7 +53,8 @@ def identify(db, scenes: Scene, config: Config | None = None, *, tuning: Tuning 
     Algorithm 1 (You et al. 2022) with names and verification runs on every scene first; then our
     extensions, in order (:mod:`.extensions`): :func:`~.extensions.next_main_stars`,
     :func:`~.extensions.finishing_stage`, :func:`~.extensions.name_at_fitted_focal`,
-    :func:`~.extensions.whole_circles_only`, :func:`~.extensions.confirmed_by_the_frame`.
+    :func:`~.extensions.whole_circles_only`, :func:`~.extensions.confirmed_by_the_frame`,
+    :func:`~.extensions.search_lost`.
 
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database` (built with the same ``radius_deg``).
@@ -88,10 +90,12 @@ def identify(db, scenes: Scene, config: Config | None = None, *, tuning: Tuning 
     # ours, in order (module .extensions; each off in Config.paper()), some running Algorithm 1 again
     search = functools.partial(_search_again, db, with_attitude=with_attitude)
     result = next_main_stars(scenes, result, config, search)
-    result, laddered = finishing_stage(db, scenes, result, config, search, with_attitude=with_attitude)
+    result, laddered, claimed = finishing_stage(db, scenes, result, config, search,
+                                                with_attitude=with_attitude)
     result = name_at_fitted_focal(db, scenes, result, laddered, config)
     result = whole_circles_only(db, scenes, result, laddered, config)
     result = confirmed_by_the_frame(db, scenes, result, config)
+    result = search_lost(db, scenes, result, claimed, config, with_attitude=with_attitude)
     release_staging()
     return (result, diag) if diagnostics else result
 
