@@ -149,8 +149,8 @@ def test_a_claim_the_check_takes_back_is_searched_again(clutter_setup):
     ids[:, :4] = np.random.default_rng(4).choice(len(cat), (6, 4))  # four names of random stars
     claims = Identification(ids=jnp.asarray(ids), ok=jnp.ones(6, bool), attitude=None)
     stage = dict(rerun=None, camera=cam, star_vectors=cat.unit_vectors, star_mags=cat.mag)
-    # triples of the 16 brightest (a small search: the suite's optimisation level); 2b and 3 apart
-    config = Finishing(focal_search=(), hypotheses=16, rival_odds=0, confirm_names=0)
+    # triples of the 12 brightest (a small search: the suite's optimisation level); 2b and 3 apart
+    config = Finishing(focal_search=(), hypotheses=12, rival_odds=0, confirm_names=0)
     lost = finish(claims, scenes, dataclasses.replace(config, hypotheses=0), **stage)
     assert not np.asarray(lost.result.ok).any()  # the check takes every claim back
     found = finish(claims, scenes, config, **stage)
