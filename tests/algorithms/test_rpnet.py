@@ -458,6 +458,18 @@ def test_build_database_removes_its_snapshot(tiny, tmp_path, monkeypatch):
     assert not list(built.path.parent.glob("*.partial.msgpack"))
 
 
+def test_a_network_that_learned_nothing_is_reported(tiny, monkeypatch):
+    """Training that ends below MIN_HELD_OUT_ACCURACY warns that the search will identify alone; a
+    network that learned does not."""
+    from jstarid.algorithms.rpnet import database
+
+    cat, cam, cfg, db, _ = tiny
+    assert db.history["best_held_out_accuracy"] >= database.MIN_HELD_OUT_ACCURACY  # tiny learned
+    monkeypatch.setattr(database, "train", lambda *a, **k: (db.variables, {"best_held_out_accuracy": 0.01}))
+    with pytest.warns(UserWarning, match="classifies 1.0% of held-out patterns"):
+        rpnet.build_database(cat, cam, cfg, use_cache=False, progress=False)
+
+
 # ---------------------------------------------------------------- weight search and identification
 
 

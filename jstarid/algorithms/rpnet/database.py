@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from pathlib import Path
 
 import jax
@@ -36,6 +37,9 @@ __all__ = ["PRESETS", "Database", "build_database", "checkpoint_path", "database
 #: :func:`jstarid.algorithms.base.default_config`). ``Config()`` trains the paper's Table 3 schedule
 #: (about 2 hours on 2 CPU cores), so the first, the default, is the ``quick`` one (about 5 minutes).
 PRESETS = {"quick": {"training": Training.quick()}, "table3": {"training": Training()}}
+# A network that classifies fewer held-out patterns than this has learned next to nothing (a sparse
+# field's guides, whose patterns hold a handful of neighbours): build_database says so.
+MIN_HELD_OUT_ACCURACY = 0.05
 
 
 @functools.partial(jax.tree_util.register_dataclass,
@@ -139,7 +143,19 @@ def build_database(catalog, camera, config: Config | None = None, *, use_cache: 
         save=lambda file, built: save_checkpoint(file, built[0], meta))
     if use_cache and not loaded:
         snapshot.unlink(missing_ok=True)  # the checkpoint is written: nothing left to resume
+    if not loaded:
+        _say_if_untrained(history, camera)
     return _database(catalog, camera, config, rows, variables, history, path if use_cache else None)
+
+
+def _say_if_untrained(history: dict, camera) -> None:
+    """Warn where the training ended below :data:`MIN_HELD_OUT_ACCURACY` held-out accuracy."""
+    accuracy = float(history.get("best_held_out_accuracy", 1.0))
+    if accuracy < MIN_HELD_OUT_ACCURACY:
+        warnings.warn(f"RpNet's network for camera {camera.name} classifies {accuracy:.1%} of held-out "
+                      "patterns: it has learned next to nothing (a sparse field's guides have too few "
+                      "neighbours within rho_deg to tell apart), so its identifications will be the "
+                      "finishing stage's search (Finishing.hypotheses) alone", stacklevel=3)
 
 
 def load_database(path, catalog, camera, config: Config | None = None) -> Database:
