@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.catalog import cache_dir, load_or_build
 from jstarid.geometry.angles import angle_between_host
 from jstarid.geometry.star_pairs import frame_pair_angle, pair_table
 
@@ -39,6 +40,7 @@ MAX_TRIANGLES = 6_000_000  # ≈ 170 MB of table: beyond it the catalog is too d
 # even selection by a third on challenge6)
 SEARCH_TRIANGLES = MAX_TRIANGLES * 3 // 4
 _MEMO: dict = {}
+_FORMAT = 1  # bump when the cached index's layout changes meaning
 
 
 class TooManyTriangles(ValueError):
@@ -187,12 +189,27 @@ def build_triangle_index(vectors, camera, eps_rad: float) -> TriangleIndex:
             problem = index_problem(vectors.shape[0], camera)
             if problem:
                 raise TooManyTriangles(problem)
-            _MEMO[key] = _build(vectors, camera, max_side, eps_rad, key)
+            _MEMO[key] = _cached_build(vectors, camera, max_side, eps_rad, key)
         except TooManyTriangles as refusal:
             _MEMO[key] = refusal
     if isinstance(_MEMO[key], TooManyTriangles):
         raise _MEMO[key]
     return _MEMO[key]
+
+
+def _cached_build(vectors: np.ndarray, camera, max_side: float, eps_rad: float, key: str) -> TriangleIndex:
+    """:func:`_build`, kept on disk under the cache directory: a deep catalog's index takes seconds to
+    count (3.3 M triangles: 5 s on 2 cores), which every process would otherwise pay again."""
+    def build() -> dict[str, np.ndarray]:
+        index = _build(vectors, camera, max_side, eps_rad, key)
+        return {"codes": np.asarray(index.codes), "stars": np.asarray(index.stars),
+                "sides": np.asarray(index.sides), "cell_rad": np.float64(index.cell_rad),
+                "n_cells": np.int64(index.n_cells), "run": np.int64(index.run)}
+
+    arrays, _ = load_or_build(cache_dir() / "triangles" / f"triangles-v{_FORMAT}-{key}.npz", build)
+    return TriangleIndex(codes=jnp.asarray(arrays["codes"]), stars=jnp.asarray(arrays["stars"]),
+                         sides=jnp.asarray(arrays["sides"]), cell_rad=float(arrays["cell_rad"]),
+                         n_cells=int(arrays["n_cells"]), run=int(arrays["run"]), key=key)
 
 
 def _build(vectors: np.ndarray, camera, max_side: float, eps_rad: float, key: str) -> TriangleIndex:

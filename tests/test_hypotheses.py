@@ -71,6 +71,25 @@ def test_index_holds_every_triangle_and_queries_equal_brute_force():
         assert expected <= found <= borderline
 
 
+def test_an_index_is_kept_on_disk_and_read_back_whole(tmp_path, monkeypatch):
+    """A second process (here: an emptied memo) reads the index from the cache directory instead of
+    counting the triangles again, and gets the same index."""
+    monkeypatch.setenv("JSTARID_CACHE", str(tmp_path))
+    monkeypatch.setattr(triangle_index, "_MEMO", {})
+    vectors = _cap_stars(60, 10.0, 3)
+    cam = js.Camera(width=640, height=480, f_px=2400.0, name="tiny")
+    built = build_triangle_index(vectors, cam, 2e-3)
+    files = list((tmp_path / "triangles").glob("*.npz"))
+    assert len(files) == 1
+    monkeypatch.setattr(triangle_index, "_MEMO", {})
+    monkeypatch.setattr(triangle_index, "_build", None)  # counting again would fail
+    read = build_triangle_index(vectors, cam, 2e-3)
+    for field in ("codes", "stars", "sides"):
+        np.testing.assert_array_equal(np.asarray(getattr(read, field)), np.asarray(getattr(built, field)))
+    assert (read.cell_rad, read.n_cells, read.run, read.key) == (built.cell_rad, built.n_cells, built.run,
+                                                                 built.key)
+
+
 def test_a_catalog_too_deep_for_the_frame_is_named_and_refused(catalog6):
     cam = js.camera_preset("sgm2022")
     assert "brighter catalog" in index_problem(5070, cam)
