@@ -309,25 +309,7 @@ def search_lost(result: Identification, scenes: Scene, config: Finishing, claime
         part = confirmed_by_the_frame(part, moved, config, stars=stars, camera=camera, tol_px=max_tol_px)
     won = np.asarray(part.ok)[:rows.size]
     solved[rows[won]] = True
-    return (_filled(result, rows[won], part[np.flatnonzero(won)]) if won.any() else result), solved
-
-
-def _filled(result: Identification, rows: np.ndarray, part: Identification) -> Identification:
-    """``result`` with its scenes ``rows`` replaced by ``part``'s (R scenes), on the host; a fit
-    ``result`` lacks is NaN elsewhere."""
-    b = np.asarray(result.ok).shape[0]
-
-    def put(old, new, fill, tail=()):
-        if new is None:
-            return None if old is None else old
-        base = np.full((b, *tail), fill, np.float32) if old is None else np.array(old)
-        base[rows] = np.asarray(new)
-        return jnp.asarray(base)
-
-    return Identification(ids=put(result.ids, part.ids, -1), ok=put(result.ok, part.ok, False),
-                          attitude=put(result.attitude, part.attitude, np.nan, (3, 3)),
-                          focal_scale=put(result.focal_scale, part.focal_scale, np.nan),
-                          distortion_k1=put(result.distortion_k1, part.distortion_k1, np.nan))
+    return (result.with_rows(rows[won], part[np.flatnonzero(won)]) if won.any() else result), solved
 
 
 def _search(result, scenes, config: Finishing, camera, star_vectors, star_mags) -> SearchOutcome:

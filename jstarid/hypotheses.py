@@ -295,16 +295,11 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
     if not take.size:
         return SearchOutcome(result, solved, overflow)
 
-    def filled(old, new):
-        base = np.array(old)  # a copy
-        base[take] = new[won]
-        return jnp.asarray(base)
-
-    unfitted = np.full(rows.size, np.nan, np.float32)  # the camera check fits them next
-    attitude = np.full((b, 3, 3), np.nan, np.float32) if result.attitude is None else result.attitude
-    filled_result = Identification(
-        ids=filled(result.ids, found.ids), ok=filled(result.ok, found.ok),
-        attitude=filled(attitude, found.attitude.astype(np.float32)),
-        focal_scale=None if result.focal_scale is None else filled(result.focal_scale, unfitted),
-        distortion_k1=None if result.distortion_k1 is None else filled(result.distortion_k1, unfitted))
+    n_won = int(won.sum())
+    unfitted = np.full(n_won, np.nan, np.float32)  # the camera check fits them next
+    found_part = Identification(
+        ids=found.ids[won], ok=found.ok[won], attitude=found.attitude[won].astype(np.float32),
+        focal_scale=None if result.focal_scale is None else unfitted,
+        distortion_k1=None if result.distortion_k1 is None else unfitted)
+    filled_result = result.with_rows(take, found_part)
     return SearchOutcome(filled_result, solved, overflow)

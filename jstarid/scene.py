@@ -107,6 +107,28 @@ class Identification:
         """Index or slice the batch axis, as :meth:`Scene.__getitem__`."""
         return take_batch_rows(self, index)
 
+    def with_rows(self, rows, part: Identification) -> Identification:
+        """These results with the scenes ``rows`` ((R,) int indices) replaced by ``part``'s (R scenes),
+        on the host (an eager scatter compiles a program per row count). A field ``part`` lacks
+        (``None``) stays as it is; one these results lack is filled (ids −1, ``ok`` False, NaN)
+        elsewhere."""
+        rows = np.asarray(rows)
+        b = np.asarray(self.ok).shape[0]
+
+        def put(old, new, fill, dtype, tail=()):
+            if new is None:
+                return old
+            base = np.full((b, *tail), fill, dtype) if old is None else np.array(old)
+            base[rows] = np.asarray(new)
+            return jax.device_put(base)
+
+        n = np.asarray(part.ids).shape[1:]
+        return Identification(ids=put(self.ids, part.ids, -1, np.int32, n),
+                              ok=put(self.ok, part.ok, False, bool),
+                              attitude=put(self.attitude, part.attitude, np.nan, np.float32, (3, 3)),
+                              focal_scale=put(self.focal_scale, part.focal_scale, np.nan, np.float32),
+                              distortion_k1=put(self.distortion_k1, part.distortion_k1, np.nan, np.float32))
+
     def failed(self, rows) -> Identification:
         """These results with the scenes ``rows`` (int indices or a (B,) bool mask) failed: ids −1,
         ``ok`` False, NaN attitude and fits."""

@@ -30,6 +30,7 @@ import numpy as np
 from jstarid.catalog import cache_dir, load_or_build
 from jstarid.geometry.angles import angle_between_host
 from jstarid.geometry.star_pairs import frame_pair_angle, pair_table
+from jstarid.sky_index import brightest_per_cell
 
 __all__ = ["MAX_TRIANGLES", "SEARCH_TRIANGLES", "TooManyTriangles", "TriangleIndex", "build_triangle_index",
            "expected_triangles", "index_problem", "query", "stars_that_fit"]
@@ -96,7 +97,7 @@ def index_problem(n_stars: int, camera) -> str | None:
 
 def stars_that_fit(vectors, mags, camera, budget: float | None = None) -> np.ndarray:
     """The catalog rows whose triangles an index for ``camera`` can hold: every row where the catalog's
-    triangles per frame fit ``budget``, else the brightest few of each sky cell.
+    triangles per frame fit ``budget``, else the brightest star of each sky cell.
 
     A magnitude cut would leave the sparse parts of the sky with too few stars for a triangle; the
     brightest star of each sky cell gives every frame about the same number, spread evenly. The
@@ -110,8 +111,6 @@ def stars_that_fit(vectors, mags, camera, budget: float | None = None) -> np.nda
     Returns:
         (K,) int32 rows, ascending (all M where they fit).
     """
-    from jstarid.sky_index import brightest_per_cell
-
     budget = SEARCH_TRIANGLES if budget is None else budget
     vectors, mags = np.asarray(vectors, np.float64), np.asarray(mags)
     n = vectors.shape[0]

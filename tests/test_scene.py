@@ -91,3 +91,17 @@ def test_gathering_and_padding_sub_batches_compile_nothing():
     # inside a trace the gather is part of the program
     traced = jax.jit(lambda s, r: s[r].xy)(scenes, np.array([2, 5]))
     np.testing.assert_array_equal(np.asarray(traced), np.asarray(scenes.xy)[[2, 5]])
+
+
+def test_with_rows_replaces_those_scenes_and_fills_what_was_missing():
+    base = js.Identification(ids=np.arange(12, dtype=np.int32).reshape(4, 3), ok=np.array([1, 0, 1, 0], bool),
+                             attitude=None, focal_scale=np.ones(4, np.float32))
+    part = js.Identification(ids=np.full((2, 3), 7, np.int32), ok=np.ones(2, bool),
+                             attitude=np.tile(np.eye(3, dtype=np.float32), (2, 1, 1)), focal_scale=None)
+    out = base.with_rows(np.array([3, 1]), part)
+    np.testing.assert_array_equal(np.asarray(out.ids), [[0, 1, 2], [7, 7, 7], [6, 7, 8], [7, 7, 7]])
+    np.testing.assert_array_equal(np.asarray(out.ok), [True, True, True, True])
+    att = np.asarray(out.attitude)  # missing before: NaN except the rows given
+    assert np.isnan(att[[0, 2]]).all() and np.array_equal(att[[1, 3]], part.attitude)
+    np.testing.assert_array_equal(np.asarray(out.focal_scale), np.ones(4))  # part had none: kept
+    assert out.distortion_k1 is None
