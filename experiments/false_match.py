@@ -4,14 +4,15 @@ Each algorithm (its default config for the camera, and ``Config.paper()``, the p
 without the finishing stage) identifies simulated scenes of one camera at a few clutter levels
 (``n_false`` false detections with star-like magnitudes, ``false_mag_slope = CATALOG_MAG_SLOPE``
 between V 1 and the camera's limit, 0.5 px centroid noise) and scenes of random points. Every
-claimed solution gets :func:`jstarid.false_match.false_match_probability`; a claim is a **wrong
+claimed solution gets its false-match probability (:func:`jstarid.false_match.of_solutions`: the one
+the finishing stage decided by, or that of the paper's names); a claim is a **wrong
 attitude** when its boresight is more than ``--wrong-px`` pixels from the truth (a coincidence lands
 degrees away; a right attitude from three or four names can be a pixel or two off), and every claim
 on random points is one. Per set: claims, wrong attitudes, claims with any wrong name (the strict
 criterion: a right attitude with one name given to the wrong star of a close pair counts), the median
 P of the right attitudes, their share with P ≤ 1e-3, and the smallest P a wrong attitude got. The
 probability is calibrated when, for every t, wrong attitudes are at most a share t of the claims with
-P ≤ t (``calibrated``).
+P ≤ t (``calibrated``, :func:`jstarid.false_match.calibrated`).
 
 Usage::
 
@@ -27,9 +28,7 @@ import numpy as np
 
 import jstarid as js
 from jstarid import experiment as ex
-from jstarid.false_match import false_match_probability
-
-THRESHOLDS = (1e-9, 1e-6, 1e-3, 1e-2, 0.1)
+from jstarid.false_match import calibrated, of_solutions
 
 
 def _row(name, config_name, scenes, truth_known, result, p, wrong_arcsec):
@@ -42,14 +41,12 @@ def _row(name, config_name, scenes, truth_known, result, p, wrong_arcsec):
     else:
         wrong = ok
     right = ok & ~wrong
-    # a NaN counts as claimed at every threshold: it must not pass for calibrated
-    calibrated = all(np.sum(wrong & ~(p > t)) <= t * max(np.sum(ok & ~(p > t)), 1) for t in THRESHOLDS)
     return {"set": name, "config": config_name, "scenes": int(ok.size), "claimed": int(ok.sum()),
             "wrong_attitudes": int(wrong.sum()), "wrong_names": int(misnamed.sum()),
             "right_median_p": float(np.median(p[right])) if right.any() else None,
             "right_below_1e-3": float(np.mean(p[right] <= 1e-3)) if right.any() else None,
             "wrong_min_p": float(np.min(p[wrong])) if wrong.any() else None,
-            "calibrated": calibrated}
+            "calibrated": calibrated(p, ok, wrong)}
 
 
 def parse_args(argv=None):
@@ -82,7 +79,7 @@ def main(argv=None):
                                               false_counts=args.false, points=args.points)
             for name, scenes, truth_known in sets:
                 result = algo.identify(db, scenes, config)
-                p = false_match_probability(scenes, result, cat.unit_vectors, cam)
+                p = of_solutions(scenes, result, cat, cam)
                 rows.append(_row(name, config_name, scenes, truth_known, result, p,
                                  args.wrong_px * cam.pixel_scale_arcsec))
                 print(rows[-1])

@@ -27,11 +27,14 @@ P an upper bound: among solutions claimed at probability p, at most a fraction p
 (``tests/test_false_match.py`` checks this on random points and clutter).
 
 ``false_match_log10`` is the jit-compiled kernel (batched with ``vmap``); :func:`false_match_probability`
-is its host wrapper.
+is its host wrapper, and :func:`of_solutions` the probability a sweep reports: the one that decided a
+claim (``Identification.false_match``, set by the finishing stage) or, for an algorithm without the
+stage, that of its names.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -39,13 +42,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jstarid.attitude import estimate_attitude
 from jstarid.camera_fit import unproject_scaled
 from jstarid.geometry.angles import angle_between, pairwise_angles
 from jstarid.geometry.precise import small_matmul
 
-__all__ = ["MIN_RADIUS_PX", "false_match_log10", "false_match_probability"]
+__all__ = ["CALIBRATION_THRESHOLDS", "MIN_RADIUS_PX", "SMALLEST_P", "calibrated", "false_match_log10",
+           "false_match_probability", "of_solutions", "with_names_attitude"]
 
 MIN_RADIUS_PX = 1.0  # the match radius is never taken below this (px)
+CALIBRATION_THRESHOLDS = (1e-9, 1e-6, 1e-3, 1e-2, 0.1)  # the t at which :func:`calibrated` checks
+SMALLEST_P = float(np.finfo(np.float32).tiny)  # P is kept as float32: a smaller P reads as this, not 0
 DENSITY_GROUP = 64  # scenes per lax.map step of the local-density count (a (group, M) product)
 
 
@@ -76,6 +83,58 @@ def false_match_probability(scenes, result, star_vectors, camera) -> np.ndarray:
                               jnp.asarray(star_vectors, jnp.float32), camera=camera,
                               half_diagonal=camera.half_diagonal_rad)
     return np.power(10.0, np.asarray(log10, np.float64))
+
+
+def of_solutions(scenes, result, catalog, camera) -> np.ndarray:
+    """The false-match probability of each claim, as a sweep reports it.
+
+    Args:
+        scenes: (B, N) :class:`~jstarid.scene.Scene` the solutions name.
+        result: their :class:`~jstarid.scene.Identification`.
+        catalog: the rows ``result.ids`` name (``unit_vectors``; a :class:`~jstarid.catalog.Catalog`).
+        camera: the nominal :class:`~jstarid.camera.Camera`.
+
+    Returns:
+        (B,) float64 NumPy: ``result.false_match`` where the algorithm gives it (the probability
+        that decided ``ok``: :func:`jstarid.finishing.confirmed_by_the_frame`), else that of its
+        names (:func:`false_match_probability`, under the names' Wahba attitude where it gives
+        none); 1 where not claimed; at least :data:`SMALLEST_P`.
+    """
+    ok = np.asarray(result.ok)
+    if result.false_match is not None:
+        return np.where(ok, np.maximum(np.asarray(result.false_match, np.float64), SMALLEST_P), 1.0)
+    located = with_names_attitude(result, scenes, catalog, camera)
+    return np.maximum(false_match_probability(scenes, located, catalog.unit_vectors, camera), SMALLEST_P)
+
+
+def calibrated(p, claimed, wrong, thresholds=CALIBRATION_THRESHOLDS) -> bool:
+    """Whether wrong claims are at most a share t of the claims at P ≤ t, for every threshold t.
+
+    Args:
+        p: (S,) false-match probability of each scene's claim (NaN counts as claimed at every t: it
+            must not pass for calibrated).
+        claimed: (S,) bool, the scenes claimed.
+        wrong: (S,) bool, the claims that are wrong (a wrong attitude, or any wrong name: stricter).
+        thresholds: the t checked.
+    """
+    p, claimed, wrong = np.asarray(p, np.float64), np.asarray(claimed, bool), np.asarray(wrong, bool)
+    below = [claimed & ~(p > t) for t in thresholds]
+    return all(np.sum(wrong & b) <= t * max(np.sum(b), 1) for t, b in zip(thresholds, below, strict=True))
+
+
+def with_names_attitude(result, scenes, catalog, camera):
+    """``result`` with the Wahba attitude of its names (:func:`jstarid.attitude.estimate_attitude`)
+    where it gives none (``None``, or NaN for a claimed scene); NaN where not claimed or named too
+    few. ``result`` itself where every claim has an attitude."""
+    ok = np.asarray(result.ok)
+    given = None if result.attitude is None else np.asarray(result.attitude, np.float32)
+    missing = ok if given is None else ok & ~np.isfinite(given).all(axis=(1, 2))
+    if not missing.any() and given is not None:
+        return result
+    attitude, _, have = estimate_attitude(catalog, camera, scenes, result)
+    names = np.where((np.asarray(have) & ok)[:, None, None], np.asarray(attitude, np.float32), np.nan)
+    merged = names if given is None else np.where(missing[:, None, None], names, given)
+    return dataclasses.replace(result, attitude=jax.device_put(merged.astype(np.float32)))
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "half_diagonal"))

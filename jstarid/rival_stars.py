@@ -32,6 +32,7 @@ brightness loses both names (the price, measured in RESULTS.md).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -190,6 +191,5 @@ def without_rivalled_names(result: Identification, scenes: Scene, *, stars, came
         return result
     kept = np.where(rivalled, -1, np.asarray(result.ids))
     lost = np.flatnonzero(np.asarray(result.ok) & ((kept >= 0).sum(axis=1) < MIN_NAMES))
-    out = Identification(ids=jnp.asarray(kept, jnp.int32), ok=result.ok, attitude=result.attitude,
-                         focal_scale=result.focal_scale, distortion_k1=result.distortion_k1)
+    out = dataclasses.replace(result, ids=jnp.asarray(kept, jnp.int32))
     return out.failed(lost) if lost.size else out

@@ -95,6 +95,10 @@ class Identification:
         distortion_k1: (B,) float32 radial distortion fitted while solving (normalised
             coordinates, OpenCV's ``k1``; 0 where the names could not fit it,
             :func:`jstarid.camera_fit.fit_distorted`), or ``None`` when not fitted.
+        false_match: (B,) float32 false-match probability of each claim, the one that decided
+            ``ok`` (:func:`jstarid.finishing.confirmed_by_the_frame`; 1 where not claimed), or
+            ``None`` where the algorithm gives none (:func:`jstarid.false_match.of_solutions`
+            computes it from the names).
     """
 
     ids: jax.Array
@@ -102,6 +106,7 @@ class Identification:
     attitude: jax.Array | None = None
     focal_scale: jax.Array | None = None
     distortion_k1: jax.Array | None = None
+    false_match: jax.Array | None = None
 
     def __getitem__(self, index) -> Identification:
         """Index or slice the batch axis, as :meth:`Scene.__getitem__`."""
@@ -110,8 +115,8 @@ class Identification:
     def with_rows(self, rows, part: Identification) -> Identification:
         """These results with the scenes ``rows`` ((R,) int indices) replaced by ``part``'s (R scenes),
         on the host (an eager scatter compiles a program per row count). A field ``part`` lacks
-        (``None``) stays as it is; one these results lack is filled (ids −1, ``ok`` False, NaN)
-        elsewhere."""
+        (``None``) stays as it is; one these results lack is filled (ids −1, ``ok`` False, NaN,
+        false-match probability 1) elsewhere."""
         rows = np.asarray(rows)
         b = np.asarray(self.ok).shape[0]
 
@@ -127,18 +132,20 @@ class Identification:
                               ok=put(self.ok, part.ok, False, bool),
                               attitude=put(self.attitude, part.attitude, np.nan, np.float32, (3, 3)),
                               focal_scale=put(self.focal_scale, part.focal_scale, np.nan, np.float32),
-                              distortion_k1=put(self.distortion_k1, part.distortion_k1, np.nan, np.float32))
+                              distortion_k1=put(self.distortion_k1, part.distortion_k1, np.nan, np.float32),
+                              false_match=put(self.false_match, part.false_match, 1.0, np.float32))
 
     def failed(self, rows) -> Identification:
         """These results with the scenes ``rows`` (int indices or a (B,) bool mask) failed: ids −1,
-        ``ok`` False, NaN attitude and fits."""
+        ``ok`` False, NaN attitude and fits, false-match probability 1."""
         def cleared(x, value):
             return None if x is None else jnp.asarray(x).at[rows].set(value)
 
         return Identification(ids=cleared(self.ids, -1), ok=cleared(self.ok, False),
                               attitude=cleared(self.attitude, jnp.nan),
                               focal_scale=cleared(self.focal_scale, jnp.nan),
-                              distortion_k1=cleared(self.distortion_k1, jnp.nan))
+                              distortion_k1=cleared(self.distortion_k1, jnp.nan),
+                              false_match=cleared(self.false_match, 1.0))
 
 
 def undistort_scenes(scenes: Scene, camera) -> Scene:

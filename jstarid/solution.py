@@ -36,7 +36,7 @@ import numpy as np
 
 from jstarid.catalog import load_every_star
 from jstarid.centroid import CentroidConfig
-from jstarid.false_match import false_match_probability
+from jstarid.false_match import of_solutions
 
 __all__ = ["Solution", "Star", "solve", "solve_scenes"]
 
@@ -95,7 +95,9 @@ class Solution:
         distortion_k1: fitted radial term (:mod:`jstarid.camera_fit`; ``None`` where not fitted).
         false_match_probability: an upper bound on the chance that a blind search finds a wrong
             attitude confirming as many of the algorithm's detections as this solution does
-            (:mod:`jstarid.false_match`); near 1 means the names could be a coincidence.
+            (:mod:`jstarid.false_match`; the one that decided the claim, of its names or of the
+            frame named from its attitude, where the algorithm ends with the finishing stage);
+            near 1 means the names could be a coincidence.
         epoch: the star positions' epoch (Julian year; ``None``: the catalog's J1991.25).
     """
 
@@ -304,8 +306,9 @@ def solve_scenes(measured, camera, algorithm: str = "mlv", *, labels: Sequence[s
         log(f"first use builds {built[0]} (≈ {took} on 2 CPU cores), once")
     few = brightest(scenes, capacity or scenes.capacity)
     result = algo.identify(algo.build_database(cat, pinhole, cfg), few, cfg)
-    # the evidence of the identification itself: its catalog, the detections it was given
-    false_match = false_match_probability(few, result, cat.unit_vectors, pinhole)
+    # the evidence of the identification itself: its catalog, the detections it was given; the
+    # probability that decided the claim where the algorithm's finishing stage gives it
+    false_match = of_solutions(few, result, cat, pinhole)
     if not name_all:  # the algorithm's names only: the detections it was given
         scenes, measured = few, brightest(measured, few.capacity)
     else:

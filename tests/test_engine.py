@@ -101,6 +101,39 @@ def test_sweep_equals_direct_identify_calls(small):
     assert rows[0]["identification_rate"] == 1.0 and rows[0]["boresight_err_arcsec_median"] < 1.0
 
 
+def test_every_claim_carries_its_false_match_probability(small):
+    """The sweep records each claim's P: the one MLV's finishing stage decided by, and for the
+    oracle (no stage) that of its names under their Wahba attitude; rows give the claims' median
+    and whether P is calibrated (:func:`jstarid.false_match.calibrated`), the table both."""
+    from jstarid.false_match import SMALLEST_P, false_match_probability, with_names_attitude
+
+    key_scenes, _ = jax.random.split(jax.random.key(4))
+    cat, cam = js.load_catalog(5.5), js.camera_preset("mlv2021")
+    noise = js.noise_grid(12, position_sigma_px=[0.0, 2.0], magnitude_sigma=0.3)
+    scenes = js.simulate(key_scenes, cat, cam, noise, batch_size=24, capacity=64)
+    entry = _mlv_entry()
+    mlv = js.algorithms.get("mlv")
+    direct = mlv.identify(mlv.build_database(cat, cam, entry.config, progress=False), scenes, entry.config)
+    ok = np.asarray(direct.ok)
+    assert ok.all() and direct.false_match is not None
+    np.testing.assert_allclose(small.scenes["false_match"][:, 1], np.asarray(direct.false_match), rtol=1e-3)
+    assert np.all(small.scenes["false_match"][:, 1] <= entry.config.finishing.max_false_match)
+    oracle = js.algorithms.get("oracle")
+    truth = oracle.identify(oracle.build_database(cat, cam), scenes)
+    assert truth.false_match is None
+    located = with_names_attitude(truth, scenes, cat, cam)
+    by_hand = np.maximum(false_match_probability(scenes, located, cat.unit_vectors, cam), SMALLEST_P)
+    np.testing.assert_allclose(small.scenes["false_match"][:, 0], by_hand, rtol=1e-3)
+    assert np.all(by_hand < 1e-9)  # a dozen true names: no coincidence (float32 keeps P ≥ 1.2e-38)
+    rows = small.rows()
+    first_level = np.asarray(direct.false_match)[:12]
+    assert rows[2]["false_match_median"] == pytest.approx(float(np.median(first_level)))
+    assert all(r["false_match_calibrated"] is True for r in rows)
+    assert "claims' false-match P (median)" in small.table()
+    older = dataclasses.replace(small, scenes={k: v for k, v in small.scenes.items() if k != "false_match"})
+    assert older.rows()[0]["false_match_median"] is None  # a sweep saved before P was recorded
+
+
 def test_rows_of_the_scenes_with_so_many_true_stars(small, tmp_path):
     """``rows(stars=(lo, hi))`` scores only the scenes with lo … hi true stars among their detections,
     counted here from the scenes themselves."""

@@ -89,7 +89,7 @@ def test_check_alone_sets_focal_scale_and_leaves_failures(world):
     catalog, camera, scenes, truth = world
     first = _first_pass(truth)
     calls = []
-    got, laddered, *_ = finish(first, scenes, Finishing(focal_search=(), hypotheses=0, confirm_names=0),
+    got, laddered, *_ = finish(first, scenes, Finishing(focal_search=(), hypotheses=0, max_false_match=1.0),
                               rerun=_rerun_naming(truth, calls), camera=camera,
                               star_vectors=catalog.unit_vectors)
     assert not calls and not laddered.any()
@@ -126,8 +126,7 @@ def test_every_seed_config_holds_one_finishing_config(module):
     assert module.Config().finishing.fit_focal and module.Config().finishing.focal_search
     assert module.Config.paper().finishing == Finishing.off()
     assert module.Config(finishing={"fit_focal": False}).finishing == Finishing(fit_focal=False)
-    flat = {"fit_focal", "focal_search", "max_focal_error", "fit_focal_studentized", "confirm_names",
-            "confirm_false_match"}
+    flat = {"fit_focal", "focal_search", "max_focal_error", "fit_focal_studentized", "max_false_match"}
     assert not flat & {f.name for f in dataclasses.fields(module.Config)}  # no copies of the stage's fields
 
 
@@ -138,20 +137,18 @@ def test_the_confirmation_needs_the_magnitudes(world):
                camera=camera, star_vectors=catalog.unit_vectors)
 
 
-@pytest.mark.parametrize("field, value", [("confirm_names", -1), ("confirm_names", 2.5),
-                                          ("confirm_false_match", 0.0), ("confirm_false_match", 1.5)])
-def test_finishing_rejects_a_bad_confirmation(field, value):
-    with pytest.raises(ValueError, match=field):
-        Finishing(**{field: value})
+@pytest.mark.parametrize("value", [0.0, 1.5, float("nan")])
+def test_finishing_rejects_a_bad_false_match_threshold(value):
+    with pytest.raises(ValueError, match="max_false_match"):
+        Finishing(max_false_match=value)
 
 
-def test_few_names_are_confirmed_at_1e_2_and_at_1e_3_for_sgm():
-    """Every seed algorithm confirms claims of at most four names (SGM the strictest); the papers
-    do not."""
-    assert mlv.Config().finishing.confirm_names == rpnet.Config().finishing.confirm_names == 4
-    assert sgm.Config().finishing.confirm_names == 4 and Finishing.off().confirm_names == 0
-    assert mlv.Config().finishing.confirm_false_match == rpnet.Config().finishing.confirm_false_match == 1e-2
-    assert sgm.Config().finishing.confirm_false_match == 1e-3
+def test_one_false_match_threshold_decides_at_1e_2_and_at_1e_3_for_sgm():
+    """Every seed algorithm's claims stand at false-match probability ≤ 1e-2 (SGM's ≤ 1e-3); the
+    papers' report it and decide nothing by it."""
+    assert mlv.Config().finishing.max_false_match == rpnet.Config().finishing.max_false_match == 1e-2
+    assert sgm.Config().finishing.max_false_match == 1e-3
+    assert Finishing.off().max_false_match == 1.0
 
 
 def test_sgm_studentizes_its_check_mlv_and_rpnet_do_not():
@@ -162,7 +159,7 @@ def test_sgm_studentizes_its_check_mlv_and_rpnet_do_not():
 def test_overrides_reach_the_nested_config():
     config = with_overrides(sgm.Config(), ["finishing.focal_search=[]", "finishing.fit_focal=false"])
     assert config.finishing == Finishing(focal_search=(), fit_focal=False, studentized=True,
-                                         confirm_false_match=1e-3)
+                                         max_false_match=1e-3)
     with pytest.raises(ValueError, match="no field 'fit_focus'"):
         with_overrides(sgm.Config(), ["finishing.fit_focus=false"])
     with pytest.raises(ValueError, match="not a nested config"):

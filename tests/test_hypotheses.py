@@ -99,7 +99,7 @@ def test_a_catalog_too_deep_for_the_frame_is_named_and_refused(catalog6):
     # the finishing stage then leaves the scenes as the algorithm left them
     scenes = js.simulate(jax.random.key(2), catalog6, cam, js.NoiseConfig(), batch_size=2, capacity=16)
     failed = Identification(ids=np.full((2, 16), -1, np.int32), ok=np.zeros(2, bool), attitude=None)
-    finished = finish(failed, scenes, Finishing(focal_search=(), fit_focal=False, confirm_names=0),
+    finished = finish(failed, scenes, Finishing(focal_search=(), fit_focal=False, max_false_match=1.0),
                       rerun=None, camera=cam, star_vectors=catalog6.unit_vectors)
     assert finished.result is failed and not finished.searched.any()
 
@@ -169,7 +169,7 @@ def test_a_claim_the_check_takes_back_is_searched_again(clutter_setup):
     claims = Identification(ids=jnp.asarray(ids), ok=jnp.ones(6, bool), attitude=None)
     stage = dict(rerun=None, camera=cam, star_vectors=cat.unit_vectors, star_mags=cat.mag)
     # triples of the 12 brightest (a small search: the suite's optimisation level); 2b and 3 apart
-    config = Finishing(focal_search=(), hypotheses=12, rival_odds=0, confirm_names=0)
+    config = Finishing(focal_search=(), hypotheses=12, rival_odds=0, max_false_match=1.0)
     lost = finish(claims, scenes, dataclasses.replace(config, hypotheses=0), **stage)
     assert not np.asarray(lost.result.ok).any()  # the check takes every claim back
     found = finish(claims, scenes, config, **stage)

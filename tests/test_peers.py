@@ -63,3 +63,18 @@ def test_a_peer_is_a_row_per_reported_setting_and_set_replaces_the_grid(monkeypa
     assert [e.label for e in rows] == ["cedar match_max_error=0.002", "cedar match_max_error=0.005"]
     assert len(sweeps._reported(entry, {"mlv.match_max_error": "0.1"})) == 2  # another algorithm's
     assert sweeps._reported(entry, {"cedar.match_max_error": "0.003"}) == [entry]
+
+
+def test_a_peer_named_among_the_algorithms_runs_as_a_peer(monkeypatch, capsys):
+    """``--algorithms mlv,cedar`` reads cedar as ``--peer cedar``: the registry's error would list
+    only the algorithms, though the message of an empty list names the peers."""
+    from jstarid.cli import main
+
+    monkeypatch.setattr(js.algorithms, "_REGISTRY", dict(js.algorithms._REGISTRY))  # no leak
+    monkeypatch.setattr(cedar, "environment", lambda **_: None)
+    status = main(["sweep", "--algorithms", "cedar", "--camera", "sgm2022", "--levels", "1", "--scenes", "1",
+                   "--quiet"])
+    out = capsys.readouterr()
+    assert "cedar: its environment is not available" in out.out
+    assert "unknown algorithm" not in out.err
+    assert status == 2

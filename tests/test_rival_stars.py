@@ -146,7 +146,7 @@ def test_the_finishing_stage_takes_the_wrong_name_back_and_off_keeps_it():
     ids = np.arange(12)
     ids[0] = 12
     scenes = _scene(xy, mag)
-    stage = Finishing(focal_search=(), hypotheses=0, confirm_names=0)
+    stage = Finishing(focal_search=(), hypotheses=0, max_false_match=1.0)
     kwargs = dict(rerun=None, camera=CAMERA, star_vectors=table.unit_vectors, star_mags=table.mag)
     got = finish(_identification(ids, attitude), scenes, stage, **kwargs).result
     want = np.where(np.arange(12) == 0, -1, ids)

@@ -1,12 +1,12 @@
-"""Claims of few names and what their frame says: the measurement behind ``Finishing.confirm_false_match``.
+"""Claims of few names and what their frame says: the measurement behind ``Finishing.max_false_match``.
 
 For one algorithm and camera (the sets of ``experiments/false_match.py``,
 :func:`jstarid.experiment.clutter_and_random_sets`: a few clutter levels and
 scenes of random points), the algorithm's claims of at most ``--names`` names are each given the
 false-match probability of their whole frame, named from the claim's attitude
 (:func:`jstarid.completion.name_from_attitude` within the camera check's largest radius), as the
-finishing stage's confirmation computes it. Run with ``--set finishing.confirm_names=0`` to see the
-claims the confirmation judges (with it on, the doubtful ones are already gone). Per set: claims,
+finishing stage's false-match test computes it for a claim its own names leave doubtful. Run with
+``--set finishing.max_false_match=1`` to see the claims the test judges (with it on, the doubtful ones are already gone). Per set: claims,
 claims of few names, how many of those are wrong attitudes (boresight over ``--wrong-px`` off; every
 claim on random points), the range of log10 P of the right and the wrong ones, and how many right
 ones each threshold would fail.
@@ -14,7 +14,7 @@ ones each threshold would fail.
 Usage::
 
     python experiments/probes/few_names.py --camera experiments/cameras/challenge10.toml \\
-        --set finishing.confirm_names=0
+        --set finishing.max_false_match=1
 
 Writes results/few_names/{config.json, results.json, table.md}.
 """

@@ -148,7 +148,10 @@ def _run(args, *, title: str, grid: dict | None = None) -> int:
     algorithms = [n.strip() for n in names.split(",") if n.strip()]
     if args.baselines:
         algorithms += [n for n in js.algorithms.BASELINES if n not in algorithms]
-    peers = [p for p in _available_peers(args.peer) if p not in algorithms]
+    # a peer named among the algorithms (`--algorithms mlv,cedar`) is run as --peer runs it
+    named_peers = [n for n in algorithms if n in PEERS]
+    algorithms = [n for n in algorithms if n not in PEERS]
+    peers = [p for p in _available_peers([*args.peer, *named_peers]) if p not in algorithms]
     for name in algorithms:
         js.algorithms.get(name)  # unknown names fail before anything is built
     axes = _axes_of(args)

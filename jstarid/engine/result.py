@@ -4,7 +4,8 @@
 :func:`jstarid.metrics.scene_outcomes` and the attitude errors, plus each entry's timings. Its
 :meth:`~SweepResult.rows` are the tidy table: one row per (entry, level) with scene counts, the
 identification, failure and mis-identification rates with 95 % Wilson intervals, attitude error
-quantiles, scenes/s and peak memory. :meth:`~SweepResult.save` writes the harness's results
+quantiles, the claims' false-match probability (median, and whether it is calibrated), scenes/s and
+peak memory. :meth:`~SweepResult.save` writes the harness's results
 directory (``config.json``, ``results.json``, ``table.md``, ``scenes.npz``, ``rates.png``) and
 :func:`load` reads it back; figures are drawn from the saved rows only.
 """
@@ -18,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from jstarid import experiment
-from jstarid.metrics import CORRECT, OUTCOME_NAMES, wilson_interval
+from jstarid.false_match import calibrated
+from jstarid.metrics import CORRECT, FAIL, OUTCOME_NAMES, WRONG, wilson_interval
 
 __all__ = ["SweepResult", "load", "COLUMNS"]
 
@@ -29,6 +31,8 @@ COLUMNS = (("identification_rate", "identified", "{:.2%}"),
            ("misid_ci", "95 % interval", "{}"),
            ("failure_rate", "failed", "{:.2%}"),
            ("boresight_err_arcsec_median", "boresight ″ (median)", "{:.1f}"),
+           ("false_match_median", "claims' false-match P (median)", "{:.1e}"),
+           ("false_match_calibrated", "P calibrated", "{}"),
            ("scenes_per_second", "scenes/s", "{:,.0f}"),
            ("compile_seconds", "XLA compile s", "{:.1f}"),
            ("scenes_per_second_without_compile", "scenes/s, XLA compile excluded", "{:,.0f}"),
@@ -46,7 +50,9 @@ class SweepResult:
         level_of: (S,) int32 level of each scene.
         scenes: per-scene arrays (S, E): ``outcome`` (int8 code of :mod:`jstarid.metrics`),
             ``n_correct``, ``n_wrong``, ``n_identified``, ``boresight_err_arcsec`` and
-            ``roll_err_arcsec`` (NaN where the entry gave no attitude).
+            ``roll_err_arcsec`` (NaN where the entry gave no attitude), ``false_match`` (the claim's
+            false-match probability, :func:`jstarid.false_match.of_solutions`; 1 where not
+            claimed; absent from sweeps saved before it was recorded).
         seconds: (E, L) identify wall seconds per entry and level (compilation of shapes first met
             there included), added over processes.
         compile_seconds: (E, L) the part of ``seconds`` XLA spent compiling programs
@@ -131,6 +137,7 @@ class SweepResult:
                 row["boresight_err_arcsec_p95"] = (float(np.percentile(errors, 95)) if errors.size
                                                    else None)
                 row["mean_identified"] = float(np.mean(self.scenes["n_identified"][take, e])) if n else None
+                row.update(self._false_match(take, e, code))
                 sec = float(self.seconds[e, lv])
                 timed = int(np.sum(self.level_of == lv))  # the level's scenes, all of them timed
                 row["seconds"] = sec
@@ -143,6 +150,19 @@ class SweepResult:
                 row["peak_rss_mb"] = self.timing[e]["peak_rss_mb"]
                 out.append(row)
         return out
+
+    def _false_match(self, take, e, code) -> dict:
+        """A row's false-match columns: the median P of its claims, and whether P is calibrated on
+        them (:func:`jstarid.false_match.calibrated`, a wrong claim being any wrong name); ``None``
+        for a sweep saved before P was recorded, or a row without claims."""
+        if "false_match" not in self.scenes:
+            return {"false_match_median": None, "false_match_calibrated": None}
+        p = self.scenes["false_match"][take, e]
+        claimed = code != FAIL
+        if not claimed.any():
+            return {"false_match_median": None, "false_match_calibrated": None}
+        return {"false_match_median": float(np.median(p[claimed])),
+                "false_match_calibrated": bool(calibrated(p, claimed, code == WRONG))}
 
     def _with_stars(self, stars) -> np.ndarray:
         """(S,) bool: the scenes ``rows(stars=…)`` counts."""

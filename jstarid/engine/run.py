@@ -39,6 +39,7 @@ from jstarid.engine.levels import level_grid, level_noise
 from jstarid.engine.pixels import RENDER_DEPTH_MAG, SENSOR_AXES, detect_scenes, sensor_levels
 from jstarid.engine.result import SweepResult
 from jstarid.experiment import peak_rss_mb
+from jstarid.false_match import of_solutions
 from jstarid.metrics import CRITERIA, scene_outcomes
 from jstarid.render import SensorConfig, sensor_for_camera
 from jstarid.runtime.compilations import CountCompilations
@@ -58,7 +59,7 @@ CHUNK_SIZE = 256
 SKY_CAPACITY = 512  # stars rendered per frame in a sweep from pixels (more: the sky's overflow count)
 # what is kept per scene and entry (the table is computed from these alone)
 SCORES = {"outcome": np.int8, "n_correct": np.int16, "n_wrong": np.int16, "n_identified": np.int16,
-          "boresight_err_arcsec": np.float32, "roll_err_arcsec": np.float32}
+          "boresight_err_arcsec": np.float32, "roll_err_arcsec": np.float32, "false_match": np.float32}
 
 
 def sweep(algorithms: Sequence | str = "sgm,mlv,rpnet", camera: str | Camera = "sgm2022", *,
@@ -480,7 +481,8 @@ def _chunks(level_of: np.ndarray, chunk_size: int) -> list[tuple[slice, int]]:
 
 def _score(scenes: Scene, result: Identification, catalog, camera, criterion,
            radius_deg: float = 6.0) -> dict:
-    """Per-scene outcome, counts and attitude errors (a Wahba fit of the named stars).
+    """Per-scene outcome, counts, attitude errors (a Wahba fit of the named stars) and the claim's
+    false-match probability (:func:`jstarid.false_match.of_solutions`; 1 where not claimed).
 
     ``radius_deg``: the neighbor circle of the ``"sgm"`` criterion, the entry's own where its
     config has one (an SGM run with another r is scored on its own circle).
@@ -494,7 +496,8 @@ def _score(scenes: Scene, result: Identification, catalog, camera, criterion,
             "n_wrong": np.asarray(out["n_wrong"], np.int16),
             "n_identified": np.asarray(out["n_identified"], np.int16),
             "boresight_err_arcsec": np.where(have, np.asarray(bore), np.nan).astype(np.float32),
-            "roll_err_arcsec": np.where(have, np.asarray(roll), np.nan).astype(np.float32)}
+            "roll_err_arcsec": np.where(have, np.asarray(roll), np.nan).astype(np.float32),
+            "false_match": of_solutions(scenes, result, catalog, camera).astype(np.float32)}
 
 
 def _check_positive(**values) -> None:

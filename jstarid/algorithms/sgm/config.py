@@ -158,11 +158,11 @@ class Config:
             is studentized for SGM (``studentized=True``: 6 σ̂ becomes 10.0 σ̂ over 12 names; the
             plain radius took back right names 3–4 px out at σ = 1 px, where σ̂ of a dozen names
             came out at half σ) and capped at ``verify_cap_deg``
-            (:func:`~jstarid.algorithms.sgm.extensions.camera_check_cap_px`); a claim of at most
-            four names stands only where the frame confirms it at false-match probability ≤ 1e-3
-            (stricter than MLV's and RpNet's 1e-2: three or four points fit some catalog graph
-            within SGM's tolerances, and its circle is all it looks at; a 10° camera with five or
-            six stars per frame claimed 22 of 300 frames of random points without it;
+            (:func:`~jstarid.algorithms.sgm.extensions.camera_check_cap_px`); a claim stands only
+            at false-match probability ≤ 1e-3 (``max_false_match``; stricter than MLV's and
+            RpNet's 1e-2: three or four points fit some catalog graph within SGM's tolerances, and
+            its circle is all it looks at; a 10° camera with five or six stars per frame claimed
+            22 of 300 frames of random points without it;
             :func:`~jstarid.algorithms.sgm.extensions.confirmed_by_the_frame`).
         focal_search_dw_max_deg: Δw_max of those searches (deg; ``None``: ``dw_max_deg``). Why:
             a scene the rescaled camera explains is found at small Δw, and the scenes left are
@@ -225,7 +225,7 @@ class Config:
     verify_rename: bool = True
     verify_retries: int = 3
     verify_min_coverage: float = 0.4
-    finishing: Finishing = Finishing(studentized=True, confirm_false_match=1e-3)
+    finishing: Finishing = Finishing(studentized=True, max_false_match=1e-3)
     focal_search_dw_max_deg: float | None = 1.0
     focal_search_whole_circle: bool = True
 

@@ -12,8 +12,8 @@ In the order they run, each a ``Config`` field and off in ``Config.paper()``:
    ladder solved are named again under the focal length the camera check fitted.
 4. :func:`whole_circles_only` (``focal_search_whole_circle``): of those, only the scenes whose
    whole circle is named stay solved.
-5. :func:`confirmed_by_the_frame` (``finishing.confirm_names``, ``confirm_false_match``): a scene
-   that names few stars stays solved only where the rest of the frame confirms its attitude.
+5. :func:`confirmed_by_the_frame` (``finishing.max_false_match``): a scene stays solved only where
+   its false-match probability — of its names, or of the frame named from its attitude — is small.
 6. :func:`search_lost` (``finishing.hypotheses``): the scenes whose claim steps 2–5 took back are
    searched over their detections' triangles, as step 2 searches the unsolved ones.
 
@@ -242,16 +242,18 @@ def whole_circles_only(db, scenes: Scene, result: Identification, laddered: np.n
 
 
 def confirmed_by_the_frame(db, scenes: Scene, result: Identification, config: Config) -> Identification:
-    """The finishing stage's confirmation of few names (:func:`jstarid.finishing.confirmed_by_the_frame`,
-    ``Finishing.confirm_names``, ``confirm_false_match``), run after SGM's own steps, which change the
-    names: a claim of at most four names stands only where the whole frame, named from its attitude
-    within :func:`camera_check_cap_px`, confirms it.
+    """The finishing stage's false-match test (:func:`jstarid.finishing.confirmed_by_the_frame`,
+    ``Finishing.max_false_match``), run after SGM's own steps, which change the names: a claim stands
+    only where its names, or the whole frame named from its attitude within
+    :func:`camera_check_cap_px`, make a coincidence unlikely.
 
     Why (SGM): three or four points fit some catalog graph within SGM's tolerances wherever the
     catalog is dense enough, and a circle that holds only three or four detections is all SGM looks
     at. On a 10° × 7.5° camera with stars to V 5.7 (five or six per frame) the defaults claimed 22 of
     300 frames of 8 random points, and 14 of 21 claims with 10 false detections per scene were wrong
-    (docs/design/sgm.md, ``confirm_names``).
+    (docs/design/sgm.md, ``max_false_match``). A claim of five wrong names at 10 false detections,
+    which the camera check kept, got P = 1 from the frame too (experiments/false_match.py on
+    ``challenge6``).
     """
     return finishing.confirmed_by_the_frame(result, scenes, config.finishing, stars=db.catalog,
                                             camera=db.camera, tol_px=camera_check_cap_px(config, db.camera))
