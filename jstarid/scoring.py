@@ -24,6 +24,7 @@ import numpy as np
 
 from jstarid.catalog import DOUBLE_SEP_DEG as CATALOG_DOUBLE_SEP_DEG
 from jstarid.catalog import load_every_star
+from jstarid.false_match import calibrated
 
 __all__ = ["CATALOG_DOUBLE_SEP_DEG", "close_pairs", "score_scene", "summarize"]
 
@@ -86,7 +87,10 @@ def score_scene(named_hip, true_hip, solved: bool, *,
 
 def summarize(scores: Sequence[dict]) -> dict:
     """Totals of :func:`score_scene` results: scenes right / wrong / failed, star counts, recall and
-    precision (NaN where the denominator is zero)."""
+    precision (NaN where the denominator is zero), and — where the scores carry each solved scene's
+    ``false_match_probability`` — whether that probability is calibrated on them
+    (:func:`jstarid.false_match.calibrated`, a wrong scene counting as a wrong claim; ``None`` where
+    no score carries it)."""
     total = {"scenes": len(scores)}
     total.update({k: sum(s["outcome"] == k for s in scores) for k in ("right", "wrong", "failed")})
     for key in ("detections", "true_stars", "named", "correct_names", "wrong_names", "blend_names"):
@@ -94,4 +98,14 @@ def summarize(scores: Sequence[dict]) -> dict:
     correct, decided = total["correct_names"], total["correct_names"] + total["wrong_names"]
     total["recall"] = correct / total["true_stars"] if total["true_stars"] else float("nan")
     total["precision"] = correct / decided if decided else float("nan")
+    total["false_match_calibrated"] = _calibrated(scores)
     return total
+
+
+def _calibrated(scores: Sequence[dict]) -> bool | None:
+    if not any(s.get("false_match_probability") is not None for s in scores):
+        return None
+    claimed = np.array([bool(s["solved"]) for s in scores])
+    p = np.array([1.0 if s.get("false_match_probability") is None else s["false_match_probability"]
+                  for s in scores])
+    return bool(calibrated(p, claimed, np.array([s["outcome"] == "wrong" for s in scores]) & claimed))

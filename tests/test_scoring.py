@@ -30,6 +30,23 @@ def test_the_strict_rules():
     total = summarize([right, score_scene([1, 4], [1, -1], True)])
     assert (total["right"], total["wrong"], total["failed"], total["true_stars"]) == (1, 1, 0, 5)
     assert total["recall"] == 3 / 5 and total["precision"] == 3 / 4  # blends in neither
+    assert total["false_match_calibrated"] is None  # no score carries a probability
+
+
+def test_the_false_match_probability_is_calibrated_on_labelled_scenes():
+    """``summarize``: wrong scenes at most a share t of the solved scenes at P ≤ t, for every t
+    (:func:`jstarid.false_match.calibrated`); unsolved scenes do not count as claims."""
+    def scored(named, true, solved, p):
+        return {**score_scene(named, true, solved), "false_match_probability": p}
+
+    right = [scored([1, 2, 3], [1, 2, 3], True, 1e-12) for _ in range(200)]
+    wrong_at_one = scored([4, 5, 6], [1, 2, 3], True, 1.0)
+    assert summarize([*right, wrong_at_one])["false_match_calibrated"] is True
+    # one wrong scene among 201 claims at P ≤ 1e-2: more than a share 1e-2 would allow at 1e-9
+    wrong_sure = scored([4, 5, 6], [1, 2, 3], True, 1e-12)
+    assert summarize([*right, wrong_sure])["false_match_calibrated"] is False
+    unsolved = scored([4, 5, 6], [1, 2, 3], False, None)  # named but not claimed: no claim at any P
+    assert summarize([*right, unsolved])["false_match_calibrated"] is True
 
 
 def test_close_pairs_from_the_catalog():

@@ -61,7 +61,8 @@ def run_score(args) -> int:
         for key in ("wrong_detections", "blend_detections"):  # indices → the detections themselves
             score[key] = [{"x": float(found.xy[i][j, 0]), "y": float(found.xy[i][j, 1]),
                            "hip": int(named[i][j]), "true_hip": int(found.hip[i][j])} for j in score[key]]
-        scores.append({"scene": entry["scene"], **score})
+        scores.append({"scene": entry["scene"], **score,
+                       "false_match_probability": entry.get("false_match_probability")})
     sets_out, start = [], 0
     for path, one in sets:
         per_scene = scores[start:start + len(one)]
@@ -88,11 +89,12 @@ def blend_radius_deg(args, camera) -> float:
 
 
 def _table(sets: list[dict], total: dict) -> str:
-    rows = ["| set | scenes | right | wrong | failed | recall | precision | blends |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    rows = ["| set | scenes | right | wrong | failed | recall | precision | blends | P calibrated |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     for name, s in [(s["file"], s) for s in sets] + ([("all", total)] if len(sets) > 1 else []):
+        calibrated = {None: "–", True: "yes", False: "no"}[s["false_match_calibrated"]]
         rows.append(f"| {name} | {s['scenes']} | {s['right']} | {s['wrong']} | {s['failed']} | "
-                    f"{s['recall']:.3f} | {s['precision']:.3f} | {s['blend_names']} |")
+                    f"{s['recall']:.3f} | {s['precision']:.3f} | {s['blend_names']} | {calibrated} |")
     return "\n".join(rows)
 
 
