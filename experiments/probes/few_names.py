@@ -6,10 +6,10 @@ scenes of random points), the algorithm's claims of at most ``--names`` names ar
 false-match probability of their whole frame, named from the claim's attitude
 (:func:`jstarid.completion.name_from_attitude` within the camera check's largest radius), as the
 finishing stage's false-match test computes it for a claim its own names leave doubtful. Run with
-``--set finishing.max_false_match=1`` to see the claims the test judges (with it on, the doubtful ones are already gone). Per set: claims,
-claims of few names, how many of those are wrong attitudes (boresight over ``--wrong-px`` off; every
-claim on random points), the range of log10 P of the right and the wrong ones, and how many right
-ones each threshold would fail.
+``--set finishing.max_false_match=1`` to see the claims the test judges (with it on, the doubtful
+ones are already gone). Per set: claims, claims of few names, how many of those are wrong attitudes
+(boresight over ``--wrong-px`` off; every claim on random points), the range of log10 P of the right
+and the wrong ones, and how many right ones each threshold would fail.
 
 Usage::
 
