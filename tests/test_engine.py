@@ -34,6 +34,14 @@ def small():
     return _small_sweep()
 
 
+def _small_scenes():
+    """(catalog, camera, scenes): the scenes ``_small_sweep`` draws, drawn by hand."""
+    key_scenes, _ = jax.random.split(jax.random.key(4))
+    cat, cam = js.load_catalog(5.5), js.camera_preset("mlv2021")
+    noise = js.noise_grid(12, position_sigma_px=[0.0, 2.0], magnitude_sigma=0.3)
+    return cat, cam, js.simulate(key_scenes, cat, cam, noise, batch_size=24, capacity=64)
+
+
 def test_level_grid_is_the_product_first_axis_slowest():
     grid = lv.level_grid({"position": [0, 1], "n_false": [0, 2, 4]})
     assert grid[:4] == [{"position_sigma_px": 0.0, "n_false": 0}, {"position_sigma_px": 0.0, "n_false": 2},
@@ -78,10 +86,7 @@ def test_wilson_interval_matches_scipy(k, n):
 
 def test_sweep_equals_direct_identify_calls(small):
     """The engine's outcomes are those of simulate + identify + scene_outcomes called by hand."""
-    key_scenes, _ = jax.random.split(jax.random.key(4))
-    cat, cam = js.load_catalog(5.5), js.camera_preset("mlv2021")
-    noise = js.noise_grid(12, position_sigma_px=[0.0, 2.0], magnitude_sigma=0.3)
-    scenes = js.simulate(key_scenes, cat, cam, noise, batch_size=24, capacity=64)
+    cat, cam, scenes = _small_scenes()
     entry = _mlv_entry()
     mlv = js.algorithms.get("mlv")
     direct = mlv.identify(mlv.build_database(cat, cam, entry.config, progress=False), scenes,
@@ -107,10 +112,7 @@ def test_every_claim_carries_its_false_match_probability(small):
     and whether P is calibrated (:func:`jstarid.false_match.calibrated`), the table both."""
     from jstarid.false_match import SMALLEST_P, false_match_probability, with_names_attitude
 
-    key_scenes, _ = jax.random.split(jax.random.key(4))
-    cat, cam = js.load_catalog(5.5), js.camera_preset("mlv2021")
-    noise = js.noise_grid(12, position_sigma_px=[0.0, 2.0], magnitude_sigma=0.3)
-    scenes = js.simulate(key_scenes, cat, cam, noise, batch_size=24, capacity=64)
+    cat, cam, scenes = _small_scenes()
     entry = _mlv_entry()
     mlv = js.algorithms.get("mlv")
     direct = mlv.identify(mlv.build_database(cat, cam, entry.config, progress=False), scenes, entry.config)
@@ -137,10 +139,7 @@ def test_every_claim_carries_its_false_match_probability(small):
 def test_rows_of_the_scenes_with_so_many_true_stars(small, tmp_path):
     """``rows(stars=(lo, hi))`` scores only the scenes with lo … hi true stars among their detections,
     counted here from the scenes themselves."""
-    key_scenes, _ = jax.random.split(jax.random.key(4))
-    noise = js.noise_grid(12, position_sigma_px=[0.0, 2.0], magnitude_sigma=0.3)
-    scenes = js.simulate(key_scenes, js.load_catalog(5.5), js.camera_preset("mlv2021"), noise,
-                         batch_size=24, capacity=64)
+    _, _, scenes = _small_scenes()
     n_true = (np.asarray(scenes.valid) & (np.asarray(scenes.truth) >= 0)).sum(1)
     np.testing.assert_array_equal(small.stars, n_true)
     lo, hi = np.percentile(n_true, [25, 75]).astype(int)
