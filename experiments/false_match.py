@@ -28,7 +28,7 @@ import numpy as np
 
 import jstarid as js
 from jstarid import experiment as ex
-from jstarid.false_match import calibrated, of_solutions
+from jstarid.false_match import WRONG_ATTITUDE_PX, calibrated, of_solutions
 
 
 def _row(name, config_name, scenes, truth_known, result, p, wrong_arcsec):
@@ -56,7 +56,8 @@ def parse_args(argv=None):
     parser.add_argument("--scenes", type=int, default=300, help="scenes per set")
     parser.add_argument("--false", type=int, nargs="+", default=[0, 20, 40], help="false detections")
     parser.add_argument("--points", type=int, nargs="+", default=[8, 15, 30], help="random points")
-    parser.add_argument("--wrong-px", type=float, default=10.0, help="boresight error of a wrong attitude")
+    parser.add_argument("--wrong-px", type=float, default=WRONG_ATTITUDE_PX,
+                        help="boresight error of a wrong attitude (px)")
     return parser.parse_args(argv)
 
 

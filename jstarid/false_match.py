@@ -47,11 +47,12 @@ from jstarid.camera_fit import unproject_scaled
 from jstarid.geometry.angles import angle_between, pairwise_angles
 from jstarid.geometry.precise import small_matmul
 
-__all__ = ["CALIBRATION_THRESHOLDS", "MIN_RADIUS_PX", "SMALLEST_P", "calibrated", "false_match_log10",
-           "false_match_probability", "of_solutions", "with_names_attitude"]
+__all__ = ["CALIBRATION_THRESHOLDS", "MIN_RADIUS_PX", "SMALLEST_P", "WRONG_ATTITUDE_PX", "calibrated",
+           "false_match_log10", "false_match_probability", "of_solutions", "with_names_attitude"]
 
 MIN_RADIUS_PX = 1.0  # the match radius is never taken below this (px)
 CALIBRATION_THRESHOLDS = (1e-9, 1e-6, 1e-3, 1e-2, 0.1)  # the t at which :func:`calibrated` checks
+WRONG_ATTITUDE_PX = 10.0  # a claim whose boresight is farther than this from the truth is a wrong attitude
 SMALLEST_P = float(np.finfo(np.float32).tiny)  # P is kept as float32: a smaller P reads as this, not 0
 DENSITY_GROUP = 64  # scenes per lax.map step of the local-density count (a (group, M) product)
 
@@ -114,7 +115,9 @@ def calibrated(p, claimed, wrong, thresholds=CALIBRATION_THRESHOLDS) -> bool:
         p: (S,) false-match probability of each scene's claim (NaN counts as claimed at every t: it
             must not pass for calibrated).
         claimed: (S,) bool, the scenes claimed.
-        wrong: (S,) bool, the claims that are wrong (a wrong attitude, or any wrong name: stricter).
+        wrong: (S,) bool, the claims that are wrong: a wrong attitude (P speaks of the attitude; a
+            sweep's boresight over :data:`WRONG_ATTITUDE_PX` off), or any wrong name where no true
+            attitude is known (stricter: a labelled file, ``jstarid score``).
         thresholds: the t checked.
     """
     p, claimed, wrong = np.asarray(p, np.float64), np.asarray(claimed, bool), np.asarray(wrong, bool)

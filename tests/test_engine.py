@@ -132,6 +132,13 @@ def test_every_claim_carries_its_false_match_probability(small):
     assert rows[2]["false_match_median"] == pytest.approx(float(np.median(first_level)))
     assert all(r["false_match_calibrated"] is True for r in rows)
     assert "claims' false-match P (median)" in small.table()
+    # calibration speaks of attitudes: one claim 20 px off at P = 1e-12 among 12 is not calibrated
+    off = {k: v.copy() for k, v in small.scenes.items()}
+    off["boresight_err_arcsec"][0, 1] = 20 * cam.pixel_scale_arcsec
+    off["false_match"][0, 1] = 1e-12
+    assert dataclasses.replace(small, scenes=off).rows()[2]["false_match_calibrated"] is False
+    off["boresight_err_arcsec"][0, 1] = 5 * cam.pixel_scale_arcsec  # a right attitude, a pixel or two off
+    assert dataclasses.replace(small, scenes=off).rows()[2]["false_match_calibrated"] is True
     older = dataclasses.replace(small, scenes={k: v for k, v in small.scenes.items() if k != "false_match"})
     assert older.rows()[0]["false_match_median"] is None  # a sweep saved before P was recorded
 

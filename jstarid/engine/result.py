@@ -13,13 +13,14 @@ directory (``config.json``, ``results.json``, ``table.md``, ``scenes.npz``, ``ra
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from jstarid import experiment
-from jstarid.false_match import calibrated
+from jstarid.false_match import WRONG_ATTITUDE_PX, calibrated
 from jstarid.metrics import CORRECT, FAIL, OUTCOME_NAMES, WRONG, wilson_interval
 
 __all__ = ["SweepResult", "load", "COLUMNS"]
@@ -153,16 +154,24 @@ class SweepResult:
 
     def _false_match(self, take, e, code) -> dict:
         """A row's false-match columns: the median P of its claims, and whether P is calibrated on
-        them (:func:`jstarid.false_match.calibrated`, a wrong claim being any wrong name); ``None``
-        for a sweep saved before P was recorded, or a row without claims."""
+        them (:func:`jstarid.false_match.calibrated`; a wrong claim is a wrong attitude, boresight
+        over :data:`~jstarid.false_match.WRONG_ATTITUDE_PX` off or none: P speaks of the attitude,
+        and a right attitude with one wrong name is the misid column's); ``None`` for a sweep saved
+        before P was recorded, or a row without claims."""
         if "false_match" not in self.scenes:
             return {"false_match_median": None, "false_match_calibrated": None}
         p = self.scenes["false_match"][take, e]
         claimed = code != FAIL
         if not claimed.any():
             return {"false_match_median": None, "false_match_calibrated": None}
+        f_px = self.settings.get("camera", {}).get("f_px")
+        off = self.scenes["boresight_err_arcsec"][take, e]
+        if f_px:  # the radius in arcsec at the camera's pixel scale
+            wrong = claimed & ~(off <= WRONG_ATTITUDE_PX * math.degrees(1.0) * 3600.0 / f_px)
+        else:  # a result without its camera: any wrong name (stricter)
+            wrong = code == WRONG
         return {"false_match_median": float(np.median(p[claimed])),
-                "false_match_calibrated": bool(calibrated(p, claimed, code == WRONG))}
+                "false_match_calibrated": bool(calibrated(p, claimed, wrong))}
 
     def _with_stars(self, stars) -> np.ndarray:
         """(S,) bool: the scenes ``rows(stars=…)`` counts."""
