@@ -387,22 +387,24 @@ def confirmed_by_the_frame(result: Identification, scenes: Scene, config: Finish
         p[rows] = _probability(result, scenes, rows, stars, camera)
         doubtful = rows[p[rows] > config.max_false_match]
         if doubtful.size:
-            p[doubtful] = np.minimum(p[doubtful], _probability(result, scenes, doubtful, stars, camera,
-                                                               frame_px=tol_px, config=config))
+            framed = _probability(result, scenes, doubtful, stars, camera, frame_px=tol_px,
+                                  max_scale_error=config.max_focal_error)
+            p[doubtful] = np.minimum(p[doubtful], framed)
     lost = rows[p[rows] > config.max_false_match]
     kept = np.maximum(p, SMALLEST_P).astype(np.float32)
     out = dataclasses.replace(result, false_match=jax.device_put(kept))
     return out.failed(lost) if lost.size else out
 
 
-def _probability(result, scenes, rows, stars, camera, *, frame_px=None, config=None) -> np.ndarray:
+def _probability(result, scenes, rows, stars, camera, *, frame_px=None, max_scale_error=0.0) -> np.ndarray:
     """(R,) the false-match probability of the claims ``rows``: of their own names, or (``frame_px``)
-    of the frame named from their attitude within it (1 where that naming unclaims the scene)."""
+    of the frame named from their attitude within it, the focal length fitted within
+    ``max_scale_error`` (1 where that naming unclaims the scene)."""
     padded = padded_indices(rows)
     moved = scenes[padded]
     given = with_names_attitude(result[padded], moved, stars, camera)
     if frame_px is not None:
         given = name_from_attitude(stars, camera, moved, given, tol_px=frame_px,
-                                   max_scale_error=config.max_focal_error)
+                                   max_scale_error=max_scale_error)
     p = false_match_probability(moved, given, stars.unit_vectors, camera)
     return np.where(np.asarray(given.ok), p, 1.0)[:rows.size]

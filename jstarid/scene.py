@@ -137,9 +137,16 @@ class Identification:
 
     def failed(self, rows) -> Identification:
         """These results with the scenes ``rows`` (int indices or a (B,) bool mask) failed: ids −1,
-        ``ok`` False, NaN attitude and fits, false-match probability 1."""
+        ``ok`` False, NaN attitude and fits, false-match probability 1. On the host, as
+        :meth:`with_rows` (an eager scatter compiles a program per row count)."""
+        rows = np.asarray(rows)
+
         def cleared(x, value):
-            return None if x is None else jnp.asarray(x).at[rows].set(value)
+            if x is None:
+                return None
+            out = np.array(x)  # a copy
+            out[rows] = value
+            return jax.device_put(out)
 
         return Identification(ids=cleared(self.ids, -1), ok=cleared(self.ok, False),
                               attitude=cleared(self.attitude, jnp.nan),

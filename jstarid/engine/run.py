@@ -491,13 +491,16 @@ def _score(scenes: Scene, result: Identification, catalog, camera, criterion,
     att, _, have = estimate_attitude(catalog, camera, scenes, result)
     bore, roll = attitude_errors_arcsec(att, scenes.attitude)
     have = np.asarray(have) & np.asarray(result.ok)
+    # the names' Wahba attitude where the algorithm gives none: the false-match probability reads it
+    located = result if result.attitude is not None else dataclasses.replace(
+        result, attitude=np.where(have[:, None, None], np.asarray(att, np.float32), np.nan))
     return {"outcome": np.asarray(out["outcome"], np.int8),
             "n_correct": np.asarray(out["n_correct"], np.int16),
             "n_wrong": np.asarray(out["n_wrong"], np.int16),
             "n_identified": np.asarray(out["n_identified"], np.int16),
             "boresight_err_arcsec": np.where(have, np.asarray(bore), np.nan).astype(np.float32),
             "roll_err_arcsec": np.where(have, np.asarray(roll), np.nan).astype(np.float32),
-            "false_match": of_solutions(scenes, result, catalog, camera).astype(np.float32)}
+            "false_match": of_solutions(scenes, located, catalog, camera).astype(np.float32)}
 
 
 def _check_positive(**values) -> None:
