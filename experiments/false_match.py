@@ -56,6 +56,8 @@ def parse_args(argv=None):
     parser.add_argument("--scenes", type=int, default=300, help="scenes per set")
     parser.add_argument("--false", type=int, nargs="+", default=[0, 20, 40], help="false detections")
     parser.add_argument("--points", type=int, nargs="+", default=[8, 15, 30], help="random points")
+    parser.add_argument("--capacity", type=int, default=64,
+                        help="detections a scene holds (the brightest; 128 for crowded sets)")
     parser.add_argument("--wrong-px", type=float, default=WRONG_ATTITUDE_PX,
                         help="boresight error of a wrong attitude (px)")
     return parser.parse_args(argv)
@@ -77,7 +79,8 @@ def main(argv=None):
                 continue
             db = algo.build_database(cat, cam, config)
             sets = ex.clutter_and_random_sets(cat, cam, seed=args.seed, scenes=args.scenes,
-                                              false_counts=args.false, points=args.points)
+                                              false_counts=args.false, points=args.points,
+                                              capacity=args.capacity)
             for name, scenes, truth_known in sets:
                 result = algo.identify(db, scenes, config)
                 p = of_solutions(scenes, result, cat, cam)

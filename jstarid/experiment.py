@@ -307,14 +307,14 @@ def claim_detections(det_xy, star_xy, match_px: float) -> np.ndarray:
 
 
 def clutter_and_random_sets(catalog, camera, *, seed: int, scenes: int, false_counts: Sequence[int],
-                            points: Sequence[int]):
+                            points: Sequence[int], capacity: int = 64):
     """The scene sets of the false-match experiments: ``(name, scenes, truth_known)`` per set.
 
     One set per count in ``false_counts`` (that many false detections of star-like magnitude, V 1 to
     the camera's limit distributed as the catalog's stars, ``CATALOG_MAG_SLOPE``; 0.5 px centroid
     noise; level k drawn from ``fold_in(key(seed), k)``), then one per count in ``points`` of random
     points uniform over the frame (no star; magnitudes uniform in V 1 to the limit), each
-    ``scenes`` scenes of capacity 64.
+    ``scenes`` scenes of ``capacity`` detections (the brightest kept, the overflow flagged).
     """
     import jstarid as js  # the package face imports this module: here, not at the top
 
@@ -323,10 +323,10 @@ def clutter_and_random_sets(catalog, camera, *, seed: int, scenes: int, false_co
         noise = js.NoiseConfig(position_sigma_px=0.5, n_false=n_false, false_mag_min=1.0,
                                false_mag_max=camera.mag_limit, false_mag_slope=js.CATALOG_MAG_SLOPE)
         yield (f"{n_false} false", js.simulate(jax.random.fold_in(key, level), catalog, camera, noise,
-                                               batch_size=scenes, capacity=64), True)
+                                               batch_size=scenes, capacity=capacity), True)
     rng = np.random.default_rng(seed)
     size = np.array([camera.width - 1, camera.height - 1])
     for n_points in points:
         xy = [rng.uniform(0, 1, (n_points, 2)) * size for _ in range(scenes)]
         mag = [np.sort(rng.uniform(1.0, camera.mag_limit, n_points)) for _ in range(scenes)]
-        yield f"{n_points} random points", js.scenes_from_centroids(xy, mag, capacity=64), False
+        yield f"{n_points} random points", js.scenes_from_centroids(xy, mag, capacity=capacity), False

@@ -8,7 +8,8 @@ and configured by one nested config, :class:`Finishing` (``Config.finishing`` of
 
 0. **Hypothesis search** (``hypotheses``): the scenes the algorithm left unsolved are searched over
    every triangle of their brightest ``hypotheses`` detections, each verified against the frame
-   (:mod:`jstarid.hypotheses`); a claim must pass the false-match test. Where false detections as
+   (:mod:`jstarid.hypotheses`), and a crowded scene still unsolved again over its brightest
+   ``crowded_hypotheses``; a claim must pass the false-match test. Where false detections as
    bright as the stars outnumber them, the algorithm's pattern is mostly false; five stars anywhere
    among the detections are enough here. A sparse field's deep catalog is searched over its
    brightest star per sky cell (:func:`jstarid.triangle_index.stars_that_fit`); skipped where a
@@ -91,6 +92,12 @@ class Finishing:
         hypotheses: the brightest detections whose every triangle the hypothesis search tries on a
             scene still unsolved (C(n, 3) triangles; ≈ 0.1 s a scene at 48 on 2 cores); 0 turns the
             search off.
+        crowded_hypotheses: a scene with more valid detections than ``hypotheses`` that the search
+            leaves unsolved is searched again over its ``crowded_hypotheses`` brightest (C(96, 3) =
+            142,880 triangles, ≈ 0.5 s a scene on 2 cores; only such scenes pay it): where false
+            detections as bright as the stars number 80, the 48 brightest hold five of a frame's
+            stars about one time in twenty (docs/design/hypotheses.md). 0 (or ≤ ``hypotheses``): no
+            second pass.
         hypothesis_eps_px: the search's side and confirmation tolerance (px at the focal length).
         hypothesis_false_match: the largest false-match probability a claim of the search may have.
             Stricter than a single pattern's 1e-3: the search picks the best of thousands of
@@ -112,6 +119,7 @@ class Finishing:
     max_focal_error: float = 0.1
     studentized: bool = False
     hypotheses: int = 48
+    crowded_hypotheses: int = 96
     hypothesis_eps_px: float = 3.0
     hypothesis_false_match: float = 1e-5
     rival_odds: float = 20.0
@@ -125,6 +133,9 @@ class Finishing:
             raise ValueError(f"max_focal_error must be in [0, 0.5), got {self.max_focal_error}")
         if not (isinstance(self.hypotheses, int) and (self.hypotheses == 0 or 4 <= self.hypotheses <= 64)):
             raise ValueError(f"hypotheses must be 0 (off) or an integer in [4, 64], got {self.hypotheses}")
+        if not (isinstance(self.crowded_hypotheses, int) and 0 <= self.crowded_hypotheses <= 128):
+            raise ValueError(f"crowded_hypotheses must be an integer in [0, 128] (0: no second pass), got "
+                             f"{self.crowded_hypotheses}")
         if not (math.isfinite(self.hypothesis_eps_px) and 0 < self.hypothesis_eps_px <= 10):
             raise ValueError(f"hypothesis_eps_px must be in (0, 10] px, got {self.hypothesis_eps_px}")
         if not 0 < self.hypothesis_false_match <= 0.1:
@@ -315,7 +326,8 @@ def _search(result, scenes, config: Finishing, camera, star_vectors, star_mags) 
     try:
         return solve_unsolved(result, scenes, star_vectors=star_vectors, camera=camera,
                               n_use=config.hypotheses, eps_px=config.hypothesis_eps_px, min_confirm=1,
-                              max_false_match=config.hypothesis_false_match, star_mags=star_mags)
+                              max_false_match=config.hypothesis_false_match, star_mags=star_mags,
+                              n_crowded=config.crowded_hypotheses)
     except TooManyTriangles:
         nothing = np.zeros(scenes.batch_size, bool)
         return SearchOutcome(result, nothing, nothing)

@@ -8,7 +8,9 @@ cleanly where the frame still holds five or six stars. This stage, the finishing
 astrometry.net do with their own keys):
 
 1. the ``n`` brightest valid detections (``Finishing.hypotheses``) → camera-frame unit vectors; every
-   triple i < j < k of them;
+   triple i < j < k of them. A scene with more detections that this leaves unsolved is searched
+   again over its ``Finishing.crowded_hypotheses`` brightest (a second pass: among 80 false
+   detections as bright as the stars, the 48 brightest rarely hold five stars);
 2. per triple, the catalog triangles whose sorted sides are within ε of the triple's
    (:mod:`jstarid.triangle_index`, two binary searches) and that turn the same way (the sign of the
    triple product, which a rotation keeps); vertices correspond by the side opposite them. Each
@@ -47,13 +49,13 @@ from jstarid.attitude import solve_wahba, triad
 from jstarid.completion import first_argmax, name_stars
 from jstarid.false_match import false_match_probability
 from jstarid.geometry.angles import pairwise_angles, turn_sign
-from jstarid.runtime import padded_indices
+from jstarid.runtime import next_power_of_two, padded_indices
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
 from jstarid.triangle_index import TriangleIndex, build_triangle_index, query, stars_that_fit
 
-__all__ = ["SearchOutcome", "Searched", "all_triples", "search_scene", "solve_unsolved"]
+__all__ = ["SearchOutcome", "Searched", "all_triples", "crowded_capacity", "search_scene", "solve_unsolved"]
 
 TRIPLE_CHUNK = 512  # triples vmapped together inside a scene's lax.map
 HYPOTHESIS_CHUNK = 128  # hypotheses verified together
@@ -233,7 +235,7 @@ class SearchOutcome(NamedTuple):
 
 def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camera, n_use: int,
                    eps_px: float, min_confirm: int, max_false_match: float, capacity: int = 4096,
-                   per_triple: int = 16, star_mags=None) -> SearchOutcome:
+                   per_triple: int = 16, star_mags=None, n_crowded: int = 0) -> SearchOutcome:
     """The search on every scene ``result`` leaves unsolved; claims pass the false-match test.
 
     Args:
@@ -252,6 +254,10 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
             a sparse field (at most :data:`SPARSE_STARS_PER_FRAME` stars a frame: a deep catalog on
             a narrow camera) is searched over the triangles of its brightest star per sky cell
             (:func:`jstarid.triangle_index.stars_that_fit`), still verified against every row.
+        n_crowded: a scene with more than ``n_use`` valid detections that the first pass leaves
+            unsolved is searched again over its ``n_crowded`` brightest (a crowded frame, whose
+            stars the brightest ``n_use`` leave out), with capacity scaled by the triangles tried
+            (:func:`crowded_capacity`); 0 (or ≤ ``n_use``): no second pass.
 
     Returns:
         :class:`SearchOutcome`.
@@ -271,25 +277,29 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
         return SearchOutcome(result, solved, overflow)
     cells, grid = _sky_cells(vectors, index, camera, eps_rad)
     xy, valid, mag = (np.asarray(a) for a in (scenes.xy, scenes.valid, scenes.mag))
-    static = dict(grid=grid, camera=camera, n_use=int(n_use), eps_rad=eps_rad, min_confirm=int(min_confirm),
-                  capacity=int(capacity), per_triple=int(per_triple))
-    triples = jnp.asarray(padded_triples(min(int(n_use), xy.shape[1])))
-    device_vectors = jnp.asarray(vectors)
-    found = []
-    for lo in range(0, rows.size, SCENE_CHUNK):
-        # sizes 16, 32, 64 only: each is one compiled program (≈ 5 s)
-        part = padded_indices(rows[lo:lo + SCENE_CHUNK], floor=16)
-        out = _search_chunk(jnp.asarray(xy[part], jnp.float32), jnp.asarray(valid[part]),
-                            jnp.asarray(mag[part], jnp.float32), triples, index, device_vectors, cells,
-                            **static)
-        n = min(SCENE_CHUNK, rows.size - lo)
-        found.append([np.asarray(a)[:n] for a in out])
-    found = Searched(*(np.concatenate(parts) for parts in zip(*found, strict=True)))
+    search = functools.partial(_search_rows, xy=xy, valid=valid, mag=mag, index=index,
+                               vectors=jnp.asarray(vectors), cells=cells, grid=grid, camera=camera,
+                               eps_rad=eps_rad, min_confirm=int(min_confirm), per_triple=int(per_triple))
+
+    def claims(found: Searched, searched_rows: np.ndarray) -> np.ndarray:
+        candidate = Identification(ids=jnp.asarray(found.ids), ok=jnp.asarray(found.ok),
+                                   attitude=jnp.asarray(found.attitude))
+        p = false_match_probability(scenes[searched_rows], candidate, vectors, camera)
+        return found.ok & (p <= max_false_match)
+
+    found = search(rows, n_use=int(n_use), capacity=int(capacity))
+    won = claims(found, rows)
     overflow[rows] = found.overflow
-    candidate = Identification(ids=jnp.asarray(found.ids), ok=jnp.asarray(found.ok),
-                               attitude=jnp.asarray(found.attitude))
-    p = false_match_probability(scenes[rows], candidate, vectors, camera)
-    won = found.ok & (p <= max_false_match)
+    crowded = ~won & (valid[rows].sum(axis=1) > n_use)
+    if n_crowded > n_use and crowded.any():
+        again = rows[crowded]
+        more = search(again, n_use=int(n_crowded), capacity=crowded_capacity(capacity, n_use, n_crowded))
+        more_won = claims(more, again)
+        overflow[again] = more.overflow
+        found = Searched(*(np.asarray(a).copy() for a in found))
+        for field, wider in zip(found, more, strict=True):
+            field[crowded] = wider
+        won[crowded] = more_won
     take = rows[won]
     solved[take] = True
     if not take.size:
@@ -303,3 +313,30 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
         distortion_k1=None if result.distortion_k1 is None else unfitted)
     filled_result = result.with_rows(take, found_part)
     return SearchOutcome(filled_result, solved, overflow)
+
+
+def crowded_capacity(capacity: int, n_use: int, n_crowded: int) -> int:
+    """Hypotheses verified per scene in the crowded pass: ``capacity`` scaled by the triangles tried
+    (C(n_crowded, 3) / C(n_use, 3)) but at most four times, rounded up to a power of two. Four times
+    4,096 verified every hypothesis of 64 frames with 80 false detections at 96; the hypotheses grow
+    more slowly than the triangles, since most triangles of a crowded frame match nothing."""
+    scale = min(4.0, math.comb(n_crowded, 3) / max(math.comb(n_use, 3), 1))
+    return int(next_power_of_two(int(math.ceil(capacity * scale))))
+
+
+def _search_rows(rows: np.ndarray, *, xy, valid, mag, index, vectors, cells, grid: int, camera, n_use: int,
+                 eps_rad: float, min_confirm: int, capacity: int, per_triple: int) -> Searched:
+    """:func:`search_scene` on the scenes ``rows`` of the host arrays, :data:`SCENE_CHUNK` at a time;
+    NumPy :class:`Searched` of ``len(rows)`` scenes."""
+    static = dict(grid=grid, camera=camera, n_use=n_use, eps_rad=eps_rad, min_confirm=min_confirm,
+                  capacity=capacity, per_triple=per_triple)
+    triples = jnp.asarray(padded_triples(min(n_use, xy.shape[1])))
+    found = []
+    for lo in range(0, rows.size, SCENE_CHUNK):
+        # sizes 16, 32, 64 only: each is one compiled program (≈ 5 s at 48 detections)
+        part = padded_indices(rows[lo:lo + SCENE_CHUNK], floor=16)
+        out = _search_chunk(jnp.asarray(xy[part], jnp.float32), jnp.asarray(valid[part]),
+                            jnp.asarray(mag[part], jnp.float32), triples, index, vectors, cells, **static)
+        n = min(SCENE_CHUNK, rows.size - lo)
+        found.append([np.asarray(a)[:n] for a in out])
+    return Searched(*(np.concatenate(parts) for parts in zip(*found, strict=True)))

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 import jstarid as js
-from jstarid import triangle_index
+from jstarid import hypotheses, triangle_index
 from jstarid.finishing import Finishing, finish
 from jstarid.geometry.star_pairs import frame_pair_angle
-from jstarid.hypotheses import solve_unsolved
+from jstarid.hypotheses import crowded_capacity, solve_unsolved
 from jstarid.scene import Identification
 from jstarid.triangle_index import (
     TooManyTriangles,
@@ -210,6 +210,35 @@ def test_stars_among_many_false_detections_are_found_and_random_points_never_cla
     assert not claimed.any()
 
 
+def test_a_crowded_scene_is_searched_again_over_more_detections(clutter_setup, monkeypatch):
+    """False detections all brighter than the stars: the brightest ``n_use`` hold no star and the
+    first pass finds nothing; the crowded pass over ``n_crowded`` finds the stars, none named wrong,
+    and a scene with no more than ``n_use`` detections is not searched twice."""
+    cat, cam = clutter_setup
+    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=16, false_mag_min=0.0, false_mag_max=1.0)
+    scenes = js.simulate(jax.random.key(15), cat, cam, noise, batch_size=8, capacity=32)
+    truth, valid = np.asarray(scenes.truth), np.asarray(scenes.valid)
+    failed = Identification(ids=np.full((8, 32), -1, np.int32), ok=np.zeros(8, bool), attitude=None)
+    search = dict(star_vectors=cat.unit_vectors, camera=cam, n_use=12, eps_px=3.0, min_confirm=1,
+                  max_false_match=1e-3, capacity=1024)
+    passes = []
+    search_rows = hypotheses._search_rows
+    monkeypatch.setattr(hypotheses, "_search_rows",
+                        lambda rows, **kw: passes.append((rows.size, kw["n_use"])) or search_rows(rows, **kw))
+    result, solved, overflow = solve_unsolved(failed, scenes, **search, n_crowded=32)
+    assert passes == [(8, 12), (8, 32)]  # no scene solved by the first pass
+    ids = np.asarray(result.ids)
+    assert not np.any((ids >= 0) & (ids != truth))  # no wrong name anywhere
+    stars = np.sum((truth >= 0) & valid, axis=1)
+    assert np.all(solved[stars >= 6]) and solved.sum() >= 4 and not overflow.any()
+    few = js.simulate(jax.random.key(15), cat, cam, noise, batch_size=8, capacity=12)
+    passes.clear()
+    solve_unsolved(Identification(ids=np.full((8, 12), -1, np.int32), ok=np.zeros(8, bool), attitude=None),
+                   few, **search, n_crowded=32)
+    assert passes == [(8, 12)]  # 12 detections: the first pass saw them all
+    assert crowded_capacity(4096, 48, 96) == 16384 and crowded_capacity(4096, 48, 50) == 8192
+
+
 def test_solved_scenes_are_left_alone_and_the_setting_is_checked(clutter_setup):
     cat, cam = clutter_setup
     scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(), batch_size=3, capacity=32)
@@ -219,7 +248,7 @@ def test_solved_scenes_are_left_alone_and_the_setting_is_checked(clutter_setup):
     assert same is given and not solved.any()
     assert Finishing.off().hypotheses == 0 and Finishing().hypotheses == 48
     for bad in ({"hypotheses": 3}, {"hypotheses": 65}, {"hypothesis_eps_px": 0.0},
-                {"hypothesis_false_match": 0.5}):
+                {"hypothesis_false_match": 0.5}, {"crowded_hypotheses": 129}, {"crowded_hypotheses": -1}):
         with pytest.raises(ValueError):
             Finishing(**bad)
 
