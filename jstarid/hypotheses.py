@@ -49,17 +49,21 @@ from jstarid.attitude import solve_wahba, triad
 from jstarid.completion import first_argmax, name_stars
 from jstarid.false_match import false_match_probability
 from jstarid.geometry.angles import pairwise_angles, turn_sign
-from jstarid.runtime import next_power_of_two, padded_indices
+from jstarid.runtime import padded_indices
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
 from jstarid.triangle_index import TriangleIndex, build_triangle_index, query, stars_that_fit
 
-__all__ = ["SearchOutcome", "Searched", "all_triples", "crowded_capacity", "search_scene", "solve_unsolved"]
+__all__ = ["SearchOutcome", "Searched", "all_triples", "search_scene", "solve_unsolved"]
 
 TRIPLE_CHUNK = 512  # triples vmapped together inside a scene's lax.map
 HYPOTHESIS_CHUNK = 128  # hypotheses verified together
 SCENE_CHUNK = 64  # scenes per compiled call
+# The second pass verifies this many times the first's hypotheses: over 96 detections (8.3 times
+# the triangles of 48) four times 4,096 verified every hypothesis of 64 frames with 80 false
+# detections, twice left every one unfinished; most triangles of a crowded frame match nothing.
+SECOND_PASS_CAPACITY = 4
 # A deep catalog is searched over its brightest star per sky cell only where a frame holds at most
 # this many catalog stars on average: a sparse field, whose few stars a brightest-detections pattern
 # loses among clutter (a 6° field at V 7.2: 13). Denser fields (the papers' cameras: 25–50) hold
@@ -256,8 +260,10 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
             (:func:`jstarid.triangle_index.stars_that_fit`), still verified against every row.
         n_crowded: a scene with more than ``n_use`` valid detections that the first pass leaves
             unsolved is searched again over its ``n_crowded`` brightest (a crowded frame, whose
-            stars the brightest ``n_use`` leave out), with capacity scaled by the triangles tried
-            (:func:`crowded_capacity`); 0 (or ≤ ``n_use``): no second pass.
+            stars the brightest ``n_use`` leave out); 0 (or ≤ ``n_use``): no such pass. A scene the
+            first pass leaves unsolved with hypotheses past ``capacity`` is searched again over the
+            same detections. Either second pass verifies :data:`SECOND_PASS_CAPACITY` times
+            ``capacity`` hypotheses.
 
     Returns:
         :class:`SearchOutcome`.
@@ -289,17 +295,18 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
 
     found = search(rows, n_use=int(n_use), capacity=int(capacity))
     won = claims(found, rows)
+    # the second pass, where the first found no claim: a crowded scene over more detections, a scene
+    # that overflowed over the hypotheses past the capacity
+    crowded = ~won & (valid[rows].sum(axis=1) > n_use) & (n_crowded > n_use)
+    unfinished = ~won & (found.n_hypotheses > capacity) & ~crowded
+    found = Searched(*(np.asarray(a).copy() for a in found))
+    for again, n_again in ((crowded, int(n_crowded)), (unfinished, int(n_use))):
+        if again.any():
+            more = search(rows[again], n_use=n_again, capacity=SECOND_PASS_CAPACITY * int(capacity))
+            won[again] = claims(more, rows[again])
+            for field, wider in zip(found, more, strict=True):
+                field[again] = wider
     overflow[rows] = found.overflow
-    crowded = ~won & (valid[rows].sum(axis=1) > n_use)
-    if n_crowded > n_use and crowded.any():
-        again = rows[crowded]
-        more = search(again, n_use=int(n_crowded), capacity=crowded_capacity(capacity, n_use, n_crowded))
-        more_won = claims(more, again)
-        overflow[again] = more.overflow
-        found = Searched(*(np.asarray(a).copy() for a in found))
-        for field, wider in zip(found, more, strict=True):
-            field[crowded] = wider
-        won[crowded] = more_won
     take = rows[won]
     solved[take] = True
     if not take.size:
@@ -313,15 +320,6 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
         distortion_k1=None if result.distortion_k1 is None else unfitted)
     filled_result = result.with_rows(take, found_part)
     return SearchOutcome(filled_result, solved, overflow)
-
-
-def crowded_capacity(capacity: int, n_use: int, n_crowded: int) -> int:
-    """Hypotheses verified per scene in the crowded pass: ``capacity`` scaled by the triangles tried
-    (C(n_crowded, 3) / C(n_use, 3)) but at most four times, rounded up to a power of two. Four times
-    4,096 verified every hypothesis of 64 frames with 80 false detections at 96; the hypotheses grow
-    more slowly than the triangles, since most triangles of a crowded frame match nothing."""
-    scale = min(4.0, math.comb(n_crowded, 3) / max(math.comb(n_use, 3), 1))
-    return int(next_power_of_two(int(math.ceil(capacity * scale))))
 
 
 def _search_rows(rows: np.ndarray, *, xy, valid, mag, index, vectors, cells, grid: int, camera, n_use: int,

@@ -13,7 +13,7 @@ import jstarid as js
 from jstarid import hypotheses, triangle_index
 from jstarid.finishing import Finishing, finish
 from jstarid.geometry.star_pairs import frame_pair_angle
-from jstarid.hypotheses import crowded_capacity, solve_unsolved
+from jstarid.hypotheses import solve_unsolved
 from jstarid.scene import Identification
 from jstarid.triangle_index import (
     TooManyTriangles,
@@ -236,7 +236,6 @@ def test_a_crowded_scene_is_searched_again_over_more_detections(clutter_setup, m
     solve_unsolved(Identification(ids=np.full((8, 12), -1, np.int32), ok=np.zeros(8, bool), attitude=None),
                    few, **search, n_crowded=32)
     assert passes == [(8, 12)]  # 12 detections: the first pass saw them all
-    assert crowded_capacity(4096, 48, 96) == 16384 and crowded_capacity(4096, 48, 50) == 8192
 
 
 def test_solved_scenes_are_left_alone_and_the_setting_is_checked(clutter_setup):
@@ -253,16 +252,23 @@ def test_solved_scenes_are_left_alone_and_the_setting_is_checked(clutter_setup):
             Finishing(**bad)
 
 
-def test_hypotheses_past_the_capacity_are_flagged(clutter_setup):
-    """A search that cannot verify every hypothesis says so; what it claims still passes the test."""
+def test_hypotheses_past_the_capacity_are_flagged(clutter_setup, monkeypatch):
+    """A search that cannot verify every hypothesis searches the scenes it left unsolved again with
+    four times the capacity, and says so where that is not enough either; what it claims still
+    passes the test."""
     cat, cam = clutter_setup
     noise = js.NoiseConfig(position_sigma_px=0.5, n_false=30, false_mag_min=1.0, false_mag_max=6.0,
                            false_mag_slope=js.CATALOG_MAG_SLOPE)
     scenes = js.simulate(jax.random.key(5), cat, cam, noise, batch_size=12, capacity=64)
     failed = Identification(ids=np.full((12, 64), -1, np.int32), ok=np.zeros(12, bool), attitude=None)
+    passes = []
+    search_rows = hypotheses._search_rows
+    monkeypatch.setattr(hypotheses, "_search_rows", lambda rows, **kw: passes.append(
+        (rows.size, kw["n_use"], kw["capacity"])) or search_rows(rows, **kw))
     result, solved, overflow = solve_unsolved(failed, scenes, star_vectors=cat.unit_vectors, camera=cam,
                                               n_use=40, eps_px=3.0, min_confirm=1, max_false_match=1e-3,
                                               capacity=8, per_triple=1)
+    assert passes == [(12, 40, 8), (12 - solved.sum(), 40, 32)] and solved.sum() < 12
     assert overflow.all()
     ids = np.asarray(result.ids)
     assert not np.any((ids >= 0) & (ids != np.asarray(scenes.truth)))
