@@ -279,6 +279,9 @@ def test_clutter_and_random_sets_hold_what_they_name():
     assert np.all(false_counts[1][~cut] == 10) and cut.sum() < 4
     assert np.all(np.asarray(sets[2][1].valid).sum(axis=1) == 8) and np.all(false_counts[2] == 8)
     assert np.array_equal(np.asarray(draw()[1][1].xy), np.asarray(sets[1][1].xy))
+    narrow = ex.clutter_and_random_sets(cat, cam, seed=3, scenes=4, false_counts=[10], points=[8],
+                                        capacity=16)
+    assert [np.asarray(s.valid).shape for _, s, _ in narrow] == [(4, 16), (4, 16)]
 
 
 def test_own_sky_judges_only_the_plate_solutions_tight_matches():
