@@ -60,10 +60,11 @@ __all__ = ["SearchOutcome", "Searched", "all_triples", "search_scene", "solve_un
 TRIPLE_CHUNK = 512  # triples vmapped together inside a scene's lax.map
 HYPOTHESIS_CHUNK = 128  # hypotheses verified together
 SCENE_CHUNK = 64  # scenes per compiled call
-# The second pass verifies this many times the first's hypotheses: over 96 detections (8.3 times
-# the triangles of 48) four times 4,096 verified every hypothesis of 64 frames with 80 false
-# detections, twice left every one unfinished; most triangles of a crowded frame match nothing.
-SECOND_PASS_CAPACITY = 4
+# The second pass verifies this many times the first's hypotheses (65,536 of 4,096): over 96
+# detections of a deep catalog (the 6° camera at V 7.2, 60 false detections) four times left
+# frames of a dozen stars unsolved that sixteen times solves, at ≈ 15 % more time; verifying costs
+# little beside the triangles' lookups (docs/design/hypotheses.md).
+SECOND_PASS_CAPACITY = 16
 # A deep catalog is searched over its brightest star per sky cell only where a frame holds at most
 # this many catalog stars on average: a sparse field, whose few stars a brightest-detections pattern
 # loses among clutter (a 6° field at V 7.2: 13). Denser fields (the papers' cameras: 25–50) hold
