@@ -94,7 +94,8 @@ class Finishing:
             search off.
         crowded_hypotheses: a scene with more valid detections than ``hypotheses`` that the search
             leaves unsolved is searched again over its ``crowded_hypotheses`` brightest (C(96, 3) =
-            142,880 triangles, ≈ 0.5 s a scene on 2 cores; only such scenes pay it): where false
+            142,880 triangles: the clutter sweep at 80 false detections runs at 1–2 frames/s on 2
+            cores, a 6° camera's deep catalog slower; only such scenes pay it): where false
             detections as bright as the stars number 80, the 48 brightest hold five of a frame's
             stars about one time in twenty (docs/design/hypotheses.md). 0 (or ≤ ``hypotheses``): no
             second pass.

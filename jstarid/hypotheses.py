@@ -60,10 +60,9 @@ __all__ = ["SearchOutcome", "Searched", "all_triples", "search_scene", "solve_un
 TRIPLE_CHUNK = 512  # triples vmapped together inside a scene's lax.map
 HYPOTHESIS_CHUNK = 128  # hypotheses verified together
 SCENE_CHUNK = 64  # scenes per compiled call
-# The second pass verifies this many times the first's hypotheses (65,536 of 4,096): over 96
-# detections of a deep catalog (the 6° camera at V 7.2, 60 false detections) four times left
-# frames of a dozen stars unsolved that sixteen times solves, at ≈ 15 % more time; verifying costs
-# little beside the triangles' lookups (docs/design/hypotheses.md).
+# The second pass verifies this many times the first's hypotheses (65,536 of 4,096): a deep
+# catalog (the 6° camera at V 7.2) matches many triangles per triple, and four times left crowded
+# frames of a dozen stars unsolved (experiments/probes/second_pass.py, docs/design/hypotheses.md).
 SECOND_PASS_CAPACITY = 16
 # A deep catalog is searched over its brightest star per sky cell only where a frame holds at most
 # this many catalog stars on average: a sparse field, whose few stars a brightest-detections pattern
@@ -300,7 +299,6 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
     # that overflowed over the hypotheses past the capacity
     crowded = ~won & (valid[rows].sum(axis=1) > n_use) & (n_crowded > n_use)
     unfinished = ~won & (found.n_hypotheses > capacity) & ~crowded
-    found = Searched(*(np.asarray(a).copy() for a in found))
     for again, n_again in ((crowded, int(n_crowded)), (unfinished, int(n_use))):
         if again.any():
             more = search(rows[again], n_use=n_again, capacity=SECOND_PASS_CAPACITY * int(capacity))
