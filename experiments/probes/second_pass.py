@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -40,9 +39,9 @@ def main(argv=None):
     args = parse_args(argv)
     cam = js.load_camera(args.camera)
     cat = js.load_catalog(cam.mag_limit)
-    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=args.false, false_mag_min=1.0,
-                           false_mag_max=cam.mag_limit, false_mag_slope=js.CATALOG_MAG_SLOPE)
-    scenes = js.simulate(jax.random.key(args.seed), cat, cam, noise, batch_size=args.scenes, capacity=128)
+    # the false-match experiments' clutter set (experiment.clutter_and_random_sets), 128 detections
+    (_, scenes, _), = ex.clutter_and_random_sets(cat, cam, seed=args.seed, scenes=args.scenes,
+                                                 false_counts=[args.false], points=[], capacity=128)
     truth, valid = np.asarray(scenes.truth), np.asarray(scenes.valid)
     stars = ((truth >= 0) & valid).sum(axis=1)
     counted = (stars >= args.stars[0]) & (stars <= args.stars[1])
