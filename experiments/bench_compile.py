@@ -21,6 +21,8 @@ Usage::
     python experiments/bench_compile.py --algorithms mlv --batches 1,100,1000,4096 --calls 3
     python experiments/bench_compile.py --warm                           # run twice: cache, then warm
     python experiments/benchmark.py --only compile                       # the same, in benchmark's table
+    python experiments/bench_compile.py --outcomes a.npz                 # … and every call's outcome
+    python experiments/bench_compile.py --compare a.npz b.npz            # two runs, scene by scene
 
 ``experiments/benchmark.py`` runs it in a subprocess (a process of its own, so that nothing it
 measures was compiled before) and reads its rows from ``--json``. Writes
@@ -54,6 +56,10 @@ def parse_args(argv=None):
                    "algorithm's paper camera: " + ", ".join(f"{a} {c}" for a, c in CAMERAS.items()) + ")")
     p.add_argument("--devices", type=int, default=None, help="JAX CPU devices (default: one per core)")
     p.add_argument("--json", default=None, help="also write the rows to this file")
+    p.add_argument("--outcomes", default=None, help="also write every call's ids, ok and attitude to "
+                   "this .npz (compare two runs' outcomes scene by scene: --compare)")
+    p.add_argument("--compare", nargs=2, default=None, metavar=("A", "B"),
+                   help="only compare two --outcomes files and print where they differ")
     p.add_argument("--warm", action="store_true",
                    help="turn on the program store and XLA's cache (run twice to see a warm process)")
     args = p.parse_args(argv)
@@ -75,7 +81,23 @@ def _timed_call(algo, db, config, scenes):
     return result, wall, count.programs, count.seconds, program_store_stats()["loaded"] - loaded
 
 
-def measure(name: str, camera_name: str, args) -> list[dict]:
+def compare_outcomes(path_a: str, path_b: str) -> int:
+    """Print, per call of two ``--outcomes`` files, the scenes whose ids or ``ok`` differ and the
+    largest attitude difference (rad); returns the number of differing scenes."""
+    a, b = np.load(path_a), np.load(path_b)
+    differing = 0
+    for key in sorted(k for k in a.files if k.endswith("/ids")):
+        call = key[:-len("/ids")]
+        ids = np.any(a[key] != b[key], axis=1) | (a[call + "/ok"] != b[call + "/ok"])
+        both = a[call + "/ok"] & b[call + "/ok"]
+        att = np.abs(a[call + "/attitude"][both] - b[call + "/attitude"][both])
+        differing += int(ids.sum())
+        print(f"{call}: {int(ids.sum())} of {ids.size} scenes differ in ids or ok; "
+              f"attitudes within {float(att.max(initial=0.0)):.2e}")
+    return differing
+
+
+def measure(name: str, camera_name: str, args, outcomes: dict | None = None) -> list[dict]:
     """One algorithm's rows, one per batch size (module docstring)."""
     camera = js.load_camera(camera_name)
     catalog = js.load_catalog(camera.mag_limit)
@@ -91,6 +113,12 @@ def measure(name: str, camera_name: str, args) -> list[dict]:
 
         scenes = [fresh(c) for c in range(args.calls + 1)]
         calls = [_timed_call(algo, db, config, s) for s in scenes]
+        if outcomes is not None:
+            for c, (result, *_) in enumerate(calls):
+                att = np.full((batch, 3, 3), np.nan) if result.attitude is None else result.attitude
+                outcomes.update({f"{name}/{batch}/{c}/ids": np.asarray(result.ids),
+                                 f"{name}/{batch}/{c}/ok": np.asarray(result.ok),
+                                 f"{name}/{batch}/{c}/attitude": np.asarray(att)})
         _, first_s, programs, compile_s, loaded = calls[0]
         later = calls[1:]
         identified = [js.evaluate(s, c[0], "strict")["identification_rate"]
@@ -109,13 +137,18 @@ def measure(name: str, camera_name: str, args) -> list[dict]:
 
 def main(argv=None):
     args = parse_args(argv)
+    if args.compare:
+        compare_outcomes(*args.compare)
+        return
     js.use_cpu_cores(args.devices)
     if args.warm:
         js.enable_compilation_cache()
-    rows = []
+    rows, outcomes = [], ({} if args.outcomes else None)
     with ex.Stopwatch() as clock:
         for name in args.algorithms:
-            rows += measure(name, args.camera or CAMERAS.get(name, "sgm2022"), args)
+            rows += measure(name, args.camera or CAMERAS.get(name, "sgm2022"), args, outcomes)
+    if outcomes is not None:
+        np.savez_compressed(args.outcomes, **outcomes)
     cache = "program store and XLA cache on" if args.warm else "no persistent cache"
     table = ex.markdown_table(rows, [
         ("benchmark", "benchmark", "{}"), ("camera", "camera", "{}"), ("batch", "B", "{:,}"),

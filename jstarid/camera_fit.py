@@ -73,7 +73,13 @@ from jstarid.robust import brighter_than_named, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
-from jstarid.runtime.padding import call_width, columns_in_use, next_power_of_two, padded_indices
+from jstarid.runtime.padding import (
+    MIN_CALL_SIZE,
+    call_width,
+    columns_in_use,
+    next_power_of_two,
+    padded_indices,
+)
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import pad_with_empty
 
@@ -91,7 +97,8 @@ MAX_TOL_PX = 10.0  # largest verification radius (px): 5 σ at 2 px per axis, be
 LADDER_MIN_NAMES = 6  # fewest names of a solution found under a rescaled focal length
 FEW_RETRIES = 64  # search_focal: up to this many retries (scenes × factors) always run in one call
 BATCH_RETRIES = 1  # … and up to this many times the batch size
-RETRY_FLOOR = 8  # … and a retried batch is padded to a power of two at least this large
+RETRY_FLOOR = MIN_CALL_SIZE  # … and a retried batch is padded to a power of two at least this large:
+# the smallest call of the algorithms' kernels, so a few retries compile nothing a small batch has not
 FEW_NAMES = 10  # up to this many names the robust fit tests each name by leaving it out
 DROP_STEPS = 2  # … and drops at most this many
 DELETION_RATIO = 3.0  # … each time the others' RMS residual shrinks at least this many times

@@ -201,11 +201,13 @@ def test_search_focal_retries_only_unsolved_scenes(world, monkeypatch):
 
     first = js.Identification(ids=jnp.full(truth.shape, -1), ok=jnp.array([True, False, True, False]))
     out = cf.search_focal(run, first, scenes, nominal, (0.99, 1.01))
-    # the second factor sees only what is left; each retry is padded to 8 scenes (a bounded number
-    # of batch sizes to compile; runtime.padded_indices, copies of the first row) with empty scenes,
-    # which fail at once instead of repeating a search
-    assert [c[0] for c in calls] == [[1, 3] + [1] * 6, [3] * 8]
-    assert [c[1] for c in calls] == [[True, True] + [False] * 6, [True] + [False] * 7]
+    # the second factor sees only what is left; each retry is padded to 16 scenes (the smallest
+    # call of the algorithms' kernels: a few retries compile nothing a small batch has not;
+    # runtime.padded_indices, copies of the first row) with empty scenes, which fail at once
+    # instead of repeating a search
+    assert cf.RETRY_FLOOR == 16
+    assert [c[0] for c in calls] == [[1, 3] + [1] * 14, [3] * 16]
+    assert [c[1] for c in calls] == [[True, True] + [False] * 14, [True] + [False] * 15]
     np.testing.assert_array_equal(np.asarray(out.ok), [True, True, True, False])
     np.testing.assert_array_equal(np.asarray(out.ids[1]), truth[1])
     assert np.all(np.asarray(out.ids[3]) == -1)

@@ -864,6 +864,32 @@ def test_sorted_rows_and_edges_are_the_same_from_numpy_and_jax():
         np.testing.assert_array_equal(host, np.asarray(fn(jnp.asarray(adj), jnp.asarray(mask))))
 
 
+def test_small_batches_run_at_one_padded_size(setup, monkeypatch):
+    """A batch of 1 or 3 scenes (and a retry of a few) runs padded with empty scenes to
+    ``MIN_CALL_SIZE``: the programs of a small batch serve every other (a retry of 3 scenes compiled
+    SGM's front end again), and the padding changes no name."""
+    from jstarid.algorithms.sgm import graph
+    from jstarid.runtime.padding import MIN_CALL_SIZE
+
+    cat, cam, cfg, db = setup
+    scenes = js.simulate(jax.random.key(12), cat, cam, js.NoiseConfig(position_sigma_px=0.5),
+                         batch_size=3, capacity=64)
+    sizes = []
+    real = graph.scene_graphs
+
+    def recorded(xy, valid, **kwargs):
+        sizes.append(xy.shape[0])
+        return real(xy, valid, **kwargs)
+
+    monkeypatch.setattr(graph, "scene_graphs", recorded)
+    one = sgm.identify(db, scenes[np.arange(1)], cfg)
+    three = sgm.identify(db, scenes, cfg)
+    assert sizes == [MIN_CALL_SIZE, MIN_CALL_SIZE]
+    assert np.asarray(one.ids).shape == (1, 64) and np.asarray(three.ok).shape == (3,)
+    np.testing.assert_array_equal(np.asarray(one.ids), np.asarray(three.ids)[:1])
+    assert np.asarray(three.ok).all()
+
+
 def _false_star_at_the_centre(scenes, camera, mag=3.0):
     """``scenes`` with a false star added at the principal point (in each scene's first free slot):
     the detection the paper takes as the main star."""

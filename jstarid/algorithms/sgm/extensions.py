@@ -67,7 +67,7 @@ def next_main_stars(scenes: Scene, result: Identification, config: Config, searc
         todo = np.nonzero(~ok & (n_valid > main_rank))[0]
         if not todo.size:
             break
-        sub = search(scenes[padded_indices(todo)], config, main_rank=main_rank)
+        sub = search(scenes[todo], config, main_rank=main_rank)  # padded with empty scenes there
         ids[todo], ok[todo] = np.asarray(sub.ids)[:todo.size], np.asarray(sub.ok)[:todo.size]
         if att is not None:
             att[todo] = np.asarray(sub.attitude)[:todo.size]

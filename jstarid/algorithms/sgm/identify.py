@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -40,8 +41,9 @@ from jstarid.algorithms.sgm.graph import searchable_graphs
 from jstarid.algorithms.sgm.naming import attitude_from_names, names_from_ranking, names_with_retries
 from jstarid.algorithms.sgm.search import advance_search, reject_best, search_outcome, start_search
 from jstarid.algorithms.sgm.subgraph import subgraph_search
-from jstarid.runtime import padded_indices, release_staging
-from jstarid.scene import Identification, Scene
+from jstarid.runtime import next_power_of_two, release_staging
+from jstarid.runtime.padding import MIN_CALL_SIZE
+from jstarid.scene import Identification, Scene, pad_with_empty
 
 __all__ = ["Diagnostics", "identify"]
 
@@ -104,7 +106,19 @@ def _algorithm1(db, scenes: Scene, config: Config, *, main_rank: int = 0, with_a
                 diagnostics: bool = False) -> tuple[Identification, Diagnostics | None]:
     """One pass over checked scenes: Algorithm 1 (or the subgraph search, ``Config.subgraph``), the
     names and their verification, with the ``main_rank``-th detection nearest the principal point
-    as the main star. Returns ``(result, diagnostics or None)``."""
+    as the main star. Returns ``(result, diagnostics or None)``.
+
+    The batch runs padded with empty scenes (searched by nobody) to a power of two of at least
+    :data:`~jstarid.runtime.padding.MIN_CALL_SIZE` scenes: the retries of a few scenes (other main
+    stars, other focal lengths) then run the programs the batch's own pass compiled, where a
+    batch of 1, 2 or 8 scenes compiled the front end (graphs, windows, naming) again."""
+    b = scenes.batch_size
+    size = next_power_of_two(b, floor=MIN_CALL_SIZE)
+    if b and size != b:
+        result, diag = _algorithm1(db, pad_with_empty(scenes, size), config, main_rank=main_rank,
+                                   with_attitude=with_attitude, diagnostics=diagnostics)
+        keep = np.arange(b)  # gathered on the host: no program per (size, b)
+        return result[keep], (None if diag is None else jax.tree.map(lambda a: a[:b], diag))
     if config.subgraph:
         return _subgraph_pass(db, scenes, config, main_rank=main_rank, with_attitude=with_attitude,
                               diagnostics=diagnostics)
@@ -143,21 +157,19 @@ def _subgraph_pass(db, scenes: Scene, config: Config, *, main_rank: int, with_at
     """:func:`_algorithm1` with ``Config.subgraph`` (:mod:`.subgraph`): each scene's ranked accepted
     candidates are named and verified in order (up to ``verify_retries`` more after a rejection), with
     the ``main_rank``-th detection nearest the principal point as the main star (the batch padded
-    to a power of two, so that the calls share their compilations).
+    by :func:`_algorithm1`).
     """
     b = scenes.batch_size
     if not b:
         empty = Identification(ids=jnp.asarray(np.asarray(scenes.valid, np.int32) * 0 - 1),
                                ok=jnp.zeros((0,), bool), attitude=None)
         return empty, None
-    sub_scenes = scenes[padded_indices(np.arange(b))]
-    g, usable = searchable_graphs(db, sub_scenes, config, main_rank=main_rank)
+    g, usable = searchable_graphs(db, scenes, config, main_rank=main_rank)
     ranking = subgraph_search(db, g, usable, config)
-    sub, outcome = names_from_ranking(db, sub_scenes, g, ranking, config)
-    result = Identification(ids=jnp.asarray(np.asarray(sub.ids)[:b]), ok=jnp.asarray(np.asarray(sub.ok)[:b]),
-                            attitude=None)
+    result, outcome = names_from_ranking(db, scenes, g, ranking, config)
+    result = Identification(ids=result.ids, ok=result.ok, attitude=None)
     if with_attitude:
         result = attitude_from_names(db, scenes, result)
     if not diagnostics:
         return result, None
-    return result, subgraph_diagnostics(db, sub_scenes, g, usable, ranking, outcome, b)
+    return result, subgraph_diagnostics(db, scenes, g, usable, ranking, outcome, b)
