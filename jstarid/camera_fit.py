@@ -579,8 +579,8 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     packed = tuple(np.take_along_axis(a, order if a.ndim == 2 else order[..., None], axis=1)
                    for a in (xy, named, ref))
 
-    def width(call, filled):  # the columns a call needs, as a power of two ≥ CHECK_MIN_WIDTH
-        return call_width(filled, call.rows, n, CHECK_MIN_WIDTH)
+    def width(call, filled):
+        return check_width(call, filled, n)
 
     def columns(call, few):
         return min(FEW_NAMES, n) if few else width(call, count)
@@ -875,6 +875,17 @@ def _move_about_centre(scenes, camera, move):
     xy = np.asarray(scenes.xy, np.float32)
     moved = np.where(np.asarray(scenes.valid)[..., None], centre + move(xy - centre), xy)
     return dataclasses.replace(scenes, xy=jnp.asarray(moved, jnp.float32))
+
+
+def check_width(call, filled: np.ndarray, n: int) -> int:
+    """The columns a call of the camera check's kernels keeps (also :mod:`jstarid.rival_stars`'s):
+    those its scenes fill (``filled``, :func:`~jstarid.runtime.columns_in_use`) as a power of two ≥
+    :data:`CHECK_MIN_WIDTH`, or all ``n`` in a call of the smallest size (:data:`CHECK_MIN_CALL`):
+    there the cut saves little and every new width compiled each kernel again (2–4 s a kernel on
+    2 cores, in fresh batches of 1 scene), so one program per kernel serves every small batch."""
+    if call.size <= CHECK_MIN_CALL:
+        return int(n)
+    return call_width(filled, call.rows, n, CHECK_MIN_WIDTH)
 
 
 def check_call_size(n: int) -> int:

@@ -42,9 +42,9 @@ import numpy as np
 from jstarid.camera import Camera
 from jstarid.camera_fit import (
     CHECK_CHUNK,
-    CHECK_MIN_WIDTH,
     RAYLEIGH_MEDIAN,
     check_call_size,
+    check_width,
     unproject_scaled,
 )
 from jstarid.geometry import precise
@@ -52,7 +52,7 @@ from jstarid.geometry.angles import angle_between
 from jstarid.robust import magnitude_offsets, masked_median
 from jstarid.runtime.batching import chunk_calls, run_calls, take_rows
 from jstarid.runtime.devices import batch_mesh
-from jstarid.runtime.padding import call_width, columns_in_use
+from jstarid.runtime.padding import columns_in_use
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, cell_of
@@ -178,7 +178,7 @@ def without_rivalled_names(result: Identification, scenes: Scene, *, stars, came
                  fitted(result.focal_scale, 1.0), fitted(result.distortion_k1, 0.0))
 
     def args(call):  # each call cut to the columns its detections fill (as the camera check's)
-        cut = call_width(filled, call.rows, n, CHECK_MIN_WIDTH)
+        cut = check_width(call, filled, n)
         xy, valid_c, mag, ids_c, *rest = take_rows(per_scene, call)
         return (xy[:, :cut], valid_c[:, :cut], mag[:, :cut], ids_c[:, :cut], *rest)
 

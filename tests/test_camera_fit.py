@@ -616,3 +616,28 @@ def test_a_named_neighbour_within_the_radius_is_no_rival():
     without = np.asarray(cf._rival_kernel(*args, jnp.zeros((1, 8), bool), *fitted))
     assert not with_exemption.any()
     np.testing.assert_array_equal(without[0], np.isin(np.arange(8), [0, 7]))
+
+
+def test_small_batches_share_the_checks_programs(world):
+    """A call of the check's smallest size keeps every detection column: a scene of six names (the
+    few-names checks: rival detections, the field) cut to its 20 and to its 40 brightest
+    detections runs the same programs (each new width compiled the kernels again, 2–4 s
+    each), and the width changes no name."""
+    from jstarid.runtime import CountCompilations
+
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=1, seed=3)
+    valid = np.array(scenes.valid)
+    assert valid[0, :40].all()
+    ids = np.where(np.cumsum(truth >= 0, axis=1) <= 6, truth, -1)
+    assert np.sum(ids >= 0) == 6
+    claim = js.Identification(ids=jnp.asarray(ids), ok=jnp.ones(1, bool))
+    # the scene's 20 brightest detections, then its 40 brightest (the same six named)
+    narrow = dataclasses.replace(scenes, valid=jnp.asarray(valid & (np.arange(valid.shape[1]) < 20)))
+    wide = dataclasses.replace(scenes, valid=jnp.asarray(valid & (np.arange(valid.shape[1]) < 40)))
+    first = cf.check_identification(cat.unit_vectors, nominal, narrow, claim)
+    with CountCompilations() as count:
+        second = cf.check_identification(cat.unit_vectors, nominal, wide, claim)
+    assert count.programs == 0
+    assert bool(first.ok[0]) and bool(second.ok[0])
+    np.testing.assert_array_equal(np.asarray(second.ids), np.asarray(first.ids))
