@@ -752,6 +752,32 @@ def test_identify_invariant_to_detection_order_and_chunks(tiny, clean_scenes):
     np.testing.assert_array_equal(np.asarray(got.ok), np.asarray(ref.ok))
 
 
+def test_a_call_of_the_smallest_size_keeps_every_column(tiny, clean_scenes):
+    """A single scene runs in a call of 16 at the scenes' full width, however many columns it
+    fills: the passes of a scene, and of the same scene with its last detection moved to column
+    40, run the same program (each new width compiled the network's kernel again, 7 s on 2
+    cores) and name the same stars."""
+    from jstarid.runtime import CountCompilations
+
+    _, _, cfg, db, _ = tiny
+    scene = clean_scenes[np.array([0])]
+    xy, valid, mag, truth = (np.array(a) for a in (scene.xy, scene.valid, scene.mag, scene.truth))
+    last = int(np.flatnonzero(valid[0])[-1])
+    assert last < 32 and valid.shape[1] > 40
+    for a in (xy, valid, mag, truth):
+        a[0, 40], a[0, last] = a[0, last], a[0, 40]
+    moved = dataclasses.replace(scene, xy=jnp.asarray(xy), valid=jnp.asarray(valid), mag=jnp.asarray(mag),
+                                truth=jnp.asarray(truth))
+    first = _identify(db, scene, cfg, None)[0]
+    with CountCompilations() as count:
+        second = _identify(db, moved, cfg, None)[0]
+    assert count.programs == 0
+    assert bool(first.ok[0]) and bool(second.ok[0])
+    ids = np.array(first.ids)
+    ids[0, 40], ids[0, last] = ids[0, last], ids[0, 40]
+    np.testing.assert_array_equal(np.asarray(second.ids), ids)
+
+
 def test_coverage_check_fails_scenes_that_name_few_of_the_expected_stars(tiny, clean_scenes):
     """Named stars must cover ``min_coverage`` of the stars the attitude puts in the frame.
 

@@ -63,6 +63,7 @@ from jstarid.geometry import precise
 from jstarid.geometry.angles import angle_between
 from jstarid.robust import masked_median
 from jstarid.runtime import call_size, chunk_calls, columns_in_use, on_every_device, run_calls, take_rows
+from jstarid.runtime.padding import MIN_CALL_SIZE
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
@@ -619,8 +620,12 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
     out = [ids_out, ok_out, att_out]
 
     def args(call):
-        # the chunk's columns cut to its widest scene, rounded up to a multiple of WIDTH_STEP
+        # the chunk's columns cut to its widest scene, rounded up to a multiple of WIDTH_STEP; a call
+        # of the smallest size keeps them all: one program serves every small batch and retry,
+        # where each new width compiled the network's kernel again (7 s on 2 cores)
         width = int(min(n_cols, max(WIDTH_STEP, -(-int(last[call.rows].max()) // WIDTH_STEP) * WIDTH_STEP)))
+        if call.size <= MIN_CALL_SIZE:
+            width = n_cols
         return take_rows((xy_all[:, :width], valid_all[:, :width], overflow_all, mag_all[:, :width]), call)
 
     def run(subset, trials, triple=0, pool=False):
