@@ -138,7 +138,8 @@ def measure(name: str, camera_name: str, args, outcomes: dict | None = None) -> 
 def main(argv=None):
     args = parse_args(argv)
     if args.compare:
-        compare_outcomes(*args.compare)
+        differing = compare_outcomes(*args.compare)
+        print("outcomes identical" if not differing else f"{differing} scenes differ")
         return
     js.use_cpu_cores(args.devices)
     if args.warm:

@@ -251,6 +251,22 @@ def test_camera_range_measures_a_build_in_its_own_process(tmp_path):
     assert mod.cameras(mod.parse_args(["--only", "40deg_4096"]))[0][1].width == 4096
 
 
+def test_bench_compile_compares_two_runs_scene_by_scene(tmp_path, capsys):
+    """``bench_compile.py --compare``: the scenes whose ids or ``ok`` differ, per call, and the
+    largest attitude difference of the scenes both solved."""
+    bench = _load("bench_compile")
+    ids = np.array([[3, -1], [5, 6]], np.int32)
+    att = np.stack([np.eye(3), np.eye(3)]).astype(np.float32)
+    a = {"mlv/2/0/ids": ids, "mlv/2/0/ok": np.array([True, True]), "mlv/2/0/attitude": att}
+    b = dict(a, **{"mlv/2/0/ids": np.array([[3, -1], [5, 7]], np.int32), "mlv/2/0/attitude": att * 1.5})
+    np.savez(tmp_path / "a.npz", **a)
+    np.savez(tmp_path / "b.npz", **b)
+    assert bench.compare_outcomes(str(tmp_path / "a.npz"), str(tmp_path / "a.npz")) == 0
+    assert bench.compare_outcomes(str(tmp_path / "a.npz"), str(tmp_path / "b.npz")) == 1
+    out = capsys.readouterr().out
+    assert "mlv/2/0: 1 of 2 scenes differ" in out and "within 5.00e-01" in out
+
+
 def test_design_notes_name_no_commits():
     """docs/design records why, not when: figures with their commits live in experiments/RESULTS.md
     (a hex word of 7+ characters with a digit and a letter reads as a commit)."""
