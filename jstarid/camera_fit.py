@@ -881,8 +881,8 @@ def check_width(call, filled: np.ndarray, n: int) -> int:
     """The columns a call of the camera check's kernels keeps (also :mod:`jstarid.rival_stars`'s):
     those its scenes fill (``filled``, :func:`~jstarid.runtime.columns_in_use`) as a power of two ≥
     :data:`CHECK_MIN_WIDTH`, or all ``n`` in a call of the smallest size (:data:`CHECK_MIN_CALL`):
-    there the cut saves little and every new width compiled each kernel again (2–4 s a kernel on
-    2 cores, in fresh batches of 1 scene), so one program per kernel serves every small batch."""
+    there the cut saves little and every new width compiled each kernel again (seconds each, in
+    fresh batches of 1 scene), so one program per kernel serves every small batch."""
     if call.size <= CHECK_MIN_CALL:
         return int(n)
     return call_width(filled, call.rows, n, CHECK_MIN_WIDTH)

@@ -75,8 +75,8 @@ from jstarid.triangle_index import TooManyTriangles
 __all__ = ["Finished", "Finishing", "StarTable", "confirmed_by_the_frame", "finish", "search_lost"]
 
 CLAIM_CHUNKS = (16, 256)  # claims per call of their names' false-match probability (≈ 0.02 ms a claim)
-FRAME_CHUNKS = (4, 16, 64)  # claims per call of the frame's naming (≈ 85 ms a call and 6 ms a claim on
-# 2 cores, MLV on mlv2021): a few claims run in a small call, many in calls of the largest size
+FRAME_CHUNKS = (4, 16, 64)  # claims per call of the frame's naming, whose cost follows the padded
+# claims (experiments/RESULTS.md, Compile budget): a few run in a small call, many in the largest
 LADDER_STEP = 0.01  # the ladder's step: MLV's features tolerate about 1 % of focal length
 
 
@@ -421,8 +421,8 @@ def _probability(result, scenes, rows, stars, camera, *, frame_px=None, max_scal
     The claims run in calls of a few fixed sizes (:data:`CLAIM_CHUNKS`, or :data:`FRAME_CHUNKS` for
     the frame's naming: the smallest that holds them all, else the largest), not padded to the
     power of two of their count: how many claims a batch has, and how many of them are doubtful,
-    changes from batch to batch, and every new size compiled about 20 programs (≈ 4 s on 2 cores)
-    in a fresh batch of a size met before."""
+    changes from batch to batch, and every new size compiled about 20 programs in a fresh batch of
+    a size met before."""
     sizes = CLAIM_CHUNKS if frame_px is None else FRAME_CHUNKS
     chunk = next((size for size in sizes if size >= rows.size), sizes[-1])
     p = np.ones(rows.size)

@@ -621,8 +621,8 @@ def test_a_named_neighbour_within_the_radius_is_no_rival():
 def test_small_batches_share_the_checks_programs(world):
     """A call of the check's smallest size keeps every detection column: a scene of six names (the
     few-names checks: rival detections, the field) cut to its 20 and to its 40 brightest
-    detections runs the same programs (each new width compiled the kernels again, 2–4 s
-    each), and the width changes no name."""
+    detections runs the same programs (each new width compiled the kernels
+    again), and the width changes no name."""
     from jstarid.runtime import CountCompilations
 
     cat, nominal = world

@@ -755,8 +755,7 @@ def test_identify_invariant_to_detection_order_and_chunks(tiny, clean_scenes):
 def test_a_call_of_the_smallest_size_keeps_every_column(tiny, clean_scenes):
     """A single scene runs in a call of 16 at the scenes' full width, however many columns it
     fills: the passes of a scene, and of the same scene with its last detection moved to column
-    40, run the same program (each new width compiled the network's kernel again, 7 s on 2
-    cores) and name the same stars."""
+    40, run the same program (each new width compiled the network's kernel again) and name the same stars."""
     from jstarid.runtime import CountCompilations
 
     _, _, cfg, db, _ = tiny

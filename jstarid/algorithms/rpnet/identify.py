@@ -622,7 +622,7 @@ def _identify(database, scenes: Scene, config: Config, tuning: Tuning | None):
     def args(call):
         # the chunk's columns cut to its widest scene, rounded up to a multiple of WIDTH_STEP; a call
         # of the smallest size keeps them all: one program serves every small batch and retry,
-        # where each new width compiled the network's kernel again (7 s on 2 cores)
+        # where each new width compiled the network's kernel again
         width = int(min(n_cols, max(WIDTH_STEP, -(-int(last[call.rows].max()) // WIDTH_STEP) * WIDTH_STEP)))
         if call.size <= MIN_CALL_SIZE:
             width = n_cols
