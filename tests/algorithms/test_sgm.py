@@ -866,9 +866,10 @@ def test_sorted_rows_and_edges_are_the_same_from_numpy_and_jax():
 
 def test_small_batches_run_at_one_padded_size(setup, monkeypatch):
     """A batch of 1 or 3 scenes (and a retry of a few) runs padded with empty scenes to
-    ``MIN_CALL_SIZE``: the programs of a small batch serve every other (a retry of 3 scenes compiled
-    SGM's front end again), and the padding changes no name."""
-    from jstarid.algorithms.sgm import graph
+    ``MIN_CALL_SIZE``, and so does the verification of its claims: the programs of a small batch
+    serve every other (a retry of 3 scenes compiled SGM's front end again), and the padding changes
+    no name."""
+    from jstarid.algorithms.sgm import graph, naming
     from jstarid.runtime.padding import MIN_CALL_SIZE
 
     cat, cam, cfg, db = setup
@@ -882,9 +883,21 @@ def test_small_batches_run_at_one_padded_size(setup, monkeypatch):
         return real(xy, valid, **kwargs)
 
     monkeypatch.setattr(graph, "scene_graphs", recorded)
+    # the verification of the claims (1, then 3) runs at the same padded size too: 1, 2, 4 and 8
+    # claims each compiled it again in a fresh batch
+    verified = []
+    real_map = naming.map_batch
+
+    def recorded_map(fn, args, *rest, **kwargs):
+        if fn is naming._verify_scenes:
+            verified.append(args[0].shape[0])
+        return real_map(fn, args, *rest, **kwargs)
+
+    monkeypatch.setattr(naming, "map_batch", recorded_map)
     one = sgm.identify(db, scenes[np.arange(1)], cfg)
     three = sgm.identify(db, scenes, cfg)
     assert sizes == [MIN_CALL_SIZE, MIN_CALL_SIZE]
+    assert verified and set(verified) == {MIN_CALL_SIZE}
     assert np.asarray(one.ids).shape == (1, 64) and np.asarray(three.ok).shape == (3,)
     np.testing.assert_array_equal(np.asarray(one.ids), np.asarray(three.ids)[:1])
     assert np.asarray(three.ok).all()

@@ -38,6 +38,7 @@ from jstarid.algorithms.sgm.naming import name_leftovers, rename_and_reverify
 from jstarid.camera_fit import MAX_TOL_PX, check_identification, rescale_scenes
 from jstarid.finishing import finish
 from jstarid.runtime import padded_indices
+from jstarid.runtime.padding import MIN_CALL_SIZE
 from jstarid.scene import Identification, Scene
 
 __all__ = ["Search", "camera_check_cap_px", "confirmed_by_the_frame", "finishing_stage", "search_lost",
@@ -178,10 +179,11 @@ def name_at_fitted_focal(db, scenes: Scene, result: Identification, laddered: np
 
 
 def _graphs_at_fitted_focal(db, scenes: Scene, result: Identification, rows: np.ndarray, config: Config):
-    """The scenes ``rows`` (padded to a power of two, :func:`jstarid.runtime.padded_indices`) as seen
-    under the focal length ``result`` fitted them (``focal_scale``; the nominal one where it is NaN
-    or not fitted): ``(padded rows, moved scenes, their image graphs)``."""
-    padded = padded_indices(rows)
+    """The scenes ``rows`` (padded to a power of two ≥ ``MIN_CALL_SIZE``,
+    :func:`jstarid.runtime.padded_indices`) as seen under the focal length ``result`` fitted them
+    (``focal_scale``; the nominal one where it is NaN or not fitted): ``(padded rows, moved scenes,
+    their image graphs)``."""
+    padded = padded_indices(rows, floor=MIN_CALL_SIZE)
     scale = np.ones(padded.size, np.float32)
     if result.focal_scale is not None:
         scale = np.nan_to_num(np.asarray(result.focal_scale, np.float32)[padded], nan=1.0)

@@ -36,6 +36,7 @@ from jstarid.algorithms.sgm.subgraph import Ranking
 from jstarid.algorithms.sgm.verify import verify_ids
 from jstarid.attitude import estimate_attitude
 from jstarid.runtime import map_batch, on_every_device, padded_indices
+from jstarid.runtime.padding import MIN_CALL_SIZE
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index
 
@@ -100,14 +101,15 @@ def names_from_match(db, scenes: Scene, g: ImageGraph, res: SearchOutcome, confi
         g: their NumPy :class:`~.graph.ImageGraph` (B, K, …). res: the search's
             :class:`~.search.SearchOutcome`. config: :class:`Config`.
         rows: optional (R,) scene rows to process (the result then has R rows), padded to a power of
-            two so that the compiled verification serves every retry with a few shapes.
+            two of at least :data:`~jstarid.runtime.padding.MIN_CALL_SIZE`, so that the compiled
+            naming and verification serve every retry with a few shapes.
 
     Returns:
         ``(result, main_ambiguous)``: :class:`~jstarid.scene.Identification` and (B,) bool, the scenes
         failed only because their main star's name is contested (:func:`.verify.verify_ids`).
     """
     if rows is not None:
-        padded = padded_indices(rows)
+        padded = padded_indices(rows, floor=MIN_CALL_SIZE)
         sub, amb = names_from_match(db, scenes[padded], jax.tree.map(lambda v: v[padded], g),
                                     jax.tree.map(lambda v: v[padded], res), config)
         return sub[:rows.size], amb[:rows.size]
@@ -143,8 +145,10 @@ def verify_claims(db, scenes: Scene, result: Identification, main, config: Confi
     """:func:`.verify.verify_ids` with the settings of ``config`` → ``(Identification,
     main_ambiguous)``, the latter (B,) NumPy bool.
 
-    Only the scenes ``result`` claims are verified (padded to a power of two, so that a few compiled
-    shapes serve every call): the verification fails every other scene, with no names, anyway.
+    Only the scenes ``result`` claims are verified (padded to a power of two of at least
+    :data:`~jstarid.runtime.padding.MIN_CALL_SIZE`, so that a few compiled shapes serve every call:
+    each of 1, 2, 4 and 8 claims compiled the verification again in a fresh batch): the
+    verification fails every other scene, with no names, anyway.
     """
     ok = np.asarray(result.ok)
     b, n_det = scenes.valid.shape
@@ -152,7 +156,7 @@ def verify_claims(db, scenes: Scene, result: Identification, main, config: Confi
     verified, main_ambiguous = np.zeros(b, bool), np.zeros(b, bool)
     rows = np.flatnonzero(ok)
     if rows.size:
-        padded = padded_indices(rows)
+        padded = padded_indices(rows, floor=MIN_CALL_SIZE)
         tables, settings = verify_inputs(db, config)
         named = np.asarray(result.ids)[padded]
         # identify names only the neighbor graph's members (at most its capacity K): the ambiguity
