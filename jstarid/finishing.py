@@ -112,6 +112,10 @@ class Finishing:
         rival_odds: after the check, a name stands only where its star explains the detection at
             least this many times better than any other catalog star within the check's radius
             (step 2b, :mod:`jstarid.rival_stars`); 0 turns the step off, else ≥ 1.
+        false_per_frame: step 2b's other rival is no star at all: a false detection (hot pixel,
+            cosmic ray, satellite) where a catalog star too faint or too crowded out to be detected
+            lies. This is the number of them a frame is expected to hold, spread over the frame
+            (the prior of that rival; :mod:`jstarid.rival_stars`); 0: not asked.
         max_false_match: the largest false-match probability
             (:func:`jstarid.false_match.false_match_probability`) at which a claim stands (step 3):
             loose enough for a right claim in a frame of only three or four stars, where P cannot
@@ -129,6 +133,7 @@ class Finishing:
     hypothesis_eps_px: float = 3.0
     hypothesis_false_match: float = 1e-5
     rival_odds: float = 20.0
+    false_per_frame: float = 1.0
     max_false_match: float = 1e-2
 
     def __post_init__(self):
@@ -148,6 +153,8 @@ class Finishing:
             raise ValueError(f"hypothesis_false_match must be in (0, 0.1], got {self.hypothesis_false_match}")
         if not (math.isfinite(self.rival_odds) and (self.rival_odds == 0 or self.rival_odds >= 1)):
             raise ValueError(f"rival_odds must be 0 (off) or a number ≥ 1, got {self.rival_odds}")
+        if not (math.isfinite(self.false_per_frame) and self.false_per_frame >= 0):
+            raise ValueError(f"false_per_frame must be a number ≥ 0, got {self.false_per_frame}")
         if not 0 < self.max_false_match <= 1:
             raise ValueError(f"max_false_match must be in (0, 1], got {self.max_false_match}")
 
@@ -263,6 +270,7 @@ def finish(result: Identification, scenes: Scene, config: Finishing, *,
                                       star_mags=star_mags, studentized=config.studentized)
         if config.rival_odds:
             result = without_rivalled_names(result, scenes, stars=stars, camera=camera,
+                                            false_per_frame=config.false_per_frame,
                                             odds=config.rival_odds, max_tol_px=max_tol_px,
                                             max_scale_error=config.max_focal_error)
     if b and config.max_false_match < 1 and confirm:
@@ -318,6 +326,7 @@ def search_lost(result: Identification, scenes: Scene, config: Finishing, claime
                                     star_mags=star_mags, studentized=config.studentized)
         if config.rival_odds:
             part = without_rivalled_names(part, moved, stars=stars, camera=camera, odds=config.rival_odds,
+                                          false_per_frame=config.false_per_frame,
                                           max_tol_px=max_tol_px, max_scale_error=config.max_focal_error)
     part = confirmed_by_the_frame(part, moved, config, stars=stars, camera=camera, tol_px=max_tol_px)
     won = np.asarray(part.ok)[:rows.size]

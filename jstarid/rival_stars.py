@@ -24,6 +24,20 @@ name stands only where ``Δ ≥ ln(odds)`` against every such ``t`` (``Finishing
 default): a detection that could as well be another star's light is left unnamed, never named as
 the wrong one — a lost name costs recall, a wrong one the frame.
 
+**No star at all.** The other rival is a false detection (a hot pixel, a cosmic ray, a satellite)
+landing near a catalog star that was not detected — too faint for this frame, or crowded out of a
+list kept to its brightest detections — which no neighbouring star can expose. A name stands only
+where its star explains the detection ``odds`` times better than a false detection does:
+
+    ln N₂(d_s; σ̂) + [ln(FALSE_MAG_SPAN / (√(2π) σ̂_m)) − b(o_s)] − ln(λ / A) ≥ ln(odds),
+
+the 2-D Gaussian density of the centroid error against a false detection's uniform density over the
+frame (λ expected per frame, ``Finishing.false_per_frame``, over its area A in px²), and the
+brightness term as a Gaussian density about the zero point against a false detection's uniform over
+:data:`FALSE_MAG_SPAN` (only with a zero point). On a coarse camera (290″/px, σ = 2 px) a false
+detection one magnitude brighter than an undetected star 4 px away is taken back; a right name
+within 2 σ̂ and 2 σ̂_m keeps a margin of several nats (docs/design/rival_stars.md).
+
 Only the identification catalog's stars count as rivals (a detection of a star fainter than the
 catalog is not this test's to see), and every candidate is a rival whether or not another
 detection is named after it: a pair both detected and both named a few σ apart and of equal
@@ -64,10 +78,12 @@ MAG_FLOOR = 0.25  # σ̂_m never below this (mag): simulated magnitudes without 
 MAG_OUTLIER_NATS = 8.0  # the brightness term's ceiling (nats): a colour term's 1 mag outlier
 MIN_MAG_NAMES = 4  # fewest names whose offsets set a zero point (as robust.brighter_than_named)
 MIN_NAMES = 3  # a scene left with fewer names is no longer claimed (the camera check's minimum)
+FALSE_MAG_SPAN = 4.0  # mag: a false detection's brightness, taken as uniform over this span
+SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
 def rivalled_names(xy, valid, mag, ids, attitude, scale, k1, star_vectors, star_mags, cells, optics, *,
-                   grid: int, log_odds, max_tol_px):
+                   grid: int, log_odds, max_tol_px, false_density=0.0):
     """(N,) bool: the names of one scene that a neighbouring catalog star explains as well (module doc).
 
     Args:
@@ -81,10 +97,12 @@ def rivalled_names(xy, valid, mag, ids, attitude, scale, k1, star_vectors, star_
             :meth:`~jstarid.camera.Camera.pinhole_numbers`.
         grid: the index's G (static). log_odds: ``ln(odds)``, the margin a name must keep.
         max_tol_px: the farthest a rival may lie from the detection (px; the index must reach it).
+        false_density: () false detections expected per px² (the frame's expected count over its
+            area); above 0 the detection's other rival is no star at all (module doc); 0: not asked.
 
     Returns:
         (N,) bool, True for a name some other star within ``max_tol_px`` explains with log-odds
-        below ``log_odds``.
+        below ``log_odds``, or that a false detection explains as well.
     """
     camera = Camera.traced(optics)
     m = star_vectors.shape[0]
@@ -110,23 +128,30 @@ def rivalled_names(xy, valid, mag, ids, attitude, scale, k1, star_vectors, star_
     o_rival = mag[:, None] - star_mags[rows_c] - zero[:, None]
     evidence = ((d**2 - d_own[:, None] ** 2) / (2.0 * sigma**2)
                 + brightness(o_rival) - brightness(offset)[:, None])
-    return named & jnp.any(rival & (evidence < log_odds), axis=1)
+    # no star at all: the named star's densities (2-D Gaussian position, Gaussian brightness about
+    # the zero point) against a false detection's (uniform over the frame and FALSE_MAG_SPAN)
+    with_mag = (count >= MIN_MAG_NAMES) & jnp.isfinite(offset)
+    mag_nats = jnp.where(with_mag, jnp.log(FALSE_MAG_SPAN / (SQRT_2PI * sigma_m)) - brightness(offset), 0.0)
+    own_nats = -d_own**2 / (2.0 * sigma**2) - jnp.log(2.0 * jnp.pi * sigma**2) + mag_nats
+    false_star = (false_density > 0) & (own_nats - jnp.log(jnp.maximum(false_density, 1e-30)) < log_odds)
+    return named & (jnp.any(rival & (evidence < log_odds), axis=1) | false_star)
 
 
 @stored_jit(static_argnames=("grid",))
 def _rival_kernel(xy, valid, mag, ids, attitude, scale, k1, star_vectors, star_mags, cells, optics, log_odds,
-                  max_tol_px, *, grid):
+                  max_tol_px, false_density, *, grid):
     """(B, N) bool: :func:`rivalled_names` of each scene."""
     def one(xy_i, valid_i, mag_i, ids_i, att_i, scale_i, k1_i):
         return rivalled_names(xy_i, valid_i, mag_i, ids_i, att_i, scale_i, k1_i, star_vectors, star_mags,
                               cells, optics, grid=grid, log_odds=log_odds,
-                              max_tol_px=max_tol_px)
+                              max_tol_px=max_tol_px, false_density=false_density)
 
     return jax.vmap(one)(xy, valid, mag, ids, attitude, scale, k1)
 
 
 def without_rivalled_names(result: Identification, scenes: Scene, *, stars, camera, odds: float,
-                           max_tol_px: float, max_scale_error: float) -> Identification:
+                           max_tol_px: float, max_scale_error: float,
+                           false_per_frame: float = 0.0) -> Identification:
     """``result`` with the names a neighbouring catalog star explains as well taken back (module doc).
 
     Checks the solved scenes with an attitude; a scene left with fewer than :data:`MIN_NAMES` names
@@ -143,17 +168,21 @@ def without_rivalled_names(result: Identification, scenes: Scene, *, stars, came
         odds: the factor by which a name's star must explain its detection better than any other.
         max_tol_px: the largest distance (px) at which another star counts (the check's radius).
         max_scale_error: the largest focal-length correction the fit may have made.
+        false_per_frame: false detections a frame is expected to hold (``Finishing.false_per_frame``):
+            the prior of the rival that is no star; 0: that rival is not asked.
 
     Returns:
         An :class:`~jstarid.scene.Identification`.
 
     Raises:
-        ValueError: ``odds`` below 1 or a non-positive ``max_tol_px``.
+        ValueError: ``odds`` below 1, a non-positive ``max_tol_px`` or a negative ``false_per_frame``.
     """
     if not (math.isfinite(odds) and odds >= 1.0):
         raise ValueError(f"odds must be a finite number ≥ 1, got {odds}")
     if not (math.isfinite(max_tol_px) and max_tol_px > 0):
         raise ValueError(f"max_tol_px must be a positive number of pixels, got {max_tol_px}")
+    if not (math.isfinite(false_per_frame) and false_per_frame >= 0):
+        raise ValueError(f"false_per_frame must be a number ≥ 0, got {false_per_frame}")
     b, n = scenes.batch_size, scenes.capacity
     if result.attitude is None or not b:
         return result
@@ -183,7 +212,8 @@ def without_rivalled_names(result: Identification, scenes: Scene, *, stars, came
         return (xy[:, :cut], valid_c[:, :cut], mag[:, :cut], ids_c[:, :cut], *rest)
 
     shared = (jnp.asarray(stars.unit_vectors, jnp.float32), jnp.asarray(stars.mag, jnp.float32), cells,
-              camera.pinhole_numbers(), jnp.float32(math.log(odds)), jnp.float32(max_tol_px))
+              camera.pinhole_numbers(), jnp.float32(math.log(odds)), jnp.float32(max_tol_px),
+              jnp.float32(false_per_frame / (camera.width * camera.height)))
     plan = chunk_calls(rows, CHECK_CHUNK, size=check_call_size)  # the camera check's call plan
     rivalled, = run_calls(_rival_kernel, plan, args, shared, n_rows=b, tails=[(n,)], fills=[False],
                           static=dict(grid=index.grid), mesh=batch_mesh(jax.devices()[:1]))

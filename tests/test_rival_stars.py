@@ -47,7 +47,7 @@ def _frame(rng, n_stars=40, n_pairs=15, scale=1.0, error_px=None):
     return attitude, StarTable.of(vectors, mags), det_xy.astype(np.float32), det_mag.astype(np.float32)
 
 
-def _reference(xy, mag, ids, attitude, scale, vectors, mags, log_odds, max_tol_px):
+def _reference(xy, mag, ids, attitude, scale, vectors, mags, log_odds, max_tol_px, false_density=0.0):
     """rival_stars.rivalled_names in float64 NumPy, every catalog star a candidate."""
     f = CAMERA.f_px * scale
     sky = _sky(xy.astype(np.float64), attitude, scale)
@@ -65,23 +65,34 @@ def _reference(xy, mag, ids, attitude, scale, vectors, mags, log_odds, max_tol_p
     evidence = (d**2 - d_own[:, None] ** 2) / (2 * sigma**2) + cost(mag[:, None] - mags[None] - zero) \
         - cost(diff - zero)[:, None]
     rival = (np.arange(len(mags))[None] != ids[:, None]) & (d <= max_tol_px)
-    return named & np.any(rival & (evidence < log_odds), axis=1)
+    # no star at all: the named star's 2-D Gaussian and brightness densities against a false
+    # detection's, uniform over the frame (false_density per px²) and FALSE_MAG_SPAN
+    mag_nats = (math.log(rival_stars.FALSE_MAG_SPAN / (math.sqrt(2 * math.pi) * sigma_m)) - cost(diff - zero)
+                if named.sum() >= rival_stars.MIN_MAG_NAMES else 0.0)
+    own = -d_own**2 / (2 * sigma**2) - math.log(2 * math.pi * sigma**2) + mag_nats
+    false_star = (own - math.log(false_density) < log_odds) if false_density > 0 else np.zeros(len(xy), bool)
+    return named & (np.any(rival & (evidence < log_odds), axis=1) | false_star)
 
 
-def _kernel(xy, mag, ids, attitude, scale, table, log_odds, max_tol_px):
+def _kernel(xy, mag, ids, attitude, scale, table, log_odds, max_tol_px, false_density=0.0):
     index = build_sky_index(table.unit_vectors, math.atan(max_tol_px * 1.1 / CAMERA.f_px))
     return np.asarray(rival_stars.rivalled_names(
         jnp.asarray(xy), jnp.ones(len(xy), bool), jnp.asarray(mag), jnp.asarray(ids, jnp.int32),
         jnp.asarray(attitude, jnp.float32), jnp.float32(scale), jnp.float32(0.0),
         jnp.asarray(table.unit_vectors), jnp.asarray(table.mag), index.device_arrays()[0],
         CAMERA.pinhole_numbers(), grid=index.grid, log_odds=jnp.float32(log_odds),
-        max_tol_px=jnp.float32(max_tol_px)))
+        max_tol_px=jnp.float32(max_tol_px), false_density=jnp.float32(false_density)))
 
 
+FRAME_PX2 = CAMERA.width * CAMERA.height
+
+
+@pytest.mark.parametrize("false_per_frame", [0.0, 2e3])
 @pytest.mark.parametrize("seed", range(4))
-def test_rivalled_names_match_a_numpy_reference(seed):
+def test_rivalled_names_match_a_numpy_reference(seed, false_per_frame):
     """Random frames full of close pairs, some names swapped to the neighbour: the kernel takes back
-    exactly the names the float64 reference does (and some of each kind occur)."""
+    exactly the names the float64 reference does (and some of each kind occur), also where a
+    dense prior of false detections (one per 524 px²) makes the no-star rival take back more."""
     rng = np.random.default_rng(seed)
     scale = 1.0 + 0.01 * seed
     attitude, table, xy, mag = _frame(rng, scale=scale)
@@ -89,10 +100,33 @@ def test_rivalled_names_match_a_numpy_reference(seed):
     swap = rng.random(15) < 0.5
     ids[:15] = np.where(swap, 40 + np.arange(15), ids[:15])  # named after the neighbour
     vectors, mags = table.unit_vectors.astype(np.float64), table.mag.astype(np.float64)
-    want = _reference(xy, mag, ids, attitude, scale, vectors, mags, math.log(20.0), 10.0)
-    got = _kernel(xy, mag, ids, attitude, scale, table, math.log(20.0), 10.0)
+    density = false_per_frame / FRAME_PX2
+    want = _reference(xy, mag, ids, attitude, scale, vectors, mags, math.log(20.0), 10.0, density)
+    got = _kernel(xy, mag, ids, attitude, scale, table, math.log(20.0), 10.0, density)
     np.testing.assert_array_equal(got, want)
     assert want.any() and not want.all()
+    if false_per_frame:
+        fewer = _reference(xy, mag, ids, attitude, scale, vectors, mags, math.log(20.0), 10.0)
+        assert np.all(want >= fewer)  # the no-star rival only adds (its own test shows it can)
+
+
+def test_a_false_detection_named_after_an_undetected_star_is_taken_back():
+    """A false detection 4 px from a catalog star that was not detected, 1 mag brighter than it,
+    named after it (no other catalog star near: the neighbour test cannot see it): taken back where
+    one false detection per frame is expected, kept where none is asked about; the frame's right
+    names (σ̂ = 1.5 px, 0.2 mag) all stand."""
+    rng = np.random.default_rng(3)
+    attitude, table, xy, mag = _frame(rng, n_stars=20, n_pairs=0)
+    hidden = np.array([CAMERA.cx + 100.0, CAMERA.cy - 60.0])  # the undetected star
+    vectors = np.vstack([table.unit_vectors, _sky(hidden[None], attitude)])
+    mags = np.append(table.mag, 5.5)
+    stars = StarTable.of(vectors, mags)
+    xy = np.vstack([xy, hidden + np.array([4.0, 0.0])]).astype(np.float32)
+    mag = np.append(mag, 5.5 + ZERO_POINT - 1.0).astype(np.float32)
+    ids = np.arange(21)
+    taken = _kernel(xy, mag, ids, attitude, 1.0, stars, math.log(20.0), 10.0, 1.0 / FRAME_PX2)
+    np.testing.assert_array_equal(taken, np.arange(21) == 20)
+    assert not _kernel(xy, mag, ids, attitude, 1.0, stars, math.log(20.0), 10.0).any()
 
 
 def _close_pair():
@@ -173,3 +207,10 @@ def test_finishing_rejects_bad_rival_odds(value):
 
 def test_the_papers_weigh_no_rivals():
     assert Finishing.off().rival_odds == 0 and Finishing().rival_odds == 20.0
+    assert Finishing().false_per_frame == 1.0
+
+
+@pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf")])
+def test_finishing_rejects_a_bad_false_detection_prior(value):
+    with pytest.raises(ValueError, match="false_per_frame"):
+        Finishing(false_per_frame=value)

@@ -1,16 +1,19 @@
 """Names a neighbouring star explains as well: what the finishing stage's step 2b takes back.
 
 Each seed algorithm runs twice on the same scenes, with ``Finishing.rival_odds`` at its default and
-at 0 (the step off, :mod:`jstarid.rival_stars`): the demo's scenes (``sgm2022``, 0–3 px, 200 a level,
-seed 0, capacity 96: ``jstarid demo``'s), and each algorithm's own camera at 1 px, 0.2 mag and one
-false star. Per run: claimed scenes, names, wrong names and the scenes holding one, for both
-settings — the names the step takes back, and whether any was right; below the table, each name
-taken back and each wrong name the step leaves (its distance and brightness against the star it
-is named after and its true star).
+at 0 (the step off, :mod:`jstarid.rival_stars`; ``--off`` another override, e.g.
+``finishing.false_per_frame=0`` for the rival that is no star alone): the demo's scenes
+(``sgm2022``, 0–3 px, 200 a level, seed 0, capacity 96: ``jstarid demo``'s), and each algorithm's
+own camera (or ``--camera``) at 1 px (``--sigma``), 0.2 mag and one false star. Per run: claimed
+scenes, names, wrong names and the scenes holding one, for both settings — the names the step takes
+back, and whether any was right; below the table, each name taken back and each wrong name the
+step leaves (its distance and brightness against the star it is named after and its true star).
 
 Usage::
 
     python experiments/probes/rival_names.py
+    python experiments/probes/rival_names.py --off finishing.false_per_frame=0 --no-demo \
+        --camera experiments/cameras/wide40_512.toml --sigma 2 --scenes 400
 
 Writes results/rival_names/{config.json, results.json, table.md}.
 """
@@ -31,6 +34,13 @@ def parse_args(argv=None):
     parser = ex.parser(__doc__.splitlines()[0], out="results/rival_names")
     parser.add_argument("--algorithms", default="mlv,rpnet,sgm", help="comma-separated seed algorithms")
     parser.add_argument("--scenes", type=int, default=200, help="scenes per set")
+    parser.add_argument("--off", default="finishing.rival_odds=0",
+                        help="the override of the run without the step (e.g. finishing.false_per_frame=0: "
+                             "the rival that is no star alone)")
+    parser.add_argument("--camera", default=None,
+                        help="the second set's camera (default: each algorithm's own; a name or a file)")
+    parser.add_argument("--sigma", type=float, default=1.0, help="the second set's position noise (px)")
+    parser.add_argument("--no-demo", action="store_true", help="skip the demo's levels")
     return parser.parse_args(argv)
 
 
@@ -44,15 +54,16 @@ def _counts(scenes, result) -> dict:
 
 def _sets(algorithm: str, args):
     """(name, catalog, camera, scenes) of the demo's levels and the algorithm's own camera."""
-    levels = js.engine.simulate_levels("sgm2022", axes={"position_sigma_px": [0.0, 1.0, 2.0, 3.0]},
-                                       scenes=args.scenes, seed=args.seed, capacity=DEMO_CAPACITY)
-    for level, sigma in enumerate((0, 1, 2, 3)):
-        yield (f"sgm2022, {sigma} px (demo)", levels.catalog, levels.camera,
-               levels.scenes[np.flatnonzero(levels.level_of == level)])
-    camera = js.load_camera(OWN_CAMERAS[algorithm])
+    if not args.no_demo:
+        levels = js.engine.simulate_levels("sgm2022", axes={"position_sigma_px": [0.0, 1.0, 2.0, 3.0]},
+                                           scenes=args.scenes, seed=args.seed, capacity=DEMO_CAPACITY)
+        for level, sigma in enumerate((0, 1, 2, 3)):
+            yield (f"sgm2022, {sigma} px (demo)", levels.catalog, levels.camera,
+                   levels.scenes[np.flatnonzero(levels.level_of == level)])
+    camera = js.load_camera(args.camera or OWN_CAMERAS[algorithm])
     catalog = js.load_catalog(camera.mag_limit)
-    noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.2, n_false=1)
-    yield (f"{OWN_CAMERAS[algorithm]}, 1 px, 0.2 mag, 1 false", catalog, camera,
+    noise = js.NoiseConfig(position_sigma_px=args.sigma, magnitude_sigma=0.2, n_false=1)
+    yield (f"{camera.name}, {args.sigma:g} px, 0.2 mag, 1 false", catalog, camera,
            js.simulate(jax.random.key(args.seed + 7), catalog, camera, noise, batch_size=args.scenes))
 
 
@@ -89,7 +100,7 @@ def main(argv=None):
             algo = js.algorithms.get(algorithm)
             for name, catalog, camera, scenes in _sets(algorithm, args):
                 config = ex.with_overrides(js.engine.default_config(algorithm, camera=camera), args.set)
-                off = ex.with_overrides(config, ["finishing.rival_odds=0"])
+                off = ex.with_overrides(config, [args.off])
                 database = algo.build_database(catalog, camera, config)
                 with_step, without = (algo.identify(database, scenes, c) for c in (config, off))
                 on_, off_ = _counts(scenes, with_step), _counts(scenes, without)
@@ -113,7 +124,7 @@ def main(argv=None):
                ("off_names", "names, off", "{}"), ("taken_back", "taken back", "{}"),
                ("right_taken_back", "of them right", "{}"), ("wrong", "wrong names, off / on", "{}"),
                ("wrong_scenes", "scenes with one, off / on", "{}")]
-    note = (f"{args.scenes} scenes per set, seed {args.seed}; `rival_odds` at its default (on) and 0 (off); "
+    note = (f"{args.scenes} scenes per set, seed {args.seed}; on: the defaults, off: `{args.off}`; "
             f"{clock.seconds:.0f} s including compilation and database builds.")
     table = ex.markdown_table(rows, columns, title="Names a neighbouring star explains as well", note=note)
     for row in rows:  # each name taken back and each wrong name left, below the table
