@@ -29,9 +29,10 @@ landing near a catalog star that was not detected — too faint for this frame, 
 list kept to its brightest detections — which no neighbouring star can expose. A name stands only
 where its star explains the detection ``odds`` times better than a false detection does:
 
-    ln N₂(d_s; σ̂) + [ln(FALSE_MAG_SPAN / (√(2π) σ̂_m)) − b(o_s)] − ln(λ / A) ≥ ln(odds),
+    ln t₂(d_s; σ̂, ν) + [ln(FALSE_MAG_SPAN / (√(2π) σ̂_m)) − b(o_s)] − ln(λ / A) ≥ ln(odds),
 
-the 2-D Gaussian density of the centroid error against a false detection's uniform density over the
+the density of the centroid error — a bivariate t, σ̂ having ν = 2n − 4 degrees of freedom over n
+names (a Gaussian as n grows) — against a false detection's uniform density over the
 frame (λ expected per frame, ``Finishing.false_per_frame``, over its area A in px²), and the
 brightness term as a Gaussian density about the zero point against a false detection's uniform over
 :data:`FALSE_MAG_SPAN` (only with a zero point). On a coarse camera (290″/px, σ = 2 px) a false
@@ -132,7 +133,12 @@ def rivalled_names(xy, valid, mag, ids, attitude, scale, k1, star_vectors, star_
     # the zero point) against a false detection's (uniform over the frame and FALSE_MAG_SPAN)
     with_mag = (count >= MIN_MAG_NAMES) & jnp.isfinite(offset)
     mag_nats = jnp.where(with_mag, jnp.log(FALSE_MAG_SPAN / (SQRT_2PI * sigma_m)) - brightness(offset), 0.0)
-    own_nats = -d_own**2 / (2.0 * sigma**2) - jnp.log(2.0 * jnp.pi * sigma**2) + mag_nats
+    # σ̂ comes from the names themselves: the position density is the bivariate t of its dof (2 per
+    # name less the fit's 4; camera_fit.studentized_k), not a Gaussian that takes a right name 5 σ̂
+    # out of 9 for a false detection
+    dof = jnp.maximum(2.0 * jnp.sum(named) - 4.0, 1.0)
+    own_nats = (-0.5 * (dof + 2.0) * jnp.log1p(d_own**2 / (dof * sigma**2))
+                - jnp.log(2.0 * jnp.pi * sigma**2) + mag_nats)
     false_star = (false_density > 0) & (own_nats - jnp.log(jnp.maximum(false_density, 1e-30)) < log_odds)
     return named & (jnp.any(rival & (evidence < log_odds), axis=1) | false_star)
 
