@@ -129,8 +129,8 @@ def rivalled_names(xy, valid, mag, ids, attitude, scale, k1, star_vectors, star_
     o_rival = mag[:, None] - star_mags[rows_c] - zero[:, None]
     evidence = ((d**2 - d_own[:, None] ** 2) / (2.0 * sigma**2)
                 + brightness(o_rival) - brightness(offset)[:, None])
-    # no star at all: the named star's densities (2-D Gaussian position, Gaussian brightness about
-    # the zero point) against a false detection's (uniform over the frame and FALSE_MAG_SPAN)
+    # no star at all: the named star's densities (position below, Gaussian brightness about the
+    # zero point) against a false detection's (uniform over the frame and FALSE_MAG_SPAN)
     with_mag = (count >= MIN_MAG_NAMES) & jnp.isfinite(offset)
     mag_nats = jnp.where(with_mag, jnp.log(FALSE_MAG_SPAN / (SQRT_2PI * sigma_m)) - brightness(offset), 0.0)
     # σ̂ comes from the names themselves: the position density is the bivariate t of its dof (2 per
