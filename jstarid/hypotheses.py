@@ -160,7 +160,7 @@ def search_scene(xy, valid, mag, triples, *, index: TriangleIndex, star_vectors,
         own = jnp.all(hit[v] & (named[v] == s))
         return att, jnp.where(alive & own, jnp.sum(hit), 0).astype(jnp.int32), jnp.where(hit, named, -1)
 
-    atts, scores, names = jax.lax.map(verify, (h_verts, h_abc, live), batch_size=HYPOTHESIS_CHUNK)
+    atts, scores, names = _verify_live(verify, (h_verts, h_abc, live), jnp.minimum(jnp.sum(has), capacity), n)
     win = first_argmax(scores)
     best = scores[win]
     # a rival names the detections otherwise (the same stars found from another triple agree, though
@@ -181,12 +181,52 @@ def search_scene(xy, valid, mag, triples, *, index: TriangleIndex, star_vectors,
                     overflow=(jnp.sum(has) > capacity) | jnp.any(counts > per_triple))
 
 
+def _verify_live(verify, hyps, n_live, n: int):
+    """``jax.lax.map(verify, hyps)`` over the first ``n_live`` hypotheses only, in chunks of
+    :data:`HYPOTHESIS_CHUNK` (a ``while_loop``: a scene with a few dozen hypotheses does not pay for
+    the whole capacity). The rest keep score 0, no names and a zero attitude: the winner and the rival
+    test read only scores above 0 (a scene whose best score is 0 is not ``ok``).
+
+    Args:
+        verify: one hypothesis → ``(attitude (3, 3), score (), names (n,))``.
+        hyps: pytree of (H, ...) hypotheses. n_live: () int32 ≤ H. n: static detections searched.
+    """
+    h = jax.tree.leaves(hyps)[0].shape[0]
+    chunk = min(HYPOTHESIS_CHUNK, h)
+    padded = -(-h // chunk) * chunk
+    hyps = jax.tree.map(lambda a: jnp.concatenate([a, jnp.zeros((padded - h,) + a.shape[1:], a.dtype)]), hyps)
+    out = (jnp.zeros((padded, 3, 3), jnp.float32), jnp.zeros(padded, jnp.int32),
+           jnp.full((padded, n), -1, jnp.int32))
+
+    def body(state):
+        i, acc = state
+        part = jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, i * chunk, chunk), hyps)
+        done = jax.vmap(verify)(part)
+        return i + 1, tuple(jax.lax.dynamic_update_slice_in_dim(a, d.astype(a.dtype), i * chunk, 0)
+                            for a, d in zip(acc, done, strict=True))
+
+    _, out = jax.lax.while_loop(lambda state: state[0] * chunk < n_live, body, (jnp.int32(0), out))
+    return tuple(a[:h] for a in out)
+
+
 @functools.partial(stored_jit, static_argnames=("grid", "camera", "n_use", "eps_rad", "min_confirm",
                                                 "capacity", "per_triple"))
-def _search_chunk(xy, valid, mag, triples, index, star_vectors, cells, **static):
+def _search_chunk(xy, valid, mag, real, triples, index, star_vectors, cells, **static):
+    """:func:`search_scene` on each scene of a padded chunk, one after another; the padding rows
+    (``real`` False) are skipped (a ``cond``), so a call of 16 for 3 scenes costs 3 searches."""
     fn = functools.partial(search_scene, triples=triples, index=index, star_vectors=star_vectors, cells=cells,
                            **static)
-    return jax.lax.map(lambda a: fn(*a), (xy, valid, mag))
+
+    def one(a):
+        *scene, is_real = a
+        out = jax.eval_shape(fn, *scene)
+        skipped = Searched(ids=jnp.full(out.ids.shape, -1, out.ids.dtype), ok=jnp.zeros((), bool),
+                           attitude=jnp.full(out.attitude.shape, jnp.nan, out.attitude.dtype),
+                           confirmed=jnp.zeros((), out.confirmed.dtype),
+                           n_hypotheses=jnp.zeros((), out.n_hypotheses.dtype), overflow=jnp.zeros((), bool))
+        return jax.lax.cond(is_real, lambda: fn(*scene), lambda: skipped)
+
+    return jax.lax.map(one, (xy, valid, mag, real))
 
 
 def padded_triples(n: int) -> np.ndarray:
@@ -332,8 +372,9 @@ def _search_rows(rows: np.ndarray, *, xy, valid, mag, index, vectors, cells, gri
     for lo in range(0, rows.size, SCENE_CHUNK):
         # sizes 16, 32, 64 only: each is one compiled program (≈ 5 s at 48 detections)
         part = padded_indices(rows[lo:lo + SCENE_CHUNK], floor=16)
-        out = _search_chunk(jnp.asarray(xy[part], jnp.float32), jnp.asarray(valid[part]),
-                            jnp.asarray(mag[part], jnp.float32), triples, index, vectors, cells, **static)
         n = min(SCENE_CHUNK, rows.size - lo)
+        out = _search_chunk(jnp.asarray(xy[part], jnp.float32), jnp.asarray(valid[part]),
+                            jnp.asarray(mag[part], jnp.float32), jnp.arange(part.size) < n, triples, index,
+                            vectors, cells, **static)
         found.append([np.asarray(a)[:n] for a in out])
     return Searched(*(np.concatenate(parts) for parts in zip(*found, strict=True)))
