@@ -210,6 +210,49 @@ def test_stars_among_many_false_detections_are_found_and_random_points_never_cla
     assert not claimed.any()
 
 
+def test_padding_scenes_are_skipped(clutter_setup):
+    """A chunk padded with copies of a scene searches the scene once: the copies (``real`` False)
+    come back empty, not solved again (the statics of the test above: its program is reused)."""
+    cat, cam = clutter_setup
+    noise = js.NoiseConfig(position_sigma_px=0.5, n_false=30, false_mag_min=1.0, false_mag_max=6.0,
+                           false_mag_slope=js.CATALOG_MAG_SLOPE)
+    scenes = js.simulate(jax.random.key(5), cat, cam, noise, batch_size=12, capacity=64)
+    first = int(np.argmax(np.sum(np.asarray(scenes.truth) >= 0, axis=1)))  # the most stars: solved
+    vectors = np.asarray(cat.unit_vectors, np.float32)
+    eps_rad = 3.0 / cam.f_px
+    index = hypotheses._search_index(vectors, None, cam, eps_rad)
+    cells, grid = hypotheses._sky_cells(vectors, index, cam, eps_rad)
+    part = np.full(16, first)
+    found = hypotheses._search_chunk(
+        jnp.asarray(scenes.xy)[part], jnp.asarray(scenes.valid)[part], jnp.asarray(scenes.mag)[part],
+        jnp.arange(16) < 1, jnp.asarray(hypotheses.padded_triples(40)), index, jnp.asarray(vectors), cells,
+        grid=grid, camera=cam, n_use=40, eps_rad=eps_rad, min_confirm=1, capacity=4096, per_triple=16)
+    ok, ids = np.asarray(found.ok), np.asarray(found.ids)
+    assert ok[0] and np.array_equal(ids[0][ids[0] >= 0], np.asarray(scenes.truth)[first][ids[0] >= 0])
+    assert not ok[1:].any() and np.all(ids[1:] == -1) and np.all(np.asarray(found.n_hypotheses)[1:] == 0)
+
+
+def test_only_the_live_hypotheses_are_verified():
+    """``_verify_live`` equals a map over every hypothesis where one is live (chunks of
+    ``HYPOTHESIS_CHUNK``), and leaves the chunks past the last live one unverified."""
+    chunk = hypotheses.HYPOTHESIS_CHUNK
+    h = 3 * chunk + 5
+    hyps = (jnp.arange(h, dtype=jnp.int32), jnp.arange(h) % 3 == 0)
+
+    def verify(hyp):
+        i, alive = hyp
+        att = jnp.full((3, 3), i, jnp.float32)
+        return att, jnp.where(alive, i + 1, 0), jnp.full(4, i, jnp.int32)
+
+    every = jax.lax.map(verify, hyps)
+    for n_live in (0, 1, chunk, chunk + 1, h):
+        got = jax.jit(hypotheses._verify_live, static_argnums=(0, 3))(verify, hyps, n_live, 4)
+        done = -(-n_live // chunk) * chunk  # whole chunks up to the last live hypothesis
+        for a, b, empty in zip(got, every, (0, 0, -1), strict=True):
+            np.testing.assert_array_equal(np.asarray(a)[:done], np.asarray(b)[:done])
+            assert np.all(np.asarray(a)[done:] == empty)
+
+
 def test_a_crowded_scene_is_searched_again_over_more_detections(clutter_setup, monkeypatch):
     """False detections all brighter than the stars: the brightest ``n_use`` hold no star and the
     first pass finds nothing; the crowded pass over ``n_crowded`` finds the stars, none named wrong,
