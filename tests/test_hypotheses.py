@@ -303,7 +303,8 @@ def test_hypotheses_past_the_capacity_are_flagged(clutter_setup, monkeypatch):
     noise = js.NoiseConfig(position_sigma_px=0.5, n_false=30, false_mag_min=1.0, false_mag_max=6.0,
                            false_mag_slope=js.CATALOG_MAG_SLOPE)
     scenes = js.simulate(jax.random.key(5), cat, cam, noise, batch_size=12, capacity=64)
-    failed = Identification(ids=np.full((12, 64), -1, np.int32), ok=np.zeros(12, bool), attitude=None)
+    scenes = scenes[:4]  # the test above's first four: the second pass claims the first
+    failed = Identification(ids=np.full((4, 64), -1, np.int32), ok=np.zeros(4, bool), attitude=None)
     passes = []
     search_rows = hypotheses._search_rows
     monkeypatch.setattr(hypotheses, "_search_rows", lambda rows, **kw: passes.append(
@@ -311,7 +312,8 @@ def test_hypotheses_past_the_capacity_are_flagged(clutter_setup, monkeypatch):
     result, solved, overflow = solve_unsolved(failed, scenes, star_vectors=cat.unit_vectors, camera=cam,
                                               n_use=40, eps_px=3.0, min_confirm=1, max_false_match=1e-3,
                                               capacity=8, per_triple=1)
-    assert passes == [(12, 40, 8), (12, 40, 128)]  # the first pass claims none of them
+    assert passes == [(4, 40, 8), (4, 40, 128)]  # the first pass claims none of them
     assert overflow.all()
     ids = np.asarray(result.ids)
     assert not np.any((ids >= 0) & (ids != np.asarray(scenes.truth)))
+    assert solved.any()  # a claim from the second pass, held to the false-match test
