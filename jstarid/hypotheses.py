@@ -49,7 +49,8 @@ from jstarid.attitude import solve_wahba, triad
 from jstarid.completion import first_argmax, name_stars
 from jstarid.false_match import false_match_probability
 from jstarid.geometry.angles import pairwise_angles, turn_sign
-from jstarid.runtime import padded_indices
+from jstarid.runtime import pad_rows, padded_indices
+from jstarid.runtime.pairs import skip_padding
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 from jstarid.sky_index import build_sky_index, local_stars
@@ -194,7 +195,7 @@ def _verify_live(verify, hyps, n_live, n: int):
     h = jax.tree.leaves(hyps)[0].shape[0]
     chunk = min(HYPOTHESIS_CHUNK, h)
     padded = -(-h // chunk) * chunk
-    hyps = jax.tree.map(lambda a: jnp.concatenate([a, jnp.zeros((padded - h,) + a.shape[1:], a.dtype)]), hyps)
+    hyps = pad_rows(hyps, padded)  # zeros, not live
     out = (jnp.zeros((padded, 3, 3), jnp.float32), jnp.zeros(padded, jnp.int32),
            jnp.full((padded, n), -1, jnp.int32))
 
@@ -213,20 +214,17 @@ def _verify_live(verify, hyps, n_live, n: int):
                                                 "capacity", "per_triple"))
 def _search_chunk(xy, valid, mag, real, triples, index, star_vectors, cells, **static):
     """:func:`search_scene` on each scene of a padded chunk, one after another; the padding rows
-    (``real`` False) are skipped (a ``cond``), so a call of 16 for 3 scenes costs 3 searches."""
+    (``real`` False) are skipped (:func:`~jstarid.runtime.pairs.skip_padding`), so a call of 16 for 3
+    scenes costs 3 searches."""
     fn = functools.partial(search_scene, triples=triples, index=index, star_vectors=star_vectors, cells=cells,
                            **static)
 
-    def one(a):
-        *scene, is_real = a
-        out = jax.eval_shape(fn, *scene)
-        skipped = Searched(ids=jnp.full(out.ids.shape, -1, out.ids.dtype), ok=jnp.zeros((), bool),
-                           attitude=jnp.full(out.attitude.shape, jnp.nan, out.attitude.dtype),
-                           confirmed=jnp.zeros((), out.confirmed.dtype),
-                           n_hypotheses=jnp.zeros((), out.n_hypotheses.dtype), overflow=jnp.zeros((), bool))
-        return jax.lax.cond(is_real, lambda: fn(*scene), lambda: skipped)
-
-    return jax.lax.map(one, (xy, valid, mag, real))
+    out = jax.eval_shape(fn, xy[0], valid[0], mag[0])
+    skipped = Searched(ids=jnp.full(out.ids.shape, -1, out.ids.dtype), ok=jnp.zeros((), bool),
+                       attitude=jnp.full(out.attitude.shape, jnp.nan, out.attitude.dtype),
+                       confirmed=jnp.zeros((), out.confirmed.dtype),
+                       n_hypotheses=jnp.zeros((), out.n_hypotheses.dtype), overflow=jnp.zeros((), bool))
+    return skip_padding(fn, real, (xy, valid, mag), skipped)
 
 
 def padded_triples(n: int) -> np.ndarray:
