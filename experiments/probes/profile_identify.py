@@ -1,10 +1,11 @@
 """Where a steady ``identify`` call spends its time: a profile of one call on fresh scenes.
 
-One algorithm at its default for a camera, 1 px and 0.1 mag: ``--warm`` calls on fresh batches of
-``--batch`` scenes first (each new path of the finishing stage compiles once: the first doubtful
-claim, the first retry), then one more fresh batch under ``cProfile``. Prints the wall time of
-every call, the profiled call's rate, and the jstarid functions by cumulative time (the steps of
-the pipeline: the algorithm's own passes, the camera check, rival names, the false-match step).
+One algorithm at its default for a camera, 1 px and 0.1 mag by default (``--sigma``,
+``--mag-sigma``): ``--warm`` calls on fresh batches of ``--batch`` scenes first (each new path of
+the finishing stage compiles once: the first doubtful claim, the first retry), then one more fresh
+batch under ``cProfile``. Prints the wall time of every call, the profiled call's rate, and the
+jstarid functions by cumulative time (the steps of the pipeline: the algorithm's own passes, the
+camera check, rival names, the false-match step).
 Kernel time shows where a step blocks on its results (``program_store``'s ``__call__``,
 ``run_calls``). What the issue's throughput goals ask of each step: experiments/RESULTS.md,
 Throughput.
@@ -27,8 +28,6 @@ import jstarid as js
 from jstarid import experiment as ex
 from jstarid.runtime import CountCompilations
 
-NOISE = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.1)
-
 
 def parse_args(argv=None):
     parser = ex.parser(__doc__.splitlines()[0], out="results/profile_identify")
@@ -37,6 +36,8 @@ def parse_args(argv=None):
     parser.add_argument("--batch", type=int, default=1000)
     parser.add_argument("--warm", type=int, default=4, help="calls on fresh scenes before the profiled one")
     parser.add_argument("--capacity", type=int, default=64)
+    parser.add_argument("--sigma", type=float, default=1.0, help="centroid noise σ (px)")
+    parser.add_argument("--mag-sigma", type=float, default=0.1, help="magnitude noise σ (mag)")
     parser.add_argument("--lines", type=int, default=30, help="functions printed")
     return parser.parse_args(argv)
 
@@ -50,9 +51,10 @@ def main(argv=None):
     config = ex.with_overrides(js.engine.default_config(args.algorithm, camera=camera), args.set)
     db = algo.build_database(catalog, camera, config)
     key = jax.random.key(args.seed)
+    noise = js.NoiseConfig(position_sigma_px=args.sigma, magnitude_sigma=args.mag_sigma)
 
     def fresh(call):
-        scenes = js.simulate(jax.random.fold_in(key, call), catalog, camera, NOISE, batch_size=args.batch,
+        scenes = js.simulate(jax.random.fold_in(key, call), catalog, camera, noise, batch_size=args.batch,
                              capacity=args.capacity)
         return jax.block_until_ready(scenes)
 

@@ -12,7 +12,7 @@ import jstarid as js
 from jstarid import Finishing
 from jstarid.algorithms import sgm
 from jstarid.algorithms.sgm.graph import plane_coords, separation_deg
-from jstarid.algorithms.sgm.screen import nearest_radii, screen_pairs, screen_pass, triangle_support
+from jstarid.algorithms.sgm.screen import nearest_partners, screen_pairs, screen_pass, triangle_support
 
 _support = jax.jit(triangle_support, static_argnames=("partners", "hypotheses"))
 
@@ -197,15 +197,25 @@ def test_screen_pairs_equal_the_screen_of_each_pair_at_full_size(setup5):
     assert 0.2 < got.mean() < 0.6
 
 
-def test_nearest_radii_are_lax_top_k_of_the_negated_gaps():
-    """The m smallest entries per row, ties to the lower column, as ``lax.top_k(−gap, m)`` gives;
-    rows with fewer than m finite entries agree on the finite ones."""
+def test_nearest_partners_are_the_m_smallest_gaps():
+    """The window about the insertion point holds the m nearest radii of a brute-force ranking by
+    (gap, radius), for lists with ties, absent neighbors (+inf) and fewer than m present; slots past
+    the list come back at +inf."""
     rng = np.random.default_rng(10)
-    gap = np.round(rng.uniform(0, 1, (200, 23)), 1).astype(np.float32)  # many ties
-    gap[rng.uniform(size=gap.shape) < 0.3] = np.inf
-    gap[:5, 2:] = np.inf  # two finite entries only
-    values, columns = jax.jit(nearest_radii, static_argnums=1)(jnp.asarray(gap), 4)
-    neg, want = jax.lax.top_k(-jnp.asarray(gap), 4)
-    finite = np.isfinite(np.asarray(neg))
-    np.testing.assert_array_equal(np.asarray(values), -np.asarray(neg))
-    np.testing.assert_array_equal(np.asarray(columns)[finite], np.asarray(want)[finite])
+    m = 4
+    for trial in range(300):
+        q1 = int(rng.integers(4, 24))
+        n_present = int(rng.integers(0, q1 + 1)) if trial % 3 else q1
+        r = np.round(rng.uniform(0, 6, q1), 1 if trial % 2 else 6).astype(np.float32)  # ties when rounded
+        r_sorted = np.sort(np.where(np.arange(q1) < n_present, r, np.inf)).astype(np.float32)
+        r_i = np.round(rng.uniform(-0.5, 6.5, 23), 1 if trial % 2 else 6).astype(np.float32)
+        gap, part = jax.jit(nearest_partners, static_argnums=2)(jnp.asarray(r_i), jnp.asarray(r_sorted), m)
+        gap, part = np.asarray(gap), np.asarray(part)
+        for k in range(r_i.size):
+            brute = sorted((abs(float(r_i[k]) - float(r_sorted[v])), float(r_sorted[v]))
+                           for v in range(n_present))[:m]
+            got = sorted((float(gap[k, s]), float(r_sorted[part[k, s]])) for s in range(m)
+                         if np.isfinite(gap[k, s]))
+            assert [g for g, _ in got] == [np.float32(g) for g, _ in brute], (trial, k)
+            np.testing.assert_array_equal(gap[k][np.isfinite(gap[k])],
+                                          np.abs(r_i[k] - r_sorted[part[k]])[np.isfinite(gap[k])])

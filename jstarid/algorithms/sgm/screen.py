@@ -11,7 +11,8 @@ probability ≈ (partners within ``tol`` in radius) × (2·tol / r_k) / 2π, a f
 best rotation explains far fewer (docs/design/sgm.md, Triangle screen).
 
 Work per candidate, with P, Q the padded vertex counts, m partners per vertex and H hypotheses:
-each image neighbor's m database neighbors of nearest radius (a (P, Q) difference and a top-m), then
+each image neighbor's m database neighbors of nearest radius (a (P, Q) comparison against the
+database graph's radii, sorted once per database, and a window about the insertion point), then
 (H, m, P, m) angle comparisons — O(P·Q + H·m²·P), against the spectral matching's O((PQ)²)
 affinity and power steps.
 
@@ -34,8 +35,8 @@ from jstarid.runtime.padding import power_of_two_chunks
 from jstarid.runtime.pairs import MIN_CALL_PAIRS
 from jstarid.runtime.program_store import stored_jit
 
-__all__ = ["hypothesis_neighbors", "nearest_radii", "neighbor_polar", "polar_support", "screen_pairs",
-           "screen_pass", "triangle_support"]
+__all__ = ["hypothesis_neighbors", "nearest_partners", "neighbor_polar", "polar_support", "radius_order",
+           "screen_pairs", "screen_pass", "triangle_support"]
 
 
 def neighbor_polar(plane):
@@ -69,36 +70,65 @@ def hypothesis_neighbors(r_i, n_i, tol, hypotheses: int):
     return hyp.astype(jnp.int32), eligible[hyp]
 
 
-def nearest_radii(gap, m: int):
-    """The ``m`` smallest entries of each row and their columns, smallest first (ties: lower column).
-
-    ``m`` masked argmins: on XLA:CPU faster than ``lax.top_k`` for the screen's m = 4 (≈ 1.3× the
-    whole kernel at 24 vertices).
+def radius_order(r, phi, n):
+    """A graph's neighbors sorted by radius, the order :func:`nearest_partners` searches.
 
     Args:
-        gap: (R, C) float (+inf where absent). m: static, ≤ C.
+        r, phi: (..., P − 1) :func:`neighbor_polar` (deg, rad). n: (...) vertex counts (the first
+            n − 1 neighbors are valid).
 
     Returns:
-        ``(values, columns)``: (R, m) float and (R, m) int32.
+        ``(r, phi)``: (..., P − 1) radii ascending, +inf past the n − 1 valid ones (ties: the lower
+        vertex first), and their azimuths.
     """
-    cols = jnp.arange(gap.shape[1])[None, :]
-    values, columns = [], []
-    for _ in range(m):
-        at = jnp.argmin(gap, axis=1)
-        values.append(jnp.min(gap, axis=1))
-        columns.append(at.astype(jnp.int32))
-        gap = jnp.where(cols == at[:, None], jnp.inf, gap)
-    return jnp.stack(values, axis=1), jnp.stack(columns, axis=1)
+    valid = jnp.arange(1, r.shape[-1] + 1).reshape((1,) * (r.ndim - 1) + (-1,)) < jnp.expand_dims(n, -1)
+    r = jnp.where(valid, r, jnp.inf)
+    order = jnp.argsort(r, axis=-1, stable=True)
+    return jnp.take_along_axis(r, order, axis=-1), jnp.take_along_axis(phi, order, axis=-1)
 
 
-def polar_support(r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, n_j, *, tol, partners: int):
+def nearest_partners(r_i, r_sorted, m: int):
+    """For each image neighbor, the ``m`` database neighbors of nearest radius (a window of the sorted
+    radii: the m points of a sorted list nearest to a value are contiguous in it).
+
+    Costs one (P − 1, Q − 1) comparison (the insertion point) and a ranking of the 2m entries about
+    it, where a masked argmin per partner over the whole (P − 1, Q − 1) gap table cost half the
+    screen's time.
+
+    Args:
+        r_i: (P − 1,) image neighbor radii (deg). r_sorted: (Q − 1,) database radii from
+            :func:`radius_order` (ascending, +inf where absent). m: static, ≤ Q − 1.
+
+    Returns:
+        ``(gap, part)``: (P − 1, m) |r_i − r_sorted[part]| (deg; +inf for a window slot past the
+        list or an absent neighbor, whose ``part`` is clipped into range) and (P − 1, m) int32
+        positions in ``r_sorted``. Of equal gaps the smaller radius comes first.
+    """
+    q1 = r_sorted.shape[0]
+    at = jnp.sum(r_sorted[None, :] < r_i[:, None], axis=1)  # insertion point
+    slots = jnp.arange(2 * m)
+    near = at[:, None] - m + slots[None, :]  # (P − 1, 2m): the m below, the m from it up
+    gap = jnp.where((near >= 0) & (near < q1), jnp.abs(r_i[:, None] - r_sorted[jnp.clip(near, 0, q1 - 1)]),
+                    jnp.inf)
+    before = (gap[:, None, :] < gap[:, :, None]) | ((gap[:, None, :] == gap[:, :, None])
+                                                    & (slots[None, :] < slots[:, None])[None])
+    chosen = jnp.sum(before, axis=2) < m  # the m nearest slots
+    start = at - jnp.sum(chosen[:, :m], axis=1)  # every chosen finite slot lies in [start, start + m)
+    part = start[:, None] + jnp.arange(m)[None, :]
+    inside = (part >= 0) & (part < q1)
+    part = jnp.clip(part, 0, q1 - 1)
+    return jnp.where(inside, jnp.abs(r_i[:, None] - r_sorted[part]), jnp.inf), part.astype(jnp.int32)
+
+
+def polar_support(r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, *, tol, partners: int):
     """:func:`triangle_support` from precomputed neighbor coordinates and hypotheses (the search
     computes them once per graph, not once per candidate pair).
 
     Args:
         r_i, phi_i: (P − 1,) image neighbors' :func:`neighbor_polar` (deg, rad). hyp, hyp_ok: (H,)
             :func:`hypothesis_neighbors` (indices may run past P − 1 only where ``hyp_ok`` is False).
-        n_i: () image vertex count. r_j, phi_j: (Q − 1,) database neighbors' coordinates. n_j: ().
+        n_i: () image vertex count. r_j, phi_j: (Q − 1,) database neighbors' coordinates in
+            :func:`radius_order` (+inf radius where absent).
         tol: () position tolerance (deg). partners: static m.
 
     Returns:
@@ -107,10 +137,8 @@ def polar_support(r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, n_j, *, tol, partner
     p1, q1 = r_i.shape[0], r_j.shape[0]
     m = min(partners, q1)
     vi = jnp.arange(1, p1 + 1) < n_i
-    vj = jnp.arange(1, q1 + 1) < n_j
-    gap = jnp.where(vi[:, None] & vj[None, :], jnp.abs(r_i[:, None] - r_j[None, :]), jnp.inf)
-    near, part = nearest_radii(gap, m)  # (P − 1, m) database neighbors of nearest radius
-    ok = near <= tol
+    near, part = nearest_partners(r_i, r_j, m)  # (P − 1, m) database neighbors of nearest radius
+    ok = (near <= tol) & vi[:, None]
     rot = phi_j[part] - phi_i[:, None]  # (P − 1, m) rotation implied by each pair (rad)
     slack = tol / jnp.maximum(r_i, 1e-6)  # (P − 1,) its uncertainty (rad)
     d = rot[hyp][:, :, None, None] - rot[None, None, :, :]  # (H, m, P − 1, m)
@@ -147,9 +175,9 @@ def triangle_support(plane_i, n_i, plane_j, n_j, *, tol, partners: int, hypothes
         k's: vertices of a consistent correspondence); 0 when no hypothesis can be formed.
     """
     r_i, phi_i = neighbor_polar(plane_i)
-    r_j, phi_j = neighbor_polar(plane_j)
+    r_j, phi_j = radius_order(*neighbor_polar(plane_j), n_j)
     hyp, hyp_ok = hypothesis_neighbors(r_i, n_i, tol, min(hypotheses, plane_i.shape[0] - 1))
-    return polar_support(r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, n_j, tol=tol, partners=partners)
+    return polar_support(r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, tol=tol, partners=partners)
 
 
 def screen_pass(support, n_i, n_j, *, fraction: float, min_matched: int):
@@ -184,10 +212,12 @@ def graph_polar(plane, n, tol, *, hypotheses: int):
 
 
 def database_polar(db) -> tuple[np.ndarray, np.ndarray]:
-    """``(r, phi)``: (D, K − 1) float32 :func:`neighbor_polar` of every database graph (deg, rad),
-    computed once per database (:data:`jstarid.runtime.device_cache`)."""
+    """``(r, phi)``: (D, K − 1) float32 :func:`neighbor_polar` of every database graph in
+    :func:`radius_order` (deg, +inf past its neighbors; rad), computed once per database
+    (:data:`jstarid.runtime.device_cache`)."""
     def make():
-        out = [jax.device_get(neighbor_polar(jnp.asarray(db.plane[lo:lo + 4096])))
+        out = [jax.device_get(radius_order(*neighbor_polar(jnp.asarray(db.plane[lo:lo + 4096])),
+                                           jnp.asarray(db.n[lo:lo + 4096])))
                for lo in range(0, len(db.n), 4096)]
         return tuple(np.concatenate([o[k] for o in out]) for k in range(2))
 
@@ -199,7 +229,7 @@ def _screen_kernel(r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, n_j, tol, *, partne
                    min_matched):
     """:func:`polar_support` and :func:`screen_pass` of N pairs (``vmap``) → (N,) bool."""
     support = jax.vmap(functools.partial(polar_support, tol=tol, partners=partners))(
-        r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j, n_j)
+        r_i, phi_i, hyp, hyp_ok, n_i, r_j, phi_j)
     return screen_pass(support, n_i, n_j, fraction=fraction, min_matched=min_matched)
 
 
