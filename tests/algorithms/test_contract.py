@@ -38,13 +38,16 @@ def _rpnet_config():
                         training=training, pair_tol_px=5.0, match_tol_px=5.0, batch_chunk=16)
 
 
-# name → (catalog V limit, camera, config factory); small but realistic settings per algorithm
+# name → (catalog V limit, camera, config factory); small but realistic settings per algorithm (the
+# pyramid enumerates triangles of every detection pair: on the default world its three largest tests
+# took ≈ 50 s of execution, on MLV's camera at V 5.5 ≈ 25 s; test_pyramid.py runs it on sgm2022)
 WORLDS = {
     "sgm": (6.0, lambda: js.camera_preset("sgm2022"),
             lambda: js.algorithms.get("sgm").Config(power_iterations=30)),
     "mlv": (5.5, lambda: js.camera_preset("mlv2021"),
             lambda: js.algorithms.get("mlv").Config(n_boresights=20_000, batch_chunk=100)),
     "rpnet": (3.0, lambda: js.Camera.from_fov(1024, 1024, 60.0, mag_limit=3.0), _rpnet_config),
+    "pyramid": (5.5, lambda: js.camera_preset("mlv2021"), lambda: js.algorithms.get("pyramid").Config()),
 }
 
 # Smallest share of noise-free scenes an algorithm must identify (strict criterion); 1.0 unless
