@@ -91,9 +91,9 @@ def nearest_partners(r_i, r_sorted, m: int):
     """For each image neighbor, the ``m`` database neighbors of nearest radius (a window of the sorted
     radii: the m points of a sorted list nearest to a value are contiguous in it).
 
-    Costs one (P − 1, Q − 1) comparison (the insertion point) and a ranking of the 2m entries about
-    it, where a masked argmin per partner over the whole (P − 1, Q − 1) gap table cost half the
-    screen's time.
+    Costs one (P − 1, Q − 1) comparison (the insertion point) and a ranking of the 2m slots about
+    it, not m passes over the whole (P − 1, Q − 1) table of gaps (docs/design/sgm.md, Triangle
+    screen).
 
     Args:
         r_i: (P − 1,) image neighbor radii (deg). r_sorted: (Q − 1,) database radii from
