@@ -394,8 +394,9 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
     # — one 9 px name among twenty right ones at 0.5 px inflates the plain RMS to 1.5 px, a 9 px
     # radius — and it pulls the fitted scale by a few tenths of a percent while it stays.
 
-    def refit(_, inlier):
-        r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)[2]
+    def refit(_, state):
+        inlier = state[0]
+        c, scale, r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)
         dof = 2.0 * jnp.sum(inlier).astype(jnp.float32) - p
         ss = jnp.sum(jnp.where(inlier, r**2, 0.0))
         ss_others = jnp.where(inlier, ss - r**2, ss)
@@ -409,12 +410,15 @@ def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_sc
         # than 1 − TRIM_SHARE of the names are wrong) and bounds σ̂ from below.
         sigma_i = jnp.maximum(jnp.minimum(sigma_others, _trimmed_sigma(r, inlier)),
                               _trimmed_sigma(r, named))
-        return named & (r <= jnp.clip(radius(sigma_i, dof_others), min_tol_px, max_tol_px))
+        grown = named & (r <= jnp.clip(radius(sigma_i, dof_others), min_tol_px, max_tol_px))
+        return grown, inlier, c, scale, r
 
-    # loops, not unrolled (here and below): each fit traced once keeps a fresh process's tracing of
-    # the check's kernels to a fraction of a second
-    inlier = jax.lax.fori_loop(0, REFITS, refit, inlier)
-    c, scale, r = fit_scaled(xy, ref, inlier.astype(jnp.float32), camera, fit_scale)
+    # loops, not unrolled (here and below): each fit traced once keeps a fresh process's tracing and
+    # compilation of the check's kernels short. The last of the REFITS + 1 rounds is the fit on the
+    # last inliers (the inliers it chooses are not used)
+    start = (inlier, inlier, jnp.eye(3, dtype=jnp.float32), jnp.float32(1.0),
+             jnp.zeros(named.shape, jnp.float32))
+    _, inlier, c, scale, r = jax.lax.fori_loop(0, REFITS + 1, refit, start)
     dof = jnp.maximum(2.0 * jnp.sum(inlier).astype(jnp.float32) - p, 1.0)
     sigma = jnp.sqrt(jnp.sum(jnp.where(inlier, r**2, 0.0)) / dof)
     tol = jnp.clip(radius(sigma, dof), min_tol_px, max_tol_px)
@@ -492,9 +496,11 @@ def _few_names_fit(xy, ref, named, camera, fit_scale, *, k_sigma, min_tol_px):
         return jnp.sqrt(jnp.sum(jnp.where(mask, r**2, 0.0)) / dof)
 
     def deletion(_, use):
-        r_all = fit_scaled(sxy, sref, use.astype(jnp.float32), camera, fit_scale)[2]
-        without = use[None, :] & ~jnp.eye(k, dtype=bool)  # (k, k): row i leaves name i out
-        r_wo = jax.vmap(lambda m: fit_scaled(sxy, sref, m.astype(jnp.float32), camera, fit_scale)[2])(without)
+        # row 0 every name in use, row i + 1 all but name i: one vmapped fit (one copy in the program)
+        masks = jnp.concatenate([use[None, :], use[None, :] & ~jnp.eye(k, dtype=bool)])
+        r_masks = jax.vmap(lambda m: fit_scaled(sxy, sref, m.astype(jnp.float32), camera, fit_scale)[2])(
+            masks)
+        r_all, without, r_wo = r_masks[0], masks[1:], r_masks[1:]
         rms_wo = jax.vmap(rms)(r_wo, without)
         i = jnp.argmin(jnp.where(use, rms_wo, jnp.inf))
         drop = ((jnp.sum(use) > MIN_SCALE_STARS) & (rms_wo[i] * DELETION_RATIO < rms(r_all, use))
