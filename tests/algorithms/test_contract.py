@@ -39,8 +39,8 @@ def _rpnet_config():
 
 
 # name → (catalog V limit, camera, config factory); small but realistic settings per algorithm (the
-# pyramid enumerates triangles of every detection pair: on the default world its three largest tests
-# took ≈ 50 s of execution, on MLV's camera at V 5.5 ≈ 25 s; test_pyramid.py runs it on sgm2022)
+# pyramid's contract tests are bound by its execution, which grows with the stars per frame: MLV's
+# camera at V 5.5 holds fewer than the default world; test_pyramid.py runs it on sgm2022)
 WORLDS = {
     "sgm": (6.0, lambda: js.camera_preset("sgm2022"),
             lambda: js.algorithms.get("sgm").Config(power_iterations=30)),
