@@ -340,21 +340,22 @@ def _tan_half_diagonal(camera):
 
 
 def fit_named(xy, ref, named, camera, *, k_sigma, min_tol_px, max_tol_px, fit_scale=True,
-              few: bool | None = None, fit_distortion: bool = False, studentized: bool = False) -> CameraFit:
+              few: bool | None = None, fit_distortion: bool = False, studentized=False) -> CameraFit:
     """The robust fit of one scene (module doc): all names, the better half, then the inliers.
 
     Args:
         xy: (N, 2) px. ref: (N, 3) ICRS vectors of the names. named: (N,) bool.
         camera: nominal camera (static). k_sigma: inlier radius in σ̂. min_tol_px, max_tol_px: its
             clip (px). fit_scale: fit the focal length.
-        studentized: the radius is :func:`studentized_k` ``(k_sigma, dof)`` σ̂, where σ̂ has ``dof``
-            degrees of freedom, rather than ``k_sigma`` σ̂ (which holds for a known σ only).
+        studentized: () bool (may be traced): the radius is :func:`studentized_k` ``(k_sigma, dof)``
+            σ̂, where σ̂ has ``dof`` degrees of freedom, rather than ``k_sigma`` σ̂ (which holds for a
+            known σ only).
 
     Returns:
         :class:`CameraFit`.
     """
     def radius(sigma, dof):  # px, before the clip
-        return (studentized_k(k_sigma, dof) if studentized else k_sigma) * sigma
+        return jnp.where(studentized, studentized_k(k_sigma, dof), k_sigma) * sigma
 
     # the first fit is the attitude alone: with a gross outlier among the names a free scale
     # could run away, and even a rotation is pulled by degrees by one name from elsewhere in the
@@ -562,7 +563,8 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     b, n = ids.shape
     named = valid & (ids >= 0) & ok[:, None]
     count = named.sum(axis=1)
-    limits = (jnp.float32(k_sigma), jnp.float32(min_tol_px), jnp.float32(max_tol_px))
+    # traced, studentized too: the check's and the naming's kernels are one program per shape
+    limits = (jnp.float32(k_sigma), jnp.float32(min_tol_px), jnp.float32(max_tol_px), jnp.bool_(studentized))
     attitude = np.full((b, 3, 3), np.nan, np.float32)
     scale = np.ones(b, np.float32)
     residual = np.full((b, n), np.nan, np.float32)
@@ -577,7 +579,7 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     ref = star_vectors.astype(np.float32)[np.clip(ids, 0, len(star_vectors) - 1)]
     one = batch_mesh(jax.devices()[:1])
     static = dict(fit_scale=bool(fit_scale),
-                  fit_distortion=bool(fit_scale and fit_distortion), studentized=bool(studentized))
+                  fit_distortion=bool(fit_scale and fit_distortion))
     # each scene's names packed first, and each call cut to the columns its names need (a power
     # of two, at most FEW_NAMES for the few-names group): the fits' work follows the names, not
     # the scenes' capacity
@@ -660,9 +662,9 @@ def verify_names(star_vectors, camera, xy, valid, ids, ok, *, k_sigma: float = K
     return jnp.asarray(kept), jnp.asarray(solved), fit
 
 
-@functools.partial(stored_jit, static_argnames=("fit_scale", "few", "fit_distortion", "studentized"))
-def _fit_kernel(xy, named, ref, optics, k_sigma, min_tol_px, max_tol_px, *, fit_scale, few, fit_distortion,
-                studentized):
+@functools.partial(stored_jit, static_argnames=("fit_scale", "few", "fit_distortion"))
+def _fit_kernel(xy, named, ref, optics, k_sigma, min_tol_px, max_tol_px, studentized, *, fit_scale, few,
+                fit_distortion):
     """:func:`fit_named` of each scene (B, N) of :func:`verify_names` (``few``: its static branch);
     ``ref`` (B, N, 3) the names' ICRS vectors, ``optics`` the camera's
     :meth:`~jstarid.camera.Camera.pinhole_numbers`."""

@@ -641,3 +641,21 @@ def test_small_batches_share_the_checks_programs(world):
     assert count.programs == 0
     assert bool(first.ok[0]) and bool(second.ok[0])
     np.testing.assert_array_equal(np.asarray(second.ids), np.asarray(first.ids))
+
+
+def test_the_studentized_radius_shares_the_plain_radius_programs(world):
+    """``studentized`` (SGM's check) is a traced flag of the fit kernel: the check with it and without
+    it runs the same programs, and it still widens the radius (a dozen names: 6 σ̂ → ≈ 10 σ̂)."""
+    from jstarid.runtime import CountCompilations
+
+    cat, nominal = world
+    scenes, truth = _scenes(cat, nominal, 1.0, n=2, seed=5)
+    ids = np.where(np.cumsum(truth >= 0, axis=1) <= 12, truth, -1)
+    assert np.all(np.sum(ids >= 0, axis=1) == 12)
+    args = (cat.unit_vectors, nominal, scenes.xy, scenes.valid, ids, np.ones(2, bool))
+    plain = cf.verify_names(*args, max_tol_px=100.0)[2]
+    with CountCompilations() as count:
+        wide = cf.verify_names(*args, max_tol_px=100.0, studentized=True)[2]
+    assert count.programs == 0
+    ratio = np.asarray(wide.tol_px) / np.asarray(plain.tol_px)
+    assert np.all(ratio > 1.3), ratio
