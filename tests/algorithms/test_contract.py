@@ -87,7 +87,7 @@ def _paper(w: World):
 
 
 # Every scene of this file has one capacity (the clean scenes', packed ones too), so each algorithm
-# compiles its kernels for one scene width here: RpNet's network kernel takes ≈ 5 s per width.
+# compiles its kernels for one scene width here (RpNet compiles its network kernel per width).
 CAPACITY = 128
 
 

@@ -81,7 +81,7 @@ def radius_order(r, phi, n):
         ``(r, phi)``: (..., P − 1) radii ascending, +inf past the n − 1 valid ones (ties: the lower
         vertex first), and their azimuths.
     """
-    valid = jnp.arange(1, r.shape[-1] + 1).reshape((1,) * (r.ndim - 1) + (-1,)) < jnp.expand_dims(n, -1)
+    valid = jax.lax.broadcasted_iota(jnp.int32, r.shape, r.ndim - 1) + 1 < jnp.expand_dims(n, -1)
     r = jnp.where(valid, r, jnp.inf)
     order = jnp.argsort(r, axis=-1, stable=True)
     return jnp.take_along_axis(r, order, axis=-1), jnp.take_along_axis(phi, order, axis=-1)
