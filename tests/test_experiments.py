@@ -158,6 +158,33 @@ def test_bench_sgm_tiny_with_overrides():
         bench.run(bench.parse_args(["--batch", "64", "--set", "no_such_field=1"]))
 
 
+def test_benchmark_tables_reach_the_report(tmp_path):
+    """The benchmark's saved tables (steady rates apart from the compile budget) are a section of
+    ``jstarid report``'s page, with the command and commit that made them."""
+    from jstarid import cli
+    from jstarid import experiment as ex
+
+    bench = _load("benchmark")
+    rows = [{"benchmark": "simulate", "camera": "sgm2022", "batch": 10_000, "devices": 2,
+             "noise": "pos 1 px", "compile_s": 1.5, "scenes_per_s": 250_000, "peak_rss_mb": 900},
+            {"benchmark": "sgm", "sigma_px": 3.0, "batch": 1000, "compile_s": 40.0, "scenes_per_s": 67.1,
+             "peak_rss_mb": 2000},
+            {"benchmark": "compile mlv", "camera": "mlv2021", "batch": 100, "first_call_s": 30.0,
+             "programs": 20, "compile_s": 25.0, "later_programs": 0, "scenes_per_s": 900.0,
+             "identified": 0.995, "peak_rss_mb": 2100}]
+    table = bench.benchmark_tables(rows, note="2 × cpu")
+    steady, budget = table.split("**Compile budget**")
+    assert "| simulate | sgm2022 | 10,000 | 2 | pos 1 px | 250,000 | 1.5 | 900 |" in steady
+    assert "| sgm | sgm2022 | 1,000 | – | sigma_px 3.0 | 67.1 | 40.0 |" in steady and "mlv" not in steady
+    assert "| mlv | mlv2021 | 100 | 30.0 | 20 | 25.0 | 0 | 900.0 | 99.5% |" in budget
+    ex.write(tmp_path / "benchmark", config={}, results={"rows": rows}, table=table)
+    page = tmp_path / "report.md"
+    assert cli.main(["report", "--reproduce", str(tmp_path / "none"), "--sweeps", str(tmp_path / "none"),
+                     "--benchmark", str(tmp_path / "benchmark"), "--out", str(page)]) == 0
+    text = page.read_text()
+    assert "## Throughput" in text and table.strip() in text and "commit" in text.split("## Throughput")[1]
+
+
 def test_sgm_paper_equals_the_numpy_reference_on_noisy_scenes():
     """``Config.paper`` gives the ids of the plain NumPy SGM (bench_sgm's baseline) under noise;
     the leftover naming (an extension) would not: it also names stars a smaller J* leaves out."""

@@ -47,6 +47,9 @@ def add_commands(sub) -> None:
                    help="where `jstarid reproduce` saved (default results/reproduce)")
     p.add_argument("--sweeps", type=Path, nargs="*", default=[Path("results/demo")],
                    help="saved sweep directories (default results/demo)")
+    p.add_argument("--benchmark", type=Path, default=Path("results/benchmark"),
+                   help="where experiments/benchmark.py saved (default results/benchmark; "
+                        "skipped when absent)")
     p.add_argument("--out", type=Path, default=Path("results/report.md"),
                    help="the page (default results/report.md)")
     p.add_argument("--update", type=Path, default=None,
@@ -91,9 +94,11 @@ def _config(experiment, args):
     return with_overrides(config, args.set)
 
 
-def report_text(reproduce: Path, sweeps: list[Path], *, title: bool = True) -> str:
-    """The report page: the saved sweeps (every algorithm on identical scenes), then each
-    reproduced experiment beside its paper. ``title=False``: no ``#`` heading (a block of a page)."""
+def report_text(reproduce: Path, sweeps: list[Path], *, benchmark: Path | None = None,
+                title: bool = True) -> str:
+    """The report page: the saved sweeps (every algorithm on identical scenes), each reproduced
+    experiment beside its paper, then the saved benchmark (``experiments/benchmark.py``'s tables).
+    ``title=False``: no ``#`` heading (a block of a page)."""
     import jstarid as js
     from jstarid.papers import reproduction as rp
 
@@ -121,6 +126,9 @@ def report_text(reproduce: Path, sweeps: list[Path], *, title: bool = True) -> s
                 found = True
             result = js.load_sweep(where)
             parts += [rp.comparison(exp, result.rows()), _provenance(where), ""]
+    if benchmark is not None and (benchmark / "table.md").exists():
+        parts += ["## Throughput", "", f"Saved in `{benchmark}`.", "",
+                  (benchmark / "table.md").read_text().strip(), "", _provenance(benchmark), ""]
     if len(parts) == n_head:
         raise FileNotFoundError(f"no saved results under {reproduce} or {', '.join(map(str, sweeps))}; "
                                 "run `jstarid demo` or `jstarid reproduce … --quick` first")
@@ -138,13 +146,14 @@ def _provenance(where: Path) -> str:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    text = report_text(args.reproduce, args.sweeps)
+    text = report_text(args.reproduce, args.sweeps, benchmark=args.benchmark)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(f"wrote {args.out}")
     if args.update is not None:
         old = args.update.read_text() if args.update.exists() else ""
-        block = f"{REPORT_START}\n{report_text(args.reproduce, args.sweeps, title=False)}{REPORT_END}"
+        text = report_text(args.reproduce, args.sweeps, benchmark=args.benchmark, title=False)
+        block = f"{REPORT_START}\n{text}{REPORT_END}"
         if REPORT_START in old and REPORT_END in old:
             head, rest = old.split(REPORT_START, 1)
             new = head + block + rest.split(REPORT_END, 1)[1]
