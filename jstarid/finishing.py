@@ -76,7 +76,7 @@ __all__ = ["Finished", "Finishing", "StarTable", "confirmed_by_the_frame", "fini
 
 CLAIM_CHUNKS = (16, 256)  # claims per call of their names' false-match probability (≈ 0.02 ms a claim)
 FRAME_CHUNKS = (MIN_CALL_SIZE, 64)  # claims per call of the frame's naming, whose cost follows the
-# padded claims (experiments/RESULTS.md, Compile budget): a few run in the smallest call every kernel
+# padded claims (experiments/RESULTS.md, Throughput): a few run in the smallest call every kernel
 # has, many in the largest (a call of 4 saved a few padded namings but compiled them once more)
 LADDER_STEP = 0.01  # the ladder's step: MLV's features tolerate about 1 % of focal length
 

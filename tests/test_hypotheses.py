@@ -200,12 +200,12 @@ def test_stars_among_many_false_detections_are_found_and_random_points_never_cla
     # a solved scene's boresight is its truth's (within 20″)
     true_z, found_z = np.asarray(scenes.attitude)[ok][:, 2], np.asarray(result.attitude)[ok][:, 2]
     assert np.all(_angle(true_z.astype(np.float64), found_z.astype(np.float64)) < 1e-4)
-    # four scenes of random points (each a whole search of 40 detections' triples: slow at the
-    # suite's XLA optimisation level)
+    # two scenes of random points (each a whole search of 40 detections' triples: slow at the
+    # suite's XLA optimisation level; test_contract's random points cover every algorithm)
     rng = np.random.default_rng(3)
-    points = js.scenes_from_centroids([rng.uniform(0, 1, (30, 2)) * [1279, 959] for _ in range(4)],
-                                      [np.sort(rng.uniform(1, 6, 30)) for _ in range(4)], capacity=64)
-    _, claimed, _ = solve_unsolved(failed[:4], points, star_vectors=cat.unit_vectors, camera=cam, n_use=40,
+    points = js.scenes_from_centroids([rng.uniform(0, 1, (30, 2)) * [1279, 959] for _ in range(2)],
+                                      [np.sort(rng.uniform(1, 6, 30)) for _ in range(2)], capacity=64)
+    _, claimed, _ = solve_unsolved(failed[:2], points, star_vectors=cat.unit_vectors, camera=cam, n_use=40,
                                    eps_px=3.0, min_confirm=1, max_false_match=1e-3)
     assert not claimed.any()
 

@@ -370,11 +370,11 @@ def test_chunked_large_batch_equals_direct_path(catalog6, sgm_camera, monkeypatc
     """Large batches take the sorted, chunked path; it must give exactly the direct path's scenes."""
     noise = js.NoiseConfig(position_sigma_px=1.0, magnitude_sigma=0.1, n_missing=1, n_false=2)
     key = jax.random.key(21)
-    monkeypatch.setattr(sim_module, "_CHUNK_MIN_BATCH", 512)
-    monkeypatch.setattr(sim_module, "_CHUNK", 128)
-    chunked = js.simulate(key, catalog6, sgm_camera, noise, batch_size=700)
+    monkeypatch.setattr(sim_module, "_CHUNK_MIN_BATCH", 256)
+    monkeypatch.setattr(sim_module, "_CHUNK", 64)
+    chunked = js.simulate(key, catalog6, sgm_camera, noise, batch_size=300)  # 4 full chunks + a rest
     monkeypatch.setattr(sim_module, "_CHUNK_MIN_BATCH", 10**9)
-    direct = js.simulate(key, catalog6, sgm_camera, noise, batch_size=700)
+    direct = js.simulate(key, catalog6, sgm_camera, noise, batch_size=300)
     for a, b in zip(jax.tree.leaves(chunked), jax.tree.leaves(direct), strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
 

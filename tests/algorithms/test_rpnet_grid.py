@@ -29,11 +29,12 @@ def setup():
 
 @pytest.mark.production_numerics
 def test_a_member_is_the_single_training_run_at_its_rates(setup):
-    """Members 0 and 1 share train()'s data seed: each is train() at its own rates (to float32 rounding
-    of the batched products; fc3's bias, which BatchNorm cancels, drifts freely and is left out)."""
+    """Members 0 and 1 share train()'s data seed: member 1, at rates other than the defaults, is train()
+    at its own rates (to float32 rounding of the batched products; fc3's bias, which BatchNorm
+    cancels, drifts freely and is left out)."""
     cat, cam, cfg, rows, grid = setup
     tables = data.build_tables(cat, cam, cfg, rows)
-    for g in (0, 1):
+    for g in (1,):
         t = dataclasses.replace(cfg.training, dae_lr=DAE_LRS[g], clf_lr=CLF_LRS[g])
         alone, history = train.train(cat, cam, dataclasses.replace(cfg, training=t), rows, progress=False)
         member = rpnet.member_variables(grid, g)
