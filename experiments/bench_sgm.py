@@ -1,6 +1,7 @@
 """SGM throughput: scenes per second at position noise σ = 0, 1, 3 px (compile time reported apart).
 
-Each level: simulate B scenes in mode (b) (main stars drawn from the catalog), call
+Each level: simulate B scenes in mode (b) (main stars drawn from the catalog, anew for every level
+and call), call
 ``sgm.identify`` on the first 64 of them (compiles the common shape buckets), then on all B scenes
 (``first_call_s``: it may still compile a few shape buckets), then on B *fresh* scenes of the same
 settings (``steady_s``; scenes/s = B / ``steady_s``): a sweep meets new scenes every call, and the
@@ -79,12 +80,14 @@ def run(args) -> list[dict]:
     paper = ex.with_overrides(sgm.Config.paper(), args.set)
     db = sgm.build_database(cat, cam, cfg)
     rng = np.random.default_rng(args.seed)
-    rows, fresh_rows = (rng.choice(len(cat), batch, replace=batch > len(cat)) for _ in range(2))
     out = []
-    for sigma in args.sigmas:
+    for level, sigma in enumerate(args.sigmas):
         noise = js.NoiseConfig(position_sigma_px=float(sigma))
-        scenes, fresh = (js.simulate(jax.random.key(args.seed + i), cat, cam, noise, capacity=args.capacity,
-                                     boresight_ids=r) for i, r in enumerate((rows, fresh_rows)))
+        # every level and call draws its own main stars: no timed call meets a star an earlier one had
+        scenes, fresh = (js.simulate(jax.random.fold_in(jax.random.key(args.seed), 2 * level + i), cat, cam,
+                                     noise, capacity=args.capacity,
+                                     boresight_ids=rng.choice(len(cat), batch, replace=batch > len(cat)))
+                         for i in range(2))
         jax.block_until_ready((scenes.xy, fresh.xy))
         with ex.Stopwatch() as warm:
             jax.block_until_ready(sgm.identify(db, scenes[:64], cfg, with_attitude=False).ids)

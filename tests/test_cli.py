@@ -137,7 +137,8 @@ def test_reproduce_runs_the_papers_algorithm_with_settings():
     (["demo", "--stars", "five"], "--stars takes LO-HI"),
     (["demo", "--bogus"], "unrecognized arguments"),
     (["reproduce", "moon"], "invalid choice"),
-    (["report", "--reproduce", "/nonexistent", "--sweeps", "/nonexistent"], "no saved results"),
+    (["report", "--reproduce", "/nonexistent", "--sweeps", "/nonexistent", "--benchmark", "/nonexistent"],
+     "no saved results"),
 ])
 def test_bad_arguments_give_one_line_and_status_2(argv, message, capsys):
     assert cli.main(argv) == 2

@@ -130,8 +130,9 @@ def report_text(reproduce: Path, sweeps: list[Path], *, benchmark: Path | None =
         parts += ["## Throughput", "", f"Saved in `{benchmark}`.", "",
                   (benchmark / "table.md").read_text().strip(), "", _provenance(benchmark), ""]
     if len(parts) == n_head:
-        raise FileNotFoundError(f"no saved results under {reproduce} or {', '.join(map(str, sweeps))}; "
-                                "run `jstarid demo` or `jstarid reproduce … --quick` first")
+        raise FileNotFoundError(f"no saved results under {reproduce}, {', '.join(map(str, sweeps))} or "
+                                f"{benchmark}; run `jstarid demo`, `jstarid reproduce … --quick` or "
+                                "`python experiments/benchmark.py` first")
     return "\n".join(parts).rstrip() + "\n"
 
 
