@@ -939,7 +939,7 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
         # each scene keeps the first factor, in order, that solved it: the sequential outcome
         factor = np.repeat(np.asarray(scales, np.float32), todo.size)
         rows = np.tile(todo, len(scales))
-        padded = padded_indices(rows, floor=RETRY_FLOOR)
+        padded = padded_indices(rows, floor=RETRY_FLOOR, coarse=True)
         size = padded.size
         factor = np.concatenate([factor, np.full(size - rows.size, factor[-1])])
         # empty padding scenes: they fail at once, where copies of a scene would repeat its search
@@ -964,7 +964,7 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
         # the retried batch padded to a power of two with empty scenes (they fail at once): every
         # new batch size compiles the algorithm's kernels again, and a long run of retries on
         # batches of many sizes would otherwise fill memory with executables
-        padded = padded_indices(todo, floor=RETRY_FLOOR)
+        padded = padded_indices(todo, floor=RETRY_FLOOR, coarse=True)
         retry = run(rescale_scenes(pad_with_empty(scenes[todo], padded.size), camera, float(scale)), padded)
         retry_ids = np.asarray(retry.ids)[: todo.size]
         solved = np.asarray(retry.ok)[: todo.size] & (np.sum(retry_ids >= 0, axis=1) >= min_named)

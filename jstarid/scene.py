@@ -19,16 +19,19 @@ __all__ = ["Scene", "Identification", "pad_with_empty", "scenes_from_centroids",
 def take_batch_rows(tree, index):
     """``tree`` (a :class:`Scene` or :class:`Identification`) at ``index`` of its batch axis.
 
-    An int keeps a batch axis of 1. An index array (or mask) is gathered on the host: the host
-    loops of the search and the finishing stage pick sub-batches of every length, and an eager
-    gather on device arrays compiles a program for each new length; the rows go back to the device
-    as they came (a device array stays one). Inside a trace the gather is part of the program.
+    An int keeps a batch axis of 1. An index array, mask or slice is gathered on the host: the
+    host loops of the search and the finishing stage pick sub-batches of every length, and an eager
+    gather or slice of device arrays compiles a program for each new length (a slice's length is
+    static in XLA's ``dynamic_slice``); the rows go back to the device as they came (a device array
+    stays one). Inside a trace the gather is part of the program.
     """
     if isinstance(index, int | np.integer):
         index = slice(int(index), int(index) + 1)
     traced = any(isinstance(x, jax.core.Tracer) for x in (index, *jax.tree_util.tree_leaves(tree)))
-    if isinstance(index, slice) or traced:
+    if traced:
         return jax.tree_util.tree_map(lambda a: a[index], tree)
+    if isinstance(index, slice):
+        index = np.arange(jax.tree_util.tree_leaves(tree)[0].shape[0])[index]
     index = np.asarray(index)
 
     def take(a):

@@ -260,6 +260,21 @@ def test_call_size_is_a_power_of_two_from_sixteen_up_to_the_chunk(n, chunk, size
     assert call_size(n, chunk) == size
 
 
+@pytest.mark.parametrize("floor, limit", [(16, 1024), (64, 4096), (64, 256), (1, 1)])
+def test_coarse_size_steps_by_four_up_to_the_limit_and_by_two_above(floor, limit):
+    """The padded sizes of calls whose padding is skipped: floor · 4^k while ≤ limit, then powers of
+    two; each the smallest of that ladder holding n."""
+    from jstarid.runtime import coarse_size, next_power_of_two
+
+    ladder = [floor * 4**k for k in range(12) if floor * 4**k <= limit]
+    ladder += [2**k for k in range(40) if 2**k > ladder[-1]]
+    for n in [0, 1, 15, 16, 17, 100, 128, 129, 1000, 1024, 1025, 3000, 5000, 70_000]:
+        assert coarse_size(n, floor, limit) == min(s for s in ladder if s >= n), (n, floor, limit)
+    # up to the limit four sizes serve every n, where powers of two take seven
+    sizes = {coarse_size(n, 16, 1024) for n in range(1, 1025)}
+    assert sizes == {16, 64, 256, 1024} and len({next_power_of_two(n, 16) for n in range(1, 1025)}) == 7
+
+
 def test_padded_indices_repeat_the_first_row_up_to_a_power_of_two():
     from jstarid.runtime import padded_indices
     np.testing.assert_array_equal(padded_indices(np.array([5, 2, 9])), [5, 2, 9, 5])

@@ -87,6 +87,13 @@ def test_gathering_and_padding_sub_batches_compile_nothing():
             np.testing.assert_array_equal(np.asarray(result.ok), np.asarray(ids.ok)[np.asarray(rows)])
             padded = js.pad_with_empty(sub, sub.batch_size + 3)
             assert padded.batch_size == sub.batch_size + 3 and not np.asarray(padded.valid)[-3:].any()
+        # slices and ints too: an eager slice of a device array compiled a program per length
+        for index in (slice(0, 2), slice(None, 5), slice(3, None), slice(1, 8, 3), 4):
+            sub, result = scenes[index], ids[index]
+            want = slice(index, index + 1) if isinstance(index, int) else index
+            assert isinstance(sub.xy, jax.Array) and isinstance(result.ids, jax.Array)
+            np.testing.assert_array_equal(np.asarray(sub.xy), np.asarray(scenes.xy)[want])
+            np.testing.assert_array_equal(np.asarray(result.ids), np.asarray(ids.ids)[want])
     assert count.programs == 0
     # inside a trace the gather is part of the program
     traced = jax.jit(lambda s, r: s[r].xy)(scenes, np.array([2, 5]))

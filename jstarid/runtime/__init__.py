@@ -31,6 +31,7 @@ from jstarid.runtime.memory_maps import relieve
 from jstarid.runtime.padding import (
     call_size,
     call_width,
+    coarse_size,
     columns_in_use,
     next_power_of_two,
     pad_rows,
@@ -40,7 +41,7 @@ from jstarid.runtime.pairs import run_pairs, skip_padding
 from jstarid.runtime.staging_memory import release_staging
 from jstarid.runtime.static import static_config
 
-__all__ = ["batch_mesh", "Call", "call_size", "call_width", "chunk_calls", "columns_in_use",
+__all__ = ["batch_mesh", "Call", "call_size", "call_width", "chunk_calls", "coarse_size", "columns_in_use",
            "CountCompilations", "device_cache", "DeviceCache", "grow_until", "map_batch", "map_by_width",
            "next_power_of_two", "on_every_device", "pad_rows", "padded_indices", "program_store",
            "release_staging", "relieve", "replicate", "run_calls", "run_pairs", "shard_batch", "skip_padding",

@@ -8,11 +8,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["call_size", "call_width", "columns_in_use", "next_power_of_two", "pad_rows", "padded_indices",
-           "power_of_two_chunks"]
+__all__ = ["call_size", "call_width", "coarse_size", "columns_in_use", "next_power_of_two", "pad_rows",
+           "padded_indices", "power_of_two_chunks"]
 
 MAX_PADDING = 0.25  # power_of_two_chunks: most padding of a last chunk, as a share of its rows
 MIN_CALL_SIZE = 16  # call_size: the smallest call of a batched kernel (rows)
+COARSE_STEP = 4  # coarse_size: each size of its ladder is this many times the one below
+COARSE_SUB_BATCH = 128  # padded_indices(coarse=True): the largest coarse size (copies are computed)
 
 
 def pad_rows(tree, size: int, *, mode: str = "zeros"):
@@ -56,6 +58,30 @@ def next_power_of_two(n: float, floor: int = 1) -> int:
     return max(int(floor), 1 << max(math.ceil(n) - 1, 0).bit_length())
 
 
+def coarse_size(n: int, floor: int, limit: int) -> int:
+    """The padded size of a call whose padding rows cost (almost) nothing — empty scenes no search
+    visits, padding pairs a kernel skips: ``floor`` · 4^k up to ``limit``, powers of two above.
+
+    Why: a sweep meets fresh scenes every call, and the sub-batches they leave (scenes retried with
+    another main star or focal length, candidate pairs of one size) take a different size each call.
+    Padded to powers of two, those sizes compiled new programs in most calls of a sweep; in steps of
+    4 four sizes serve every call from 16 to 1,024 rows (powers of two take seven), so fresh
+    batches meet sizes compiled already. Above ``limit`` the padding would cost more than a
+    compilation saves.
+
+    Args:
+        n: rows to hold (≥ 0). floor: the smallest size (≥ 1). limit: the largest size of the coarse
+            ladder (sizes above it are powers of two).
+
+    Returns:
+        The padded size (≥ n and ≥ ``floor``).
+    """
+    size = max(int(floor), 1)
+    while size < n and size * COARSE_STEP <= limit:
+        size *= COARSE_STEP
+    return size if size >= n else max(size, next_power_of_two(n))
+
+
 def call_size(n: int, chunk: int) -> int:
     """Rows per kernel call for a batch of ``n`` rows run in calls of at most ``chunk`` rows.
 
@@ -84,11 +110,21 @@ def call_width(filled: np.ndarray, rows: np.ndarray, n: int, floor: int) -> int:
     return min(int(n), next_power_of_two(int(np.max(filled[rows], initial=0)), floor=floor))
 
 
-def padded_indices(rows: np.ndarray, floor: int = 1) -> np.ndarray:
-    """``rows`` (R,) (R ≥ 1) padded to :func:`next_power_of_two` (R, floor) with copies of its first
-    entry: the rows of a sub-batch gathered at a size that earlier calls have compiled."""
+def padded_indices(rows: np.ndarray, floor: int = 1, *, coarse: bool = False) -> np.ndarray:
+    """``rows`` (R,) (R ≥ 1) padded with copies of its first entry: the rows of a sub-batch gathered
+    at a size that earlier calls have compiled.
+
+    Args:
+        rows: (R,) row indices. floor: the smallest padded size.
+        coarse: pad to :func:`coarse_size` up to :data:`COARSE_SUB_BATCH` rows (16, 64, then powers
+            of two) instead of :func:`next_power_of_two`: for a sub-batch the data sizes anew in
+            every call (the scenes a retry takes up, the claims to verify), where a padding row
+            costs little next to a compilation.
+    """
     rows = np.asarray(rows)
-    return np.concatenate([rows, np.full(next_power_of_two(rows.size, floor) - rows.size, rows[0])])
+    size = (coarse_size(rows.size, floor, COARSE_SUB_BATCH) if coarse
+            else next_power_of_two(rows.size, floor))
+    return np.concatenate([rows, np.full(size - rows.size, rows[0])])
 
 
 def power_of_two_chunks(n: int, floor: int, max_padding: float = MAX_PADDING) -> list[tuple[int, int, int]]:

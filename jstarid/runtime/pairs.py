@@ -18,11 +18,12 @@ import jax
 import numpy as np
 
 from jstarid.runtime.batching import Call, run_calls
-from jstarid.runtime.padding import next_power_of_two
+from jstarid.runtime.padding import coarse_size
 
 __all__ = ["MIN_CALL_PAIRS", "run_pairs", "skip_padding"]
 
 MIN_CALL_PAIRS = 64  # smallest compiled pair count of a kernel call
+COARSE_PAIRS = 1024  # largest pair count padded in coarse steps (64, 256, 1,024); powers of two above
 
 
 def skip_padding(fn, live, args, dead):
@@ -45,16 +46,18 @@ def skip_padding(fn, live, args, dead):
 
 
 def _batches(n_pairs: int, per_pair_bytes: int, budget_bytes: int) -> Iterator[tuple[int, int, int]]:
-    """Slices ``(lo, hi, padded)`` of ≤ the budget, each padded to a power of two ≥ :data:`MIN_CALL_PAIRS`.
+    """Slices ``(lo, hi, padded)`` of ≤ the budget, each padded to :func:`~.padding.coarse_size` ≥
+    :data:`MIN_CALL_PAIRS` (64, 256, 1,024, then powers of two up to the budget's call).
 
-    Power-of-two sizes bound the compilations per kernel; the floor of 64 merges the small sizes of a
-    small batch into one compilation (docs/design/sgm.md). Padding pairs are skipped by the kernels.
+    A few sizes bound the compilations per kernel, so a fresh batch's groups meet sizes compiled
+    already; the floor of 64 merges the small sizes of a small batch into one compilation
+    (docs/design/sgm.md). Padding pairs are skipped by the kernels.
     """
     cap = max(MIN_CALL_PAIRS,
               1 << int(math.floor(math.log2(max(budget_bytes // max(per_pair_bytes, 1), 16)))))
     for lo in range(0, n_pairs, cap):
         hi = min(lo + cap, n_pairs)
-        yield lo, hi, max(MIN_CALL_PAIRS, next_power_of_two(hi - lo))
+        yield lo, hi, coarse_size(hi - lo, MIN_CALL_PAIRS, min(cap, COARSE_PAIRS))
 
 
 def run_pairs(kernel, key_sizes, image, n_i, scene, cand, per_pair_bytes: Callable[..., int], budget: int,

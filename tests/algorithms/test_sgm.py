@@ -903,6 +903,28 @@ def test_small_batches_run_at_one_padded_size(setup, monkeypatch):
     assert np.asarray(three.ok).all()
 
 
+def test_retries_of_any_size_up_to_a_thousand_share_four_padded_sizes(setup, monkeypatch):
+    """A pass over B scenes runs padded with empty scenes to 16, 64, 256 or 1,024 (powers of two above):
+    the retries a fresh batch leaves (other main stars, other focal lengths) take a new size every
+    call, and at every power of two, sweep calls compiled SGM's front end again."""
+    from jstarid.algorithms.sgm import graph
+
+    cat, cam, cfg, db = setup
+    one = js.simulate(jax.random.key(13), cat, cam, js.NoiseConfig(), batch_size=1, capacity=64)
+
+    class Padded(Exception):
+        pass
+
+    def recorded(xy, valid, **kwargs):  # the pass's size, before anything compiles
+        raise Padded(xy.shape[0])
+
+    monkeypatch.setattr(graph, "scene_graphs", recorded)
+    for b, size in [(1, 16), (17, 64), (65, 256), (256, 256), (257, 1024), (700, 1024), (1025, 2048)]:
+        with pytest.raises(Padded) as padded:
+            sgm.identify(db, js.pad_with_empty(one, b), cfg)
+        assert padded.value.args == (size,), b
+
+
 def _false_star_at_the_centre(scenes, camera, mag=3.0):
     """``scenes`` with a false star added at the principal point (in each scene's first free slot):
     the detection the paper takes as the main star."""

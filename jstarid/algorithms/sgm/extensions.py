@@ -183,7 +183,7 @@ def _graphs_at_fitted_focal(db, scenes: Scene, result: Identification, rows: np.
     :func:`jstarid.runtime.padded_indices`) as seen under the focal length ``result`` fitted them
     (``focal_scale``; the nominal one where it is NaN or not fitted): ``(padded rows, moved scenes,
     their image graphs)``."""
-    padded = padded_indices(rows, floor=MIN_CALL_SIZE)
+    padded = padded_indices(rows, floor=MIN_CALL_SIZE, coarse=True)
     scale = np.ones(padded.size, np.float32)
     if result.focal_scale is not None:
         scale = np.nan_to_num(np.asarray(result.focal_scale, np.float32)[padded], nan=1.0)

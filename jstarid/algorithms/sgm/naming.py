@@ -109,7 +109,7 @@ def names_from_match(db, scenes: Scene, g: ImageGraph, res: SearchOutcome, confi
         failed only because their main star's name is contested (:func:`.verify.verify_ids`).
     """
     if rows is not None:
-        padded = padded_indices(rows, floor=MIN_CALL_SIZE)
+        padded = padded_indices(rows, floor=MIN_CALL_SIZE, coarse=True)
         sub, amb = names_from_match(db, scenes[padded], jax.tree.map(lambda v: v[padded], g),
                                     jax.tree.map(lambda v: v[padded], res), config)
         return sub[:rows.size], amb[:rows.size]
@@ -156,7 +156,7 @@ def verify_claims(db, scenes: Scene, result: Identification, main, config: Confi
     verified, main_ambiguous = np.zeros(b, bool), np.zeros(b, bool)
     rows = np.flatnonzero(ok)
     if rows.size:
-        padded = padded_indices(rows, floor=MIN_CALL_SIZE)
+        padded = padded_indices(rows, floor=MIN_CALL_SIZE, coarse=True)
         tables, settings = verify_inputs(db, config)
         named = np.asarray(result.ids)[padded]
         # identify names only the neighbor graph's members (at most its capacity K): the ambiguity
