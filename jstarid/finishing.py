@@ -315,7 +315,8 @@ def search_lost(result: Identification, scenes: Scene, config: Finishing, claime
         return result, solved
     take = padded_indices(rows, floor=MIN_CALL_SIZE)  # a few sizes: each compiles the search
     part, moved = result[take].failed(np.arange(take.size)), scenes[take]
-    outcome = _search(part, moved, config, camera, star_vectors, star_mags)
+    # the copies that pad the call are not searched (each search costs ≈ 0.1 s a frame)
+    outcome = _search(part, moved, config, camera, star_vectors, star_mags, rows=np.arange(rows.size))
     if not outcome.solved[:rows.size].any():
         return result, solved
     stars = stars if stars is not None else _table(star_vectors, star_mags)
@@ -334,15 +335,15 @@ def search_lost(result: Identification, scenes: Scene, config: Finishing, claime
     return (result.with_rows(rows[won], part[np.flatnonzero(won)]) if won.any() else result), solved
 
 
-def _search(result, scenes, config: Finishing, camera, star_vectors, star_mags) -> SearchOutcome:
+def _search(result, scenes, config: Finishing, camera, star_vectors, star_mags, rows=None) -> SearchOutcome:
     """Step 0 (:func:`jstarid.hypotheses.solve_unsolved`), or the result as it is where the catalog has
     too many triangles per frame (a wide or deep field: many stars per frame, which the algorithms'
-    own patterns find among clutter)."""
+    own patterns find among clutter). ``rows``: the scenes to search, as in ``solve_unsolved``."""
     try:
         return solve_unsolved(result, scenes, star_vectors=star_vectors, camera=camera,
                               n_use=config.hypotheses, eps_px=config.hypothesis_eps_px, min_confirm=1,
                               max_false_match=config.hypothesis_false_match, star_mags=star_mags,
-                              n_crowded=config.crowded_hypotheses)
+                              n_crowded=config.crowded_hypotheses, rows=rows)
     except TooManyTriangles:
         nothing = np.zeros(scenes.batch_size, bool)
         return SearchOutcome(result, nothing, nothing)

@@ -277,7 +277,8 @@ class SearchOutcome(NamedTuple):
 
 def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camera, n_use: int,
                    eps_px: float, min_confirm: int, max_false_match: float, capacity: int = 4096,
-                   per_triple: int = 16, star_mags=None, n_crowded: int = 0) -> SearchOutcome:
+                   per_triple: int = 16, star_mags=None, n_crowded: int = 0,
+                   rows: np.ndarray | None = None) -> SearchOutcome:
     """The search on every scene ``result`` leaves unsolved; claims pass the false-match test.
 
     Args:
@@ -302,6 +303,9 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
             first pass leaves unsolved with hypotheses past ``capacity`` is searched again over the
             same detections. Either second pass verifies :data:`SECOND_PASS_CAPACITY` times
             ``capacity`` hypotheses.
+        rows: the unsolved scenes to search ((R,) int indices; default: every one). A caller that
+            pads a sub-batch with copies of a scene names the real rows, so the copies are not
+            searched again.
 
     Returns:
         :class:`SearchOutcome`.
@@ -312,7 +316,7 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
     """
     ok = np.asarray(result.ok)
     b = ok.shape[0]
-    rows = np.flatnonzero(~ok)
+    rows = np.flatnonzero(~ok) if rows is None else np.asarray(rows)[~ok[np.asarray(rows)]]
     solved, overflow = np.zeros(b, bool), np.zeros(b, bool)
     eps_rad = float(eps_px) / camera.f_px
     vectors = np.asarray(star_vectors, np.float32)

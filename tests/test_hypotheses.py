@@ -157,10 +157,18 @@ def test_a_sparse_fields_deep_catalog_is_searched_over_its_brightest_star_per_ce
     assert not np.isin(named, kept).all()  # stars outside the index named from the attitude
 
 
-def test_a_claim_the_check_takes_back_is_searched_again(clutter_setup):
+def test_a_claim_the_check_takes_back_is_searched_again(clutter_setup, monkeypatch):
     """Step 4 (``finishing.search_lost``): scenes an algorithm claimed with names the camera check
-    cannot fit are searched like the unsolved ones, and named right; without the search they fail."""
+    cannot fit are searched like the unsolved ones, and named right; without the search they fail.
+    The copies that pad its call to 16 scenes are not searched (they were, each of them)."""
     cat, cam = clutter_setup
+    searched, real_search = [], hypotheses._search_rows
+
+    def recorded(rows, **kwargs):
+        searched.extend(np.asarray(rows).tolist())
+        return real_search(rows, **kwargs)
+
+    monkeypatch.setattr(hypotheses, "_search_rows", recorded)
     noise = js.NoiseConfig(position_sigma_px=0.5, n_false=5, false_mag_min=1.0, false_mag_max=6.0)
     scenes = js.simulate(jax.random.key(12), cat, cam, noise, batch_size=6, capacity=32)
     truth = np.asarray(scenes.truth)
@@ -173,6 +181,7 @@ def test_a_claim_the_check_takes_back_is_searched_again(clutter_setup):
     lost = finish(claims, scenes, dataclasses.replace(config, hypotheses=0), **stage)
     assert not np.asarray(lost.result.ok).any()  # the check takes every claim back
     found = finish(claims, scenes, config, **stage)
+    assert set(searched) == set(range(6))  # the six scenes, not the copies that pad the call to 16
     ok, got = np.asarray(found.result.ok), np.asarray(found.result.ids)
     assert found.claimed.all() and ok.sum() >= 4
     np.testing.assert_array_equal(found.searched, ok)
