@@ -97,7 +97,7 @@ MAX_TOL_PX = 10.0  # largest verification radius (px): 5 σ at 2 px per axis, be
 LADDER_MIN_NAMES = 6  # fewest names of a solution found under a rescaled focal length
 FEW_RETRIES = 64  # search_focal: up to this many retries (scenes × factors) always run in one call
 BATCH_RETRIES = 1  # … and up to this many times the batch size
-RETRY_FLOOR = MIN_CALL_SIZE  # … and a retried batch is padded to a power of two at least this large:
+RETRY_FLOOR = MIN_CALL_SIZE  # … and a retried batch is padded to a coarse size at least this large:
 # the smallest call of the algorithms' kernels, so a few retries compile nothing a small batch has not
 FEW_NAMES = 10  # up to this many names the robust fit tests each name by leaving it out
 DROP_STEPS = 2  # … and drops at most this many
@@ -961,7 +961,7 @@ def search_focal(run, result, scenes, camera, scales, *, min_named: int = LADDER
         todo = np.flatnonzero(~ok)
         if not todo.size:
             break
-        # the retried batch padded to a power of two with empty scenes (they fail at once): every
+        # the retried batch padded to a coarse size with empty scenes (they fail at once): every
         # new batch size compiles the algorithm's kernels again, and a long run of retries on
         # batches of many sizes would otherwise fill memory with executables
         padded = padded_indices(todo, floor=RETRY_FLOOR, coarse=True)

@@ -179,10 +179,10 @@ def name_at_fitted_focal(db, scenes: Scene, result: Identification, laddered: np
 
 
 def _graphs_at_fitted_focal(db, scenes: Scene, result: Identification, rows: np.ndarray, config: Config):
-    """The scenes ``rows`` (padded to a power of two ≥ ``MIN_CALL_SIZE``,
-    :func:`jstarid.runtime.padded_indices`) as seen under the focal length ``result`` fitted them
-    (``focal_scale``; the nominal one where it is NaN or not fitted): ``(padded rows, moved scenes,
-    their image graphs)``."""
+    """The scenes ``rows`` (padded to a coarse size ≥ ``MIN_CALL_SIZE``,
+    :func:`jstarid.runtime.padded_indices` with ``coarse``) as seen under the focal length
+    ``result`` fitted them (``focal_scale``; the nominal one where it is NaN or not fitted):
+    ``(padded rows, moved scenes, their image graphs)``."""
     padded = padded_indices(rows, floor=MIN_CALL_SIZE, coarse=True)
     scale = np.ones(padded.size, np.float32)
     if result.focal_scale is not None:

@@ -100,9 +100,10 @@ def names_from_match(db, scenes: Scene, g: ImageGraph, res: SearchOutcome, confi
         db: :class:`~.database.Database`. scenes: (B, N) :class:`~jstarid.scene.Scene`.
         g: their NumPy :class:`~.graph.ImageGraph` (B, K, …). res: the search's
             :class:`~.search.SearchOutcome`. config: :class:`Config`.
-        rows: optional (R,) scene rows to process (the result then has R rows), padded to a power of
-            two of at least :data:`~jstarid.runtime.padding.MIN_CALL_SIZE`, so that the compiled
-            naming and verification serve every retry with a few shapes.
+        rows: optional (R,) scene rows to process (the result then has R rows), padded to a coarse
+            size of at least :data:`~jstarid.runtime.padding.MIN_CALL_SIZE`
+            (:func:`~jstarid.runtime.padded_indices` with ``coarse``), so that the compiled naming and
+            verification serve every retry with a few shapes.
 
     Returns:
         ``(result, main_ambiguous)``: :class:`~jstarid.scene.Identification` and (B,) bool, the scenes
@@ -145,7 +146,7 @@ def verify_claims(db, scenes: Scene, result: Identification, main, config: Confi
     """:func:`.verify.verify_ids` with the settings of ``config`` → ``(Identification,
     main_ambiguous)``, the latter (B,) NumPy bool.
 
-    Only the scenes ``result`` claims are verified (padded to a power of two of at least
+    Only the scenes ``result`` claims are verified (padded to a coarse size of at least
     :data:`~jstarid.runtime.padding.MIN_CALL_SIZE`, so that a few compiled shapes serve every call:
     each of 1, 2, 4 and 8 claims compiled the verification again in a fresh batch): the
     verification fails every other scene, with no names, anyway.
