@@ -316,7 +316,11 @@ def solve_unsolved(result: Identification, scenes: Scene, *, star_vectors, camer
     """
     ok = np.asarray(result.ok)
     b = ok.shape[0]
-    rows = np.flatnonzero(~ok) if rows is None else np.asarray(rows)[~ok[np.asarray(rows)]]
+    if rows is None:
+        rows = np.flatnonzero(~ok)
+    else:
+        rows = np.asarray(rows, np.intp)
+        rows = rows[~ok[rows]]
     solved, overflow = np.zeros(b, bool), np.zeros(b, bool)
     eps_rad = float(eps_px) / camera.f_px
     vectors = np.asarray(star_vectors, np.float32)

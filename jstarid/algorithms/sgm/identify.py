@@ -48,7 +48,7 @@ from jstarid.scene import Identification, Scene, pad_with_empty
 __all__ = ["Diagnostics", "identify"]
 
 #: the largest pass padded in steps of 4 (:func:`~jstarid.runtime.coarse_size`); larger passes pad
-#: to a power of two (7,000 empty scenes added 5 s to a pass of 1,024)
+#: to a power of two, where empty scenes would cost more than a compilation saves (docs/design/sgm.md)
 PADDED_PASS_LIMIT = 1024
 
 
@@ -116,7 +116,7 @@ def _algorithm1(db, scenes: Scene, config: Config, *, main_rank: int = 0, with_a
     :func:`~jstarid.runtime.coarse_size` (16, 64, 256, 1,024 scenes, powers of two above): the retries of
     some scenes (other main stars, other focal lengths) then run the programs the batch's own pass
     compiled, where each new retry size compiled the front end (graphs, windows, naming) again.
-    Empty scenes cost little: 896 more in a pass of 128 add 0.1 s on 2 cores."""
+    Empty scenes cost little (docs/design/sgm.md, "Coarse sizes for what the data sizes")."""
     b = scenes.batch_size
     size = coarse_size(b, MIN_CALL_SIZE, PADDED_PASS_LIMIT)
     if b and size != b:
