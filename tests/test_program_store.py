@@ -93,6 +93,32 @@ def test_another_static_shape_dtype_or_sharding_is_another_program(store, severa
     assert len(traces) == 5 and len(_programs(store)) == 5
 
 
+def test_compiler_options_reach_the_programs_they_name_and_key_them(store, tmp_path):
+    """The options chosen for a name are given to XLA when that program is built (here: a dump
+    directory it writes into) and not to others; a program built with options is another file."""
+    traces = []
+    kernel = _counting_kernel(traces)
+    dumps = tmp_path / "dumps"
+    asked = []
+
+    def options(name):
+        asked.append(name)
+        return {"xla_dump_to": str(dumps)} if name == "tests.kernel" else None
+
+    x = np.ones((2, 5), np.float32)
+    plain = np.asarray(kernel(x, 1.0, power=2))
+    assert not dumps.exists()
+    suites = ps.set_compiler_options(options)
+    try:
+        ps.forget_programs()
+        with_options = np.asarray(kernel(x, 1.0, power=2))
+        assert "tests.kernel" in asked and any(dumps.iterdir())  # XLA wrote its dump
+        assert len(_programs(store)) == 2  # not the file built without them
+        np.testing.assert_array_equal(with_options, plain)
+    finally:
+        ps.set_compiler_options(suites)
+
+
 def test_a_damaged_file_is_compiled_again_and_rewritten(store, caplog):
     traces = []
     kernel = _counting_kernel(traces)

@@ -372,6 +372,7 @@ def test_chunked_large_batch_equals_direct_path(catalog6, sgm_camera, monkeypatc
     key = jax.random.key(21)
     monkeypatch.setattr(sim_module, "_CHUNK_MIN_BATCH", 256)
     monkeypatch.setattr(sim_module, "_CHUNK", 64)
+    monkeypatch.setattr(sim_module, "_WIDTH_STEP", 192)  # three list widths, not seven: each is compiled
     chunked = js.simulate(key, catalog6, sgm_camera, noise, batch_size=300)  # 4 chunks + a padded fifth
     monkeypatch.setattr(sim_module, "_CHUNK_MIN_BATCH", 10**9)
     direct = js.simulate(key, catalog6, sgm_camera, noise, batch_size=300)

@@ -20,6 +20,10 @@ across processes runs the plain ``jax.jit`` path. A file that cannot be read is 
 rewritten; a program that cannot be serialized (host callbacks) stays in memory only. The files
 are pickled executables, run when loaded: like JAX's own cache, the directory must be writable by
 its user alone (the default is under ``~/.cache/jstarid``).
+
+:func:`set_compiler_options` gives chosen programs their own XLA options while the store is on (a
+test suite that builds most programs at a low optimisation level, for speed of compilation, builds
+its loop-bound kernels at a higher one); the options are part of each program's key.
 """
 
 from __future__ import annotations
@@ -36,18 +40,20 @@ import sys
 import tempfile
 import types
 import weakref
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import jax
 
 __all__ = ["StoredFunction", "disable_program_store", "enable_program_store", "forget_programs",
-           "program_store_dir", "program_store_stats", "programs_stored", "storable_name", "stored",
-           "stored_jit"]
+           "program_store_dir", "program_store_stats", "programs_stored", "set_compiler_options",
+           "storable_name", "stored", "stored_jit"]
 
 _log = logging.getLogger(__name__)
 _SUFFIX = ".jaxprog"
 KEEP_VERSIONS = 3  # salt directories kept (jstarid sources × JAX versions × device setups)
-_state = types.SimpleNamespace(dir=None, salt=None, folder=None, loaded=0, compiled=0, written=0)
+_state = types.SimpleNamespace(dir=None, salt=None, folder=None, loaded=0, compiled=0, written=0,
+                               options=None)
 _functions: weakref.WeakSet = weakref.WeakSet()
 _xla_cache_hits = [0]
 
@@ -96,6 +102,32 @@ def programs_stored() -> int:
     if _state.dir is None or _salt() is None:
         return 0
     return sum(1 for _ in _folder().glob(f"*{_SUFFIX}"))
+
+
+def set_compiler_options(options: Callable[[str], Mapping[str, object] | None] | None
+                         ) -> Callable[[str], Mapping[str, object] | None] | None:
+    """XLA options for the programs the store compiles from now on, chosen by program name.
+
+    Args:
+        options: called with a stored function's name (``module.qualname`` plus its closure's
+            settings, see :class:`StoredFunction`); returns ``jax.stages.Lowered.compile``'s
+            ``compiler_options`` (XLA flag names without ``--``, e.g.
+            ``{"xla_backend_optimization_level": 2}``) or None for the process's ``XLA_FLAGS`` alone.
+            None: every program under ``XLA_FLAGS`` alone (the default).
+
+    Returns:
+        The setting it replaces (to restore it).
+
+    Programs already in memory keep their options; :func:`forget_programs` drops them. Only calls
+    that go through the store (it is on, the call is not inside a trace) see the options.
+    """
+    previous, _state.options = _state.options, options
+    return previous
+
+
+def _compiler_options(name: str) -> dict | None:
+    chosen = None if _state.options is None else _state.options(name)
+    return dict(chosen) if chosen else None
 
 
 def forget_programs() -> None:
@@ -273,8 +305,10 @@ class StoredFunction:
         if salt is None:
             raise _Unstorable
         static, tree, leaves = key
+        options = _compiler_options(self._name)
         text = "\n".join([salt, _stable_repr(self._name), _stable_repr(static), str(tree),
-                          repr([(s, str(d), w, None if sh is None else repr(sh)) for s, d, w, sh in leaves])])
+                          repr([(s, str(d), w, None if sh is None else repr(sh)) for s, d, w, sh in leaves]),
+                          *([repr(sorted(options.items()))] if options else [])])
         digest = hashlib.sha256(text.encode()).hexdigest()[:40]
         return _folder() / f"{digest}{_SUFFIX}", text
 
@@ -298,7 +332,8 @@ class StoredFunction:
                 _log.warning("program store: %s unreadable (%s); compiling again", path.name, err)
         hits = _xla_cache_hits[0]
         with _xla_cache_bypassed():
-            program = self._jit.lower(*args, **kwargs).compile()
+            program = self._jit.lower(*args, **kwargs).compile(
+                compiler_options=_compiler_options(self._name))
         _state.compiled += 1
         if _xla_cache_hits[0] != hits:  # read back from JAX's cache: would not serialize whole
             return program
