@@ -64,7 +64,7 @@ js.runtime.program_store.enable_program_store(SUITE_PROGRAMS)
 # the store builds them at level 2 (per kernel, compile and run time summed over the suite at both
 # levels: experiments/RESULTS.md, "The default test suite"). The simulator stays at the suite's level
 # (its scenes drawn inside a caller's jit must equal those its own program draws).
-LOOP_BOUND_KERNELS = ("jstarid.hypotheses._search_chunk", "jstarid.completion._extend",
+LOOP_BOUND_KERNELS = ("jstarid.hypotheses._search_chunk",
                       "jstarid.algorithms.pyramid.identify._identify_chunk",
                       "jstarid.algorithms.voting.identify._identify_chunk",
                       "jstarid.algorithms.mlv.database._brightest_in_field")

@@ -182,7 +182,10 @@ _SCRIPT = textwrap.dedent("""
 def _run_script(tmp_path, *args):
     import json
 
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    # two devices, and the suite's other XLA flags (its optimisation level: compiled faster)
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split()
+             if not f.startswith("--xla_force_host_platform_device_count")]
+    env = {**os.environ, "XLA_FLAGS": " ".join(["--xla_force_host_platform_device_count=2", *flags])}
     env.pop("JSTARID_COMPILATION_CACHE", None)
     script = tmp_path / "run.py"
     script.write_text(_SCRIPT)
