@@ -61,10 +61,11 @@ js.runtime.program_store.enable_program_store(SUITE_PROGRAMS)
 
 # The kernels whose run time, not their compilation, dominates the tests that call them (loops over
 # triangles and candidate stars) run several times slower at SUITE_XLA_FLAGS' optimisation level:
-# the store builds them at level 2 (per kernel, compile and run time summed over the suite at both
-# levels: experiments/RESULTS.md, "The default test suite"). The simulator stays at the suite's level
-# (its scenes drawn inside a caller's jit must equal those its own program draws).
-LOOP_BOUND_KERNELS = ("jstarid.hypotheses._search_chunk",
+# the store builds them at level 2. Chosen by tests/suite_profile.py (build and run time of every
+# stored program, summed over a run at each level; experiments/RESULTS.md, "The default test suite").
+# The simulator stays at the suite's level: scenes drawn inside a caller's jit must equal those its
+# own program draws.
+LOOP_BOUND_KERNELS = ("jstarid.hypotheses._search_chunk", "jstarid.completion._extend",
                       "jstarid.algorithms.pyramid.identify._identify_chunk",
                       "jstarid.algorithms.voting.identify._identify_chunk",
                       "jstarid.algorithms.mlv.database._brightest_in_field")
