@@ -115,6 +115,10 @@ def test_compiler_options_reach_the_programs_they_name_and_key_them(store, tmp_p
         assert "tests.kernel" in asked and any(dumps.iterdir())  # XLA wrote its dump
         assert len(_programs(store)) == 2  # not the file built without them
         np.testing.assert_array_equal(with_options, plain)
+        dumped = sorted(dumps.iterdir())
+        other = ps.StoredFunction(jax.jit(lambda v: v * 3.0), "tests.other")
+        np.testing.assert_array_equal(np.asarray(other(x)), x * 3.0)
+        assert "tests.other" in asked and sorted(dumps.iterdir()) == dumped  # built without them
     finally:
         ps.set_compiler_options(suites)
 
