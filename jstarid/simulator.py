@@ -49,7 +49,8 @@ import numpy as np
 from jstarid import random_streams as streams
 from jstarid.attitude import random_rotation, rotation_from_boresight
 from jstarid.detection_model import DetectionModel, merge_window, observe
-from jstarid.runtime import device_cache, map_batch, map_by_width, on_every_device
+from jstarid.runtime import device_cache, map_batch, map_by_width, on_every_device, pad_rows
+from jstarid.runtime.padding import MIN_CALL_SIZE, next_power_of_two
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene
 from jstarid.sky_index import build_sky_index, cell_of
@@ -271,11 +272,12 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         first = _given_attitudes(_scene_keys(key, batch_size), jnp.asarray(attitudes, jnp.float32),
                                  grid=plan.stage1["grid"])
         if not sharded:
-            noise_b, model_b, index_arrays, star_tables, _ = plan.arrays
-            return _stage2(*first, noise_b, model_b, *index_arrays, *star_tables, **plan.statics)
+            return _stage2_bucketed(plan, first)
     elif not sharded:
-        return _draw(plan.arrays, key, rows, batch_size=int(batch_size), stage1=plan.stage1,
-                     statics=plan.statics)
+        size = _bucket(batch_size)
+        keys, rows = pad_rows((_scene_keys(key, batch_size), rows), size, mode="edge")
+        first = _attitudes_stored(keys, rows, plan.arrays[4], **plan.stage1)
+        return _stage2_bucketed(plan, first, batch_size)
     # both stages split over the devices, the tables placed on each device once (they are
     # long-lived: the index is memoised, the tables kept on the catalog)
     tables = _device_tables(catalog)
@@ -348,6 +350,33 @@ def _draw(arrays, key, rows, *, batch_size, stage1, statics):
                          f"({batch_size},), got {None if rows is None else jnp.shape(rows)}")
     seeds, att, cell = _attitudes(key, rows, cat_vec, **stage1)
     return _stage2(seeds, att, cell, noise_b, model_b, *index_arrays, *star_tables, **statics)
+
+
+def _bucket(batch_size: int) -> int:
+    """The padded batch of an unsharded :func:`simulate` call: the next power of two ≥
+    :data:`~jstarid.runtime.padding.MIN_CALL_SIZE` below the chunked path's size, else the batch.
+
+    Why: a program per batch size compiled the simulator anew for every size a sweep, a notebook or
+    the algorithms' retries meet (4, 6, 12, 200 scenes …); each scene is drawn from its own key and
+    independently of the others, so the padding scenes (copies of the last) change no scene.
+    """
+    return int(batch_size) if batch_size >= _CHUNK_MIN_BATCH else next_power_of_two(batch_size, MIN_CALL_SIZE)
+
+
+def _stage2_bucketed(plan: _Plan, first, batch_size: int | None = None) -> Scene:
+    """Stage 2 of an unsharded call at the bucketed batch (:func:`_bucket`), cut back to its scenes.
+
+    Args:
+        plan: the call's :class:`_Plan` (its per-scene arrays hold the B scenes).
+        first: stage 1's (seeds, attitudes, cells), B rows or already padded.
+        batch_size: B (default: the rows of ``first``).
+    """
+    b = int(first[0].shape[0] if batch_size is None else batch_size)
+    size = _bucket(b)
+    noise_b, model_b, index_arrays, star_tables, _ = plan.arrays
+    padded = pad_rows((*first, noise_b, model_b), size, mode="edge")
+    scenes = _stage2(*padded, *index_arrays, *star_tables, **plan.statics)
+    return scenes if size == b else scenes[:b]
 
 
 def _checked(noise: NoiseConfig | None, capacity) -> NoiseConfig:
@@ -522,6 +551,10 @@ def _attitudes_of(keys, rows, cat_vec, *, grid, mode_b):
     """
     att = jax.vmap(lambda k, r: _attitude_one(k, r, cat_vec, mode_b))(keys, rows)
     return jax.vmap(streams.scene_seed)(keys), att, cell_of(att[:, 2], grid)
+
+
+# stage 1 of an unsharded simulate call, from the scene keys (padded to the call's bucket)
+_attitudes_stored = stored_jit(_attitudes_of, static_argnames=("grid", "mode_b"))
 
 
 @functools.partial(stored_jit, static_argnames=(

@@ -249,6 +249,28 @@ def test_deterministic_and_jit_agrees(catalog6, sgm_camera):
     assert not np.array_equal(np.asarray(a.xy), np.asarray(other.xy))
 
 
+def test_small_batches_share_one_program_and_a_scene_is_its_keys(catalog6, sgm_camera):
+    """Unsharded batches below the chunked size are drawn at a padded size (a power of two ≥ 16):
+    batches of 1, 5 and 16 scenes compile stage 2 once, and a scene is the same in any of them (its
+    key is the batch key's split, which holds its prefix at every length)."""
+    noise = js.NoiseConfig(position_sigma_px=0.7, magnitude_sigma=0.1, n_false=1)
+    key = jax.random.key(21)
+    capacity = 37  # a width no other test of this process draws at
+    programs = sim_module._scenes_batch._cache_size()
+    full = js.simulate(key, catalog6, sgm_camera, noise, batch_size=16, capacity=capacity)
+    for n in (1, 5):
+        part = js.simulate(key, catalog6, sgm_camera, noise, batch_size=n, capacity=capacity)
+        assert part.xy.shape == (n, capacity, 2)
+        for x, y in zip(jax.tree.leaves(part), jax.tree.leaves(full[:n]), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert sim_module._scenes_batch._cache_size() - programs == 1
+    # mode b and per-scene noise arrays (padded with the last scene's values) too
+    rows = np.arange(3)
+    some = js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=np.array([0.0, 0.5, 1.0])),
+                       boresight_ids=rows, capacity=capacity)
+    assert some.xy.shape == (3, capacity, 2) and np.all(np.asarray(some.n_stars) > 0)
+
+
 @pytest.mark.parametrize("narrow", [False, True])
 def test_batch_equals_per_scene(catalog6, sgm_camera, narrow):
     # narrow: a large batch (chunked) of a 4° field, whose chunks mostly select with k = 16 of 64

@@ -87,8 +87,10 @@ def _paper(w: World):
 
 
 # Every scene of this file has one capacity (the clean scenes', packed ones too), so each algorithm
-# compiles its kernels for one scene width here (RpNet compiles its network kernel per width).
-CAPACITY = 128
+# compiles its kernels for one scene width here (RpNet compiles its network kernel per width); the
+# width of test_rpnet.py's scenes and test_engine.py's, so the suite's program store serves those
+# files the programs compiled here (or the other way round).
+CAPACITY = 64
 
 
 def _clean_scenes(w: World, n: int, seed: int):

@@ -228,6 +228,12 @@ def test_initial_input_ignores_padding_and_few_neighbours():
 S1_S3_ONLY = {"n_guide_triples": 1, "n_pool_pairs": 0}
 
 
+# the scenes' width: test_contract.py's, whose RpNet world is this setup's network with the default
+# finishing stage (the identification kernels do not depend on the finishing settings), so the
+# suite's program store serves both files the same programs
+CAPACITY = 64
+
+
 @pytest.fixture(scope="module")
 def tiny():
     cat = js.load_catalog(3.0)
@@ -247,7 +253,7 @@ def tiny():
 @pytest.fixture(scope="module")
 def clean_scenes(tiny):
     cat, cam, _, db, _ = tiny
-    return js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(), capacity=48,
+    return js.simulate(jax.random.key(11), cat, cam, js.NoiseConfig(), capacity=CAPACITY,
                        boresight_ids=np.asarray(db.guide_rows))
 
 
@@ -363,7 +369,7 @@ def test_scene_inputs_jit_vmap_agree(tiny, clean_scenes):
     vec = cam.unproject(s.xy)
     for b in range(3):
         for g in range(3):
-            mask = s.valid[b] & (jnp.arange(48) != g)
+            mask = s.valid[b] & (jnp.arange(CAPACITY) != g)
             one = pattern.initial_input(vec[b, g], vec[b], mask, **kw)  # eager, no vmap
             np.testing.assert_array_equal(batched[b, g], np.asarray(one))
 
@@ -580,7 +586,7 @@ def test_identify_false_stars_only(tiny):
     _, _, _, db, _ = tiny
     rng = np.random.default_rng(5)
     xy = [rng.uniform(0, 1023, (int(n), 2)) for n in rng.integers(0, 25, 64)]
-    scenes = js.scenes_from_centroids(xy, capacity=48)
+    scenes = js.scenes_from_centroids(xy, capacity=CAPACITY)
     res = rpnet.identify(db, scenes)
     assert np.all(np.asarray(res.ids) == -1)
     assert not np.any(np.asarray(res.ok))
@@ -937,7 +943,7 @@ def _assert_only_adds(scenes, base, extended, min_gain):
 
 def _guide_scenes(tiny, seed, **noise):
     cat, cam, _, db, _ = tiny
-    return js.simulate(jax.random.key(seed), cat, cam, js.NoiseConfig(**noise), capacity=48,
+    return js.simulate(jax.random.key(seed), cat, cam, js.NoiseConfig(**noise), capacity=CAPACITY,
                        boresight_ids=np.asarray(db.guide_rows))
 
 
