@@ -25,6 +25,12 @@ def _scenes(cat, nominal, scale, n=16, seed=0, sigma=0.5):
     return scenes, np.where(np.asarray(scenes.valid), np.asarray(scenes.truth), -1)
 
 
+# the fits compiled whole, once per name count (the camera static): called op by op, each scene's
+# name count compiled a few dozen small programs
+_fit_scaled = jax.jit(cf.fit_scaled, static_argnames=("camera", "fit_scale", "iterations"))
+_fit_distorted = jax.jit(cf.fit_distorted, static_argnames=("camera", "iterations"))
+
+
 def _scipy_fit(xy, ref, cam):
     """Least squares over (rotation vector, scale) of the pixel residuals, float64."""
     def residuals(p):
@@ -45,8 +51,8 @@ def test_fit_scaled_matches_scipy_least_squares(world, scale):
         named = truth[i] >= 0
         xy = np.asarray(scenes.xy[i], np.float64)[named]
         ref = cat.unit_vectors[truth[i][named]]
-        c, s, _ = cf.fit_scaled(jnp.asarray(xy, jnp.float32), jnp.asarray(ref, jnp.float32),
-                                jnp.ones(len(xy), jnp.float32), nominal)
+        c, s, _ = _fit_scaled(jnp.asarray(xy, jnp.float32), jnp.asarray(ref, jnp.float32),
+                              jnp.ones(len(xy), jnp.float32), nominal)
         p = _scipy_fit(xy, ref, nominal)
         assert abs(float(s) - p[3]) < 2e-5, (float(s), p[3])
         angle = np.linalg.norm((Rotation.from_matrix(np.asarray(c, np.float64))
@@ -368,8 +374,8 @@ def test_fit_distorted_matches_scipy_least_squares(world, k1):
         ref = cat.unit_vectors[truth[i][named]]
         xy32, ref32 = jnp.asarray(xy, jnp.float32), jnp.asarray(ref, jnp.float32)
         ones = jnp.ones(len(xy), jnp.float32)
-        c0, s0, _ = cf.fit_scaled(xy32, ref32, ones, nominal)
-        c, s, k, resid, fitted = cf.fit_distorted(xy32, ref32, ones, nominal, start=(c0, s0))
+        c0, s0, _ = _fit_scaled(xy32, ref32, ones, nominal)
+        c, s, k, resid, fitted = _fit_distorted(xy32, ref32, ones, nominal, start=(c0, s0))
         p = _scipy_fit_distorted(xy, ref, nominal)
         assert bool(fitted)
         assert abs(float(s) - p[3]) < 5e-5 and abs(float(k) - p[4]) < 5e-3, (float(s), float(k), p[3:])

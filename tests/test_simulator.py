@@ -311,6 +311,12 @@ def test_keep_brightest_same_for_every_selection_size():
     assert sim_module._keep_sizes(64) == (16, 32, 64)
     assert sim_module._keep_sizes(200) == (16, 32, 64, 128, 200)
     assert sim_module._keep_sizes(10) == (10,)
+    @functools.partial(jax.jit, static_argnames="k")  # a program per k, not one per operation
+    def keep(seed, det, k):
+        brightest = sim_module._brightest(det, k)
+        return sim_module._keep_brightest(seed, js.NoiseConfig(), jnp.eye(3), det, brightest,
+                                          capacity=capacity, n_cand=n)
+
     for trial in range(20):
         detected = np.zeros(n, bool)
         detected[rng.choice(n, size=rng.integers(0, 17), replace=False)] = True
@@ -321,9 +327,7 @@ def test_keep_brightest_same_for_every_selection_size():
             n_detected=jnp.int32(detected.sum()), false_overflow=jnp.bool_(False),
             sigma_px=jnp.ones((n,), jnp.float32))
         seed = jnp.asarray([trial, 7], jnp.uint32)
-        noise = js.NoiseConfig()
-        scenes = [sim_module._keep_brightest(seed, noise, jnp.eye(3), det, sim_module._brightest(det, k),
-                                             capacity=capacity, n_cand=n) for k in (16, 32, 64)]
+        scenes = [keep(seed, det, k) for k in (16, 32, 64)]
         expect = np.argsort(np.where(detected, mag, np.inf), kind="stable")[:detected.sum()]
         for scene in scenes:
             np.testing.assert_array_equal(np.asarray(scene.truth[:len(expect)]), expect)

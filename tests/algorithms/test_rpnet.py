@@ -1052,10 +1052,14 @@ def test_verification_names_no_false_star_beside_an_undetected_star():
     index = _local_index(db, cfg)
     cells = index.device_arrays()[0]
 
+    # one program for both settings (they differ in traced thresholds only): traced op by op, the
+    # step compiled a few hundred small programs
+    verify_pair = jax.jit(functools.partial(_verify_pair, camera=cam, config=cfg, grid=index.grid))
+
     def verify(config):
-        return _verify_pair(jnp.int32(a), jnp.int32(b), jnp.int32(rows[0]), jnp.int32(missing[0]), det_xy,
-                            body, valid, jnp.asarray(vec, jnp.float32), cells, config.tuning(), camera=cam,
-                            config=config, grid=index.grid)
+        assert config.compiled() == cfg.compiled()
+        return verify_pair(jnp.int32(a), jnp.int32(b), jnp.int32(rows[0]), jnp.int32(missing[0]), det_xy,
+                           body, valid, jnp.asarray(vec, jnp.float32), cells, config.tuning())
 
     ids, named, c, _ = verify(cfg)
     ids, named = np.asarray(ids), np.asarray(named)

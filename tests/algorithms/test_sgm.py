@@ -475,13 +475,15 @@ def test_two_nearest_equals_top_k():
     columns and values, ties (lowest column first) and rows with fewer than two finite entries
     included."""
     from jstarid.algorithms.sgm.verify import _two_nearest
+    two_nearest = jax.jit(_two_nearest)  # a program per shape, not one per operation and shape
+    top_two = jax.jit(lambda d: jax.lax.top_k(-d, 2))
     rng = np.random.default_rng(0)
     for trial in range(60):
         shape = (int(rng.integers(1, 6)), int(rng.integers(2, 9)))
         d = (rng.uniform(0, 1, shape) if trial % 3 == 0
              else rng.choice([0.1, 0.2, 0.3, np.inf], size=shape)).astype(np.float32)
-        first, d_first, second, d_second = (np.asarray(x) for x in _two_nearest(jnp.asarray(d)))
-        neg, two = (np.asarray(x) for x in jax.lax.top_k(-jnp.asarray(d), 2))
+        first, d_first, second, d_second = (np.asarray(x) for x in two_nearest(jnp.asarray(d)))
+        neg, two = (np.asarray(x) for x in top_two(jnp.asarray(d)))
         np.testing.assert_array_equal(np.stack([first, second], 1), two)
         np.testing.assert_array_equal(np.stack([d_first, d_second], 1), -neg)
 
