@@ -231,7 +231,9 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
             set's pointings); the key then draws everything but the attitude.
 
     Returns:
-        A :class:`~jstarid.scene.Scene` of B scenes.
+        A :class:`~jstarid.scene.Scene` of B scenes. Scene i depends on ``key``, i and the settings
+        only, not on B: a batch below 2,048 scenes is drawn at the next power of two (at least 16)
+        and cut, so one program serves every size of a bucket.
 
     Raises:
         ValueError: inconsistent batch settings, a bad capacity, out-of-range noise or rows, or a
