@@ -11,6 +11,9 @@ whole run — once as the suite builds them, once with every program at another 
         pytest -n 2 -q -p suite_profile
     python tests/suite_profile.py /tmp/prof/base /tmp/prof/level2
 
+The report also counts the programs each kernel compiled (rather than loaded from the store) over
+the run, and compares the counts of two runs (two revisions, with this plugin in both).
+
 Each call is waited for (``jax.block_until_ready``), so a profiled run takes longer than a plain
 one; calls that bypass the store (inside a trace) count under their caller's program.
 """
@@ -28,6 +31,7 @@ from pathlib import Path
 _build: collections.Counter = collections.Counter()
 _run: collections.Counter = collections.Counter()
 _calls: collections.Counter = collections.Counter()
+_compiled: collections.Counter = collections.Counter()  # by kernel (the name before its statics)
 
 
 def pytest_sessionstart(session):
@@ -45,11 +49,14 @@ def pytest_sessionstart(session):
     build, call = ps.StoredFunction._load_or_compile, ps.StoredFunction.__call__
 
     def timed_build(self, key, args, kwargs):
-        start = time.perf_counter()
+        start, compiled = time.perf_counter(), ps.program_store_stats()["compiled"]
         try:
             return build(self, key, args, kwargs)
         finally:
             _build[self._name] += time.perf_counter() - start
+            # a program compiled here, not loaded from the store (a kernel's programs differ by
+            # their statics, devices and argument shapes)
+            _compiled[self._name.split(" on devices ")[0]] += ps.program_store_stats()["compiled"] - compiled
 
     def timed_call(self, *args, **kwargs):
         start, built = time.perf_counter(), _build[self._name]
@@ -62,11 +69,11 @@ def pytest_sessionstart(session):
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     atexit.register(lambda: (folder / f"{os.getpid()}.json").write_text(
-        json.dumps({"build_s": _build, "run_s": _run, "calls": _calls})))
+        json.dumps({"build_s": _build, "run_s": _run, "calls": _calls, "compiled": _compiled})))
 
 
 def _load(folder: Path) -> dict[str, collections.Counter]:
-    total = {"build_s": collections.Counter(), "run_s": collections.Counter(), "calls": collections.Counter()}
+    total = {field: collections.Counter() for field in ("build_s", "run_s", "calls", "compiled")}
     for path in folder.glob("*.json"):
         for field, values in json.loads(path.read_text()).items():
             total[field].update(values)
@@ -95,6 +102,13 @@ def main(argv: list[str]) -> None:
         else:
             b, r = f"{b:13.1f}", f"{r:13.1f}"
         print(f"{saved(name):7.1f}  {b}  {r}  {base['calls'][name]:5d}  {name[:100]}")
+
+    counts = (base["compiled"], other["compiled"] if other is not None else None)
+    print(f"\nprograms compiled (not loaded from the store): {sum(counts[0].values())}"
+          + (f" → {sum(counts[1].values())}" if counts[1] is not None else "") + "; per kernel:")
+    for kernel in sorted(counts[0], key=lambda k: -(counts[0][k] + (counts[1] or {}).get(k, 0)))[:20]:
+        other_count = "" if counts[1] is None else f" → {counts[1][kernel]:4d}"
+        print(f"{counts[0][kernel]:6d}{other_count}  {kernel}")
 
 
 if __name__ == "__main__":
