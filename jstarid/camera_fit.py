@@ -75,6 +75,7 @@ from jstarid.runtime.devices import batch_mesh
 from jstarid.runtime.memory_maps import relieve
 from jstarid.runtime.padding import (
     MIN_CALL_SIZE,
+    call_padded,
     call_width,
     columns_in_use,
     next_power_of_two,
@@ -831,8 +832,8 @@ def check_claims(star_vectors, camera, scenes, result, *, min_named: int = 3, st
     """
     given = jnp.where(scenes.valid, result.ids, -1)
     if star_mags is not None:
-        given = _drop_brighter(jnp.asarray(scenes.mag, jnp.float32), given,
-                               jnp.asarray(star_mags, jnp.float32), result.ok)
+        given = call_padded(_drop_brighter, (jnp.asarray(scenes.mag, jnp.float32), given, result.ok),
+                            jnp.asarray(star_mags, jnp.float32))
     checked = result.ok & (jnp.sum(given >= 0, axis=1) >= min_named)
     ids, ok, fit = verify_names(star_vectors, camera, scenes.xy, scenes.valid, given, checked,
                                 min_named=min_named, **kwargs)
@@ -840,7 +841,7 @@ def check_claims(star_vectors, camera, scenes, result, *, min_named: int = 3, st
 
 
 @stored_jit
-def _drop_brighter(mag, ids, star_mags, ok):
+def _drop_brighter(mag, ids, ok, star_mags):
     """(B, N) ids without the names of claimed scenes far brighter than their star (check_claims)."""
     named = (ids >= 0) & ok[:, None]
     far = jax.vmap(functools.partial(brighter_than_named, tol_mag=BRIGHTER_MAG, sigmas=BRIGHTER_SIGMAS))(

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jstarid.attitude import attitude_errors_arcsec
+from jstarid.runtime.padding import call_padded
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Identification, Scene
 
@@ -110,7 +111,8 @@ def scene_outcomes(scenes: Scene, result: Identification, criterion: str = "stri
     if result.ids.shape != scenes.truth.shape or result.ok.shape != scenes.overflow.shape:
         raise ValueError(f"result shapes {result.ids.shape}/{result.ok.shape} do not match the scenes "
                          f"{scenes.truth.shape}/{scenes.overflow.shape}")
-    return _outcomes(scenes, result.ids, result.ok, criterion, camera, float(radius_deg))
+    # at a padded batch: one program for every batch size of a bucket (padding scenes are empty)
+    return call_padded(_outcomes, (scenes, result.ids, result.ok), criterion, camera, float(radius_deg))
 
 
 @functools.partial(stored_jit, static_argnames=("criterion", "camera", "radius_deg"))

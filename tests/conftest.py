@@ -128,6 +128,33 @@ def _bounded_memory_maps():
     js.runtime.relieve(MAX_MAPS)
 
 
+# Files whose tests build the same programs go to one xdist worker, one after the other, so the
+# second loads what the first compiled (run at once on two workers, both compile them):
+# test_contract.py's RpNet world is test_rpnet.py's network at the same scene width.
+SHARED_PROGRAMS = {"tests/algorithms/test_contract.py": "rpnet-world",
+                   "tests/algorithms/test_rpnet.py": "rpnet-world"}
+
+
+def unit_of_work(nodeid: str) -> str:
+    """The unit of work a test belongs to: its file, or its file's :data:`SHARED_PROGRAMS` group."""
+    path = nodeid.split("::", 1)[0]
+    return SHARED_PROGRAMS.get(path, path)
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """xdist: under ``--dist loadfile`` (the suite's) the units of work are :func:`unit_of_work`'s;
+    any other ``--dist`` is xdist's own."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class SharedProgramsScheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return unit_of_work(nodeid)
+
+    return SharedProgramsScheduling(config, log)
+
+
 # A test whose xdist worker still dies in native code runs once more in a fresh worker; a second
 # crash fails it. Ordinary failures are never retried, and the retry shows as ``R`` / "rerun".
 _crash_retries: dict[str, int] = {}

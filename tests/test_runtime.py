@@ -326,3 +326,24 @@ def test_call_width_is_a_power_of_two_covering_the_rows_and_at_most_the_columns(
     assert call_width(filled, np.array([0, 2]), 128, 32) == 64
     assert call_width(filled, np.array([3]), 128, 32) == 128
     assert call_width(filled, np.array([3]), 96, 32) == 96  # never past the columns there are
+
+
+def test_call_padded_computes_each_row_as_the_plain_call_and_shares_one_program():
+    """Batches of 0, 3 and 9 rows run at 16 (one program); each output row is the plain call's,
+    cut back to the batch; a batch at a power of two ≥ the floor runs as it is."""
+    from jstarid.runtime.padding import call_padded
+
+    @jax.jit
+    def kernel(x, flags, scale):
+        return {"sum": jnp.sum(x, axis=1) * scale, "any": jnp.any(flags, axis=1)}
+
+    rng = np.random.default_rng(0)
+    for n in (0, 3, 9, 32):
+        x = jnp.asarray(rng.normal(size=(n, 5)), jnp.float32)
+        flags = jnp.asarray(rng.random((n, 5)) < 0.3)
+        got = call_padded(kernel, (x, flags), jnp.float32(2.0))
+        want = kernel(x, flags, jnp.float32(2.0))
+        for name in ("sum", "any"):
+            assert got[name].shape == (n,)
+            np.testing.assert_array_equal(np.asarray(got[name]), np.asarray(want[name]))
+    assert kernel._cache_size() == 1 + 4  # one at 16 for 0, 3 and 9 rows (32 as it is); the plain calls

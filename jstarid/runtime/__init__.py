@@ -29,6 +29,7 @@ from jstarid.runtime.compilations import CountCompilations
 from jstarid.runtime.devices import batch_mesh, map_batch, replicate, shard_batch, use_cpu_cores
 from jstarid.runtime.memory_maps import relieve
 from jstarid.runtime.padding import (
+    call_padded,
     call_size,
     call_width,
     coarse_size,
@@ -41,8 +42,8 @@ from jstarid.runtime.pairs import run_pairs, skip_padding
 from jstarid.runtime.staging_memory import release_staging
 from jstarid.runtime.static import static_config
 
-__all__ = ["batch_mesh", "Call", "call_size", "call_width", "chunk_calls", "coarse_size", "columns_in_use",
-           "CountCompilations", "device_cache", "DeviceCache", "grow_until", "map_batch", "map_by_width",
-           "next_power_of_two", "on_every_device", "pad_rows", "padded_indices", "program_store",
-           "release_staging", "relieve", "replicate", "run_calls", "run_pairs", "shard_batch", "skip_padding",
-           "static_config", "take_rows", "use_cpu_cores"]
+__all__ = ["batch_mesh", "Call", "call_padded", "call_size", "call_width", "chunk_calls", "coarse_size",
+           "columns_in_use", "CountCompilations", "device_cache", "DeviceCache", "grow_until", "map_batch",
+           "map_by_width", "next_power_of_two", "on_every_device", "pad_rows", "padded_indices",
+           "program_store", "release_staging", "relieve", "replicate", "run_calls", "run_pairs",
+           "shard_batch", "skip_padding", "static_config", "take_rows", "use_cpu_cores"]

@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["call_size", "call_width", "coarse_size", "columns_in_use", "next_power_of_two", "pad_rows",
-           "padded_indices", "power_of_two_chunks"]
+__all__ = ["call_padded", "call_size", "call_width", "coarse_size", "columns_in_use", "next_power_of_two",
+           "pad_rows", "padded_indices", "power_of_two_chunks"]
 
 MAX_PADDING = 0.25  # power_of_two_chunks: most padding of a last chunk, as a share of its rows
 MIN_CALL_SIZE = 16  # call_size: the smallest call of a batched kernel (rows)
@@ -56,6 +56,29 @@ def next_power_of_two(n: float, floor: int = 1) -> int:
         floor: the smallest size returned (a power of two).
     """
     return max(int(floor), 1 << max(math.ceil(n) - 1, 0).bit_length())
+
+
+def call_padded(fn, batched: tuple, *args, floor: int = MIN_CALL_SIZE, **kwargs):
+    """``fn(*batched, *args, **kwargs)`` at a padded batch: the leading axis of ``batched`` padded
+    (:func:`pad_rows`, zeros) to the next power of two ≥ ``floor``, every leaf of the output cut
+    back to the B rows.
+
+    Why: a kernel called on whole batches (a check, the outcome of each scene) compiled a program
+    for every batch size it met; padded, one program serves every size of a bucket. ``fn`` must
+    treat its rows independently, and a row of zeros (an empty scene) must be harmless to it.
+
+    Args:
+        fn: the kernel; its output leaves all have the batch axis first.
+        batched: tuple of pytrees whose leaves share the leading batch size B (≥ 0).
+        *args, **kwargs: passed as they are (replicated arrays, static settings).
+        floor: the smallest padded size.
+    """
+    b = jax.tree.leaves(batched)[0].shape[0]
+    size = next_power_of_two(b, floor)
+    if size == b:
+        return fn(*batched, *args, **kwargs)
+    out = fn(*pad_rows(batched, size), *args, **kwargs)
+    return jax.tree.map(lambda a: a[:b], out)
 
 
 def coarse_size(n: int, floor: int, limit: int) -> int:
