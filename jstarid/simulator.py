@@ -49,8 +49,7 @@ import numpy as np
 from jstarid import random_streams as streams
 from jstarid.attitude import random_rotation, rotation_from_boresight
 from jstarid.detection_model import DetectionModel, merge_window, observe
-from jstarid.runtime import device_cache, map_batch, map_by_width, on_every_device, pad_rows
-from jstarid.runtime.padding import MIN_CALL_SIZE, next_power_of_two
+from jstarid.runtime import call_padded, device_cache, map_batch, map_by_width, on_every_device
 from jstarid.runtime.program_store import stored_jit
 from jstarid.scene import Scene
 from jstarid.sky_index import build_sky_index, cell_of
@@ -274,12 +273,14 @@ def simulate(key, catalog, camera, noise: NoiseConfig | None = None, *, batch_si
         first = _given_attitudes(_scene_keys(key, batch_size), jnp.asarray(attitudes, jnp.float32),
                                  grid=plan.stage1["grid"])
         if not sharded:
-            return _stage2_bucketed(plan, first)
+            noise_b, model_b, index_arrays, star_tables, _ = plan.arrays
+            return call_padded(_stage2, (*first, noise_b, model_b), *index_arrays, *star_tables,
+                               **_BUCKETS, **plan.statics)
     elif not sharded:
-        size = _bucket(batch_size)
-        keys, rows = pad_rows((_scene_keys(key, batch_size), rows), size, mode="edge")
-        first = _attitudes_stored(keys, rows, plan.arrays[4], **plan.stage1)
-        return _stage2_bucketed(plan, first, batch_size)
+        noise_b, model_b, index_arrays, star_tables, cat_vec = plan.arrays
+        return call_padded(_draw_keys, (_scene_keys(key, batch_size), rows, noise_b, model_b),
+                           index_arrays, star_tables, cat_vec, stage1=plan.stage1, statics=plan.statics,
+                           **_BUCKETS)
     # both stages split over the devices, the tables placed on each device once (they are
     # long-lived: the index is memoised, the tables kept on the catalog)
     tables = _device_tables(catalog)
@@ -350,35 +351,14 @@ def _draw(arrays, key, rows, *, batch_size, stage1, statics):
     elif rows is None or jnp.shape(rows) != (batch_size,):  # shapes are static: checked under jit too
         raise ValueError(f"this sampler puts the boresights on catalog rows: give rows of shape "
                          f"({batch_size},), got {None if rows is None else jnp.shape(rows)}")
-    seeds, att, cell = _attitudes(key, rows, cat_vec, **stage1)
+    return _draw_keys(jax.random.split(key, batch_size), rows, noise_b, model_b, index_arrays, star_tables,
+                      cat_vec, stage1=stage1, statics=statics)
+
+
+def _draw_keys(keys, rows, noise_b, model_b, index_arrays, star_tables, cat_vec, *, stage1, statics):
+    """Both stages of an unsharded call from the B scene keys (B,) and boresight rows (B,)."""
+    seeds, att, cell = _attitudes(keys, rows, cat_vec, **stage1)
     return _stage2(seeds, att, cell, noise_b, model_b, *index_arrays, *star_tables, **statics)
-
-
-def _bucket(batch_size: int) -> int:
-    """The padded batch of an unsharded :func:`simulate` call: the next power of two ≥
-    :data:`~jstarid.runtime.padding.MIN_CALL_SIZE` below the chunked path's size, else the batch.
-
-    Why: a program per batch size compiled the simulator anew for every size a sweep, a notebook or
-    the algorithms' retries meet (4, 6, 12, 200 scenes …); each scene is drawn from its own key and
-    independently of the others, so the padding scenes (copies of the last) change no scene.
-    """
-    return int(batch_size) if batch_size >= _CHUNK_MIN_BATCH else next_power_of_two(batch_size, MIN_CALL_SIZE)
-
-
-def _stage2_bucketed(plan: _Plan, first, batch_size: int | None = None) -> Scene:
-    """Stage 2 of an unsharded call at the bucketed batch (:func:`_bucket`), cut back to its scenes.
-
-    Args:
-        plan: the call's :class:`_Plan` (its per-scene arrays hold the B scenes).
-        first: stage 1's (seeds, attitudes, cells), B rows or already padded.
-        batch_size: B (default: the rows of ``first``).
-    """
-    b = int(first[0].shape[0] if batch_size is None else batch_size)
-    size = _bucket(b)
-    noise_b, model_b, index_arrays, star_tables, _ = plan.arrays
-    padded = pad_rows((*first, noise_b, model_b), size, mode="edge")
-    scenes = _stage2(*padded, *index_arrays, *star_tables, **plan.statics)
-    return scenes if size == b else scenes[:b]
 
 
 def _checked(noise: NoiseConfig | None, capacity) -> NoiseConfig:
@@ -474,6 +454,13 @@ def _stage2(seeds, att, cell, noise_b, model_b, cells, counts, star_vec, star_ma
 # whose candidate-list width fits the chunk, so a scene in a sparse region does not pay for the
 # densest cell's list length. One compilation serves every batch of the same size.
 _CHUNK_MIN_BATCH = 2048
+# An unsharded call below the chunked path's size runs at the next power of two ≥ 16 scenes
+# (runtime.call_padded): a program per batch size compiled the simulator anew for every size a
+# sweep, a notebook or the algorithms' retries meet (4, 6, 12, 200 scenes …). Each scene is drawn
+# from its own key, independently of the others, so the padding scenes (copies of the last) change
+# no scene; the scene keys are split at the batch's own size (every prefix of a split holds the same
+# keys), so a scene does not depend on the batch it is drawn in.
+_BUCKETS = dict(limit=_CHUNK_MIN_BATCH, mode="edge")
 _CHUNK = 256
 _WIDTH_STEP = 64  # candidate-list widths are multiples of this
 
@@ -530,9 +517,9 @@ def _attitude_one(key, row, cat_vec, mode_b):
 
 
 @functools.partial(stored_jit, static_argnames=("grid", "mode_b"))
-def _attitudes(key, rows, cat_vec, *, grid, mode_b):
-    """Step 1 for a batch from the batch key: :func:`_attitudes_of` the scene keys."""
-    return _attitudes_of(jax.random.split(key, rows.shape[0]), rows, cat_vec, grid=grid, mode_b=mode_b)
+def _attitudes(keys, rows, cat_vec, *, grid, mode_b):
+    """Step 1 for a batch from its scene keys (B,): :func:`_attitudes_of`, one stored program."""
+    return _attitudes_of(keys, rows, cat_vec, grid=grid, mode_b=mode_b)
 
 
 @functools.partial(jax.jit, static_argnames=("grid",))
@@ -554,9 +541,6 @@ def _attitudes_of(keys, rows, cat_vec, *, grid, mode_b):
     att = jax.vmap(lambda k, r: _attitude_one(k, r, cat_vec, mode_b))(keys, rows)
     return jax.vmap(streams.scene_seed)(keys), att, cell_of(att[:, 2], grid)
 
-
-# stage 1 of an unsharded simulate call, from the scene keys (padded to the call's bucket)
-_attitudes_stored = stored_jit(_attitudes_of, static_argnames=("grid", "mode_b"))
 
 
 @functools.partial(stored_jit, static_argnames=(

@@ -264,11 +264,18 @@ def test_small_batches_share_one_program_and_a_scene_is_its_keys(catalog6, sgm_c
         for x, y in zip(jax.tree.leaves(part), jax.tree.leaves(full[:n]), strict=True):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert sim_module._scenes_batch._cache_size() - programs == 1
-    # mode b and per-scene noise arrays (padded with the last scene's values) too
-    rows = np.arange(3)
-    some = js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=np.array([0.0, 0.5, 1.0])),
-                       boresight_ids=rows, capacity=capacity)
-    assert some.xy.shape == (3, capacity, 2) and np.all(np.asarray(some.n_stars) > 0)
+    # mode b with per-scene noise (padded with the last scene's values): each scene is the one its
+    # own setting draws, alone or beside scenes of other settings
+    rows = np.array([5, 9, 2])
+    sigmas = np.array([0.0, 0.5, 1.0])
+    mixed = js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=sigmas),
+                        boresight_ids=rows, capacity=capacity)
+    alone = [js.simulate(key, catalog6, sgm_camera, js.NoiseConfig(position_sigma_px=sigma),
+                         boresight_ids=rows, capacity=capacity) for sigma in sigmas]
+    for i in range(3):
+        for x, y in zip(jax.tree.leaves(mixed[i]), jax.tree.leaves(alone[i][i]), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert not np.array_equal(np.asarray(mixed.xy[2]), np.asarray(alone[0].xy[2]))  # its σ applied
 
 
 @pytest.mark.parametrize("narrow", [False, True])
@@ -311,6 +318,7 @@ def test_keep_brightest_same_for_every_selection_size():
     assert sim_module._keep_sizes(64) == (16, 32, 64)
     assert sim_module._keep_sizes(200) == (16, 32, 64, 128, 200)
     assert sim_module._keep_sizes(10) == (10,)
+
     @functools.partial(jax.jit, static_argnames="k")  # a program per k, not one per operation
     def keep(seed, det, k):
         brightest = sim_module._brightest(det, k)

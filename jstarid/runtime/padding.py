@@ -58,26 +58,31 @@ def next_power_of_two(n: float, floor: int = 1) -> int:
     return max(int(floor), 1 << max(math.ceil(n) - 1, 0).bit_length())
 
 
-def call_padded(fn, batched: tuple, *args, floor: int = MIN_CALL_SIZE, **kwargs):
+def call_padded(fn, batched: tuple, *args, floor: int = MIN_CALL_SIZE, limit: int | None = None,
+                mode: str = "zeros", **kwargs):
     """``fn(*batched, *args, **kwargs)`` at a padded batch: the leading axis of ``batched`` padded
-    (:func:`pad_rows`, zeros) to the next power of two ≥ ``floor``, every leaf of the output cut
-    back to the B rows.
+    (:func:`pad_rows`) to the next power of two ≥ ``floor``, every leaf of the output cut back to
+    the B rows.
 
-    Why: a kernel called on whole batches (a check, the outcome of each scene) compiled a program
-    for every batch size it met; padded, one program serves every size of a bucket. ``fn`` must
-    treat its rows independently, and a row of zeros (an empty scene) must be harmless to it.
+    Why: a kernel called on whole batches (a check, the outcome of each scene, the simulator's draw)
+    compiled a program for every batch size it met; padded, one program serves every size of a
+    bucket. ``fn`` must treat its rows independently, and a padding row must be harmless to it.
 
     Args:
         fn: the kernel; its output leaves all have the batch axis first.
         batched: tuple of pytrees whose leaves share the leading batch size B (≥ 0).
         *args, **kwargs: passed as they are (replicated arrays, static settings).
         floor: the smallest padded size.
+        limit: batches of this many rows or more run as they are (a kernel that splits large
+            batches itself); ``None``: every batch is padded.
+        mode: :func:`pad_rows`' mode (``"edge"`` where a row of zeros is not valid input, e.g.
+            PRNG keys).
     """
     b = jax.tree.leaves(batched)[0].shape[0]
-    size = next_power_of_two(b, floor)
+    size = b if limit is not None and b >= limit else next_power_of_two(b, floor)
     if size == b:
         return fn(*batched, *args, **kwargs)
-    out = fn(*pad_rows(batched, size), *args, **kwargs)
+    out = fn(*pad_rows(batched, size, mode=mode), *args, **kwargs)
     return jax.tree.map(lambda a: a[:b], out)
 
 
