@@ -20,7 +20,7 @@ stopped and resumed.
 
     python experiments/reproduce_sgm.py --quick          # a few stars per level, minutes on a CPU
     python experiments/reproduce_sgm.py                  # every database star (≈5,070 per level)
-    python experiments/reproduce_sgm.py --n-stars 200 --set verify_retries=0
+    python experiments/reproduce_sgm.py --n-stars 200 --set verify.retries=0
     python experiments/reproduce_sgm.py --quick --paper  # the paper's algorithm alone
 
 Writes results/reproduce_sgm/{config.json, results.json, table.md, accuracy.png}.
@@ -117,7 +117,7 @@ def _run_level(args, scfg, cat, cam, rows, exp, sigma, out: Path) -> None:
         part = scenes[a:a + args.batch]
         ceiling.append(naming_ceiling(part, cat, cam, radius_deg=scfg.radius_deg))
         confident.append(naming_ceiling(part, cat, cam, radius_deg=scfg.radius_deg,
-                                        margin_nats=scfg.verify_ambiguity_k ** 2, sigma_px=sigma))
+                                        margin_nats=scfg.verify.ambiguity_k ** 2, sigma_px=sigma))
         fake_in.append(_fake_inside(part, cam, scfg.radius_deg))
     result.save(out, title=f"SGM {exp}, σ = {sigma:g} px")
     extras = {"ceiling_rate": float(np.mean(np.concatenate(ceiling))),
@@ -199,7 +199,7 @@ def _table(results, seed) -> str:
              f"Ceiling: the best any position-only identifier could reach with ≤ {MAX_FAILURE:.0%} "
              "failures (`jstarid.ceiling`); per level, the ceiling of the identification rate and, "
              "at margin, the same for a namer that withholds names below the verification's "
-             "ambiguity margin (`verify_ambiguity_k`², nats, with the true σ).", "",
+             "ambiguity margin (`verify.ambiguity_k`², nats, with the true σ).", "",
              "| experiment | metric | ours (%) | paper (%) | ceiling (%) |", "|---|---|---|---|---|"]
     for exp, s in results["summary"].items():
         for m in ("MA", "stdA", "RA", "ALN"):

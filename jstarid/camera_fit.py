@@ -792,7 +792,7 @@ def check_identification(star_vectors, camera, scenes, result, *, max_scale_erro
             :class:`~jstarid.scene.Identification`.
         max_scale_error, min_named, k_sigma, max_tol_px: as in :func:`verify_names`. An algorithm
             whose own verification accepts residuals beyond :data:`MAX_TOL_PX` passes its cap
-            here (SGM: ``verify_cap_deg``, 15 px on ``sgm2022``), so that the check does not take
+            here (SGM: ``verify.cap_deg``, 15 px on ``sgm2022``), so that the check does not take
             back names at a noise the algorithm was tuned for.
         star_mags: (M,) catalog V of those rows (mag); given, names far brighter than their star
             are taken back first (:func:`check_claims`).

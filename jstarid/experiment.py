@@ -29,7 +29,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import json
 import os
@@ -45,6 +44,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from jstarid.config_tree import with_fields
 from jstarid.serialization import to_json
 
 __all__ = ["Stopwatch", "clutter_and_random_sets", "dump_json", "load", "machine", "markdown_table",
@@ -79,7 +79,8 @@ def with_overrides(config, items: Sequence[str] | Mapping[str, Any] | None):
 
     A dotted name sets a field of a nested config: ``finishing.focal_search=[]`` replaces
     ``config.finishing.focal_search`` (a JSON object given for a nested config sets it whole, through
-    its own validation).
+    its own validation; a bool given for a nested config with an ``on`` field switches it:
+    ``screen=false``); :func:`jstarid.config_tree.with_fields`.
 
     Raises:
         ValueError: an item without ``=``, a value that is not JSON, or an unknown field (the
@@ -87,27 +88,7 @@ def with_overrides(config, items: Sequence[str] | Mapping[str, Any] | None):
     """
     if not items:
         return config
-    for name, value in (items.items() if isinstance(items, Mapping) else map(_split, items)):
-        config = _replaced(config, name.split("."), value)
-    return config
-
-
-def _replaced(config, path: list[str], value):
-    """``config`` with the field at ``path`` (a nested config's field for a longer path) set to ``value``."""
-    fields = {f.name for f in dataclasses.fields(config)}
-    name = path[0]
-    if name not in fields:
-        raise ValueError(f"{type(config).__name__} has no field {name!r}; "
-                         f"fields: {', '.join(sorted(fields))}")
-    current = getattr(config, name)
-    if len(path) > 1:
-        if not dataclasses.is_dataclass(current):
-            raise ValueError(f"{type(config).__name__}.{name} is not a nested config; cannot set "
-                             f"{'.'.join(path)}")
-        value = _replaced(current, path[1:], value)
-    elif isinstance(current, tuple) and isinstance(value, list):
-        value = tuple(value)
-    return dataclasses.replace(config, **{name: value})
+    return with_fields(config, dict(items.items() if isinstance(items, Mapping) else map(_split, items)))
 
 
 def _split(item: str) -> tuple[str, Any]:

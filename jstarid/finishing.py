@@ -64,6 +64,7 @@ import numpy as np
 
 from jstarid.camera_fit import MAX_TOL_PX, check_identification, search_focal
 from jstarid.completion import name_from_attitude
+from jstarid.config_tree import nested
 from jstarid.false_match import SMALLEST_P, false_match_probability, with_names_attitude
 from jstarid.hypotheses import SearchOutcome, solve_unsolved
 from jstarid.rival_stars import without_rivalled_names
@@ -161,20 +162,12 @@ class Finishing:
     @classmethod
     def coerce(cls, value: Finishing | Mapping) -> Finishing:
         """``value`` itself, or a :class:`Finishing` from a mapping of its fields (a config read from
-        JSON or ``--set``); a list of factors becomes a tuple.
+        JSON or ``--set``; :func:`jstarid.config_tree.nested`).
 
         Raises:
             TypeError: anything else, or a mapping with a field :class:`Finishing` lacks.
         """
-        if isinstance(value, cls):
-            return value
-        if isinstance(value, Mapping):
-            known = {f.name for f in dataclasses.fields(cls)}
-            unknown = set(value) - known
-            if unknown:
-                raise TypeError(f"Finishing has no field(s) {sorted(unknown)}; fields: {sorted(known)}")
-            return cls(**value)
-        raise TypeError(f"finishing must be a jstarid.finishing.Finishing or a mapping, got {value!r}")
+        return nested(cls, value, "finishing")
 
     def reaching(self, max_error: float, step: float = LADDER_STEP) -> Finishing:
         """These settings with the ladder extended in steps of ``step`` out to ``1 ± max_error`` (after its

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 import jstarid as js
 from jstarid import camera_fit as cf
+from jstarid.config_tree import with_fields
 
 
 @pytest.fixture(scope="module")
@@ -432,7 +433,7 @@ def test_sgm_camera_check_keeps_right_names_at_its_own_verification_cap(world):
     cat, nominal = world
     cap = camera_check_cap_px(sgm.Config(), nominal)
     assert abs(cap - np.tan(np.radians(0.3)) * nominal.f_px) < 1e-3 and cap > cf.MAX_TOL_PX
-    narrow = dataclasses.replace(sgm.Config(), verify_cap_deg=0.1)  # 5 px: never below the default
+    narrow = with_fields(sgm.Config(), {"verify.cap_deg": 0.1})  # 5 px: never below the default
     assert camera_check_cap_px(narrow, nominal) == cf.MAX_TOL_PX
     scenes, truth = _scenes(cat, nominal, 1.0, n=16, seed=3, sigma=3.0)
     named = truth >= 0

@@ -13,6 +13,7 @@ import pytest
 from scipy import stats
 
 import jstarid as js
+from jstarid.config_tree import with_fields
 from jstarid.engine import levels as lv
 from jstarid.metrics import CORRECT, WRONG, wilson_interval
 
@@ -375,8 +376,8 @@ def test_frames_config_turns_on_sgm_subgraph_search_only():
     cam = js.camera_preset("tetra3_test")
     sgm_frames = js.engine.default_config("sgm", camera=cam, frames=True)
     sgm_sim = js.engine.default_config("sgm", camera=cam)
-    assert sgm_frames.subgraph and not sgm_sim.subgraph
-    assert dataclasses.replace(sgm_frames, subgraph=False) == sgm_sim
+    assert sgm_frames.subgraph.on and not sgm_sim.subgraph.on
+    assert with_fields(sgm_frames, {"subgraph": False}) == sgm_sim
     assert js.engine.default_config("mlv", camera=cam, frames=True) == js.engine.default_config(
         "mlv", camera=cam)
 

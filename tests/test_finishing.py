@@ -163,4 +163,4 @@ def test_overrides_reach_the_nested_config():
     with pytest.raises(ValueError, match="no field 'fit_focus'"):
         with_overrides(sgm.Config(), ["finishing.fit_focus=false"])
     with pytest.raises(ValueError, match="not a nested config"):
-        with_overrides(sgm.Config(), ["verify.x=1"])
+        with_overrides(sgm.Config(), ["c.x=1"])

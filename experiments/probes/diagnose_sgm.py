@@ -3,13 +3,13 @@
 The scenes are the reproduction's own (:mod:`jstarid.papers.sgm`: same main stars, keys and
 batches), so a figure quoted from a full-size or sampled run can be looked at scene by scene. Per
 level it reports the outcome counts, the correct scenes that needed the search to go on after a
-rejected match (``Config.verify_retries``), each failure's cause, and every mis-identified detection
+rejected match (``Config.verify.retries``), each failure's cause, and every mis-identified detection
 with its distances (px, through the true attitude) to the star it was named after and to its own
 star::
 
     python experiments/probes/diagnose_sgm.py --experiment lost --sigma 0 --n-stars 800
     python experiments/probes/diagnose_sgm.py --experiment lost --sigma 2.5 --batches 3  # rows 768–1023
-    python experiments/probes/diagnose_sgm.py --experiment lost --sigma 0 --n-stars 800 --set verify_retries=0
+    python experiments/probes/diagnose_sgm.py --experiment lost --sigma 0 --n-stars 800 --set verify.retries=0
 
 Failure causes (from ``identify(..., diagnostics=True)``): ``unusable`` (too few stars, or overflow),
 ``no δ ≤ ε_δ`` (Algorithm 1 found no match), ``main star contested`` (the match passed every test but

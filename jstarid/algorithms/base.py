@@ -69,7 +69,9 @@ On ``Config``:
     papers' cameras). Default: ``Config(**overrides)``. Read with :func:`config_for_camera`.
 ``Config.FRAME_SETTINGS: dict``
     ``{field: value}`` for detections extracted from real frames, which do not stop at the catalog's
-    magnitude limit (SGM: its ``subgraph`` search). Default: ``{}``. Read with :func:`frame_settings`.
+    magnitude limit (SGM: ``{"subgraph.on": True}``, its subgraph search; a nested config's field by
+    its dotted name, :func:`jstarid.config_tree.with_fields`). Default: ``{}``. Read with
+    :func:`frame_settings`.
 ``Config.radius_deg: float``
     The neighbor circle (deg) the ``"sgm"`` criterion scores this config's results on (SGM: its r).
     Default: 6.0, the criterion's own. Read with :func:`scoring_radius_deg`.
@@ -108,6 +110,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import jax
 import numpy as np
 
+from jstarid.config_tree import differences, with_fields
 from jstarid.scene import Identification, Scene
 from jstarid.serialization import to_json
 
@@ -333,7 +336,7 @@ def default_config(module: ModuleType, camera=None, *, preset: str | None = None
     overrides = named[preset] if preset in named else next(iter(named.values()), {})
     config = module.Config(**overrides) if camera is None else config_for_camera(module, camera, **overrides)
     settings = frame_settings(module) if frames else {}
-    return dataclasses.replace(config, **settings) if settings else config
+    return with_fields(config, settings) if settings else config
 
 
 def paper_algorithm(config):
@@ -341,9 +344,7 @@ def paper_algorithm(config):
     algorithm, our extensions off — and every other field as given (what a camera or a preset
     chose: tolerances, RpNet's network)."""
     cls = type(config)
-    default, paper = cls(), cls.paper()
-    return dataclasses.replace(config, **{f.name: getattr(paper, f.name) for f in dataclasses.fields(cls)
-                                          if getattr(paper, f.name) != getattr(default, f.name)})
+    return with_fields(config, differences(cls(), cls.paper()))
 
 
 def scoring_radius_deg(config) -> float:

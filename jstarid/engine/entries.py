@@ -12,13 +12,13 @@ nothing here knows an algorithm by name.
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
 from jstarid import algorithms
 from jstarid.algorithms import base
+from jstarid.config_tree import with_fields
 
 __all__ = ["Entry", "default_config", "entries", "grid"]
 
@@ -124,19 +124,17 @@ def grid(algorithm: str, config=None, *, label: str | None = None, camera=None,
         algorithm: registry name.
         config: the base config (default: :func:`default_config` for ``camera``).
         label: the label's prefix (default: the algorithm's name).
-        **values: ``field=[values]`` of the algorithm's ``Config``.
+        **values: ``field=[values]`` of the algorithm's ``Config`` (a nested field by its dotted
+            name, through a mapping: ``**{"screen.fraction": [0.5, 0.6]}``).
 
     Raises:
         ValueError: an unknown field or a field without values.
     """
     start = default_config(algorithm, camera=camera) if config is None else config
-    fields = {f.name for f in dataclasses.fields(start)}
     for name, vals in values.items():
-        if name not in fields:
-            raise ValueError(f"{type(start).__name__} has no field {name!r}; fields: "
-                             f"{', '.join(sorted(fields))}")
         if len(vals) == 0:
             raise ValueError(f"grid field {name} has no values")
+        with_fields(start, {name: vals[0]})  # an unknown field: a clear error before anything runs
     prefix = label or algorithm
     group = f"{prefix}[{','.join(values)}]"
     out = []
@@ -144,7 +142,7 @@ def grid(algorithm: str, config=None, *, label: str | None = None, camera=None,
         setting = dict(zip(values, combo, strict=True))
         text = " ".join(f"{k}={_short(v)}" for k, v in setting.items())
         out.append(Entry(f"{prefix} {text}".strip(), algorithm,
-                         dataclasses.replace(start, **setting), group, tuple(setting.items())))
+                         with_fields(start, setting), group, tuple(setting.items())))
     return out
 
 

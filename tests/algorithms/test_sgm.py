@@ -12,6 +12,7 @@ import jstarid as js
 from jstarid import Finishing
 from jstarid.algorithms import sgm
 from jstarid.algorithms.sgm.matching import spectral_match
+from jstarid.config_tree import with_fields
 
 CAPACITY = 128  # the 20°×20° sgm2022 field holds > 64 stars of V ≤ 6 in dense regions
 _match = jax.jit(spectral_match, static_argnames=("c", "n_iter", "min_matched"))
@@ -21,7 +22,7 @@ def _search_config(**fields):
     """The algorithm without its focal-length ladder and camera check (tested in
     ``test_camera_errors.py`` and the contract test): these tests are about the search, and the
     ladder would search every failing scene four more times."""
-    return sgm.Config(finishing=Finishing.off(), **fields)
+    return with_fields(sgm.Config(finishing=Finishing.off()), fields)
 
 
 def _without_ladder(config):
@@ -33,7 +34,7 @@ def _without_ladder(config):
 def setup():
     cat = js.load_catalog(6.0)
     cam = js.camera_preset("sgm2022")
-    cfg = _search_config(power_iterations=30)  # fewer power steps than the default: faster tests
+    cfg = _search_config()
     db = sgm.build_database(cat, cam, cfg, progress=False)
     return cat, cam, cfg, db
 
@@ -100,11 +101,11 @@ def test_for_camera_keeps_the_paper_values_and_fits_the_circle_to_the_field():
         assert sgm.Config.for_camera(js.camera_preset(name)) == sgm.Config()
     cam = js.camera_preset("tetra3_test")  # 4.28° half field, 40″/px
     pixel, _ = js.camera.tolerance_scales(cam)
-    cfg = sgm.Config.for_camera(cam, verify_k=3.0)
+    cfg = sgm.Config.for_camera(cam, **{"verify.k": 3.0})
     assert cfg.radius_deg == 3.8 and sgm.camera_problem(cam, cfg) is None
     assert cfg.max_error_deg == pytest.approx(0.4 * pixel) and cfg.c == pytest.approx(1.74 / pixel)
     assert cfg.dw_max_deg == pytest.approx(6.0 * pixel) and cfg.n_levels == sgm.Config().n_levels
-    assert cfg.verify_cap_deg == pytest.approx(0.3 * pixel) and cfg.verify_k == 3.0
+    assert cfg.verify.cap_deg == pytest.approx(0.3 * pixel) and cfg.verify.k == 3.0
     assert "does not fit the 4.28° half field" in sgm.camera_problem(cam, sgm.Config())
 
 
@@ -213,7 +214,7 @@ def _sequential_algorithm1(db, adj, mask, w_i, cfg, exclude=()):
             q = int(np.ceil(db.n[t] / 8) * 8)
             m, e = _match(jnp.asarray(adj[:p, :p]), jnp.asarray(mask[:p]),
                                   jnp.asarray(db.adj[t, :q, :q]), jnp.asarray(np.arange(q) < db.n[t]),
-                                  c=cfg.c, n_iter=cfg.power_iterations, min_matched=cfg.min_matched)
+                                  c=cfg.c, n_iter=cfg.matching.power_iterations, min_matched=cfg.min_matched)
             errs[t], matches[t] = float(e), np.asarray(m)
         if errs:
             best = min(errs, key=errs.get)
@@ -254,7 +255,7 @@ def test_bounds_of_the_search_equal_the_per_pair_bounds(setup5):
     got, bounded = search.lower_bounds(db, image, n_i, scene, rows, cfg)
     r_i = sorted_rows(jnp.asarray(g.adj[scene]), m_i)
     r_j = sorted_rows(jnp.asarray(db.adj[rows]), m_j)
-    want = jax.vmap(partial(error_lower_bound, max_skip=cfg.prune_max_skip))(
+    want = jax.vmap(partial(error_lower_bound, max_skip=cfg.matching.prune_max_skip))(
         r_i, jnp.asarray(g.n[scene]), r_j, jnp.asarray(db.n[rows]))
     assert bounded.sum() > 20 and len(np.unique(np.abs(g.n[scene] - db.n[rows])[bounded])) > 2
     np.testing.assert_allclose(got[bounded], np.asarray(want)[bounded], rtol=2e-5, atol=1e-6)
@@ -295,7 +296,8 @@ def test_candidate_order_is_a_stable_sort_by_weight_difference():
 def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     cat, cam, db = setup5
     # tight ε → several Δw levels are visited; Δw_max cut to 0.5° to bound the work of failures
-    cfg = _search_config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5, screen=False)
+    cfg = _search_config(**{"max_error_deg": 0.1, "matching.chunk_size": 8, "dw_max_deg": 0.5,
+                            "screen": False})
     rows = np.random.default_rng(2).choice(len(cat), 4, replace=False)
     scenes = js.simulate(jax.random.key(6), cat, cam, js.NoiseConfig(position_sigma_px=2.0),
                          capacity=CAPACITY, boresight_ids=rows)
@@ -319,7 +321,7 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     # the test exercised success at level 0, at a later level, and failure
     assert 0 in levels and max(levels) > 0 and -1 in levels, levels
     # the exact pruning bound changes nothing but the work done
-    full, info_full = sgm.identify(db, scenes, dataclasses.replace(cfg, prune=False), diagnostics=True)
+    full, info_full = sgm.identify(db, scenes, with_fields(cfg, {"matching.prune": False}), diagnostics=True)
     np.testing.assert_array_equal(np.asarray(full.ids), np.asarray(batch.ids))
     np.testing.assert_array_equal(info_full.best, info.best)
     assert np.all(info_full.n_pruned == 0) and np.sum(info.n_pruned) > 0
@@ -343,7 +345,8 @@ def test_search_resumed_after_a_rejection_equals_algorithm1_without_that_candida
     some of them back."""
     from jstarid.algorithms.sgm import search
     cat, cam, db = setup5
-    cfg = _search_config(max_error_deg=eps, chunk_size=8, dw_max_deg=0.5, screen=False)
+    cfg = _search_config(**{"max_error_deg": eps, "matching.chunk_size": 8, "dw_max_deg": 0.5,
+                            "screen": False})
     rows, _, g, usable = _noisy_graphs(setup5, cfg, n=4 if eps < 0.4 else 6, seed=2 if eps < 0.4 else 3,
                                        key=6)
     state = search.advance_search(db, g, search.start_search(db, g, usable, cfg), cfg)
@@ -395,8 +398,8 @@ def test_verification_retries_recover_scenes_whose_first_match_was_wrong(setup):
     rows = np.sort(np.random.default_rng(7).choice(len(cat), 800, replace=False))
     scenes = js.simulate(jax.random.key(3), cat, cam, js.NoiseConfig(n_missing=1),
                          capacity=CAPACITY, boresight_ids=rows)[np.array([105, 760, 791])]
-    plain = dataclasses.replace(cfg, screen=False)  # the screen strikes those wrong graphs out
-    once, info0 = sgm.identify(db, scenes, dataclasses.replace(plain, verify_retries=0), diagnostics=True)
+    plain = with_fields(cfg, {"screen": False})  # the screen strikes those wrong graphs out
+    once, info0 = sgm.identify(db, scenes, with_fields(plain, {"verify.retries": 0}), diagnostics=True)
     assert not np.any(np.asarray(once.ok)) and np.all(info0.match_ok)  # rejected, so failed
     assert not np.any(info0.main_contested)  # the match was wrong, not the main star contested
     again, info = sgm.identify(db, scenes, plain, diagnostics=True)
@@ -405,7 +408,7 @@ def test_verification_retries_recover_scenes_whose_first_match_was_wrong(setup):
     assert np.all(info.n_rejected >= 1) and np.all(info.error < 1e-3)
     assert np.max(info.n_rejected) == 3  # one scene needed every retry
     # with the triangle screen the wrong graphs never reach the verification
-    screened, info_s = sgm.identify(db, scenes, dataclasses.replace(cfg, verify_retries=0),
+    screened, info_s = sgm.identify(db, scenes, with_fields(cfg, {"verify.retries": 0}),
                                     diagnostics=True)
     np.testing.assert_array_equal(np.asarray(screened.ids), np.asarray(again.ids))
     assert np.all(info_s.n_rejected == 0)
@@ -592,12 +595,11 @@ def test_rename_after_verification_names_a_detection_the_match_paired_wrongly(se
 
 def test_verification_at_three_pixels_names_nothing_wrong(setup):
     """σ = 3 px (the paper's largest noise): after verification no scene is mis-identified."""
-    import dataclasses
     cat, cam, cfg, db = setup
     rows = np.random.default_rng(12).choice(len(cat), 4, replace=False)
     scenes = js.simulate(jax.random.key(13), cat, cam, js.NoiseConfig(position_sigma_px=3.0),
                          capacity=CAPACITY, boresight_ids=rows)
-    raw = sgm.identify(db, scenes, dataclasses.replace(cfg, verify=False), with_attitude=False)
+    raw = sgm.identify(db, scenes, with_fields(cfg, {"verify": False}), with_attitude=False)
     ids, ok = _verify(db, cfg, scenes, np.asarray(raw.ids), np.asarray(raw.ok))
     truth, valid = np.asarray(scenes.truth), np.asarray(scenes.valid)
     assert not np.any(valid & (ids >= 0) & (ids != truth))
@@ -673,7 +675,7 @@ def test_verification_frame_coverage_rejects_a_consistent_but_wrong_attitude(set
     out, ok = _verify(db, cfg, mixed, mix_ids, np.ones(1, bool))
     assert not ok[0] and np.all(out == -1)
     # the residual, ambiguity and count tests alone accept it: only the coverage test fails it
-    out, ok = _verify(db, dataclasses.replace(cfg, verify_min_coverage=0.0), mixed, mix_ids,
+    out, ok = _verify(db, with_fields(cfg, {"verify.min_coverage": 0.0}), mixed, mix_ids,
                       np.ones(1, bool))
     assert ok[0]
 
@@ -811,15 +813,17 @@ def test_upper_rms_is_the_chi_square_lower_quantile():
 
 @pytest.mark.parametrize("bad", [
     {"radius_deg": 0.0}, {"dw_step_deg": 0.0}, {"dw_max_deg": 0.05}, {"c": 0.0},
-    {"max_error_deg": -0.1}, {"neighbor_capacity": 1}, {"chunk_size": 0}, {"min_matched": 0},
-    {"verify_retries": -1}, {"verify_k": 0.0}, {"verify_floor_deg": 0.5},
-    {"verify_ambiguity_k": -1.0}, {"verify_partner_k": -1.0}, {"verify_rms_z": -1.0},
-    {"verify_min_coverage": 1.5}, {"verify_magnitude_sigma": 0.0},
+    {"max_error_deg": -0.1}, {"neighbor_capacity": 1}, {"matching.chunk_size": 0}, {"min_matched": 0},
+    {"verify.retries": -1}, {"verify.k": 0.0}, {"verify.floor_deg": 0.5},
+    {"verify.ambiguity_k": -1.0}, {"verify.partner_k": -1.0}, {"verify.rms_z": -1.0},
+    {"verify.min_coverage": 1.5}, {"verify.magnitude_sigma": 0.0}, {"screen.fraction": 1.5},
+    {"subgraph.candidates": 0}, {"ladder.dw_max_deg": 0.01},
 ])
 def test_config_rejects_bad_settings(bad):
-    """Every out-of-range setting is a ValueError when the Config is made, not a failure in jit."""
+    """Every out-of-range setting, top-level or in a group, is a ValueError when the Config is made
+    (through :func:`~jstarid.config_tree.with_fields`, as ``--set`` makes it), not a failure in jit."""
     with pytest.raises(ValueError):
-        sgm.Config(**bad)
+        with_fields(sgm.Config(), bad)
 
 
 @pytest.mark.slow
@@ -828,7 +832,7 @@ def test_focal_ladder_and_camera_check_under_a_two_percent_focal_error(setup):
     the camera check reports the focal length the scenes were taken with (slow: the ladder adds
     one scene in thirty, so it takes a few hundred scenes to see it)."""
     cat, cam, _, db = setup
-    cfg = sgm.Config(power_iterations=30)  # the extensions on, as by default
+    cfg = sgm.Config()  # the extensions on, as by default
     true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
     scenes = js.simulate(jax.random.key(31), cat, true, js.NoiseConfig(position_sigma_px=0.5),
                          batch_size=160, capacity=CAPACITY)
@@ -848,8 +852,9 @@ def test_focal_ladder_and_camera_check_under_a_two_percent_focal_error(setup):
 def test_pruning_is_on_exactly_without_the_screen_unless_set():
     """``Config.prune = None`` bounds only without the screen (the screen leaves too little)."""
     assert not sgm.Config().pruning and sgm.Config.paper().pruning
-    assert sgm.Config(screen=False).pruning and sgm.Config(prune=True).pruning
-    assert not sgm.Config(screen=False, prune=False).pruning
+    assert sgm.Config(screen=sgm.Screen(on=False)).pruning
+    assert sgm.Config(matching=sgm.Matching(prune=True)).pruning
+    assert not sgm.Config(screen=sgm.Screen(on=False), matching=sgm.Matching(prune=False)).pruning
 
 
 def test_sorted_rows_and_edges_are_the_same_from_numpy_and_jax():
@@ -972,14 +977,14 @@ def test_ladder_answers_are_named_again_under_the_fitted_focal_length(setup):
     get their names (here: scenes taken with f × 0.98, the two named stars farthest from the main
     star taken away, the fitted scale given), every one right, and the camera check keeps them."""
     cat, cam, _, db = setup
-    cfg = sgm.Config(power_iterations=30)
+    cfg = sgm.Config()
     true = dataclasses.replace(cam, f_px=cam.f_px * 0.98)
     scenes = js.simulate(jax.random.key(7), cat, true, js.NoiseConfig(position_sigma_px=0.5),
                          batch_size=8, capacity=CAPACITY)
     from jstarid.algorithms.sgm.extensions import name_at_fitted_focal
     from jstarid.camera_fit import rescale_scenes
 
-    full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config(power_iterations=30))
+    full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config())
     ok = np.asarray(full.ok)
     assert ok.sum() >= 6
     ids = np.array(full.ids)
@@ -1008,7 +1013,7 @@ def test_ladder_answers_are_named_again_under_the_fitted_focal_length(setup):
 
 
 def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
-    """``Config.focal_search_whole_circle``: a scene the ladder solved stays solved only where every
+    """``Config.ladder.whole_circle``: a scene the ladder solved stays solved only where every
     true star within r of the main star (angles from the true camera, in NumPy) is named; the
     others become failures (ids −1, NaN attitude), a false star left unnamed fails nothing, and
     scenes outside ``take`` are left as they are. Here f × 0.98 scenes with two false stars each,
@@ -1020,7 +1025,7 @@ def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
     from jstarid.algorithms.sgm.extensions import whole_circles_only
     from jstarid.camera_fit import rescale_scenes
 
-    full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config(power_iterations=30))
+    full = sgm.identify(db, rescale_scenes(scenes, cam, 0.98), _search_config())
     ok, ids = np.asarray(full.ok), np.array(full.ids)
     truth = np.asarray(scenes.truth)
     assert ok.sum() >= 12 and np.all((ids == truth) | (ids < 0))
@@ -1041,7 +1046,7 @@ def test_ladder_answers_that_leave_part_of_the_circle_unnamed_fail(setup):
     take = ok.copy()
     spared = named[0]  # a partly named scene outside ``take`` keeps its answer
     take[spared] = False
-    out = whole_circles_only(db, scenes, given, take, sgm.Config(power_iterations=30))
+    out = whole_circles_only(db, scenes, given, take, sgm.Config())
     expect_ok = ok & (whole | ~take)
     np.testing.assert_array_equal(np.asarray(out.ok), expect_ok)
     np.testing.assert_array_equal(np.asarray(out.ids)[expect_ok], ids[expect_ok])
@@ -1075,7 +1080,7 @@ def test_claims_stay_solved_only_where_the_frame_confirms_them(setup):
     mixed = dataclasses.replace(scenes, xy=jnp.asarray(mixed_xy), mag=jnp.asarray(mixed_mag),
                                 truth=jnp.asarray(mixed_truth))
     ok = jnp.ones(8, bool)
-    config = sgm.Config(power_iterations=30)
+    config = sgm.Config()
 
     def claim(n_names, attitude):
         ids = np.full(truth.shape, -1, np.int32)

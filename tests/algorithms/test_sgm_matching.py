@@ -19,6 +19,7 @@ from jstarid.algorithms.sgm.matching import (
     principal_eigenvector,
     spectral_match,
 )
+from jstarid.config_tree import with_fields
 
 C = 1.74
 
@@ -158,7 +159,7 @@ def test_power_iteration_converges_like_eigh_with_default_steps():
     np.fill_diagonal(a_n, 0)
     m = np.ones(14, bool)
     k = affinity(jnp.asarray(a_n), m, jnp.asarray(a), m, C)
-    x = principal_eigenvector(k, Config().power_iterations)
+    x = principal_eigenvector(k, Config().matching.power_iterations)
     _, vecs = jnp.linalg.eigh(k)
     v = jnp.abs(vecs[:, -1])
     np.testing.assert_allclose(np.asarray(x), np.asarray(v), atol=1e-3)
@@ -227,7 +228,7 @@ def test_vertex_check_unnames_the_inconsistent_vertex():
     g = ImageGraph(members=members, mask=members >= 0, adj=a_i, n=np.array([10]), w=None, overflow=None,
                    main=members[:, 0])
     scenes = types.SimpleNamespace(valid=np.ones((1, 14), bool))
-    plain = dataclasses.replace(cfg, leftover_tol_deg=None, verify=False)
+    plain = with_fields(cfg, {"leftover_tol_deg": None, "verify": False})
     result, _ = names_from_match(db, scenes, g, res, plain)
     want = np.full(14, -1)
     want[members[0, :10]] = 100 + np.arange(10)

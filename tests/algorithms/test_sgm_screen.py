@@ -125,7 +125,8 @@ def test_search_with_the_screen_is_algorithm1_over_the_candidates_that_pass(setu
 
     from jstarid.algorithms.sgm import search
     cat, cam, db = setup5
-    cfg = sgm.Config(max_error_deg=0.1, chunk_size=8, dw_max_deg=0.5, finishing=Finishing.off())
+    cfg = sgm.Config(max_error_deg=0.1, matching=sgm.Matching(chunk_size=8), dw_max_deg=0.5,
+                     finishing=Finishing.off())
     rows, _, g, usable = _noisy_graphs(setup5, cfg, n=5, seed=2, key=6)
     state = search.advance_search(db, g, search.start_search(db, g, usable, cfg), cfg)
     out = search.search_outcome(state, cfg, g.mask.shape[1])
@@ -186,12 +187,12 @@ def test_screen_pairs_equal_the_screen_of_each_pair_at_full_size(setup5):
     got = screen_pairs(db, g.plane, n_i, scene, rows, cfg)
     k = max(g.plane.shape[1], db.plane.shape[1])
     pad = lambda x: np.pad(x, ((0, 0), (0, k - x.shape[1]), (0, 0)))  # noqa: E731
-    support = jax.vmap(lambda a, na, b, nb: _support(a, na, b, nb, tol=jnp.float32(cfg.screen_tol_deg),
-                                                     partners=cfg.screen_partners,
-                                                     hypotheses=cfg.screen_hypotheses))(
+    support = jax.vmap(lambda a, na, b, nb: _support(a, na, b, nb, tol=jnp.float32(cfg.screen.tol_deg),
+                                                     partners=cfg.screen.partners,
+                                                     hypotheses=cfg.screen.hypotheses))(
         jnp.asarray(pad(g.plane[scene])), jnp.asarray(n_i[scene]), jnp.asarray(pad(db.plane[rows])),
         jnp.asarray(db.n[rows]))
-    want = screen_pass(support, n_i[scene], db.n[rows], fraction=cfg.screen_fraction,
+    want = screen_pass(support, n_i[scene], db.n[rows], fraction=cfg.screen.fraction,
                        min_matched=cfg.min_matched)
     np.testing.assert_array_equal(got, np.asarray(want))
     assert 0.2 < got.mean() < 0.6

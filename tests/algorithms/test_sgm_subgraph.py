@@ -139,7 +139,7 @@ def test_subgraph_identifies_scenes_deeper_than_the_database_and_never_wrongly(s
     cam = js.camera_preset("sgm2022", mag_limit=5.5)
     noise = js.NoiseConfig(position_sigma_px=0.5, magnitude_sigma=0.2)
     scenes = js.simulate(jax.random.key(4), sim_cat, cam, noise, batch_size=32, capacity=20)
-    config = sgm.Config(subgraph=True, finishing=Finishing.off())
+    config = sgm.Config(subgraph=sgm.Subgraph(on=True), finishing=Finishing.off())
     res, diag = sgm.identify(db, scenes, config, diagnostics=True)
     named, right = _hip_correct(np.asarray(res.ids), np.asarray(scenes.truth), cat5, sim_cat)
     assert np.array_equal(named, right)  # no wrong name
@@ -159,24 +159,24 @@ def test_later_main_stars_are_the_next_nearest_to_the_principal_point(setup5):
                   np.sum((np.asarray(scenes.xy) - [cam.cx, cam.cy]) ** 2, axis=-1), np.inf)
     order = np.argsort(d2, axis=1, kind="stable")
     for rank in range(3):
-        g, _ = searchable_graphs(db, scenes, sgm.Config(subgraph=True), main_rank=rank)
+        g, _ = searchable_graphs(db, scenes, sgm.Config(subgraph=sgm.Subgraph(on=True)), main_rank=rank)
         np.testing.assert_array_equal(g.main, order[:, rank])
         np.testing.assert_array_equal(g.any, np.asarray(scenes.valid).sum(axis=1) > rank)
 
 
 def test_subgraph_is_off_in_the_paper_and_checked():
-    assert not sgm.Config().subgraph
-    assert not sgm.Config.paper().subgraph
+    assert not sgm.Config().subgraph.on
+    assert not sgm.Config.paper().subgraph.on
     with pytest.raises(ValueError, match="subgraph"):
-        sgm.Config(subgraph_tol_deg=0.0)
+        sgm.Subgraph(tol_deg=0.0)
     with pytest.raises(ValueError, match="subgraph"):
-        sgm.Config(subgraph_matchings=0)
+        sgm.Subgraph(matchings=0)
 
 
 def test_subgraph_fails_cleanly_on_empty_and_tiny_scenes(setup5):
     _, cam, db = setup5
     xy = [np.zeros((0, 2)), np.array([[cam.cx, cam.cy], [cam.cx + 40.0, cam.cy]])]
     scenes = js.scenes_from_centroids(xy, capacity=8)
-    res, diag = sgm.identify(db, scenes, sgm.Config(subgraph=True), diagnostics=True)
+    res, diag = sgm.identify(db, scenes, sgm.Config(subgraph=sgm.Subgraph(on=True)), diagnostics=True)
     assert not np.any(np.asarray(res.ok)) and np.all(np.asarray(res.ids) == -1)
     assert not np.any(diag.usable) and np.all(diag.best == -1)

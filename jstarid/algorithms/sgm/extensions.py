@@ -2,15 +2,15 @@
 
 In the order they run, each a ``Config`` field and off in ``Config.paper()``:
 
-1. :func:`next_main_stars` (``main_stars``, ``subgraph_main_stars``): the scenes left unsolved are
+1. :func:`next_main_stars` (``main_stars``, ``subgraph.main_stars``): the scenes left unsolved are
    searched again with the next detection nearest the principal point as the main star.
 2. :func:`finishing_stage` (``finishing``): the stage MLV and RpNet share
    (:func:`jstarid.finishing.finish`): the scenes still unsolved are tried under focal lengths
    1–2 % off (the focal-length ladder), and every solved scene's names are checked against a joint
    fit of attitude and focal length (the camera check).
-3. :func:`name_at_fitted_focal` (``finishing.fit_focal`` with ``verify_rename``): the scenes the
+3. :func:`name_at_fitted_focal` (``finishing.fit_focal`` with ``verify.rename``): the scenes the
    ladder solved are named again under the focal length the camera check fitted.
-4. :func:`whole_circles_only` (``focal_search_whole_circle``): of those, only the scenes whose
+4. :func:`whole_circles_only` (``ladder.whole_circle``): of those, only the scenes whose
    whole circle is named stay solved.
 5. :func:`confirmed_by_the_frame` (``finishing.max_false_match``): a scene stays solved only where
    its false-match probability — of its names, or of the frame named from its attitude — is small.
@@ -50,7 +50,7 @@ Search = Callable[..., Identification]
 
 def next_main_stars(scenes: Scene, result: Identification, config: Config, search: Search) -> Identification:
     """``result`` with its unsolved scenes searched again, main star by main star
-    (``Config.main_stars``, or ``Config.subgraph_main_stars`` with the subgraph search): the scenes
+    (``Config.main_stars``, or ``Config.subgraph.main_stars`` with the subgraph search): the scenes
     still unsolved after main star k − 1 are searched with the k-th detection nearest the principal
     point as the main star, in a batch padded to a power of two, so that the calls share their
     compilations (neither the first search nor these fit a camera).
@@ -58,7 +58,7 @@ def next_main_stars(scenes: Scene, result: Identification, config: Config, searc
     Why: a main star that is no catalog star (a false star, a planet near the centre) cannot be
     matched, and with the paper's one main star its scene fails (``Config.main_stars``).
     """
-    n_main = config.subgraph_main_stars if config.subgraph else config.main_stars
+    n_main = config.subgraph.main_stars if config.subgraph.on else config.main_stars
     if n_main == 1 or not scenes.batch_size:
         return result
     ids, ok = np.array(result.ids), np.array(result.ok)
@@ -84,12 +84,12 @@ def finishing_stage(db, scenes: Scene, result: Identification, config: Config, s
 
     Why a ladder: the graph's edges are angles, and a scale error of 2 % moves the circle's edge
     stars by 0.1°, past the verification's tolerance. Its searches stop at Δw =
-    ``focal_search_dw_max_deg``: a scene the rescaled camera explains is found at small Δw, and the
-    scenes left are mostly ones no focal length solves (``Config.focal_search_dw_max_deg``). The
+    ``ladder.dw_max_deg``: a scene the rescaled camera explains is found at small Δw, and the
+    scenes left are mostly ones no focal length solves (``Config.ladder.dw_max_deg``). The
     camera check keeps names out to :func:`camera_check_cap_px`. Without ``with_attitude`` the
     attitude the camera check fits is dropped.
     """
-    cap = config.focal_search_dw_max_deg
+    cap = config.ladder.dw_max_deg
     retry = config if cap is None else dataclasses.replace(config, dw_max_deg=min(cap, config.dw_max_deg))
     finished = finish(
         result, scenes, config.finishing, rerun=lambda moved, rows: search(moved, retry),
@@ -103,7 +103,7 @@ def finishing_stage(db, scenes: Scene, result: Identification, config: Config, s
 
 def camera_check_cap_px(config: Config, camera) -> float:
     """Largest radius (px) within which the camera check (``Config.fit_focal``) keeps a name: SGM's
-    own verification cap ``verify_cap_deg`` in pixels, never below the check's default
+    own verification cap ``verify.cap_deg`` in pixels, never below the check's default
     (:data:`jstarid.camera_fit.MAX_TOL_PX`).
 
     Why: the check keeps a name within 6 σ̂ of the fit, clipped to 10 px by default, while SGM's
@@ -113,7 +113,7 @@ def camera_check_cap_px(config: Config, camera) -> float:
     on the paper's criterion (1,000 scenes, accuracy of eq. 9: 70.6 % without the check, 66.0 %
     with the 10 px clip, 70.1 % with this cap; none wrong in any of them).
     """
-    cap = math.tan(math.radians(config.verify_cap_deg)) * camera.f_px
+    cap = math.tan(math.radians(config.verify.cap_deg)) * camera.f_px
     return max(MAX_TOL_PX, float(cap))
 
 
@@ -131,7 +131,7 @@ def name_at_fitted_focal(db, scenes: Scene, result: Identification, laddered: np
     camera check kept renamed under their fitted focal length: the members of the image circle left
     unnamed are named from the attitude (:func:`.naming.name_leftovers`), verified
     (:func:`.naming.verify_claims`) and checked by the camera fit again; a scene whose renaming
-    fails keeps its names. On with the camera check and ``verify_rename`` (with ``verify`` and
+    fails keeps its names. On with the camera check and ``verify.rename`` (with ``verify`` and
     ``leftover_tol_deg``).
 
     Why: the ladder's factors are 1 % apart, and under the factor that found a scene its edge stars
@@ -142,7 +142,7 @@ def name_at_fitted_focal(db, scenes: Scene, result: Identification, laddered: np
     examined; every name right): answered incompletely, they count against eq. 9. Renamed, the
     level's identification rate went from 98.92 to 99.41 % (experiments/RESULTS.md).
     """
-    renames = config.verify and config.verify_rename and config.leftover_tol_deg is not None
+    renames = config.verify.on and config.verify.rename and config.leftover_tol_deg is not None
     if not (scenes.batch_size and config.finishing.fit_focal and renames):
         return result
     rows = np.flatnonzero(laddered & np.asarray(result.ok))
@@ -211,9 +211,9 @@ def whole_circles_only(db, scenes: Scene, result: Identification, laddered: np.n
                        config: Config) -> Identification:
     """``result`` with those of the scenes the focal-length ladder solved (``laddered`` (B,) bool)
     that leave a star of their image circle unnamed turned into failures
-    (``Config.focal_search_whole_circle``; not with ``subgraph``). The circle is drawn under the
+    (``Config.ladder.whole_circle``; not with ``subgraph``). The circle is drawn under the
     fitted focal length; an unnamed member counts as a star left unnamed where a catalog star not
-    named in the scene lies within ``leftover_tol_deg`` (``verify_cap_deg`` where that is off) of
+    named in the scene lies within ``leftover_tol_deg`` (``verify.cap_deg`` where that is off) of
     its direction under the attitude of the names; the others are false stars or stars the catalog
     does not hold.
 
@@ -227,7 +227,7 @@ def whole_circles_only(db, scenes: Scene, result: Identification, laddered: np.n
     asked for: counted, it failed the ladder's answers of the scenes whose false star falls inside
     the circle (28 % of them in the paper's fake-star experiment).
     """
-    if not config.focal_search_whole_circle or config.subgraph:
+    if not config.ladder.whole_circle or config.subgraph.on:
         return result
     rows = np.flatnonzero(laddered & np.asarray(result.ok))
     if not rows.size:
@@ -235,7 +235,7 @@ def whole_circles_only(db, scenes: Scene, result: Identification, laddered: np.n
     padded, moved, g = _graphs_at_fitted_focal(db, scenes, result, rows, config)
     given = Identification(ids=jnp.asarray(np.asarray(result.ids)[padded]),
                            ok=jnp.asarray(np.asarray(result.ok)[padded]), attitude=None)
-    tol = config.leftover_tol_deg if config.leftover_tol_deg is not None else config.verify_cap_deg
+    tol = config.leftover_tol_deg if config.leftover_tol_deg is not None else config.verify.cap_deg
     # a star left unnamed is one the leftover naming would name: an unnamed member with an unnamed
     # catalog star within tol of its direction
     nameable = name_leftovers(db, moved, given, g, dataclasses.replace(config, leftover_tol_deg=tol))

@@ -168,7 +168,7 @@ def scene_graphs(xy, valid, *, camera, radius_deg: float, capacity: int, main_ra
         xy: (B, N, 2) centroids (px). valid: (B, N) bool.
         camera: static :class:`~jstarid.camera.Camera`. radius_deg: r (deg). capacity: static K.
         main_rank: static; the main star is the valid detection nearest the principal point (0, the
-            paper's choice) or the ``main_rank``-th nearest after it (``Config.subgraph_main_stars``).
+            paper's choice) or the ``main_rank``-th nearest after it (``Config.subgraph.main_stars``).
 
     Returns:
         :class:`ImageGraph` of (B, …) arrays, with ``main`` (B,) int32 main-star detection and

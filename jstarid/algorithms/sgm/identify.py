@@ -124,7 +124,7 @@ def _algorithm1(db, scenes: Scene, config: Config, *, main_rank: int = 0, with_a
                                    with_attitude=with_attitude, diagnostics=diagnostics)
         keep = np.arange(b)  # gathered on the host: no program per (size, b)
         return result[keep], (None if diag is None else jax.tree.map(lambda a: a[:b], diag))
-    if config.subgraph:
+    if config.subgraph.on:
         return _subgraph_pass(db, scenes, config, main_rank=main_rank, with_attitude=with_attitude,
                               diagnostics=diagnostics)
     # lines 1–2: main star I, its neighbor graph G_I (the detections within r), A_I and w_I (MST)
@@ -160,7 +160,7 @@ def _search_again(db, scenes: Scene, config: Config, main_rank: int = 0, *,
 def _subgraph_pass(db, scenes: Scene, config: Config, *, main_rank: int, with_attitude: bool,
                    diagnostics: bool) -> tuple[Identification, Diagnostics | None]:
     """:func:`_algorithm1` with ``Config.subgraph`` (:mod:`.subgraph`): each scene's ranked accepted
-    candidates are named and verified in order (up to ``verify_retries`` more after a rejection), with
+    candidates are named and verified in order (up to ``verify.retries`` more after a rejection), with
     the ``main_rank``-th detection nearest the principal point as the main star (the batch padded
     by :func:`_algorithm1`).
     """

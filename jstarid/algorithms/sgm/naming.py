@@ -13,9 +13,9 @@ Not in the paper (:class:`~.config.Config`), in the order they run:
   the matched stars (:func:`name_leftovers`);
 - ``verify`` (on, :mod:`.verify`): fails a scene rather than mis-identify it
   (:func:`verify_claims`);
-- ``verify_rename``: names what the verification left unnamed and verifies again
+- ``verify.rename``: names what the verification left unnamed and verifies again
   (:func:`rename_and_reverify`);
-- ``verify_retries``: strikes out a rejected match and takes the search's next answer
+- ``verify.retries``: strikes out a rejected match and takes the search's next answer
   (:func:`names_with_retries`; :mod:`.search`, "Resumption"), so the verification joins
   Algorithm 1's acceptance test.
 """
@@ -47,7 +47,7 @@ __all__ = ["attitude_from_names", "check_vertices", "name_leftovers", "names_fro
 
 def names_with_retries(db, scenes: Scene, g: ImageGraph, res: SearchOutcome, config: Config,
                        next_outcome: Callable[[SearchOutcome, np.ndarray], SearchOutcome]):
-    """:func:`names_from_match`, then, for the matches the verification rejected (``verify_retries``
+    """:func:`names_from_match`, then, for the matches the verification rejected (``verify.retries``
     times at most), the search's next answer: ``next_outcome(res, redo)`` → the
     :class:`~.search.SearchOutcome` with the scenes ``redo`` (R,) moved on. Not when only the main
     star's name was contested: another graph cannot settle that.
@@ -58,9 +58,9 @@ def names_with_retries(db, scenes: Scene, g: ImageGraph, res: SearchOutcome, con
     """
     result, contested = names_from_match(db, scenes, g, res, config)
     contested = contested.copy()  # a view of a device array is read-only
-    if not config.verify:
+    if not config.verify.on:
         return result, res, contested
-    for _ in range(config.verify_retries):
+    for _ in range(config.verify.retries):
         retry = res.ok & ~np.asarray(result.ok) & ~contested
         if not np.any(retry):
             break
@@ -128,9 +128,9 @@ def names_from_match(db, scenes: Scene, g: ImageGraph, res: SearchOutcome, confi
         ids = name_leftovers(db, scenes, result, g, config)
         result = Identification(ids=jnp.asarray(ids), ok=result.ok, attitude=None)
     main_ambiguous = np.zeros(b, bool)
-    if config.verify and np.any(ok):
+    if config.verify.on and np.any(ok):
         result, main_ambiguous = verify_claims(db, scenes, result, g.main, config)
-        if config.verify_rename and config.leftover_tol_deg is not None and np.any(result.ok):
+        if config.verify.rename and config.leftover_tol_deg is not None and np.any(result.ok):
             result = rename_and_reverify(db, scenes, result, g, config)
     return result, main_ambiguous
 
@@ -186,16 +186,16 @@ def verify_inputs(db, config: Config):
         jnp.asarray(cat_np, jnp.float32), jnp.asarray(db.catalog.mag, jnp.float32),
         index.device_arrays()[0]))
     settings = dict(camera=db.camera, grid=index.grid,
-                    k=float(config.verify_k), floor_deg=float(config.verify_floor_deg),
-                    cap_deg=float(config.verify_cap_deg),
-                    amb_k=float(config.verify_ambiguity_k),
-                    amb_deg=float(config.verify_ambiguity_deg),
-                    partner_joint=bool(config.verify_partner_joint),
-                    partner_k=float(config.verify_partner_k),
-                    mag_sigma=float(config.verify_magnitude_sigma or 0.0),
-                    rms_z=float(config.verify_rms_z),
+                    k=float(config.verify.k), floor_deg=float(config.verify.floor_deg),
+                    cap_deg=float(config.verify.cap_deg),
+                    amb_k=float(config.verify.ambiguity_k),
+                    amb_deg=float(config.verify.ambiguity_deg),
+                    partner_joint=bool(config.verify.partner_joint),
+                    partner_k=float(config.verify.partner_k),
+                    mag_sigma=float(config.verify.magnitude_sigma or 0.0),
+                    rms_z=float(config.verify.rms_z),
                     min_matched=int(config.min_matched),
-                    min_coverage=float(config.verify_min_coverage),
+                    min_coverage=float(config.verify.min_coverage),
                     n_near=int(min(2 * db.capacity, cat_np.shape[0])))
     return tables, settings
 
@@ -207,7 +207,7 @@ def _verify_scenes(xy, mag, valid, ids, ok, main, cat, cat_mag, cells, **setting
 
 def rename_and_reverify(db, scenes: Scene, verified: Identification, g: ImageGraph,
                         config: Config) -> Identification:
-    """``Config.verify_rename``: :func:`name_leftovers` on the verified names, then :func:`verify_claims`
+    """``Config.verify.rename``: :func:`name_leftovers` on the verified names, then :func:`verify_claims`
     again on the scenes it changed; where that fails, the first result stands. Returns an
     :class:`~jstarid.scene.Identification` with the same ``ok`` as ``verified``.
     """

@@ -17,7 +17,7 @@ database graph's radii, sorted once per database, and a window about the inserti
 affinity and power steps.
 
 The screen is a heuristic, not a bound: it can reject the true graph (when fewer than
-``screen_fraction`` of the smaller graph's vertices survive, e.g. most stars crossed the circle;
+``screen.fraction`` of the smaller graph's vertices survive, e.g. most stars crossed the circle;
 the spectral matching's δ would then rarely pass ε_δ either), so it is off in ``Config.paper()``
 and its effect is measured side by side (experiments/RESULTS.md, Throughput).
 """
@@ -243,8 +243,8 @@ def screen_pairs(db, plane_i, n_i, scene, rows, config) -> np.ndarray:
         db: the SGM database (``plane``, ``n``). plane_i: (B, K, 2) image graphs'
             :func:`~.graph.plane_coords` (deg). n_i: (B,) image vertex counts.
         scene, rows: (N,) scene and database row of each pair.
-        config: :class:`~.config.Config` (``screen_tol_deg``, ``screen_fraction``,
-            ``screen_partners``, ``screen_hypotheses``, ``min_matched``, ``size_bucket``).
+        config: :class:`~.config.Config` (``screen.tol_deg``, ``screen.fraction``,
+            ``screen.partners``, ``screen.hypotheses``, ``min_matched``, ``size_bucket``).
 
     Returns:
         (N,) bool, True for the pairs to keep.
@@ -255,11 +255,11 @@ def screen_pairs(db, plane_i, n_i, scene, rows, config) -> np.ndarray:
     n_j = db.n[rows].astype(np.int32)
     bucket = int(config.size_bucket)
     size = np.maximum(-(-np.maximum(n_i[scene], n_j) // bucket) * bucket, bucket)
-    tol = jnp.float32(config.screen_tol_deg)
+    tol = jnp.float32(config.screen.tol_deg)
     r_i, phi_i, hyp, hyp_ok = jax.device_get(graph_polar(
-        jnp.asarray(plane_i), jnp.asarray(n_i), tol, hypotheses=int(config.screen_hypotheses)))
+        jnp.asarray(plane_i), jnp.asarray(n_i), tol, hypotheses=int(config.screen.hypotheses)))
     r_j, phi_j = database_polar(db)
-    static = {"partners": int(config.screen_partners), "fraction": float(config.screen_fraction),
+    static = {"partners": int(config.screen.partners), "fraction": float(config.screen.fraction),
               "min_matched": int(config.min_matched)}
     pending = []
     for r in np.unique(size):

@@ -30,7 +30,7 @@ examined candidate, before the bounds: at σ = 3 px it strikes out ≈ 99.5 % of
 367k of 369k), which leaves the bounds too little to save (``Config.pruning`` is off with it).
 
 Resumption. :class:`SearchState` keeps δ of every matched candidate and the bound of every deferred
-one. When the post-match verification rejects J* (``Config.verify_retries``), :func:`reject_best`
+one. When the post-match verification rejects J* (``Config.verify.retries``), :func:`reject_best`
 sets its δ to ∞ and :func:`advance_search` goes on: Algorithm 1 on the database without the
 struck-out graphs (tested against the sequential loop with those graphs removed).
 """
@@ -119,7 +119,7 @@ def _match_pairs(a_i, n_i, cand, db_adj, db_n, c, *, p, q, n_iter, tol, min_matc
 
     Pairs run one after another (``lax.map``), not ``vmap``: a lone pair's (p·q)² affinity matrix stays
     in cache for all its power steps (docs/design/sgm.md), and each pair stops on its own
-    (``Config.power_tol``). Padding pairs (``cand`` = −1) are skipped (match −1, δ = inf). ``c``
+    (``Config.matching.power_tol``). Padding pairs (``cand`` = −1) are skipped (match −1, δ = inf). ``c``
     (eq. 2) is traced: a sweep over c reuses the compiled kernels.
     """
     live = cand >= 0
@@ -251,9 +251,9 @@ def edge_bounds(db, image: ImageTables, n_i, scene, rows, config: Config) -> np.
 
 
 def beyond_row_bound(n_i, n_j, config: Config) -> np.ndarray:
-    """True where two vertex counts differ by more than ``prune_max_skip``: the row bound
+    """True where two vertex counts differ by more than ``matching.prune_max_skip``: the row bound
     (:func:`~.bound.error_lower_bound`) knows nothing there and is not computed."""
-    return np.abs(np.asarray(n_i, np.int64) - np.asarray(n_j, np.int64)) > config.prune_max_skip
+    return np.abs(np.asarray(n_i, np.int64) - np.asarray(n_j, np.int64)) > config.matching.prune_max_skip
 
 
 def lower_bounds(db, image: ImageTables, n_i, scene, rows, config: Config):
@@ -263,11 +263,11 @@ def lower_bounds(db, image: ImageTables, n_i, scene, rows, config: Config):
         db: the database. image: :func:`image_tables` of the image graphs. n_i: (B,) image vertex
             counts.
         scene, rows: (N,) scene and database row of each pair.
-        config: :class:`Config` (``prune_max_skip``, ``size_bucket``, ``memory_budget_mb``).
+        config: :class:`Config` (``matching.prune_max_skip``, ``size_bucket``, ``matching.memory_budget_mb``).
 
     Returns:
         ``(bound, bounded)``: (N,) float32 bound on δ (deg; 0 where nothing is known) and (N,) bool,
-        False for pairs whose vertex counts differ by more than ``prune_max_skip`` (not bounded).
+        False for pairs whose vertex counts differ by more than ``matching.prune_max_skip`` (not bounded).
     """
     n_j = db.n[rows]
     s_diff = np.abs(n_i[scene] - n_j)
@@ -282,7 +282,7 @@ def lower_bounds(db, image: ImageTables, n_i, scene, rows, config: Config):
                       1 << np.ceil(np.log2(np.maximum(s_diff[at], 1))).astype(np.int64))
         (lb[at],) = run_pairs(
             _bound_pairs, np.stack([r, sk], axis=1), image.rows, n_i, scene[at], rows[at],
-            lambda r_, s_: r_ * r_ * (r_ - 1 + 3 * (s_ + 1)) * 4, config.memory_budget_mb * 2**20,
+            lambda r_, s_: r_ * r_ * (r_ - 1 + 3 * (s_ + 1)) * 4, config.matching.memory_budget_mb * 2**20,
             ("r", "max_skip"), [()], database_tables(db, "rows"))
     return lb, bounded
 
@@ -299,11 +299,11 @@ def prune_mask(db, adj_i, n_i, scene, rows, config: Config, max_error_deg: float
     Args:
         db: the database. adj_i: (B, K, K) image adjacencies (deg). n_i: (B,) image vertex counts.
         scene, rows: (N,) scene and database row of each pair.
-        config: :class:`Config` (``prune_max_skip``, ``size_bucket``, ``memory_budget_mb``).
+        config: :class:`Config` (``matching.prune_max_skip``, ``size_bucket``, ``matching.memory_budget_mb``).
         max_error_deg: ε; a pair is dropped when its bound on δ exceeds it.
 
     Returns:
-        (N,) bool, True for the pairs to match (pairs differing by more than ``prune_max_skip``
+        (N,) bool, True for the pairs to match (pairs differing by more than ``matching.prune_max_skip``
         vertices face the edge bound only).
     """
     image = image_tables(adj_i, n_i)
@@ -331,7 +331,7 @@ class SearchState:
         bound: (B, W) float32 lower bound on δ (deg; 0 where unknown): :func:`~.bound.edge_lower_bound`
             when examined, the larger of it and :func:`~.bound.error_lower_bound` once refined.
         refined: (B, W) bool, the bound is final (second stage run, or useless: vertex counts
-            further apart than ``prune_max_skip``, or no pruning). deferred: (B, W) bool, examined,
+            further apart than ``matching.prune_max_skip``, or no pruning). deferred: (B, W) bool, examined,
             neither pruned nor matched.
         matches: ``{(scene, rank): (K,) int32}`` correspondences of the matched pairs with δ ≤ ε_δ.
         n_matched, n_pruned, n_rejected: (B,) int32 spectral matchings run, candidates the bound removed
@@ -369,7 +369,7 @@ def start_search(db, graphs: ImageGraph, usable: np.ndarray, config: Config) -> 
     w_i = jnp.asarray(graphs.w, jnp.float32)
     start, stop = candidate_windows(db.kvector, w_i, jnp.float32(config.dw_last_deg))
     count = np.where(usable, np.asarray(stop) - np.asarray(start), 0)
-    width = next_power_of_two(max(int(count.max(initial=0)), int(config.chunk_size)))
+    width = next_power_of_two(max(int(count.max(initial=0)), int(config.matching.chunk_size)))
     cand, level = order_candidates(
         db.w, start, stop, w_i, width=width, dw0=float(config.dw0_deg),
         step=float(config.dw_step_deg), n_levels=config.n_levels)
@@ -442,9 +442,9 @@ def _match_ranks(db, graphs: ImageGraph, state: SearchState, config: Config, sce
                    bucket_up(db.n[rows], config.size_bucket)], axis=1)
     match_flat, err_flat = run_pairs(
         _match_pairs, pq, graphs.adj, n_i, scene, rows, lambda p, q: (p * q) ** 2 * 4 * 3,
-        config.memory_budget_mb * 2**20, ("p", "q"), [(k,), ()],
+        config.matching.memory_budget_mb * 2**20, ("p", "q"), [(k,), ()],
         (*database_tables(db), jnp.float32(config.c)),
-        n_iter=int(config.power_iterations), tol=float(config.power_tol),
+        n_iter=int(config.matching.power_iterations), tol=float(config.matching.power_tol),
         min_matched=int(config.min_matched))
     state.err[scene, rank] = err_flat
     state.deferred[scene, rank] = False
@@ -471,7 +471,7 @@ def _examine_block(db, graphs: ImageGraph, state: SearchState, config: Config, a
     s_idx, c_idx = np.nonzero(take)
     scene, rank = act[s_idx], ranks[s_idx, c_idx]
     state.refined[scene, rank] = True  # without pruning there is nothing to refine
-    if config.screen and scene.size:
+    if config.screen.on and scene.size:
         # first: the screen strikes out ≈ 90 % of the candidates at a cost per pair near the edge
         # bound's, which strikes out ≈ 9 % (400 σ = 3 px scenes: 339k of 372k pairs screened when
         # the screen ran after it), so the bounds run on the few it keeps
@@ -515,8 +515,9 @@ def _refine(db, graphs: ImageGraph, state: SearchState, config: Config, scene: n
 
 def _probe(db, graphs: ImageGraph, state: SearchState, config: Config, act: np.ndarray) -> None:
     """Match each scene's needed rank with the smallest bound (the likeliest J*; in place), if its
-    refined bound keeps it. Ranks whose vertex count differs by more than ``prune_max_skip`` come last:
-    only the loose first stage bounds them, they are seldom J*, and a failed probe leaves no δ*.
+    refined bound keeps it. Ranks whose vertex count differs by more than ``matching.prune_max_skip``
+    come last: only the loose first stage bounds them, they are seldom J*, and a failed probe leaves
+    no δ*.
     """
     need = _needed(state, config, act)
     upto = need.shape[1]
@@ -535,11 +536,11 @@ def advance_search(db, graphs: ImageGraph, state: SearchState, config: Config,
     """Run Algorithm 1 on the ``active`` scenes (default: all) until each has stopped.
 
     Each step examines the next block of ranks of every scene whose l* prefix is not covered
-    (``chunk_size`` ranks, doubling up to 512) and prunes by the first-stage bound. With ``prune``: a
-    probe (:func:`_probe`) matches the needed rank with the smallest bound, the other needed ranks
-    (:func:`_needed`) are refined, a second probe, then every rank that can still change the answer is
-    matched; without it, every examined rank of the l* prefix. Ranks beyond the l* prefix stay
-    unexamined. The outcome is Algorithm 1's (module docstring).
+    (``matching.chunk_size`` ranks, doubling up to 512) and prunes by the first-stage bound. With
+    ``matching.prune``: a probe (:func:`_probe`) matches the needed rank with the smallest bound, the
+    other needed ranks (:func:`_needed`) are refined, a second probe, then every rank that can still
+    change the answer is matched; without it, every examined rank of the l* prefix. Ranks beyond the
+    l* prefix stay unexamined. The outcome is Algorithm 1's (module docstring).
 
     Args:
         db: :class:`~jstarid.algorithms.sgm.database.Database`.
@@ -557,7 +558,7 @@ def advance_search(db, graphs: ImageGraph, state: SearchState, config: Config,
     todo = np.ones(b, bool) if active is None else np.asarray(active, bool).copy()
     rows_all = np.nonzero(todo)[0]
     todo[rows_all] = ~_finished(state, config, rows_all)
-    block = int(config.chunk_size)
+    block = int(config.matching.chunk_size)
     while np.any(todo):
         act = np.nonzero(todo)[0]
         grow = act[~_prefix_done(state, config, act)]

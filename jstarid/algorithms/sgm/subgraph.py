@@ -20,12 +20,12 @@ module keeps SGM's spectral matching and replaces what assumes equal vertex sets
    that agree with the rest are paired (:func:`grow_match`): unmatched vertices are allowed on both
    sides. The matching error eq. 5 is taken over the pairs that remain.
 4. **Acceptance**: δ ≤ ε_δ, the main star paired, and at least ``max(min_matched,
-   ⌈screen_fraction · min(n_I, n_J)⌉)`` pairs (n_J: the cut graph). Accepted candidates are ranked by
+   ⌈screen.fraction · min(n_I, n_J)⌉)`` pairs (n_J: the cut graph). Accepted candidates are ranked by
    pairs (more first), then δ; the verification (:mod:`.verify`) takes them in that order.
 
 Choices a reviewer should know (the paper is silent, as it assumes equal vertex sets):
-``subgraph_tol_deg`` is the radius tolerance of step 1 (tight: a tight vote is rare by chance),
-``screen_tol_deg`` the edge-residual tolerance of step 3 (one star's position error, as in the
+``subgraph.tol_deg`` is the radius tolerance of step 1 (tight: a tight vote is rare by chance),
+``screen.tol_deg`` the edge-residual tolerance of step 3 (one star's position error, as in the
 screen); the cut graph holds at most ``P + size_bucket`` vertices (P: the image graph's padded
 size), those of nearest radius first — a graph with more radius partners is cut further
 (:func:`partner_vertices`; ``Diagnostics.cut`` reports it for the accepted graph), which can only
@@ -54,7 +54,7 @@ __all__ = ["Ranking", "radii_table", "radial_votes", "partner_vertices", "drop_o
 
 class Ranking(NamedTuple):
     """Each scene's matched candidates, best first (:func:`subgraph_search`; NumPy, batch axis
-    first, M = ``min(subgraph_matchings, subgraph_candidates)``).
+    first, M = ``min(subgraph.matchings, subgraph.candidates)``).
 
     Attributes:
         rows: (B, M) int32 database rows (−1 where the scene was not searched).
@@ -249,8 +249,8 @@ def rank_candidates(a_i, n_i, plane_i, radii_db, db_adj, db_plane, db_n, *, radi
         a_i: (P, P) image adjacency (deg). n_i: () vertices. plane_i: (P, 2) plane coordinates (deg).
         radii_db: (D, K) :func:`radii_table`. db_adj: (D, K, K) deg. db_plane: (D, K, 2) deg.
         db_n: (D,) vertex counts. radius: the database's r (deg). tol, screen_tol, c, max_error
-        (deg, 1/deg): ``Config``'s ``subgraph_tol_deg``, ``screen_tol_deg``, ``c``,
-        ``max_error_deg``. fraction: ``screen_fraction``. extra: static, the cut graph holds
+        (deg, 1/deg): ``Config``'s ``subgraph.tol_deg``, ``screen.tol_deg``, ``c``,
+        ``max_error_deg``. fraction: ``screen.fraction``. extra: static, the cut graph holds
         P + ``extra`` vertices. The rest static: ``Config``'s fields of the same meaning.
 
     Returns:
@@ -315,7 +315,7 @@ def subgraph_search(db, graphs: ImageGraph, usable: np.ndarray, config) -> Ranki
     """Steps 1–4 for a batch of image graphs (host side).
 
     Scenes are grouped by their image graph's padded size P (``size_bucket``) and run in chunks
-    whose affinity matrices fit ``memory_budget_mb`` (``subgraph_matchings`` × (P·Q)² floats per
+    whose affinity matrices fit ``matching.memory_budget_mb`` (``subgraph.matchings`` × (P·Q)² floats per
     scene, Q = P + ``size_bucket`` the cut graph's size).
 
     Args:
@@ -326,7 +326,7 @@ def subgraph_search(db, graphs: ImageGraph, usable: np.ndarray, config) -> Ranki
         :class:`Ranking` (``match`` padded to the image capacity K).
     """
     b, k = graphs.mask.shape
-    m = int(min(config.subgraph_matchings, config.subgraph_candidates))
+    m = int(min(config.subgraph.matchings, config.subgraph.candidates))
     out = Ranking(rows=np.full((b, m), -1, np.int32), match=np.full((b, m, k), -1, np.int32),
                   error=np.full((b, m), np.inf, np.float32), pairs=np.zeros((b, m), np.int32),
                   ok=np.zeros((b, m), bool), cut=np.zeros((b, m), bool))
@@ -337,19 +337,19 @@ def subgraph_search(db, graphs: ImageGraph, usable: np.ndarray, config) -> Ranki
     sizes = np.minimum(k, np.maximum(bucket, -(-graphs.n[todo] // bucket) * bucket))
     tables = on_every_device(db, "subgraph", lambda: (
         jnp.asarray(radii_table(db)), jnp.asarray(db.adj), jnp.asarray(db.plane), jnp.asarray(db.n)))
-    static = dict(n_candidates=int(min(config.subgraph_candidates, len(db))), n_matchings=m,
-                  partners=int(config.screen_partners), hypotheses=int(config.screen_hypotheses),
-                  n_iter=int(config.power_iterations), power_tol=float(config.power_tol),
+    static = dict(n_candidates=int(min(config.subgraph.candidates, len(db))), n_matchings=m,
+                  partners=int(config.screen.partners), hypotheses=int(config.screen.hypotheses),
+                  n_iter=int(config.matching.power_iterations), power_tol=float(config.matching.power_tol),
                   min_matched=int(config.min_matched), extra=bucket)
-    scalars = tuple(jnp.float32(v) for v in (db.radius_deg, config.subgraph_tol_deg,
-                                             config.screen_tol_deg, config.c, config.max_error_deg,
-                                             config.screen_fraction))
+    scalars = tuple(jnp.float32(v) for v in (db.radius_deg, config.subgraph.tol_deg,
+                                             config.screen.tol_deg, config.c, config.max_error_deg,
+                                             config.screen.fraction))
     for p in np.unique(sizes):
         p = int(p)
         group = todo[sizes == p]
         q = min(k, p + bucket)
         per_scene = m * (p * q) ** 2 * 4 * 3  # the affinity and two temporaries of its size
-        chunk = 1 << int(np.clip(np.log2(config.memory_budget_mb * 2**20 / per_scene), 0, 6))
+        chunk = 1 << int(np.clip(np.log2(config.matching.memory_budget_mb * 2**20 / per_scene), 0, 6))
         for lo in range(0, group.size, chunk):
             rows = group[lo:lo + chunk]
             fill = padded_indices(rows, floor=chunk)  # chunk: a power of two ≥ rows.size

@@ -104,7 +104,7 @@ def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_err
     matches = {}
     adj_i, n_i = graphs.adj, graphs.n.astype(np.int32)
     cs_dev = replicate(jnp.asarray(cs))
-    budget = config.memory_budget_mb * 2**20
+    budget = config.matching.memory_budget_mb * 2**20
     for r0 in range(0, width, block):
         s_idx, r_idx = np.nonzero(cand_all[:, r0:r0 + block] >= 0)
         r_idx = r_idx + r0
@@ -120,7 +120,7 @@ def candidate_errors(db, graphs, usable: np.ndarray, config: Config, cs, max_err
         m, e = run_pairs(_match_pairs_grid, pq, adj_i, n_i, s_idx, rows,
                           lambda p, q: (p * q) ** 2 * 4 * 3 * cs.size, budget, ("p", "q"),
                           [(cs.size, k), (cs.size,)], (*database_tables(db), cs_dev),
-                          n_iter=int(config.power_iterations), tol=float(config.power_tol),
+                          n_iter=int(config.matching.power_iterations), tol=float(config.matching.power_tol),
                           min_matched=int(config.min_matched))
         error[s_idx, r_idx] = e
         for pair, ci in zip(*np.nonzero(e <= max_error_deg), strict=True):
@@ -210,7 +210,7 @@ _GRID_FIELDS = ("c", "max_error_deg")
 def identify_grid(db, scenes, configs) -> list[Identification]:
     """``identify`` with each of ``configs`` (the sweep engine's parameter grids, :func:`jstarid.grid`).
 
-    Where every config runs the paper's Algorithm 1 alone (``verify`` off, no leftover naming) and
+    Where every config runs the paper's Algorithm 1 alone (``verify.on`` off, no leftover naming) and
     they differ only in ``c`` and ``max_error_deg``, the grid is one :func:`search_grid` call (c a
     batch axis of the matching, ε_δ replayed on the stored errors), whose names equal separate
     searches; otherwise each config is a separate :func:`~jstarid.algorithms.sgm.identify` call.
@@ -225,7 +225,7 @@ def identify_grid(db, scenes, configs) -> list[Identification]:
 
     configs = list(configs)
     base = dataclasses.replace(configs[0], c=1.0, max_error_deg=0.1)
-    batched = (not base.verify and base.leftover_tol_deg is None and all(
+    batched = (not base.verify.on and base.leftover_tol_deg is None and all(
         dataclasses.replace(c, c=1.0, max_error_deg=0.1) == base for c in configs))
     if not batched:
         return [identify(db, scenes, c) for c in configs]

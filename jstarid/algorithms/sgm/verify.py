@@ -28,7 +28,7 @@ every named detection against the attitude of the others:
    (inset by ``cap_deg``; :mod:`jstarid.sky_index` cell of the boresight) need a detection within
    ``cap_deg`` (the fitted tolerance is too tight after a 3–4-star fit), or the scene fails.
 
-The caller (``Config.verify_rename``) names the detections left unnamed from the verified attitude
+The caller (``Config.verify.rename``) names the detections left unnamed from the verified attitude
 and runs the step again, so a wrongly paired detection can get its right name.
 """
 
