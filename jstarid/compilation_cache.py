@@ -26,7 +26,7 @@ __all__ = ["enable_compilation_cache"]
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None, *,
-                             min_compile_time_s: float = 0.5, programs: bool = True) -> Path:
+                             min_compile_time_s: float = 0.0, programs: bool = True) -> Path:
     """Keep compiled XLA executables on disk so later processes skip recompilation.
 
     A cache directory already chosen through ``JAX_COMPILATION_CACHE_DIR`` (or
@@ -36,7 +36,10 @@ def enable_compilation_cache(path: str | os.PathLike | None = None, *,
         path: cache directory; default ``<jstarid cache>/xla`` (``$JSTARID_CACHE`` or
             ``~/.cache/jstarid``).
         min_compile_time_s: only executables that took at least this long (s) to compile are
-            stored (small ones are cheaper to rebuild than to read back).
+            stored. Default 0, every one: the small programs of eager steps (tens of them in a
+            first ``identify``, ≈ 25 ms each to build) read back faster than they build — MLV's
+            first call on 100 scenes in a warm process took 3.0–3.2 s with all of them kept
+            against 4.3 s with those under 0.5 s rebuilt.
         programs: also turn on the program store in ``<jstarid cache>/programs`` (the programs of
             jstarid's kernels, loaded without tracing; :mod:`jstarid.runtime.program_store`).
 

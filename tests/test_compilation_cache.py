@@ -22,7 +22,8 @@ def restore_jax_cache_config(monkeypatch):
 def test_cache_dir_from_jstarid_cache(tmp_path, monkeypatch, restore_jax_cache_config):
     monkeypatch.setenv("JSTARID_CACHE", str(tmp_path))
     jax.config.update("jax_compilation_cache_dir", None)
-    path = js.enable_compilation_cache(min_compile_time_s=0.0)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)  # JAX's own default
+    path = js.enable_compilation_cache()  # by default every executable is kept, the small ones too
     assert path == tmp_path / "xla" and path.is_dir()
     assert jax.config.jax_compilation_cache_dir == str(path)
     assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0

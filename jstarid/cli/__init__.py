@@ -54,8 +54,7 @@ def main(argv=None) -> int:
     if argv is None:  # a command-line run (tests pass argv): keep compiled code for the next run
         from jstarid.compilation_cache import enable_compilation_cache
         from jstarid.runtime import use_cpu_cores
-        # every executable kept (SGM compiles many small kernels: a warm run then loads them all)
-        enable_compilation_cache(min_compile_time_s=0.0)
+        enable_compilation_cache()  # every executable kept: a warm run loads them all
         use_cpu_cores()  # batches split over every core (one JAX device each)
     try:
         return args.func(args)
