@@ -190,27 +190,18 @@ def format_table(results) -> str:
 
 
 def draw(results, path):
-    import matplotlib.pyplot as plt
-
     mid = np.asarray(results["bins_v"][:-1]) + 0.25
-    panels = (("completeness", "completeness"), ("mag_bias", "measured − catalog V (mag)"),
+    curves = (("completeness", "completeness"), ("mag_bias", "measured − catalog V (mag)"),
               ("mag_sigma", "magnitude σ (mag)"), ("position_sigma_px", "position σ per axis (px)"))
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.8))
-    for ax, (key, label) in zip(axes, panels, strict=True):
-        for source, style in (("model", "-o"), ("rendered", "--s"), ("real", ":^"), ("fitted", "-.v")):
-            if source in results:
-                y = np.array([np.nan if v is None else v for v in results[source][key]])
-                ax.plot(mid, y, style, label=source, ms=4)
-        ax.set_xlabel("catalog V (mag)")
-        ax.set_ylabel(label)
-        if key == "position_sigma_px":
-            ax.set_yscale("log")
-    axes[0].legend()
-    fig.suptitle("tetra3_test: the sensor's detection model beside rendered frames; real frames and "
-                 "the model fitted to them")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    sources = (("model", "-o"), ("rendered", "--s"), ("real", ":^"), ("fitted", "-.v"))
+    panels = [js.plotting.Panel(
+        [js.plotting.Series(mid, results[source][key], source, style) for source, style in sources
+         if source in results],
+        xlabel="catalog V (mag)", ylabel=label, yscale="log" if key == "position_sigma_px" else "linear",
+        legend=key == "completeness") for key, label in curves]
+    js.plotting.save_panels(panels, path, size=(4.0, 3.8), dpi=110,
+                            title="tetra3_test: the sensor's detection model beside rendered frames; real "
+                                  "frames and the model fitted to them")
 
 
 if __name__ == "__main__":

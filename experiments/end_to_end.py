@@ -86,32 +86,24 @@ def run_axis(axis, args, algorithms, camera) -> list[dict]:
 
 
 def draw(results, path):
-    import matplotlib.pyplot as plt
-
     rows = results["rows"]
-    axes = list(dict.fromkeys(r["axis"] for r in rows))
-    fig, panels = plt.subplots(1, len(axes), figsize=(5 * len(axes), 3.8), squeeze=False)
-    for ax, axis in zip(panels[0], axes, strict=True):
+    Series = js.plotting.Series
+    panels = []
+    for axis in dict.fromkeys(r["axis"] for r in rows):
+        series = []
         for k, name in enumerate(dict.fromkeys(r["algorithm"] for r in rows)):
             sel = [r for r in rows if r["axis"] == axis and r["algorithm"] == name]
             x = [r["level"] for r in sel]
             y = np.array([r["pixels_identified"] for r in sel])
-            err = np.clip([y - [r["pixels_low"] for r in sel], [r["pixels_high"] for r in sel] - y], 0, None)
-            ax.errorbar(x, y, yerr=err, fmt="o-", color=f"C{k}", capsize=3, label=f"{name}: pixels")
-            ax.plot(x, [np.nan if r["centroids_identified"] is None else r["centroids_identified"]
-                        for r in sel], "s--", color=f"C{k}", alpha=0.7,
-                    label=f"{name}: centroids, same σ")
-        ax.set_xlabel(js.engine.AXES[axis])
-        if axis == "exposure_s":
-            ax.set_xscale("log")
-        ax.set_ylabel("identified")
-        ax.set_ylim(-0.02, 1.02)
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.suptitle(f"{results['camera']}: from rendered frames vs from simulated centroids")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+            err = [y - [r["pixels_low"] for r in sel], [r["pixels_high"] for r in sel] - y]
+            series += [Series(x, y, f"{name}: pixels", "o-", yerr=err, color=f"C{k}"),
+                       Series(x, [r["centroids_identified"] for r in sel], f"{name}: centroids, same σ",
+                              "s--", color=f"C{k}", alpha=0.7)]
+        panels.append(js.plotting.Panel(series, xlabel=js.engine.AXES[axis], ylabel="identified",
+                                        xscale="log" if axis == "exposure_s" else "linear",
+                                        ylim=(-0.02, 1.02)))
+    js.plotting.save_panels(panels, path,
+                            title=f"{results['camera']}: from rendered frames vs from simulated centroids")
 
 
 def main(argv=None):

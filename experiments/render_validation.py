@@ -248,23 +248,15 @@ def crb_section(args) -> dict:
 
 
 def draw_crb(results, path):
-    import matplotlib.pyplot as plt
-
     rows = results["crb"]["rows"]
     snr = [r["snr"] for r in rows]
-    fig, ax = plt.subplots(figsize=(6, 4))
-    ax.loglog(snr, [r["crb_px"] for r in rows], "k-", label="Cramér–Rao bound")
+    series = [js.plotting.Series(snr, [r["crb_px"] for r in rows], "Cramér–Rao bound", "k-")]
     for name in results["crb"]["configs"]:
         pts = [(r["snr"], r[f"{name}: rms_px"]) for r in rows if r[f"{name}: rms_px"]]
-        ax.loglog(*zip(*pts, strict=True), "o-", ms=4, label=f"extract_centroids ({name})")
-    ax.set_xlabel("star SNR")
-    ax.set_ylabel("x centroid error, RMS (px)")
-    ax.set_title("Centroid error vs the bound (PSF σ 0.8 px, read noise 10 e⁻)", fontsize=10)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+        series.append(js.plotting.Series(*zip(*pts, strict=True), f"extract_centroids ({name})"))
+    js.plotting.save_panels([js.plotting.Panel(
+        series, xlabel="star SNR", ylabel="x centroid error, RMS (px)", xscale="log", yscale="log",
+        title="Centroid error vs the bound (PSF σ 0.8 px, read noise 10 e⁻)")], path, size=(6.0, 4.0))
 
 
 # --- detection completeness and false detections -----------------------------------------------------
@@ -321,22 +313,14 @@ def completeness_section(args) -> dict:
 
 
 def draw_completeness(results, path):
-    import matplotlib.pyplot as plt
-
     r = results["completeness"]
     centres = np.asarray(r["bins_v"][:-1]) + 0.25
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for name, row in r["configs"].items():
-        y = [np.nan if c is None else c for c in row["completeness"]]
-        ax.plot(centres, y, "o-", ms=4, label=f"{name}: {row['false_per_frame']:.1f} false/frame")
-    ax.set_xlabel("V (mag)")
-    ax.set_ylabel("fraction of the stars detected")
-    ax.set_title("tetra3_test sensor: detection completeness")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    series = [js.plotting.Series(centres, row["completeness"],
+                                 f"{name}: {row['false_per_frame']:.1f} false/frame")
+              for name, row in r["configs"].items()]
+    js.plotting.save_panels([js.plotting.Panel(
+        series, xlabel="V (mag)", ylabel="fraction of the stars detected",
+        title="tetra3_test sensor: detection completeness")], path, size=(6.0, 4.0))
 
 
 # --- speed ------------------------------------------------------------------------------------------

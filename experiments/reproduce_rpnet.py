@@ -135,32 +135,23 @@ def table(results) -> str:
 
 def plot(results, path):
     """One figure with the sweeps, from the saved results."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    sweeps = results["sweeps"]
-    fig, axes = plt.subplots(1, len(sweeps), figsize=(4.2 * len(sweeps), 3.6), squeeze=False)
-    for ax, (name, res) in zip(axes[0], sweeps.items(), strict=True):
+    panels = []
+    for name, res in results["sweeps"].items():
         scale = 100.0 if res["field"] == "false_ratio" else 1.0
         x = [scale * r["level"] for r in res["rows"]]
-        ax.plot(x, [100 * r["identification_rate"] for r in res["rows"]], "o-", label="identification")
-        ax.plot(x, [100 * r["misid_rate"] for r in res["rows"]], "s--", label="mis-identification")
-        for approx, style, lab in ((False, "k*", "paper (quoted)"), (True, "kx", "paper (approx.)")):
+        series = [js.plotting.Series(x, [100 * r["identification_rate"] for r in res["rows"]],
+                                     "identification", "o-"),
+                  js.plotting.Series(x, [100 * r["misid_rate"] for r in res["rows"]],
+                                     "mis-identification", "s--")]
+        for approx, style, label in ((False, "k*", "paper (quoted)"), (True, "kx", "paper (approx.)")):
             pts = [(scale * r["level"], r["paper_identification_rate"]) for r in res["rows"]
                    if r["paper_identification_rate"] is not None and r["paper_approx"] == approx]
             if pts:
-                ax.plot(*zip(*pts, strict=True), style, ms=9, label=lab)
-        ax.set_xlabel(paper.SWEEPS[name].label.replace("ratio p", "ratio p (%)"))
-        ax.set_ylabel("rate (%)")
-        ax.set_ylim(-2, 102)
-        ax.grid(alpha=0.3)
-        ax.set_title(f"RpNet {name} ({results['config_name']})")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+                series.append(js.plotting.Series(*zip(*pts, strict=True), label, style, marker_size=9))
+        panels.append(js.plotting.Panel(
+            series, xlabel=paper.SWEEPS[name].label.replace("ratio p", "ratio p (%)"), ylabel="rate (%)",
+            ylim=(-2, 102), title=f"RpNet {name} ({results['config_name']})"))
+    js.plotting.save_panels(panels, path, size=(4.2, 3.6))
 
 
 def main(argv=None) -> dict:

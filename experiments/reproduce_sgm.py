@@ -218,24 +218,18 @@ def _table(results, seed) -> str:
 
 def _plot(results, path):
     """Accuracy per level and, dashed, its ceiling; from the saved results."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for exp in results["summary"]:
+    series = []
+    for k, exp in enumerate(results["summary"]):
         lv = [x for x in results["levels"] if x["experiment"] == exp]
         sigma = [x["sigma_px"] for x in lv]
-        accuracy = [np.nan if x["accuracy"] is None else 100 * x["accuracy"] for x in lv]
-        line, = ax.plot(sigma, accuracy, "o-", label=exp)
-        ax.plot(sigma, 100 * accuracy_bound([x["ceiling_rate"] for x in lv], MAX_FAILURE), "--",
-                color=line.get_color(), alpha=0.6)
-    ax.set_xlabel("position noise σ (px)")
-    ax.set_ylabel("accuracy, eq. 9 (%)")
-    ax.set_title("SGM on sgm2022, V ≤ 6 (mode b); dashed: ceiling")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+        series += [js.plotting.Series(sigma, [None if x["accuracy"] is None else 100 * x["accuracy"]
+                                              for x in lv], exp, "o-", color=f"C{k}"),
+                   js.plotting.Series(sigma, 100 * accuracy_bound([x["ceiling_rate"] for x in lv],
+                                                                  MAX_FAILURE),
+                                      None, "--", color=f"C{k}", alpha=0.6)]
+    js.plotting.save_panels([js.plotting.Panel(
+        series, xlabel="position noise σ (px)", ylabel="accuracy, eq. 9 (%)",
+        title="SGM on sgm2022, V ≤ 6 (mode b); dashed: ceiling")], path, size=(6.0, 4.0))
 
 
 if __name__ == "__main__":

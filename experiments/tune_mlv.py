@@ -194,32 +194,22 @@ def table(results, n, magnitude_sigma, seed) -> str:
 
 def plot(results, path):
     """Fig. 5 from the saved results."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
     styles = {"mlv": "-", "paper": "--"}
+    rates = {"identification": [], "misid": []}
     for variant, by_dv in results["fig5"].items():
         for i, (pair, res) in enumerate(by_dv.items()):  # one colour per Δv, one style per variant
             x = [r["position_sigma_px"] for r in res["rows"]]
             label = f"{'ours' if variant == 'mlv' else 'paper voting'} Δv {pair}"
-            style = dict(color=f"C{i}", marker="os^dv<>"[i % 7], label=label,
-                         linestyle=styles.get(variant, ":"))
-            ax1.plot(x, [100 * r["identification_rate"] for r in res["rows"]], **style)
-            ax2.plot(x, [100 * r["misid_rate"] for r in res["rows"]], **style)
-    ax1.set_ylabel("identification rate (%)")
-    ax2.set_ylabel("mis-identification rate (%)")
-    for ax in (ax1, ax2):
-        ax.set_xlabel("position noise σ (px), magnitude σ 0.3")
-        ax.grid(alpha=0.3)
-    ax1.legend(fontsize=7)
-    ax1.set_title("MLV Fig. 5: identification vs Δv1/Δv2")
-    ax2.set_title("mis-identification")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+            style = "os^dv<>"[i % 7] + styles.get(variant, ":")
+            for rate, series in rates.items():
+                series.append(js.plotting.Series(x, [100 * r[f"{rate}_rate"] for r in res["rows"]],
+                                                 label, style, color=f"C{i}"))
+    xlabel = "position noise σ (px), magnitude σ 0.3"
+    js.plotting.save_panels([
+        js.plotting.Panel(rates["identification"], xlabel=xlabel, ylabel="identification rate (%)",
+                          title="MLV Fig. 5: identification vs Δv1/Δv2"),
+        js.plotting.Panel(rates["misid"], xlabel=xlabel, ylabel="mis-identification rate (%)",
+                          title="mis-identification", legend=False)], path)
 
 
 def main(argv=None) -> dict:

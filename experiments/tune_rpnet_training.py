@@ -72,24 +72,13 @@ def _end_to_end(db, scenes, fam, camera) -> dict:
 
 def plot(results, path):
     """Each member's held-out accuracy during classifier training, from the saved results."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for r in results["members"]:
-        curve = r["held_out_curve"]
-        ax.plot(curve["steps"], [100 * a for a in curve["accuracy"]], marker=".",
-                label=f"w {r['clf_width']}, seed {r['seed']}, lr {r['dae_lr']:.0e}/{r['clf_lr']:.0e}")
-    ax.set_xlabel("classifier step")
-    ax.set_ylabel("held-out top-1 guide accuracy (%)")
-    ax.set_title("RpNet training grid (DAE / classifier learning rates)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    series = [js.plotting.Series(
+        r["held_out_curve"]["steps"], [100 * a for a in r["held_out_curve"]["accuracy"]],
+        f"w {r['clf_width']}, seed {r['seed']}, lr {r['dae_lr']:.0e}/{r['clf_lr']:.0e}", ".-")
+        for r in results["members"]]
+    js.plotting.save_panels([js.plotting.Panel(
+        series, xlabel="classifier step", ylabel="held-out top-1 guide accuracy (%)",
+        title="RpNet training grid (DAE / classifier learning rates)")], path, size=(7.0, 4.5))
 
 
 def table(results, network, t, n_scenes) -> str:

@@ -123,45 +123,28 @@ def _pct(x) -> str:
 
 def plot_dw(results, path):
     """Fig. 11 from the saved results."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     f11 = results["fig11"]
-    fig, ax = plt.subplots(figsize=(5.5, 4))
     s = [r["sigma_px"] for r in f11]
-    ax.plot(s, [r["mean_abs_dw"] for r in f11], "o-", label="mean")
-    ax.plot(s, [r["median_abs_dw"] for r in f11], "s-", label="median")
-    ax.plot(s, [r["p90_abs_dw"] for r in f11], "^-", label="90th percentile")
-    ax.set_xlabel("position noise σ (px)")
-    ax.set_ylabel("|w_I − w_J| (deg)")
-    ax.set_title("Fig. 11: MST weight shift under noise")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    series = [js.plotting.Series(s, [r[f"{key}_abs_dw"] for r in f11], label, style)
+              for key, label, style in (("mean", "mean", "o-"), ("median", "median", "s-"),
+                                        ("p90", "90th percentile", "^-"))]
+    js.plotting.save_panels([js.plotting.Panel(
+        series, xlabel="position noise σ (px)", ylabel="|w_I − w_J| (deg)",
+        title="Fig. 11: MST weight shift under noise")], path, size=(5.5, 4.0))
 
 
 def plot_eps(results, path):
     """Figs. 12–13 from the saved results."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    accuracy, failure = [], []
     for c in _cs(results):
         cells = [r for r in results["grid"] if r["c"] == c]
         e = [r["eps_deg"] for r in cells]
-        axes[0].plot(e, [np.nan if r["accuracy"] is None else 100 * r["accuracy"] for r in cells], "o-",
-                     label=f"c = {c:g}")
-        axes[1].plot(e, [100 * r["failure_rate"] for r in cells], "o-", label=f"c = {c:g}")
-    axes[0].set_ylabel("accuracy, eq. 9 (%)")
-    axes[1].set_ylabel("failure rate (%)")
-    for ax in axes:
-        ax.set_xlabel("ε_δ (deg)")
-        ax.legend()
-    fig.suptitle(f"Figs. 12–13: σ = {results['sigma_px']} px")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+        accuracy.append(js.plotting.Series(e, [None if r["accuracy"] is None else 100 * r["accuracy"]
+                                               for r in cells], f"c = {c:g}"))
+        failure.append(js.plotting.Series(e, [100 * r["failure_rate"] for r in cells], f"c = {c:g}"))
+    js.plotting.save_panels([js.plotting.Panel(accuracy, xlabel="ε_δ (deg)", ylabel="accuracy, eq. 9 (%)"),
+                             js.plotting.Panel(failure, xlabel="ε_δ (deg)", ylabel="failure rate (%)")],
+                            path, title=f"Figs. 12–13: σ = {results['sigma_px']} px", size=(5.0, 4.0))
 
 
 if __name__ == "__main__":

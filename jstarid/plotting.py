@@ -2,11 +2,114 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["plot_image", "plot_scene", "plot_solution", "plot_sweep", "plot_sweep_axes", "save_solution_plot"]
+__all__ = ["Panel", "Series", "draw_panels", "plot_image", "plot_scene", "plot_solution", "plot_sweep",
+           "plot_sweep_axes", "save_panels", "save_solution_plot"]
+
+
+class Series(NamedTuple):
+    """One line of a :class:`Panel`.
+
+    Attributes:
+        x, y: (n,) values (NaN: a gap).
+        label: its legend entry (``None``: none).
+        style: a matplotlib format string (marker and line style: ``"o-"``, ``"s--"``, ``":^"``).
+        yerr: (n,) or (2, n) error bars (below, above); ``None``: none.
+        color: a matplotlib colour (``"C2"``); ``None``: the next of the cycle.
+        alpha: opacity.
+        marker_size: points.
+    """
+
+    x: Sequence[float]
+    y: Sequence[float]
+    label: str | None = None
+    style: str = "o-"
+    yerr: Any = None
+    color: str | None = None
+    alpha: float = 1.0
+    marker_size: float = 4.0
+
+
+class Panel(NamedTuple):
+    """One axes of a figure drawn by :func:`draw_panels`: its lines and how its axes read.
+
+    Attributes:
+        series: the :class:`Series` drawn, in order.
+        xlabel, ylabel, title: the axes' texts.
+        xscale, yscale: ``"linear"`` or ``"log"``.
+        ylim: ``(bottom, top)`` (either ``None``: free); ``None``: free.
+        legend: draw a legend (of the series with a label).
+    """
+
+    series: Sequence[Series]
+    xlabel: str = ""
+    ylabel: str = ""
+    title: str = ""
+    xscale: str = "linear"
+    yscale: str = "linear"
+    ylim: tuple[float | None, float | None] | None = None
+    legend: bool = True
+
+
+def draw_panels(panels: Sequence[Panel], *, title: str = "", size: tuple[float, float] = (5.0, 3.8)):
+    """Panels side by side in one figure: the line charts of the experiment scripts, drawn from
+    values they read from their saved results.
+
+    Args:
+        panels: one :class:`Panel` per axes, left to right.
+        title: the figure's title (``""``: none).
+        size: (width, height) of one panel (inches).
+
+    Returns:
+        The matplotlib figure (close it with ``plt.close``, or use :func:`save_panels`).
+    """
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(size[0] * len(panels), size[1]), squeeze=False)
+    for ax, panel in zip(axes[0], panels, strict=True):
+        for line in panel.series:
+            y = np.asarray([np.nan if v is None else v for v in line.y], float)
+            options = dict(label=line.label, alpha=line.alpha, ms=line.marker_size)
+            if line.color is not None:
+                options["color"] = line.color
+            if line.yerr is None:
+                ax.plot(line.x, y, line.style, **options)
+            else:
+                ax.errorbar(line.x, y, yerr=np.clip(np.asarray(line.yerr, float), 0, None),
+                            fmt=line.style, capsize=3, **options)
+        ax.set_xlabel(panel.xlabel)
+        ax.set_ylabel(panel.ylabel)
+        if panel.title:
+            ax.set_title(panel.title, fontsize=9)
+        ax.set_xscale(panel.xscale)
+        ax.set_yscale(panel.yscale)
+        if panel.ylim is not None:
+            ax.set_ylim(*panel.ylim)
+        ax.grid(alpha=0.3)
+        if panel.legend and any(line.label for line in panel.series):
+            ax.legend(fontsize=7)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def save_panels(panels: Sequence[Panel], path, *, title: str = "", size: tuple[float, float] = (5.0, 3.8),
+                dpi: int = 120) -> None:
+    """:func:`draw_panels` into ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = draw_panels(panels, title=title, size=size)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
 
 
 def plot_scene(scenes, index: int, catalog, camera, *, ids=None, ax=None, label_limit: int = 40):
