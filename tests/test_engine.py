@@ -201,6 +201,24 @@ def test_grid_runs_as_one_batch_and_equals_single_entries():
         js.grid("mlv", base, wobble=[1])
 
 
+def test_equal_outcomes_holds_counts_exactly_and_measured_floats_within_rtol(small):
+    """A grid's entry run alone may round its camera check's floats otherwise (a call of another
+    width): ``equal_outcomes`` holds counts and flags exactly and floats within ``rtol``."""
+    floats = [k for k, v in small.scenes.items() if np.asarray(v).dtype.kind == "f"]
+    counts = [k for k, v in small.scenes.items() if np.asarray(v).dtype.kind in "iub"]
+    assert floats and counts
+
+    def changed(key, change):
+        scenes = {k: np.array(v) for k, v in small.scenes.items()}
+        scenes[key] = change(scenes[key])
+        return dataclasses.replace(small, scenes=scenes)
+
+    rounded = changed(floats[0], lambda a: a * (1 + 1e-5))
+    assert rounded.equal_outcomes(small) and not rounded.equal_outcomes(small, rtol=0)
+    assert not changed(floats[0], lambda a: a * 1.01 + 1.0).equal_outcomes(small)
+    assert not changed(counts[0], lambda a: a + 1).equal_outcomes(small)
+
+
 def test_save_and_load_round_trip(small, tmp_path):
     small.save(tmp_path)
     back = js.load_sweep(tmp_path)

@@ -228,13 +228,27 @@ class SweepResult:
         np.savez_compressed(out / "scenes.npz", level_of=self.level_of, **extra, **self.scenes)
         return out
 
-    def equal_outcomes(self, other: SweepResult) -> bool:
-        """Same levels, entries and per-scene outcome arrays (timings aside)."""
+    def equal_outcomes(self, other: SweepResult, *, rtol: float = 1e-3) -> bool:
+        """Same levels, entries and per-scene outcome arrays (timings aside).
+
+        Counts and flags (names right and wrong, identified, failed, …) must be equal; measured
+        floats (a claim's false-match probability, the boresight error) equal within ``rtol``: they
+        come from the camera check's fit, whose calls cut the detections to the columns their scenes
+        fill (:func:`jstarid.camera_fit.check_width`), so a scene run in another batch — a grid's
+        entry alone rather than in the grid's one batch — can round them otherwise in the last
+        digits (a P of 8.596e-05 against 8.597e-05). ``rtol=0`` asks for bit equality.
+        """
+        def same(a, b):
+            a, b = np.asarray(a), np.asarray(b)
+            if rtol and a.dtype.kind == "f" and b.dtype.kind == "f":
+                return a.shape == b.shape and bool(np.allclose(a, b, rtol=rtol, atol=0.0, equal_nan=True))
+            return np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+
         return (self.labels == other.labels and self.levels == other.levels
                 and np.array_equal(self.level_of, other.level_of)
                 and (self.stars is None or other.stars is None or np.array_equal(self.stars, other.stars))
-                and all(np.array_equal(self.scenes[k], other.scenes[k], equal_nan=True)
-                        for k in self.scenes))
+                and set(self.scenes) == set(other.scenes)
+                and all(same(self.scenes[k], other.scenes[k]) for k in self.scenes))
 
 
 def load(out: str | Path) -> SweepResult:

@@ -309,7 +309,12 @@ def test_batched_search_equals_sequential_algorithm1_and_single_calls(setup5):
     for s in range(rows.size):
         best, err, level, n_tried = _sequential_algorithm1(
             db, np.asarray(g.adj[s]), np.asarray(g.mask[s]), float(g.w[s]), cfg)
-        assert info.best[s] == best
+        if info.best[s] != best:  # a tie in δ: twin graphs, the same stars about two main stars,
+            # which the sequential loop takes in row order and the batch in order of |w_J − w_I|
+            twin = int(info.best[s])
+            assert best >= 0 and twin >= 0
+            assert set(db.members[twin, :db.n[twin]]) == set(db.members[best, :db.n[best]])
+            np.testing.assert_allclose(info.error[s], err, rtol=1e-6)
         assert info.level[s] == level
         if best >= 0:
             np.testing.assert_allclose(info.error[s], err, rtol=1e-4, atol=1e-6)
@@ -951,12 +956,15 @@ def test_next_main_star_solves_scenes_whose_main_star_is_a_false_star(setup5):
     """``main_stars`` = 2 searches an unsolved scene again around the second detection nearest the
     principal point: a false star there fails the paper's single main star, the next one names the
     scene (every name right). Counted with the engine's metrics, strict criterion; the focal-length
-    ladder off to bound the work. (Without the camera check and with Δw_max cut to 0.5°, 2 of these
-    32 scenes are named wrongly either way: the check is what takes those names back.)"""
+    ladder off to bound the work, and the finishing stage's hypothesis search too: it solves most
+    of these scenes over the whole frame whichever main star the search had, and would name them
+    otherwise than the circle of the next main star. (Without the camera check and with Δw_max cut
+    to 0.5°, 2 of these 32 scenes are named wrongly either way: the check is what takes those names
+    back.)"""
     cat, cam, db = setup5
     scenes = _false_star_at_the_centre(js.simulate(jax.random.key(31), cat, cam, batch_size=32,
                                                    capacity=64), cam)
-    cfg = _without_ladder(sgm.Config())
+    cfg = with_fields(_without_ladder(sgm.Config()), {"finishing.hypotheses": 0})
     one = sgm.identify(db, scenes, cfg)
     two = sgm.identify(db, scenes, dataclasses.replace(cfg, main_stars=2))
     m1 = js.metrics.scene_outcomes(scenes, one, "strict", camera=cam)
