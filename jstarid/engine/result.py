@@ -228,15 +228,15 @@ class SweepResult:
         np.savez_compressed(out / "scenes.npz", level_of=self.level_of, **extra, **self.scenes)
         return out
 
-    def equal_outcomes(self, other: SweepResult, *, rtol: float = 1e-3) -> bool:
-        """Same levels, entries and per-scene outcome arrays (timings aside).
+    def equal_outcomes(self, other: SweepResult, *, rtol: float = 0.0) -> bool:
+        """Same levels, entries and per-scene outcome arrays (timings aside), bit for bit.
 
-        Counts and flags (names right and wrong, identified, failed, …) must be equal; measured
-        floats (a claim's false-match probability, the boresight error) equal within ``rtol``: they
-        come from the camera check's fit, whose calls cut the detections to the columns their scenes
-        fill (:func:`jstarid.camera_fit.check_width`), so a scene run in another batch — a grid's
-        entry alone rather than in the grid's one batch — can round them otherwise in the last
-        digits (a P of 8.596e-05 against 8.597e-05). ``rtol=0`` asks for bit equality.
+        With ``rtol`` > 0, counts and flags (names right and wrong, identified, failed, …) must
+        still be equal and measured floats (a claim's false-match probability, the boresight error)
+        equal within ``rtol``: they come from the camera check's fit, whose calls cut the detections
+        to the columns their scenes fill (:func:`jstarid.camera_fit.check_width`), so a scene run in
+        another batch — a grid's entry alone rather than in the grid's one batch — can round them
+        otherwise in the last digits (a P of 8.596e-05 against 8.597e-05).
         """
         def same(a, b):
             a, b = np.asarray(a), np.asarray(b)
